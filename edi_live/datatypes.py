@@ -1,0 +1,165 @@
+"""The data contract every stage speaks: events, frames, IMU, triggers, packets and reconstructions.
+
+Time is always int64 microseconds on the sensor clock (for recordings: Unix µs as stored in AEDAT4).
+Events use one structured dtype everywhere. Its layout is AEDAT4's 16-byte event record
+(t at byte 0, x at 8, y at 10, polarity at 12), so a decompressed EVTS buffer is viewed without a copy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+EVENT_DTYPE = np.dtype(
+    {
+        "names": ["t", "x", "y", "p"],
+        "formats": ["<i8", "<u2", "<u2", "?"],
+        "offsets": [0, 8, 10, 12],
+        "itemsize": 16,
+    }
+)
+"""t: µs (int64), x/y: pixel column/row (uint16), p: polarity, True = ON (brighter)."""
+
+IMU_DTYPE = np.dtype(
+    [
+        ("t", "<i8"),
+        ("temperature_c", "<f4"),
+        ("accel_g", "<f4", (3,)),
+        ("gyro_dps", "<f4", (3,)),
+        ("mag_ut", "<f4", (3,)),
+    ]
+)
+"""One IMU sample: accelerometer in g, gyroscope in °/s, magnetometer in µT, temperature in °C."""
+
+TRIGGER_DTYPE = np.dtype([("t", "<i8"), ("type", "i1")])
+"""One trigger. `type` follows AEDAT4's TriggerType enum (6/7 = APS frame start/end, 8/9 = exposure start/end)."""
+
+
+def empty_events(n: int = 0) -> np.ndarray:
+    return np.zeros(n, dtype=EVENT_DTYPE)
+
+
+def empty_imu(n: int = 0) -> np.ndarray:
+    return np.zeros(n, dtype=IMU_DTYPE)
+
+
+def empty_triggers(n: int = 0) -> np.ndarray:
+    return np.zeros(n, dtype=TRIGGER_DTYPE)
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """One APS (intensity) frame with its exposure window.
+
+    `image` is (height, width), row-major, uint8 or uint16 gray. B is the mean of the latent image over
+    [exposure_start_us, exposure_end_us]. `start_us`/`end_us` are the readout start/end when known.
+    """
+
+    image: np.ndarray
+    exposure_start_us: int
+    exposure_end_us: int
+    start_us: int | None = None
+    end_us: int | None = None
+    seq: int = 0
+
+    def __post_init__(self) -> None:
+        if self.image.ndim != 2:
+            raise ValueError(f"Frame.image must be 2-D (got shape {self.image.shape})")
+        if self.exposure_end_us < self.exposure_start_us:
+            raise ValueError(
+                f"Frame exposure ends before it starts (got {self.exposure_start_us}..{self.exposure_end_us} µs)"
+            )
+
+    @property
+    def exposure_us(self) -> int:
+        return self.exposure_end_us - self.exposure_start_us
+
+    @property
+    def mid_exposure_us(self) -> int:
+        return (self.exposure_start_us + self.exposure_end_us) // 2
+
+    @property
+    def height(self) -> int:
+        return int(self.image.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.image.shape[1])
+
+
+@dataclass(slots=True)
+class Packet:
+    """What a source hands on in one step, in time order.
+
+    Ordering contract (live and replay alike): `events` are sorted by t. Every event with
+    t <= frame.exposure_end_us of a frame in this packet is in this packet or an earlier one, so a
+    consumer may deblur a frame as soon as it sees it. `watermark_us` promises that no later packet holds
+    an event with t < watermark_us. `gap` is True when data was lost just before this packet (drops),
+    so reconstruction state spanning the gap is unreliable. `arrival_ns` is host time.monotonic_ns()
+    when the data reached the host (for latency).
+    """
+
+    events: np.ndarray = field(default_factory=empty_events)
+    frames: list[Frame] = field(default_factory=list)
+    imu: np.ndarray = field(default_factory=empty_imu)
+    triggers: np.ndarray = field(default_factory=empty_triggers)
+    watermark_us: int = -(2**63)
+    arrival_ns: int = 0
+    gap: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class SourceInfo:
+    """What a source says about the camera it stands for."""
+
+    width: int
+    height: int
+    name: str = "unknown"  # e.g. "DAVIS346" or "DAVIS240C"
+    serial: str = ""
+    kind: Literal["usb", "replay", "emulator"] = "replay"
+
+    @property
+    def label(self) -> str:
+        """Camera name and serial as users see them, e.g. 'DAVIS346_00000391'."""
+        return f"{self.name}_{self.serial}" if self.serial else self.name
+
+
+@dataclass(slots=True)
+class SourceStatus:
+    """Counters a source exposes; read from any thread (values are plain ints)."""
+
+    packets: int = 0
+    events: int = 0
+    frames: int = 0
+    dropped_bytes: int = 0
+    dropped_events: int = 0
+    gaps: int = 0
+    backlog: int = 0
+
+
+Kind = Literal["deblurred", "latent"]
+
+
+@dataclass(frozen=True, slots=True)
+class Reconstruction:
+    """One sharp frame produced by the EDI worker.
+
+    `image` is (height, width) uint8 gray, display-ready and owned by the receiver (a copy, never a view
+    of reconstructor state); linear intensity on the 8-bit APS scale. `t_us` the latent time, `ref_t_us` the reference time f of the APS frame it derives from,
+    `exposure_*` that APS frame's exposure window. `c_on`/`c_off` are the thresholds used (equal when
+    a single c is used). `n_events` counts events since the previous emitted reconstruction.
+    `arrival_ns` is the host arrival time of the last event included (for latency).
+    """
+
+    image: np.ndarray
+    t_us: int
+    kind: Kind
+    ref_t_us: int
+    exposure_start_us: int
+    exposure_end_us: int
+    c_on: float
+    c_off: float
+    n_events: int
+    arrival_ns: int = 0

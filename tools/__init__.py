@@ -1,0 +1,1 @@
+"""Benchmarks, the scene simulator and the viewer. Not imported by the packages."""

@@ -1,0 +1,173 @@
+"""`edi_live.client`: subscribe to an edi-live publisher and get `(header, numpy image)` pairs.
+
+    from edi_live.client import subscribe
+    for header, image in subscribe("tcp://127.0.0.1:5555"):
+        print(header["seq"], header["t"], image.shape)
+
+With `newest_only=True` (the default) each receive drains the socket and keeps the newest complete frame, so
+a viewer that falls behind skips to the present instead of lagging (ZMQ_CONFLATE cannot be used: it keeps
+only the last *part* of a multipart message). Every receive has a timeout or waits in short interruptible
+slices. Malformed or oversized messages raise `ClientError`; a receive that times out raises `ClientTimeout`
+(a `ClientError` and a `TimeoutError`) from `subscribe()`, or returns None from `Subscriber.recv()`.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import zmq
+import zmq.auth
+
+from edi_live import wire
+from edi_live.errors import ClientError
+
+DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
+DEFAULT_MAX_BYTES = wire.DEFAULT_MAX_BYTES
+_SLICE_S = 0.1  # longest single wait, so Ctrl-C is noticed even with timeout_s=None
+_MAX_DRAIN = 10_000  # bound on messages drained per receive, so a flood cannot spin forever
+
+
+class ClientTimeout(ClientError, TimeoutError):
+    """No message arrived within the timeout."""
+
+
+def _server_public_key(key: str | bytes | os.PathLike) -> bytes:
+    """A Z85 server public key given as the key itself or as a certificate file (server.key)."""
+    if isinstance(key, bytes) and len(key) == 40:
+        return key
+    if isinstance(key, str) and len(key) == 40 and not Path(key).exists():
+        return key.encode("ascii")
+    try:
+        public, _ = zmq.auth.load_certificate(Path(os.fsdecode(key)))
+    except Exception as exc:
+        raise ClientError(f"cannot read CURVE server public key {key}: {exc}") from exc
+    return public
+
+
+class Subscriber:
+    """A SUB socket on one edi-live endpoint (context manager). Frames and stats use separate sockets,
+    so waiting for one never consumes the other."""
+
+    def __init__(self, endpoint: str = DEFAULT_ENDPOINT, *, newest_only: bool = True,
+                 max_bytes: int = DEFAULT_MAX_BYTES, curve_server_key: str | bytes | os.PathLike | None = None,
+                 rcvhwm: int | None = None, stats: bool = True) -> None:
+        self.endpoint = endpoint
+        self.newest_only = newest_only
+        self.max_bytes = max_bytes
+        self.received = 0  # frames handed to the caller
+        self.skipped = 0  # frames drained and discarded by newest_only
+        self.last_stats: dict | None = None
+        self._server_key = _server_public_key(curve_server_key) if curve_server_key is not None else None
+        self._rcvhwm = rcvhwm if rcvhwm is not None else (16 if newest_only else 1000)
+        self._ctx = zmq.Context(io_threads=1)
+        try:
+            self._frames = self._socket(wire.FRAME_TOPIC)
+            self._stats = self._socket(wire.STATS_TOPIC) if stats else None
+        except BaseException:
+            self._ctx.destroy(linger=0)
+            raise
+
+    def _socket(self, topic: bytes) -> zmq.Socket:
+        sock = self._ctx.socket(zmq.SUB)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.RCVHWM, self._rcvhwm)
+        # libzmq disconnects a peer that sends a larger part: a memory guard well above max_bytes, so
+        # moderately oversized messages still arrive and are rejected with a ClientError.
+        sock.setsockopt(zmq.MAXMSGSIZE, 4 * self.max_bytes)
+        if self._server_key is not None:
+            public, secret = zmq.curve_keypair()
+            sock.curve_secretkey, sock.curve_publickey = secret, public
+            sock.curve_serverkey = self._server_key
+        sock.setsockopt(zmq.SUBSCRIBE, topic)
+        try:
+            sock.connect(self.endpoint)
+        except zmq.ZMQError as exc:
+            sock.close(linger=0)
+            raise ClientError(f"cannot connect to {self.endpoint}: {exc.strerror}; expected "
+                              "tcp://HOST:PORT or ipc:///PATH") from exc
+        return sock
+
+    def _wait(self, sock: zmq.Socket, timeout_s: float | None) -> bool:
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            slice_s = _SLICE_S if deadline is None else min(_SLICE_S, deadline - time.monotonic())
+            if sock.poll(max(0, int(slice_s * 1000))):
+                return True
+            if deadline is not None and time.monotonic() >= deadline:
+                return False
+
+    def _recv_parts(self, sock: zmq.Socket, timeout_s: float | None) -> tuple[list[zmq.Frame] | None, int]:
+        """The next message (or the newest available one with newest_only) and how many were skipped."""
+        if not self._wait(sock, timeout_s):
+            return None, 0
+        parts = sock.recv_multipart(copy=False)
+        skipped = 0
+        while self.newest_only and skipped < _MAX_DRAIN:
+            try:
+                parts = sock.recv_multipart(flags=zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                break
+            skipped += 1
+        return parts, skipped
+
+    def recv(self, timeout_s: float | None = None) -> tuple[dict, np.ndarray] | None:
+        """The next frame as (header, image), or None if none arrived within timeout_s (None = wait).
+
+        The image is read-only and shares the message buffer. Raises ClientError on a bad message."""
+        parts, skipped = self._recv_parts(self._frames, timeout_s)
+        if parts is None:
+            return None
+        self.skipped += skipped
+        header, image = wire.decode_frame(parts, max_bytes=self.max_bytes)
+        self.received += 1
+        return header, image
+
+    def recv_stats(self, timeout_s: float | None = 0.0) -> dict | None:
+        """The newest stats map that arrived since the last call (waiting up to timeout_s), or None."""
+        if self._stats is None:
+            raise ClientError("this Subscriber was created with stats=False")
+        saved, self.newest_only = self.newest_only, True  # stats are always drained to the newest
+        try:
+            parts, _ = self._recv_parts(self._stats, timeout_s)
+        finally:
+            self.newest_only = saved
+        if parts is None:
+            return None
+        self.last_stats = wire.decode_stats(parts)
+        return self.last_stats
+
+    def close(self) -> None:
+        self._ctx.destroy(linger=0)
+
+    def __enter__(self) -> "Subscriber":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __iter__(self) -> Iterator[tuple[dict, np.ndarray]]:
+        while True:
+            item = self.recv(None)
+            if item is not None:
+                yield item
+
+
+def subscribe(endpoint: str = DEFAULT_ENDPOINT, *, newest_only: bool = True, timeout_s: float | None = None,
+              max_bytes: int = DEFAULT_MAX_BYTES,
+              curve_server_key: str | bytes | os.PathLike | None = None) -> Iterator[tuple[dict, np.ndarray]]:
+    """Yield (header, image) for every frame received (the newest one with newest_only).
+
+    timeout_s: the longest wait for one frame; then ClientTimeout is raised (None = wait indefinitely).
+    Raises ClientError on a malformed or oversized message. The socket closes when the generator does."""
+    with Subscriber(endpoint, newest_only=newest_only, max_bytes=max_bytes,
+                    curve_server_key=curve_server_key, stats=False) as sub:
+        while True:
+            item = sub.recv(timeout_s)
+            if item is None:
+                raise ClientTimeout(f"no frame from {endpoint} within {timeout_s} s: is edi-live running "
+                                    "and publishing there?")
+            yield item

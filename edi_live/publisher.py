@@ -1,0 +1,321 @@
+"""The publisher thread: owns the ZeroMQ context and PUB socket(s) and sends frames and once-a-second stats.
+
+The worker hands reconstructions to `submit()`, which never blocks: a bounded inbox drops its oldest entry
+when full (counted). The thread sends with NOBLOCK and `copy=False`; `SNDHWM` bounds libzmq's per-subscriber
+queue, and PUB drops for a subscriber that does not read, so a slow or dead viewer never slows the worker and
+memory stays bounded. Bind failures surface synchronously from `start()` as `BindError`.
+
+CURVE: `curve_secret_key` is the path of a ZeroMQ certificate file holding the server's secret key, in the
+ZPL format written by `zmq.auth.create_certificates` (a `*.key_secret` file with `public-key` and
+`secret-key` in Z85). Generate a pair with ``python -m edi_live.publisher --gen-curve-keys DIR``; subscribers
+need only `DIR/server.key` (the public half). Clients are not authenticated: CURVE here gives encryption and
+server authentication, any subscriber that knows the server's public key may connect.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import logging
+import os
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import zmq
+import zmq.auth
+
+from edi_live import wire
+from edi_live.datatypes import Reconstruction
+from edi_live.errors import BindError, PublishError
+
+log = logging.getLogger(__name__)
+
+DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
+DEFAULT_SNDHWM = 16  # frames queued per subscriber inside libzmq before PUB drops for that subscriber
+DEFAULT_INBOX = 64  # reconstructions waiting for the thread; a publisher that keeps up never fills it
+LATENCY_SAMPLES = 8192  # bound on latency samples kept per stats interval (the most recent win)
+_START_TIMEOUT_S = 10.0
+
+
+def _bind_message(endpoint: str, exc: zmq.ZMQError) -> str:
+    if exc.errno == zmq.EADDRINUSE:
+        return (f"cannot publish on {endpoint}: address already in use (another edi-live or program holds "
+                "that port); choose another with --publish tcp://127.0.0.1:PORT")
+    if exc.errno == zmq.EADDRNOTAVAIL:
+        return f"cannot publish on {endpoint}: this machine has no such address; use 127.0.0.1 or 0.0.0.0"
+    if exc.errno in (zmq.EINVAL, zmq.EPROTONOSUPPORT):
+        return (f"cannot publish on {endpoint}: not a valid ZeroMQ endpoint ({exc.strerror}); expected "
+                "tcp://HOST:PORT or ipc:///PATH")
+    return f"cannot publish on {endpoint}: {exc.strerror}"
+
+
+def load_secret_key(path: str | os.PathLike) -> tuple[bytes, bytes]:
+    """(public, secret) Z85 keys from a ZeroMQ certificate file; PublishError if unusable."""
+    path = Path(path)
+    try:
+        public, secret = zmq.auth.load_certificate(path)
+    except Exception as exc:  # OSError for a missing file, ValueError for a malformed one
+        raise PublishError(f"cannot read CURVE secret key {path}: {exc}; generate one with "
+                           "`python -m edi_live.publisher --gen-curve-keys DIR`") from exc
+    if not secret:
+        raise PublishError(f"CURVE key file {path} holds no secret key (pass the *.key_secret file, "
+                           "not the public *.key)")
+    return public, secret
+
+
+def generate_curve_keys(directory: str | os.PathLike) -> tuple[Path, Path]:
+    """Write `server.key` (public, for subscribers) and `server.key_secret` (for the publisher) into directory."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    public, secret = zmq.auth.create_certificates(directory, "server")
+    os.chmod(secret, 0o600)
+    return Path(public), Path(secret)
+
+
+class _Latency:
+    """Latency samples (µs) of the current stats interval, in a fixed-size buffer."""
+
+    def __init__(self, size: int = LATENCY_SAMPLES) -> None:
+        self._buf = np.zeros(size, dtype=np.float64)
+        self._n = 0
+
+    def add(self, value_us: float) -> None:
+        self._buf[self._n % len(self._buf)] = value_us
+        self._n += 1
+
+    def take(self) -> tuple[float | None, float | None]:
+        """p50 and p99 of the samples since the last take (None when there were none), then reset."""
+        n = min(self._n, len(self._buf))
+        self._n = 0
+        if n == 0:
+            return None, None
+        p50, p99 = np.percentile(self._buf[:n], [50, 99])
+        return float(p50), float(p99)
+
+
+class Publisher:
+    """Sends reconstructions over ZeroMQ PUB sockets from its own thread.
+
+    endpoints: ZeroMQ endpoints to bind (``tcp://127.0.0.1:*`` picks a free port; see `bound_endpoints`).
+    source: camera name or serial, put in every frame header.
+    stats_provider: called once per stats interval on the publisher thread; its map is merged with the
+    publisher's own counters (frames_sent, publish_dropped, latency_p50_us, latency_p99_us) into the stats
+    message. on_error: called with the exception if the thread dies (the node's fail()).
+    """
+
+    def __init__(self, endpoints: Sequence[str] | str = (DEFAULT_ENDPOINT,), source: str = "unknown", *,
+                 curve_secret_key: str | os.PathLike | None = None, sndhwm: int = DEFAULT_SNDHWM,
+                 inbox_size: int = DEFAULT_INBOX, stats_provider: Callable[[], dict] | None = None,
+                 stats_interval_s: float = 1.0,
+                 on_error: Callable[[BaseException], None] | None = None) -> None:
+        if isinstance(endpoints, str):
+            endpoints = [endpoints]
+        if not endpoints:
+            raise PublishError("Publisher needs at least one endpoint (e.g. tcp://127.0.0.1:5555)")
+        if inbox_size < 1 or sndhwm < 0 or stats_interval_s <= 0:
+            raise PublishError(f"invalid publisher limits (got inbox_size={inbox_size}, sndhwm={sndhwm}, "
+                               f"stats_interval_s={stats_interval_s})")
+        self.endpoints = list(endpoints)
+        self.source = source
+        self.curve_secret_key = curve_secret_key
+        self.sndhwm = sndhwm
+        self.stats_interval_s = stats_interval_s
+        self.bound_endpoints: list[str] = []
+        self.curve_public_key: bytes | None = None
+        self._stats_provider = stats_provider
+        self._on_error = on_error
+        self._inbox: collections.deque[Reconstruction] = collections.deque()
+        self._inbox_size = inbox_size
+        self._cond = threading.Condition()
+        self._stop = False
+        self._ready = threading.Event()
+        self._start_error: BaseException | None = None
+        self.error: BaseException | None = None
+        self._thread: threading.Thread | None = None
+        self._latency = _Latency()
+        self._seq = 0
+        self._sent = 0
+        self._dropped_inbox = 0
+        self._dropped_socket = 0
+        self._stats: dict[str, Any] = {"latency_p50_us": None, "latency_p99_us": None, "sent_per_s": 0.0}
+        self._provider_failed = False
+
+    # ---- called from other threads ----
+
+    def start(self) -> None:
+        """Start the thread and bind every endpoint; raises BindError (or PublishError) if that fails."""
+        if self._thread is not None:
+            raise PublishError("Publisher.start() called twice")
+        self._thread = threading.Thread(target=self._run, name="publisher", daemon=True)
+        self._thread.start()
+        if not self._ready.wait(_START_TIMEOUT_S):
+            raise PublishError(f"publisher did not bind {self.endpoints} within {_START_TIMEOUT_S:.0f} s")
+        if self._start_error is not None:
+            self._thread.join(_START_TIMEOUT_S)
+            raise self._start_error
+
+    def submit(self, rec: Reconstruction) -> None:
+        """Queue one reconstruction for sending. Never waits: a full inbox drops its oldest entry (counted)."""
+        with self._cond:
+            if len(self._inbox) >= self._inbox_size:
+                self._inbox.popleft()
+                self._dropped_inbox += 1
+            self._inbox.append(rec)
+            self._cond.notify()
+
+    def pending(self) -> int:
+        """Reconstructions waiting in the inbox (never more than inbox_size)."""
+        return len(self._inbox)
+
+    def stats(self) -> dict[str, Any]:
+        """Counters in code names: sent, dropped (= dropped_inbox + dropped_socket), latency_p50_us and
+        latency_p99_us of the last stats interval (None before any frame), sent_per_s, last_seq."""
+        return {"sent": self._sent, "dropped": self._dropped_inbox + self._dropped_socket,
+                "dropped_inbox": self._dropped_inbox, "dropped_socket": self._dropped_socket,
+                "last_seq": self._seq - 1, **self._stats}
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Send what the inbox holds, close the sockets with linger 0 and join the thread."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout_s)
+            if self._thread.is_alive():
+                raise PublishError(f"publisher thread did not stop within {timeout_s} s")
+
+    def __enter__(self) -> "Publisher":
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ---- the publisher thread ----
+
+    def _open(self, ctx: zmq.Context) -> zmq.Socket:
+        sock = ctx.socket(zmq.PUB)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.SNDHWM, self.sndhwm)
+        if self.curve_secret_key is not None:
+            if not zmq.has("curve"):
+                raise PublishError("this libzmq was built without CURVE; cannot use --curve-secret-key")
+            public, secret = load_secret_key(self.curve_secret_key)
+            sock.curve_secretkey = secret
+            sock.curve_publickey = public
+            sock.curve_server = True
+            self.curve_public_key = public
+        for endpoint in self.endpoints:
+            try:
+                sock.bind(endpoint)
+            except zmq.ZMQError as exc:
+                raise BindError(_bind_message(endpoint, exc)) from exc
+            self.bound_endpoints.append(sock.getsockopt_string(zmq.LAST_ENDPOINT))
+        return sock
+
+    def _run(self) -> None:
+        ctx = zmq.Context(io_threads=1)
+        sock = None
+        try:
+            try:
+                sock = self._open(ctx)
+            except BaseException as exc:
+                self._start_error = exc
+                return
+            finally:
+                self._ready.set()
+            self._loop(sock)
+        except BaseException as exc:  # anything after start is fatal to the node: hand it on
+            self.error = exc
+            log.error("publisher thread failed: %s", exc)
+            if self._on_error is not None:
+                self._on_error(exc)
+        finally:
+            if sock is not None:
+                sock.close(linger=0)
+            ctx.term()
+
+    def _loop(self, sock: zmq.Socket) -> None:
+        interval_ns = int(self.stats_interval_s * 1e9)
+        next_stats_ns = time.monotonic_ns() + interval_ns
+        sent_at_last_stats = 0
+        while True:
+            with self._cond:
+                if not self._inbox and not self._stop:
+                    self._cond.wait(max(0.0, (next_stats_ns - time.monotonic_ns()) / 1e9))
+                batch = list(self._inbox)
+                self._inbox.clear()
+                stopping = self._stop
+            for rec in batch:
+                self._send_frame(sock, rec)
+            now_ns = time.monotonic_ns()
+            if now_ns >= next_stats_ns:
+                elapsed_s = (now_ns - next_stats_ns + interval_ns) / 1e9
+                self._stats["sent_per_s"] = (self._sent - sent_at_last_stats) / elapsed_s
+                sent_at_last_stats = self._sent
+                self._send_stats(sock)
+                next_stats_ns = now_ns + interval_ns
+            if stopping:
+                return
+
+    def _send_frame(self, sock: zmq.Socket, rec: Reconstruction) -> None:
+        try:
+            parts = wire.encode_frame(rec, self._seq, self.source)
+        except ValueError as exc:  # a reconstruction the wire cannot carry is a bug upstream; count it
+            self._dropped_socket += 1
+            log.warning("frame not published: %s", exc)
+            return
+        self._seq += 1
+        try:
+            sock.send_multipart(parts, flags=zmq.NOBLOCK, copy=False)
+        except zmq.Again:
+            self._dropped_socket += 1
+            return
+        self._sent += 1
+        if rec.arrival_ns > 0:
+            self._latency.add((time.monotonic_ns() - rec.arrival_ns) / 1e3)
+
+    def _send_stats(self, sock: zmq.Socket) -> None:
+        p50, p99 = self._latency.take()
+        self._stats["latency_p50_us"], self._stats["latency_p99_us"] = p50, p99
+        merged: dict[str, Any] = {}
+        if self._stats_provider is not None:
+            try:
+                merged.update(self._stats_provider())
+            except Exception as exc:  # stats must not stop frames; say it once
+                if not self._provider_failed:
+                    log.warning("stats provider failed (%s: %s); publishing own counters only",
+                                type(exc).__name__, exc)
+                    self._provider_failed = True
+        own = self.stats()
+        if "frames_per_s" not in merged:
+            merged["frames_per_s"] = own["sent_per_s"]
+        merged.update(own)
+        merged.setdefault("source", self.source)
+        try:
+            sock.send_multipart(wire.encode_stats(merged), flags=zmq.NOBLOCK)
+        except zmq.Again:
+            pass  # stats are resent next second
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m edi_live.publisher",
+        description="Publisher utilities. Generate a CURVE key pair for `edi-live --curve-secret-key`.",
+        epilog="example: python -m edi_live.publisher --gen-curve-keys ~/.config/edi-live/curve\n"
+               "  then: edi-live --replay rec.aedat4 --curve-secret-key ~/.config/edi-live/curve/server.key_secret\n"
+               "  and:  python tools/viewer.py --curve-server-key ~/.config/edi-live/curve/server.key",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--gen-curve-keys", metavar="DIR", required=True,
+                        help="write server.key (public, give to subscribers) and server.key_secret (keep private)")
+    args = parser.parse_args(argv)
+    public, secret = generate_curve_keys(args.gen_curve_keys)
+    print(f"public key (for subscribers): {public}\nsecret key (for edi-live --curve-secret-key): {secret}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

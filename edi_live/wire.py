@@ -1,0 +1,226 @@
+"""Wire protocol v1: how reconstructions and stats look on the ZeroMQ socket (a public contract).
+
+A frame is 3 parts: ``[b"frame", msgpack header, raw row-major pixels]``; stats are 2 parts:
+``[b"stats", msgpack map]``. All wire times are µs on the sensor clock. This module is the only importer of
+msgpack and the only place that maps code names (``t_us``, ``exposure_start_us``, ...) to the contract's
+short wire keys (``t``, ``exp_start``, ...). It knows nothing about sockets or threads: parts in, parts out.
+
+Decoding never trusts the peer: part count, topic, size limit, header types, known dtype and
+``w * h * itemsize == len(pixels)`` are all checked, and any failure is a `ClientError` with one line that
+says what was wrong, never a numpy or msgpack exception.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping, Sequence
+
+import msgpack
+import numpy as np
+
+from edi_live.datatypes import Reconstruction
+from edi_live.errors import ClientError
+
+PROTOCOL_VERSION = 1
+FRAME_TOPIC = b"frame"
+STATS_TOPIC = b"stats"
+
+DEFAULT_MAX_BYTES = 64 * 1024 * 1024
+"""Largest whole message (all parts) a decoder accepts by default: far above any DAVIS frame (346x260 u1 = 90 kB)."""
+MAX_HEADER_BYTES = 64 * 1024
+"""Largest msgpack header or stats map accepted; real ones are ~200 bytes."""
+
+# Pixel dtypes a frame may carry: wire string -> numpy dtype. Multi-byte types are little-endian on the wire.
+DTYPES: dict[str, np.dtype] = {
+    "u1": np.dtype("u1"),
+    "<u2": np.dtype("<u2"),
+    "<f4": np.dtype("<f4"),
+}
+KINDS = ("deblurred", "latent")
+
+# Reconstruction field (code name) -> wire key. The thresholds are handled apart: one `c` when ON and OFF
+# agree, else `c_on` and `c_off`.
+FRAME_KEYS = {
+    "t_us": "t",
+    "kind": "kind",
+    "ref_t_us": "ref_t",
+    "exposure_start_us": "exp_start",
+    "exposure_end_us": "exp_end",
+    "n_events": "n_events",
+}
+
+# Code names that the publisher and node use in their stats maps -> wire keys. Keys not listed here go on
+# the wire unchanged (node stats already use unit-suffixed names such as `events_per_s`).
+STATS_KEYS = {
+    "sent": "frames_sent",
+    "dropped": "publish_dropped",
+    "dropped_inbox": "publish_dropped_inbox",
+    "dropped_socket": "publish_dropped_socket",
+    "sent_per_s": "frames_sent_per_s",
+    "last_seq": "last_seq",
+}
+
+_INT_KEYS = ("seq", "t", "w", "h", "ref_t", "exp_start", "exp_end", "n_events")
+_INT64_MIN, _UINT64_MAX = -(2**63), 2**64 - 1
+
+
+def _is_int(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value: object) -> bool:
+    return (isinstance(value, (int, float)) and not isinstance(value, bool)) and math.isfinite(value)
+
+
+def dtype_name(dtype: np.dtype) -> str:
+    """The wire string for a numpy dtype: 'u1', '<u2' or '<f4'."""
+    dt = np.dtype(dtype).newbyteorder("<") if np.dtype(dtype).itemsize > 1 else np.dtype(dtype)
+    name = dt.str.lstrip("|")
+    if name not in DTYPES:
+        raise ValueError(f"pixel dtype {np.dtype(dtype)} cannot go on the wire (supported: {sorted(DTYPES)})")
+    return name
+
+
+def frame_header(rec: Reconstruction, seq: int, source: str) -> dict[str, Any]:
+    """The v1 header map for one reconstruction (wire keys)."""
+    height, width = rec.image.shape
+    header: dict[str, Any] = {"v": PROTOCOL_VERSION, "seq": int(seq), "w": int(width), "h": int(height),
+                              "dtype": dtype_name(rec.image.dtype), "source": str(source)}
+    for code_name, wire_key in FRAME_KEYS.items():
+        value = getattr(rec, code_name)
+        header[wire_key] = value if isinstance(value, str) else int(value)
+    if float(rec.c_on) == float(rec.c_off):
+        header["c"] = float(rec.c_on)
+    else:
+        header["c_on"], header["c_off"] = float(rec.c_on), float(rec.c_off)
+    return header
+
+
+def encode_frame(rec: Reconstruction, seq: int, source: str) -> list[bytes | memoryview]:
+    """Parts of one frame message. The pixel part is a memoryview of the image (no copy when it is
+    C-contiguous little-endian): the caller must not modify `rec.image` afterwards."""
+    header = frame_header(rec, seq, source)
+    pixels = np.ascontiguousarray(rec.image, dtype=DTYPES[header["dtype"]])
+    return [FRAME_TOPIC, msgpack.packb(header, use_bin_type=True), memoryview(pixels).cast("B")]
+
+
+def _as_buffer(part: object, what: str) -> memoryview:
+    try:
+        return memoryview(part).cast("B")  # bytes, bytearray, memoryview and zmq.Frame all qualify
+    except TypeError as exc:
+        raise ClientError(f"message {what} is a {type(part).__name__}, not a byte buffer") from exc
+
+
+def _unpack_map(buf: memoryview, what: str) -> dict:
+    if len(buf) > MAX_HEADER_BYTES:
+        raise ClientError(f"{what} is {len(buf)} bytes, over the {MAX_HEADER_BYTES}-byte limit")
+    try:
+        value = msgpack.unpackb(buf, raw=False, strict_map_key=True, use_list=True)
+    except Exception as exc:  # msgpack raises a zoo of types (ExtraData, FormatError, ValueError, ...)
+        raise ClientError(f"{what} is not valid msgpack ({type(exc).__name__}: {exc})") from exc
+    if not isinstance(value, dict):
+        raise ClientError(f"{what} is a msgpack {type(value).__name__}, expected a map")
+    return value
+
+
+def _check_parts(parts: Sequence[object], topic: bytes, count: int, max_bytes: int) -> list[memoryview]:
+    if not isinstance(parts, (list, tuple)) or len(parts) != count:
+        n = len(parts) if isinstance(parts, (list, tuple)) else type(parts).__name__
+        raise ClientError(f"a {topic.decode()} message has {count} parts, got {n}")
+    bufs = [_as_buffer(p, f"part {i}") for i, p in enumerate(parts)]
+    if bytes(bufs[0]) != topic:
+        raise ClientError(f"expected topic {topic!r}, got {bytes(bufs[0][:32])!r}")
+    total = sum(len(b) for b in bufs)
+    if total > max_bytes:
+        raise ClientError(f"{topic.decode()} message of {total} bytes exceeds the limit of {max_bytes} bytes "
+                          "(raise max_bytes if frames really are this large)")
+    return bufs
+
+
+def _check_header(header: dict) -> None:
+    version = header.get("v")
+    if not _is_int(version):
+        raise ClientError(f"frame header has no integer protocol version 'v' (got {version!r})")
+    if version != PROTOCOL_VERSION:
+        raise ClientError(f"frame uses wire protocol v{version}; this client speaks v{PROTOCOL_VERSION}: "
+                          "upgrade edi-live on the subscriber side")
+    for key in _INT_KEYS:
+        value = header.get(key)
+        if not _is_int(value) or not _INT64_MIN <= value <= _UINT64_MAX:
+            raise ClientError(f"frame header key {key!r} must be an integer (got {value!r})")
+    for key in ("seq", "n_events"):
+        if header[key] < 0:
+            raise ClientError(f"frame header key {key!r} must be >= 0 (got {header[key]})")
+    if header["w"] <= 0 or header["h"] <= 0:
+        raise ClientError(f"frame size must be positive (got w={header['w']}, h={header['h']})")
+    if header.get("dtype") not in DTYPES:
+        raise ClientError(f"frame dtype {header.get('dtype')!r} is unknown (known: {sorted(DTYPES)})")
+    if header.get("kind") not in KINDS:
+        raise ClientError(f"frame kind {header.get('kind')!r} is unknown (known: {list(KINDS)})")
+    if not isinstance(header.get("source"), str):
+        raise ClientError(f"frame header key 'source' must be a string (got {header.get('source')!r})")
+    has_c = "c" in header
+    thresholds = ["c"] if has_c else ["c_on", "c_off"]
+    for key in thresholds:
+        if not _is_number(header.get(key)):
+            raise ClientError(f"frame header needs 'c' or both 'c_on' and 'c_off' as finite numbers "
+                              f"(got {key}={header.get(key)!r})")
+
+
+def decode_frame(parts: Sequence[object], max_bytes: int = DEFAULT_MAX_BYTES) -> tuple[dict, np.ndarray]:
+    """Validate and decode a frame message into (header with wire keys, image of shape (h, w)).
+
+    The image is a read-only view of the received pixel buffer (no copy). Raises ClientError."""
+    bufs = _check_parts(parts, FRAME_TOPIC, 3, max_bytes)
+    header = _unpack_map(bufs[1], "frame header")
+    _check_header(header)
+    dtype = DTYPES[header["dtype"]]
+    w, h = header["w"], header["h"]
+    expected = w * h * dtype.itemsize
+    if expected != len(bufs[2]):
+        raise ClientError(f"frame {header['seq']}: header says {w}x{h} {header['dtype']} = {expected} bytes, "
+                          f"pixel part has {len(bufs[2])} bytes")
+    image = np.frombuffer(bufs[2], dtype=dtype).reshape(h, w)
+    return header, image
+
+
+def thresholds(header: Mapping[str, Any]) -> tuple[float, float]:
+    """(c_on, c_off) from a decoded frame header, whichever form it used."""
+    if "c" in header:
+        return float(header["c"]), float(header["c"])
+    return float(header["c_on"]), float(header["c_off"])
+
+
+def _plain(value: object) -> object:
+    """A msgpack-safe version of a stats value (numpy scalars become Python numbers)."""
+    if isinstance(value, np.generic):
+        return value.item()
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, Mapping):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return repr(value)
+
+
+def stats_map(stats: Mapping[str, Any]) -> dict[str, Any]:
+    """Stats with wire keys and plain values, plus `v`."""
+    out = {STATS_KEYS.get(str(k), str(k)): _plain(v) for k, v in stats.items()}
+    out["v"] = PROTOCOL_VERSION
+    return out
+
+
+def encode_stats(stats: Mapping[str, Any]) -> list[bytes]:
+    """Parts of one stats message."""
+    return [STATS_TOPIC, msgpack.packb(stats_map(stats), use_bin_type=True)]
+
+
+def decode_stats(parts: Sequence[object], max_bytes: int = MAX_HEADER_BYTES + 16) -> dict:
+    """Validate and decode a stats message into a map with wire keys. Raises ClientError."""
+    bufs = _check_parts(parts, STATS_TOPIC, 2, max_bytes)
+    stats = _unpack_map(bufs[1], "stats map")
+    if stats.get("v") != PROTOCOL_VERSION or not _is_int(stats.get("v")):
+        raise ClientError(f"stats message uses wire protocol v{stats.get('v')!r}; this client speaks "
+                          f"v{PROTOCOL_VERSION}")
+    return stats

@@ -1,0 +1,324 @@
+"""Node configuration: frozen, validated dataclasses, built from flags and/or a TOML file.
+
+The TOML file uses the same keys as the command-line flags (without the leading dashes; `-` or `_` both work),
+all at the top level, for example::
+
+    replay = "rec.aedat4"
+    speed = 0
+    every = 1000
+    c-on = 0.2
+    c-off = 0.25
+    publish = ["tcp://127.0.0.1:5555"]
+    out = "sharp.aedat4"
+
+Precedence: built-in defaults < the TOML file < explicit flags (`merge_options`). Every invalid value raises
+`ConfigError` naming the key and the bad value "(got ...)".
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+from edi_live.errors import ConfigError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10 only
+    import tomli as tomllib
+
+DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
+POLICIES = ("drop_oldest", "wait")
+MODES = ("causal", "nearest")
+DEVICE_MODELS = ("davis240", "davis346", "auto")
+LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+def _check(ok: bool, message: str) -> None:
+    if not ok:
+        raise ConfigError(message)
+
+
+def _positive_or_none(name: str, value: float | None) -> None:
+    if value is not None:
+        _check(isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+               and value > 0, f"{name} must be a positive number (got {value!r})")
+
+
+@dataclass(frozen=True)
+class SourceConfig:
+    """Where the data comes from: a live device (`device`) or a recording (`replay`)."""
+
+    device: str | None = None  # davis240 | davis346 | auto
+    replay: Path | None = None
+    serial: str | None = None
+    exposure_us: int | None = None
+    frame_interval_us: int | None = None
+    reconnect: bool = False
+    usb_backend: str | None = None  # MODULE:CALLABLE
+    emulate_from: Path | None = None
+    speed: float = 1.0  # 1 = real time, 0 = as fast as possible
+    loop: bool = False
+
+    def __post_init__(self) -> None:
+        _check(self.device is None or self.replay is None,
+               f"choose one input: device or replay (got device={self.device!r} and replay={str(self.replay)!r})")
+        _check(self.device is None or self.device in DEVICE_MODELS,
+               f"device must be one of {', '.join(DEVICE_MODELS)} (got {self.device!r})")
+        _check(isinstance(self.speed, (int, float)) and not isinstance(self.speed, bool)
+               and math.isfinite(self.speed) and self.speed >= 0,
+               f"speed must be >= 0, 1 = real time, 0 = as fast as possible (got {self.speed!r})")
+        for name in ("exposure_us", "frame_interval_us"):
+            value = getattr(self, name)
+            _check(value is None or (isinstance(value, int) and value > 0),
+                   f"{name.replace('_', '-')} must be a positive integer in µs (got {value!r})")
+        _check(self.usb_backend is None or (":" in self.usb_backend and all(self.usb_backend.split(":", 1))),
+               f"usb-backend must look like MODULE:CALLABLE (got {self.usb_backend!r})")
+        _check(self.emulate_from is None or self.usb_backend is not None,
+               "emulate-from needs --usb-backend, e.g. --usb-backend drivers.emulator:backend")
+        _check(self.loop is False or self.replay is not None or self.emulate_from is not None,
+               "loop applies to --replay or --emulate-from only")
+
+    @property
+    def kind(self) -> str:
+        return "replay" if self.replay is not None else "device"
+
+
+@dataclass(frozen=True)
+class RingConfig:
+    """The event ring and APS frame queue between the pump and the worker."""
+
+    capacity_events: int = 1 << 22  # 64 MiB of 16-byte events; half is kept as exposure history
+    capacity_frames: int = 16
+    policy: str | None = None  # None: "wait" for replay, "drop_oldest" for a live device
+
+    def __post_init__(self) -> None:
+        _check(isinstance(self.capacity_events, int) and self.capacity_events >= 1024,
+               f"ring-events must be an integer >= 1024 (got {self.capacity_events!r})")
+        _check(isinstance(self.capacity_frames, int) and self.capacity_frames >= 1,
+               f"ring-frames must be an integer >= 1 (got {self.capacity_frames!r})")
+        _check(self.policy is None or self.policy in POLICIES,
+               f"ring-policy must be one of {', '.join(POLICIES)} (got {self.policy!r})")
+
+
+@dataclass(frozen=True)
+class EdiConfig:
+    """What the worker emits and how the reconstructor gets its contrast threshold."""
+
+    every: int = 1000  # emit a latent frame every N events
+    c: float | None = None  # fixed threshold for both polarities
+    c_on: float | None = None
+    c_off: float | None = None
+    mode: str = "causal"
+    max_fps: float | None = None
+    heartbeat_s: float = 1.0  # keyframe interval on a static scene
+    reestimate_every: int = 0  # re-estimate c every K APS frames (0: only when the cached c stops fitting)
+
+    def __post_init__(self) -> None:
+        _check(isinstance(self.every, int) and not isinstance(self.every, bool) and self.every >= 1,
+               f"every must be an integer >= 1 (events per latent frame) (got {self.every!r})")
+        for name in ("c", "c_on", "c_off"):
+            value = getattr(self, name)
+            _check(value is None or (isinstance(value, (int, float)) and 0 < value <= 5),
+                   f"{name.replace('_', '-')} must be a contrast threshold in (0, 5] (got {value!r})")
+        _check((self.c_on is None) == (self.c_off is None),
+               f"c-on and c-off go together (got c-on={self.c_on!r}, c-off={self.c_off!r})")
+        _check(self.c is None or self.c_on is None,
+               f"use either c or c-on/c-off (got c={self.c!r}, c-on={self.c_on!r})")
+        _check(self.mode in MODES, f"mode must be one of {', '.join(MODES)} (got {self.mode!r})")
+        _positive_or_none("max-fps", self.max_fps)
+        _positive_or_none("heartbeat-s", self.heartbeat_s)
+        _check(isinstance(self.reestimate_every, int) and self.reestimate_every >= 0,
+               f"reestimate-every must be an integer >= 0 (got {self.reestimate_every!r})")
+
+
+@dataclass(frozen=True)
+class PublisherConfig:
+    """The ZeroMQ PUB endpoints (empty when publishing is off)."""
+
+    endpoints: tuple[str, ...] = (DEFAULT_ENDPOINT,)
+    curve_secret_key: Path | None = None
+    stats_interval_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        for endpoint in self.endpoints:
+            _check(isinstance(endpoint, str) and "://" in endpoint,
+                   f"publish endpoint must look like tcp://HOST:PORT or ipc://PATH (got {endpoint!r})")
+        _positive_or_none("stats-interval-s", self.stats_interval_s)
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.endpoints)
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    """Files written while running: reconstructed frames (`out`) and the raw input (`record`)."""
+
+    out: Path | None = None
+    record: Path | None = None
+    queue_items: int = 256  # bounded writer queues; the producer waits (lossless)
+
+    def __post_init__(self) -> None:
+        _check(isinstance(self.queue_items, int) and self.queue_items >= 1,
+               f"writer queue size must be >= 1 (got {self.queue_items!r})")
+        _check(self.out is None or self.record is None or Path(self.out) != Path(self.record),
+               f"out and record must be different files (got {str(self.out)!r} twice)")
+
+
+@dataclass(frozen=True)
+class NodeConfig:
+    source: SourceConfig = field(default_factory=SourceConfig)
+    ring: RingConfig = field(default_factory=RingConfig)
+    edi: EdiConfig = field(default_factory=EdiConfig)
+    publisher: PublisherConfig = field(default_factory=PublisherConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+    duration_s: float | None = None
+    log_level: str = "info"
+    status_interval_s: float | None = None  # None: 0.5 s live line on a TTY, 5 s plain lines otherwise
+
+    def __post_init__(self) -> None:
+        _positive_or_none("duration", self.duration_s)
+        _positive_or_none("status-interval-s", self.status_interval_s)
+        _check(self.log_level in LOG_LEVELS,
+               f"log-level must be one of {', '.join(LOG_LEVELS)} (got {self.log_level!r})")
+
+    @property
+    def ring_policy(self) -> str:
+        """The effective overflow policy: lossless waiting for replay, never blocking for a live device."""
+        if self.ring.policy is not None:
+            return self.ring.policy
+        return "wait" if self.source.kind == "replay" else "drop_oldest"
+
+    @classmethod
+    def from_options(cls, options: Mapping[str, Any]) -> "NodeConfig":
+        """Build from a flat mapping of flag names (as in the TOML file) to values."""
+        opts = {_norm(k): v for k, v in options.items()}
+        unknown = sorted(set(opts) - set(OPTION_KEYS))
+        _check(not unknown, f"unknown option(s) {', '.join(unknown)} (valid keys: {', '.join(sorted(OPTION_KEYS))})")
+        try:
+            return _build(opts)
+        except TypeError as exc:  # a wrong type that a comparison tripped over
+            raise ConfigError(f"invalid option value ({exc})") from exc
+
+    @classmethod
+    def from_toml(cls, path: str | Path, overrides: Mapping[str, Any] | None = None) -> "NodeConfig":
+        """Read `path`, then apply `overrides` (explicit flags) on top."""
+        return cls.from_options(merge_options(read_toml(path), overrides or {}))
+
+
+# flat option key -> (section, field, converter)
+def _path(v: Any) -> Path | None:
+    return None if v is None else Path(v)
+
+
+def _endpoints(v: Any) -> tuple[str, ...]:
+    if isinstance(v, str):
+        return (v,)
+    _check(isinstance(v, (list, tuple)), f"publish must be a list of endpoints (got {v!r})")
+    return tuple(v)
+
+
+def _num(v: Any) -> Any:
+    return float(v) if isinstance(v, int) and not isinstance(v, bool) else v
+
+
+OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
+    "device": ("source", "device", None),
+    "replay": ("source", "replay", _path),
+    "serial": ("source", "serial", lambda v: None if v is None else str(v)),
+    "exposure_us": ("source", "exposure_us", None),
+    "frame_interval_us": ("source", "frame_interval_us", None),
+    "reconnect": ("source", "reconnect", None),
+    "usb_backend": ("source", "usb_backend", None),
+    "emulate_from": ("source", "emulate_from", _path),
+    "speed": ("source", "speed", _num),
+    "loop": ("source", "loop", None),
+    "ring_events": ("ring", "capacity_events", None),
+    "ring_frames": ("ring", "capacity_frames", None),
+    "ring_policy": ("ring", "policy", None),
+    "every": ("edi", "every", None),
+    "c": ("edi", "c", _num),
+    "c_on": ("edi", "c_on", _num),
+    "c_off": ("edi", "c_off", _num),
+    "mode": ("edi", "mode", None),
+    "max_fps": ("edi", "max_fps", _num),
+    "heartbeat_s": ("edi", "heartbeat_s", _num),
+    "reestimate_every": ("edi", "reestimate_every", None),
+    "publish": ("publisher", "endpoints", _endpoints),
+    "no_publish": ("publisher", "-", None),
+    "curve_secret_key": ("publisher", "curve_secret_key", _path),
+    "stats_interval_s": ("publisher", "stats_interval_s", _num),
+    "out": ("output", "out", _path),
+    "record": ("output", "record", _path),
+    "duration": ("node", "duration_s", _num),
+    "log_level": ("node", "log_level", lambda v: str(v).lower()),
+    "status_interval_s": ("node", "status_interval_s", _num),
+}
+
+
+def _norm(key: str) -> str:
+    return key.strip().lstrip("-").replace("-", "_")
+
+
+def _build(opts: dict[str, Any]) -> NodeConfig:
+    sections: dict[str, dict[str, Any]] = {"source": {}, "ring": {}, "edi": {}, "publisher": {}, "output": {},
+                                           "node": {}}
+    for key, value in opts.items():
+        section, name, convert = OPTION_KEYS[key]
+        if name == "-":
+            continue
+        sections[section][name] = convert(value) if convert is not None else value
+    if opts.get("no_publish"):
+        sections["publisher"]["endpoints"] = ()
+    return NodeConfig(
+        source=SourceConfig(**sections["source"]),
+        ring=RingConfig(**sections["ring"]),
+        edi=EdiConfig(**sections["edi"]),
+        publisher=PublisherConfig(**sections["publisher"]),
+        output=OutputConfig(**sections["output"]),
+        **sections["node"],
+    )
+
+
+def read_toml(path: str | Path) -> dict[str, Any]:
+    """The flat key -> value mapping of a TOML config file; ConfigError naming the file on any problem."""
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"config file {path} not found") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot read config file {path}: {exc.strerror}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"config file {path} is not valid TOML: {exc}") from None
+    nested = [k for k, v in data.items() if isinstance(v, dict)]
+    _check(not nested, f"config file {path}: keys go at the top level, like the flags (got table(s) {nested})")
+    normalized = {_norm(k): v for k, v in data.items()}
+    unknown = sorted(set(normalized) - set(OPTION_KEYS))
+    _check(not unknown, f"config file {path}: unknown key(s) {', '.join(unknown)}")
+    base = path.parent
+    for key in ("replay", "out", "record", "emulate_from", "curve_secret_key"):
+        # relative paths in a config file are relative to the file, not to the working directory
+        if isinstance(normalized.get(key), str) and not Path(normalized[key]).is_absolute():
+            normalized[key] = str(base / normalized[key])
+    return normalized
+
+
+def merge_options(file_options: Mapping[str, Any], flag_options: Mapping[str, Any]) -> dict[str, Any]:
+    """Flags override the file. A device flag replaces a replay from the file and vice versa."""
+    merged = {_norm(k): v for k, v in file_options.items()}
+    flags = {_norm(k): v for k, v in flag_options.items()}
+    if "device" in flags:
+        merged.pop("replay", None)
+    if "replay" in flags:
+        merged.pop("device", None)
+    if "publish" in flags:
+        merged.pop("no_publish", None)
+    merged.update(flags)
+    return merged
+

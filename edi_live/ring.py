@@ -1,0 +1,376 @@
+"""The bounded hand-over between the pump thread (one producer) and the EDI worker (one consumer).
+
+`EventRing` holds a preallocated ring of events (EVENT_DTYPE) and a bounded queue of APS frames. Every event gets
+a global index (0, 1, 2, ... in push order, which is time order). The consumer reads events in order through a
+cursor (`read_events`) and takes a frame once its cursor reaches the frame's `end_index`: the index just past the
+last event with t <= exposure_end_us, so every event of the exposure has been read by then::
+
+    index:   ... old (history, already read) ... | read cursor ... unread ... | head (next write)
+             <------- at least capacity/2 -------><----- at most capacity/2 ---->
+
+Half the capacity is reserved for already-read history, so `window(t0_us, t1_us)` can still cut an APS frame's
+exposure [t0, t1) out of the ring (half-open, by np.searchsorted) after the worker has streamed through it.
+
+Overflow policy (the only place live and replay differ):
+- "drop_oldest" (live): push never blocks. When unread events would exceed capacity/2, the oldest unread ones
+  are skipped; they are counted in `dropped_events` and the next read is flagged `gap=True`.
+- "wait" (replay): push waits for the consumer, so nothing is lost at any replay speed.
+
+All state is guarded by one condition variable (`_cond`). Copies in and out happen under its lock, so a live
+overwrite can never change data under the worker: windows and reads are copies, never views.
+Events are copied as raw int64 pairs: a structured-dtype copy is ~20x slower in numpy.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from edi_live.datatypes import EVENT_DTYPE, Frame, Packet
+
+POLICIES = ("drop_oldest", "wait")
+_EMPTY_I8 = np.zeros(0, dtype=np.int64)
+
+
+def _raw(events: np.ndarray) -> np.ndarray:
+    """View events as (n, 2) int64 for fast copies (the dtype is exactly 16 bytes)."""
+    return np.ascontiguousarray(events).view(np.int64).reshape(-1, 2)
+
+
+def _events(raw: np.ndarray) -> np.ndarray:
+    return raw.view(EVENT_DTYPE).reshape(-1)
+
+
+@dataclass(frozen=True, slots=True)
+class EventChunk:
+    """Events handed to the consumer (a copy), with the host arrival time of each push they came from.
+
+    `push_ends[i]` is the end (exclusive, relative to this chunk) of the i-th push in it and `push_arrival_ns[i]`
+    that push's arrival time. `gap` is True if data was lost right before or inside this chunk.
+    """
+
+    events: np.ndarray
+    first_index: int
+    push_ends: np.ndarray
+    push_arrival_ns: np.ndarray
+    gap: bool
+
+    def arrival_ns_at(self, count: int) -> int:
+        """Arrival time of the push holding event `count - 1` (the last of the first `count` events)."""
+        if count <= 0 or len(self.push_ends) == 0:
+            return 0
+        i = int(np.searchsorted(self.push_ends, count - 1, side="right"))
+        return int(self.push_arrival_ns[min(i, len(self.push_arrival_ns) - 1)])
+
+
+@dataclass(frozen=True, slots=True)
+class FrameEntry:
+    """An APS frame in the queue. `end_index`: first event index after its exposure end."""
+
+    frame: Frame
+    end_index: int
+    arrival_ns: int
+    gap: bool = False
+
+
+class EventRing:
+    """Bounded single-producer / single-consumer ring of events plus a bounded APS frame queue."""
+
+    def __init__(self, capacity_events: int = 1 << 22, capacity_frames: int = 16, policy: str = "wait") -> None:
+        if policy not in POLICIES:
+            raise ValueError(f"policy must be one of {POLICIES} (got {policy!r})")
+        if capacity_events < 16 or capacity_frames < 1:
+            raise ValueError(f"ring capacity too small (got {capacity_events} events, {capacity_frames} frames)")
+        self.capacity_events = int(capacity_events)
+        self.capacity_frames = int(capacity_frames)
+        self.policy = policy
+        self.max_unread = self.capacity_events // 2
+        self._buf = np.zeros((self.capacity_events, 2), dtype=np.int64)  # raw 16-byte events
+        self._t = self._buf[:, 0]  # event times (strided view; searchsorted works on it without a copy)
+        # The producer thread (push) and the consumer thread (read_events/pop_frame/window/wait) meet here.
+        self._cond = threading.Condition()
+        self._head = 0
+        self._read = 0
+        self._pushes: deque[tuple[int, int]] = deque()  # (end index, arrival_ns), unread pushes only
+        self._gaps: deque[int] = deque()  # indices before which data was lost
+        self._frames: deque[FrameEntry] = deque()
+        self._closed = False
+        self._version = 0  # bumped on every push and on close: "data advanced"
+        self.watermark_us = -(2**63)
+        self.pushed_events = 0
+        self.pushed_frames = 0
+        self.dropped_events = 0
+        self.dropped_frames = 0
+        self.gap_count = 0
+        self.history_truncated = 0  # windows that reached back past the retained history
+        self.producer_wait_s = 0.0
+
+    # ---------------------------------------------------------------- producer side (pump thread)
+
+    def push(self, packet: Packet, timeout_s: float | None = None) -> bool:
+        """Append a packet's events and frames. Returns False if the ring was closed, or if the wait policy
+        could not make room within `timeout_s` (the part already written stays)."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        arrival = packet.arrival_ns or time.monotonic_ns()
+        events = packet.events
+        if packet.gap:
+            self._mark_gap_at_head()
+        frames = sorted(packet.frames, key=lambda f: f.exposure_end_us)
+        cut = 0
+        for frame in frames:
+            end = int(np.searchsorted(events["t"], frame.exposure_end_us, side="right")) if len(events) else 0
+            end = max(end, cut)
+            if not self._write(events[cut:end], arrival, deadline):
+                return False
+            cut = end
+            if not self._put_frame(frame, arrival, deadline):
+                return False
+        if not self._write(events[cut:], arrival, deadline):
+            return False
+        with self._cond:
+            if packet.watermark_us > self.watermark_us:
+                self.watermark_us = int(packet.watermark_us)
+                self._version += 1
+                self._cond.notify_all()
+        return True
+
+    def _mark_gap_at_head(self) -> None:
+        with self._cond:
+            self._gaps.append(self._head)
+            self.gap_count += 1
+
+    def _wait_for_room(self, needed: int, deadline: float | None) -> bool:
+        """Wait policy: block until `needed` more unread items fit. Caller holds the lock."""
+        start = time.monotonic()
+        try:
+            while not self._closed and self._head - self._read + needed > self.max_unread:
+                remaining = 0.1 if deadline is None else min(0.1, deadline - time.monotonic())
+                if remaining <= 0:
+                    return False
+                self._cond.wait(remaining)
+            return not self._closed
+        finally:
+            self.producer_wait_s += time.monotonic() - start
+
+    def _write(self, events: np.ndarray, arrival_ns: int, deadline: float | None) -> bool:
+        n_total = len(events)
+        if n_total == 0:
+            return not self._closed
+        raw = _raw(events)
+        done = 0
+        if self.policy == "drop_oldest" and n_total > self.max_unread:
+            # A burst larger than the ring: keep its newest part, count the rest.
+            skipped = n_total - self.max_unread
+            with self._cond:
+                self.dropped_events += skipped
+                self._gaps.append(self._head)
+                self.gap_count += 1
+            done = skipped
+        while done < n_total:
+            with self._cond:
+                if self._closed:
+                    return False
+                if self.policy == "wait":
+                    free = self.max_unread - (self._head - self._read)
+                    if free <= 0:
+                        if not self._wait_for_room(1, deadline):
+                            return False
+                        continue
+                    n = min(n_total - done, free)
+                else:
+                    n = min(n_total - done, self.max_unread)
+                    overflow = self._head - self._read + n - self.max_unread
+                    if overflow > 0:
+                        self._drop_unread(overflow)
+                self._copy_in(raw[done:done + n])
+                self._pushes.append((self._head + n, arrival_ns))
+                self._head += n
+                self.pushed_events += n
+                last_t = int(raw[done + n - 1, 0])
+                if last_t > self.watermark_us:
+                    self.watermark_us = last_t
+                self._version += 1
+                self._cond.notify_all()
+            done += n
+        return True
+
+    def _drop_unread(self, count: int) -> None:
+        """drop_oldest: skip the `count` oldest unread events (lock held)."""
+        self._read += count
+        self.dropped_events += count
+        self.gap_count += 1
+        self._gaps.append(self._read)
+        while self._pushes and self._pushes[0][0] <= self._read:
+            self._pushes.popleft()
+
+    def _copy_in(self, raw: np.ndarray) -> None:
+        n = len(raw)
+        start = self._head % self.capacity_events
+        first = min(n, self.capacity_events - start)
+        self._buf[start:start + first] = raw[:first]
+        if first < n:
+            self._buf[: n - first] = raw[first:]
+
+    def _put_frame(self, frame: Frame, arrival_ns: int, deadline: float | None) -> bool:
+        with self._cond:
+            if self.policy == "wait":
+                start = time.monotonic()
+                while not self._closed and len(self._frames) >= self.capacity_frames:
+                    remaining = 0.1 if deadline is None else min(0.1, deadline - time.monotonic())
+                    if remaining <= 0:
+                        self.producer_wait_s += time.monotonic() - start
+                        return False
+                    self._cond.wait(remaining)
+                self.producer_wait_s += time.monotonic() - start
+            if self._closed:
+                return False
+            gap = False
+            if len(self._frames) >= self.capacity_frames:
+                self._frames.popleft()
+                self.dropped_frames += 1
+                gap = True
+            self._frames.append(FrameEntry(frame, self._head, arrival_ns, gap))
+            self.pushed_frames += 1
+            self._version += 1
+            self._cond.notify_all()
+        return True
+
+    def close(self) -> None:
+        """End of input: the consumer drains what is left, then sees `exhausted`. Idempotent, any thread."""
+        with self._cond:
+            self._closed = True
+            self._version += 1
+            self._cond.notify_all()
+
+    # ---------------------------------------------------------------- consumer side (worker thread)
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    @property
+    def exhausted(self) -> bool:
+        """Closed and everything read."""
+        with self._cond:
+            return self._closed and self._head == self._read and not self._frames
+
+    @property
+    def head(self) -> int:
+        return self._head
+
+    @property
+    def read_index(self) -> int:
+        return self._read
+
+    @property
+    def version(self) -> int:
+        return self._version
+
+    def wait(self, since_version: int, timeout_s: float) -> bool:
+        """Block until data advanced past `since_version` (or close), at most `timeout_s`. True if it did."""
+        with self._cond:
+            if self._version != since_version:
+                return True
+            self._cond.wait(timeout_s)
+            return self._version != since_version
+
+    def read_events(self, max_n: int, until_index: int | None = None) -> EventChunk:
+        """Take up to `max_n` unread events (not past `until_index`) as a copy and advance the cursor."""
+        with self._cond:
+            start = self._read
+            stop = self._head if until_index is None else min(self._head, until_index)
+            n = max(0, min(max_n, stop - start))
+            if n == 0:
+                return EventChunk(np.zeros(0, EVENT_DTYPE), start, _EMPTY_I8, _EMPTY_I8, False)
+            raw = self._copy_out(start, start + n)
+            ends, arrivals = [], []
+            for end, arrival in self._pushes:
+                ends.append(min(end, start + n) - start)
+                arrivals.append(arrival)
+                if end >= start + n:
+                    break
+            while self._pushes and self._pushes[0][0] <= start + n:
+                self._pushes.popleft()
+            gap = False
+            while self._gaps and self._gaps[0] < start + n:  # data was lost before one of these events
+                gap = True
+                self._gaps.popleft()
+            self._read = start + n
+            self._version += 1
+            self._cond.notify_all()  # a waiting producer may have room now
+        return EventChunk(_events(raw), start, np.asarray(ends, np.int64), np.asarray(arrivals, np.int64), gap)
+
+    def _copy_out(self, start: int, stop: int) -> np.ndarray:
+        cap = self.capacity_events
+        a, b = start % cap, stop % cap
+        if stop - start == 0:
+            return np.zeros((0, 2), np.int64)
+        if a < b:
+            return self._buf[a:b].copy()
+        return np.concatenate((self._buf[a:], self._buf[:b]))
+
+    def peek_frame(self) -> FrameEntry | None:
+        with self._cond:
+            return self._frames[0] if self._frames else None
+
+    def pop_frame(self) -> FrameEntry | None:
+        with self._cond:
+            if not self._frames:
+                return None
+            entry = self._frames.popleft()
+            self._version += 1
+            self._cond.notify_all()
+            return entry
+
+    def window(self, t0_us: int, t1_us: int, end_index: int | None = None) -> np.ndarray:
+        """A copy of the retained events with t0_us <= t < t1_us among indices < end_index (default: the read
+        cursor). Events older than the retained history are gone; that is counted in `history_truncated`."""
+        with self._cond:
+            stop = self._read if end_index is None else min(end_index, self._head)
+            oldest = max(0, self._head - self.capacity_events)
+            if stop <= oldest:
+                return np.zeros(0, EVENT_DTYPE)
+            lo = self._search(oldest, stop, t0_us)
+            hi = self._search(oldest, stop, t1_us)
+            if lo == oldest and oldest > 0 and self._t[oldest % self.capacity_events] > t0_us:
+                self.history_truncated += 1
+            return _events(self._copy_out(lo, max(lo, hi)))
+
+    def _search(self, start: int, stop: int, t_us: int) -> int:
+        """First index in [start, stop) whose t >= t_us (lock held; the logical range may wrap)."""
+        cap = self.capacity_events
+        a, b = start % cap, stop % cap
+        if a < b or stop - start == 0:
+            return start + int(np.searchsorted(self._t[a:a + (stop - start)], t_us, side="left"))
+        first = self._t[a:]
+        i = int(np.searchsorted(first, t_us, side="left"))
+        if i < len(first):
+            return start + i
+        return start + len(first) + int(np.searchsorted(self._t[:b], t_us, side="left"))
+
+    # ---------------------------------------------------------------- any thread
+
+    @property
+    def unread_events(self) -> int:
+        return self._head - self._read
+
+    @property
+    def occupancy(self) -> float:
+        """Unread events as a fraction of what may be unread (1.0 = full: waiting or dropping)."""
+        return (self._head - self._read) / self.max_unread
+
+    def stats(self) -> dict:
+        return {
+            "ring_occupancy": round(self.occupancy, 4),
+            "ring_unread_events": self.unread_events,
+            "ring_frames_queued": len(self._frames),
+            "ring_dropped_events": self.dropped_events,
+            "ring_dropped_frames": self.dropped_frames,
+            "ring_gaps": self.gap_count,
+            "ring_history_truncated": self.history_truncated,
+            "ring_producer_wait_s": round(self.producer_wait_s, 3),
+        }

@@ -1,0 +1,253 @@
+"""EventRing: windows, wraparound, overrun accounting, the wait policy, frame placement, producer/consumer stress.
+
+Oracles are the input arrays themselves (what went in, in order) and brute-force boolean masks for windows.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from edi_live.datatypes import EVENT_DTYPE, Frame, Packet
+from edi_live.ring import EventRing
+
+
+def make_events(t_us: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    ev = np.zeros(len(t_us), EVENT_DTYPE)
+    ev["t"] = t_us
+    ev["x"] = rng.integers(0, 240, len(t_us))
+    ev["y"] = rng.integers(0, 180, len(t_us))
+    ev["p"] = rng.integers(0, 2, len(t_us)).astype(bool)
+    return ev
+
+
+def concat(parts: list[np.ndarray]) -> np.ndarray:
+    # np.concatenate of a padded structured dtype returns a packed dtype; concatenate the raw bytes instead
+    if not parts:
+        return np.zeros(0, EVENT_DTYPE)
+    return np.concatenate([p.view(np.uint8) for p in parts]).view(EVENT_DTYPE)
+
+
+def frame(t0: int, t1: int) -> Frame:
+    return Frame(np.zeros((4, 4), np.uint8), exposure_start_us=t0, exposure_end_us=t1)
+
+
+def drain(ring: EventRing, max_n: int = 1000) -> np.ndarray:
+    parts = []
+    while True:
+        chunk = ring.read_events(max_n)
+        if len(chunk.events) == 0:
+            break
+        parts.append(chunk.events)
+    return concat(parts)
+
+
+def test_reads_return_exactly_what_was_pushed_across_wraparound(rng):
+    ring = EventRing(capacity_events=64, policy="wait")
+    t = np.cumsum(rng.integers(0, 5, 1000))
+    ev = make_events(t, rng)
+    got = []
+    for start in range(0, 1000, 20):  # 20 per push, read in odd sizes: crosses the wrap many times
+        assert ring.push(Packet(events=ev[start:start + 20]), timeout_s=1.0)
+        got.append(ring.read_events(7).events)
+        got.append(ring.read_events(13).events)
+    got.append(drain(ring))
+    got = concat(got)
+    assert got.dtype == EVENT_DTYPE
+    np.testing.assert_array_equal(got, ev)
+
+
+def test_read_is_a_copy_not_a_view(rng):
+    ring = EventRing(capacity_events=32, policy="drop_oldest")
+    ev = make_events(np.arange(16), rng)
+    ring.push(Packet(events=ev))
+    chunk = ring.read_events(16)
+    before = chunk.events.copy()
+    for k in range(10):  # overwrite every slot several times
+        ring.push(Packet(events=make_events(np.arange(16) + 100 * (k + 1), rng)))
+    np.testing.assert_array_equal(chunk.events, before)
+
+
+@pytest.mark.parametrize("t0,t1", [(0, 10), (17, 18), (250, 700), (-5, 10_000), (300, 300), (999, 1001)])
+def test_window_matches_brute_force_mask_after_wrap(rng, t0, t1):
+    ring = EventRing(capacity_events=512, policy="wait")
+    t = np.sort(rng.integers(0, 1000, 2000))
+    ev = make_events(t, rng)
+    for start in range(0, 2000, 100):
+        ring.push(Packet(events=ev[start:start + 100]), timeout_s=1.0)
+        drain(ring, 37)
+    retained = ev[2000 - 512:]  # the ring holds the last `capacity` events
+    expected = retained[(retained["t"] >= t0) & (retained["t"] < t1)]
+    np.testing.assert_array_equal(ring.window(t0, t1), expected)
+
+
+def test_window_stops_at_the_read_cursor(rng):
+    ring = EventRing(capacity_events=256, policy="wait")
+    ev = make_events(np.arange(100), rng)
+    ring.push(Packet(events=ev))
+    ring.read_events(40)
+    np.testing.assert_array_equal(ring.window(0, 1000), ev[:40])
+    np.testing.assert_array_equal(ring.window(0, 1000, end_index=100), ev)
+
+
+def test_frame_end_index_is_just_past_its_exposure(rng):
+    ring = EventRing(capacity_events=256, policy="wait")
+    ev = make_events(np.arange(0, 100, 2), rng)  # t = 0, 2, ..., 98
+    f = frame(10, 41)
+    ring.push(Packet(events=ev, frames=[f]))
+    entry = ring.peek_frame()
+    assert entry.frame is f
+    assert entry.end_index == int(np.sum(ev["t"] <= 41))  # brute force: events up to exposure end
+    chunk = ring.read_events(1000, until_index=entry.end_index)
+    assert chunk.events["t"].max() <= 41
+    assert ring.read_events(1000).events["t"].min() > 41
+
+
+def test_drop_oldest_never_blocks_and_counts_every_dropped_event(rng):
+    ring = EventRing(capacity_events=100, policy="drop_oldest")  # at most 50 unread
+    ev = make_events(np.arange(1000), rng)
+    for start in range(0, 1000, 30):
+        assert ring.push(Packet(events=ev[start:start + 30]), timeout_s=0)  # never waits, even with timeout 0
+    got = drain(ring)
+    assert len(got) + ring.dropped_events == 1000
+    np.testing.assert_array_equal(got, ev[1000 - len(got):])  # the newest survive, in order
+    assert ring.stats()["ring_dropped_events"] == ring.dropped_events > 0
+
+
+def test_drop_oldest_marks_the_gap_on_the_next_read(rng):
+    ring = EventRing(capacity_events=100, policy="drop_oldest")
+    ring.push(Packet(events=make_events(np.arange(40), rng)))
+    first = ring.read_events(10)
+    assert not first.gap
+    ring.push(Packet(events=make_events(np.arange(40, 80), rng)))  # 30 + 40 unread > 50: 20 dropped
+    chunk = ring.read_events(100)
+    assert chunk.gap
+    assert ring.dropped_events == 20
+    assert not ring.read_events(10).gap  # the mark is consumed once
+
+
+def test_oversized_burst_keeps_its_newest_part(rng):
+    ring = EventRing(capacity_events=100, policy="drop_oldest")
+    ev = make_events(np.arange(500), rng)
+    ring.push(Packet(events=ev))
+    got = drain(ring)
+    np.testing.assert_array_equal(got, ev[-50:])
+    assert ring.dropped_events == 450
+
+
+def test_packet_gap_flag_reaches_the_consumer(rng):
+    ring = EventRing(capacity_events=100, policy="wait")
+    ring.push(Packet(events=make_events(np.arange(5), rng)))
+    ring.push(Packet(events=make_events(np.arange(5, 10), rng), gap=True))
+    assert not ring.read_events(5).gap
+    assert ring.read_events(5).gap
+
+
+def test_frame_queue_drop_oldest_counts(rng):
+    ring = EventRing(capacity_events=100, capacity_frames=2, policy="drop_oldest")
+    for k in range(5):
+        ring.push(Packet(frames=[frame(k * 10, k * 10 + 5)]))
+    assert ring.dropped_frames == 3
+    assert ring.pop_frame().frame.exposure_start_us == 30
+    assert ring.pop_frame().frame.exposure_start_us == 40
+    assert ring.pop_frame() is None
+
+
+def test_wait_policy_times_out_when_full_and_resumes_after_a_read(rng):
+    ring = EventRing(capacity_events=100, policy="wait")
+    ev = make_events(np.arange(80), rng)
+    assert ring.push(Packet(events=ev[:50]), timeout_s=0.5)
+    assert not ring.push(Packet(events=ev[50:60]), timeout_s=0.05)  # full: times out
+    assert ring.dropped_events == 0
+    assert ring.producer_wait_s > 0
+    ring.read_events(30)
+    assert ring.push(Packet(events=ev[50:80]), timeout_s=0.5)
+    np.testing.assert_array_equal(drain(ring), ev[30:80])
+
+
+def test_wait_policy_frame_queue_times_out(rng):
+    ring = EventRing(capacity_events=100, capacity_frames=1, policy="wait")
+    assert ring.push(Packet(frames=[frame(0, 1)]), timeout_s=0.5)
+    assert not ring.push(Packet(frames=[frame(2, 3)]), timeout_s=0.05)
+    ring.pop_frame()
+    assert ring.push(Packet(frames=[frame(2, 3)]), timeout_s=0.5)
+
+
+def test_close_releases_a_waiting_producer_and_ends_the_consumer(rng):
+    ring = EventRing(capacity_events=100, policy="wait")
+    ring.push(Packet(events=make_events(np.arange(50), rng)))
+    result = {}
+    producer = threading.Thread(target=lambda: result.setdefault("ok", ring.push(
+        Packet(events=make_events(np.arange(50, 60), rng)), timeout_s=5)))
+    producer.start()
+    ring.close()
+    producer.join(timeout=2)
+    assert not producer.is_alive()
+    assert result["ok"] is False
+    assert not ring.exhausted  # 50 unread events still to drain
+    assert len(drain(ring)) == 50
+    assert ring.exhausted
+
+
+def test_wait_returns_on_new_data_and_times_out_otherwise(rng):
+    ring = EventRing(capacity_events=100, policy="wait")
+    v = ring.version
+    assert not ring.wait(v, timeout_s=0.02)
+    ring.push(Packet(events=make_events(np.arange(3), rng)))
+    assert ring.wait(v, timeout_s=0.02)
+
+
+def test_arrival_time_of_the_last_included_event(rng):
+    ring = EventRing(capacity_events=100, policy="wait")
+    for k in range(3):
+        ring.push(Packet(events=make_events(np.arange(10 * k, 10 * k + 10), rng), arrival_ns=1000 + k))
+    chunk = ring.read_events(25)
+    assert chunk.arrival_ns_at(10) == 1000  # event 9 came with push 0
+    assert chunk.arrival_ns_at(11) == 1001
+    assert chunk.arrival_ns_at(25) == 1002
+    assert ring.read_events(5).arrival_ns_at(5) == 1002
+
+
+@pytest.mark.parametrize("policy", ["wait", "drop_oldest"])
+def test_stress_one_producer_one_consumer(rng, policy):
+    ring = EventRing(capacity_events=4096, capacity_frames=4, policy=policy)
+    n_packets, per_packet = 400, 97
+    t = np.arange(n_packets * per_packet, dtype=np.int64)
+    ev = make_events(t, rng)
+    frames_in = [frame(int(k * per_packet), int(k * per_packet + 50)) for k in range(0, n_packets, 10)]
+    errors = []
+
+    def produce():
+        try:
+            for k in range(n_packets):
+                fr = [f for f in frames_in if k * per_packet <= f.exposure_end_us < (k + 1) * per_packet]
+                ring.push(Packet(events=ev[k * per_packet:(k + 1) * per_packet], frames=fr), timeout_s=10)
+        except Exception as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+        finally:
+            ring.close()
+
+    got, frames_out = [], []
+    producer = threading.Thread(target=produce)
+    producer.start()
+    while not ring.exhausted:
+        entry = ring.peek_frame()
+        chunk = ring.read_events(333, until_index=entry.end_index if entry else None)
+        got.append(chunk.events)
+        if entry is not None and ring.read_index >= entry.end_index:
+            frames_out.append(ring.pop_frame())
+        if len(chunk.events) == 0 and entry is None:
+            ring.wait(ring.version, 0.05)
+    producer.join(timeout=10)
+    assert not errors and not producer.is_alive()
+    got = concat(got)
+    assert np.all(np.diff(got["t"]) > 0), "order kept, nothing duplicated"
+    assert np.all(np.isin(got["t"], t)), "nothing invented"
+    if policy == "wait":
+        np.testing.assert_array_equal(got, ev)
+        assert [e.frame for e in frames_out] == frames_in
+    else:
+        assert len(got) + ring.dropped_events == len(ev)
+        assert len(frames_out) + ring.dropped_frames == len(frames_in)

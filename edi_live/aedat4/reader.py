@@ -1,0 +1,373 @@
+"""Streaming AEDAT 4.0 reader: one packet in memory at a time.
+
+Owns: the IOHeader (FlatBuffer parsed through its vtable, never fixed offsets), the infoNode XML (streams, resolution,
+camera), packet walking and decompression (none, LZ4, LZ4_HIGH, ZSTD, ZSTD_HIGH), decoding of EVTS (a zero-copy
+view in EVENT_DTYPE), FRME (exposure window from SOE/EOE, both DV layouts), IMUS and TRIG, and the optional
+FileDataTable. Packets come out in file order (arrival order, not time order; `drivers.replay` merges them).
+Every defect in the file is a `RecordingError` naming the file and byte offset, raised after every packet
+before the defect has been yielded. Unknown stream types are skipped with a warning.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import warnings
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from typing import Iterator
+
+import lz4.frame
+import numpy as np
+import zstandard
+
+from edi_live.aedat4 import schema as S
+from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, Frame, SourceInfo
+from edi_live.errors import RecordingError
+
+SUPPORTED_TYPES = ("EVTS", "FRME", "IMUS", "TRIG")
+MAX_PACKET_BYTES = 1 << 30  # decompressed; a larger packet is treated as corrupt (bounded memory)
+
+DATA_TABLE_DTYPE = np.dtype([("byte_offset", "<i8"), ("stream_id", "<i4"), ("size", "<i4"),
+                             ("num_elements", "<i8"), ("t_start", "<i8"), ("t_end", "<i8")])
+"""One FileDataTable entry: `byte_offset` addresses the packet body (its header is 8 bytes before)."""
+
+_PH = struct.Struct("<ii")
+_I8, _I16, _I32, _I64, _F32 = (struct.Struct(f) for f in ("<b", "<h", "<i", "<q", "<f"))
+
+
+@dataclass(frozen=True)
+class StreamInfo:
+    """One stream declared in the header XML."""
+
+    id: int
+    type: str  # typeIdentifier: "EVTS", "FRME", "IMUS", "TRIG" or something unsupported
+    name: str = ""  # originalOutputName, e.g. "events"
+    width: int = 0  # sizeX (events and frames only; 0 when not given)
+    height: int = 0
+    source: str = ""  # camera, e.g. "DAVIS346_00000391"
+    compression: str = ""
+
+    @property
+    def supported(self) -> bool:
+        return self.type in SUPPORTED_TYPES
+
+
+def split_camera_label(label: str) -> tuple[str, str]:
+    """'DAVIS346_00000391' -> ('DAVIS346', '00000391'); a label without '_<digits>' is all name."""
+    head, sep, tail = label.rpartition("_")
+    if sep and head and tail.isdigit():
+        return head, tail
+    return (label or "unknown"), ""
+
+
+class Aedat4Reader:
+    """Streaming AEDAT4 reader; a context manager. Iterate for `(StreamInfo, data)` in file order.
+
+    data is an events ndarray (EVENT_DTYPE, a read-only view of the decompressed packet), a `Frame`, an IMU ndarray
+    (IMU_DTYPE) or a triggers ndarray (TRIGGER_DTYPE). Iterating again starts from the first packet.
+    """
+
+    def __init__(self, path: str | os.PathLike, *, validate: bool = True) -> None:
+        self.path = os.fspath(path)
+        self.validate = validate
+        try:
+            self._file = open(self.path, "rb", buffering=1 << 20)
+        except OSError as exc:
+            raise RecordingError(f"cannot open the recording ({exc.strerror or exc})", self.path) from exc
+        try:
+            self.file_size = os.fstat(self._file.fileno()).st_size
+            self._read_header()
+        except BaseException:
+            self._file.close()
+            raise
+        self._warned: set[int] = set()
+
+    # ------------------------------------------------------------------------------------------- header
+    def _error(self, message: str, offset: int | None) -> RecordingError:
+        return RecordingError(message, self.path, offset)
+
+    def _read_header(self) -> None:
+        if self.file_size == 0:
+            raise self._error("the file is empty, not an AEDAT4 recording", 0)
+        head = self._file.read(S.HEADER_START + 4)
+        if not head.startswith(S.MAGIC):
+            if S.MAGIC.startswith(head):
+                raise self._error("the file ends inside the AEDAT4 magic line (truncated)", len(head))
+            if head.startswith(b"#!AER-DAT"):
+                version = head[9:12].decode("ascii", "replace")
+                raise self._error(f"AEDAT {version} is not supported; only AEDAT 4.0 files can be read", 0)
+            raise self._error("not an AEDAT4 recording (the file does not start with '#!AER-DAT4.0')", 0)
+        if len(head) < S.HEADER_START + 4:
+            raise self._error("the file ends inside the header (truncated)", len(head))
+        n = struct.unpack_from("<I", head, S.HEADER_START)[0]
+        self.data_start = S.HEADER_START + 4 + n
+        if self.data_start > self.file_size:
+            raise self._error(f"the header claims {n} bytes but the file ends at byte {self.file_size} (truncated)",
+                              S.HEADER_START)
+        buf = head[S.HEADER_START:] + self._file.read(n)
+        try:
+            root = S.root_table(buf, b"IOHE")
+            code_pos = root.field_pos(S.IOH_COMPRESSION, 4)
+            code = _I32.unpack_from(buf, code_pos)[0] if code_pos else 0
+            dtp = root.scalar(S.IOH_DATA_TABLE_POSITION, _I64, -1)
+            xml = root.string(S.IOH_INFO_NODE)
+        except S.FlatBufferError as exc:
+            raise self._error(f"corrupt IOHeader: {exc}", S.HEADER_START + exc.pos) from None
+        if code not in S.COMPRESSION_NAMES:
+            raise self._error(f"unknown compression type {code} (known: 0-4)", S.HEADER_START + code_pos)
+        self.compression = S.COMPRESSION_NAMES[code]
+        if dtp >= 0 and (dtp < self.data_start or dtp > self.file_size):
+            if dtp > self.file_size:
+                self._dtp_error = f"the FileDataTable should start at byte {dtp} but the file ends at byte " \
+                                  f"{self.file_size} (truncated)"
+            else:
+                raise self._error(f"dataTablePosition {dtp} points into the header", S.HEADER_START)
+        self.data_table_position = dtp
+        self._end = dtp if 0 <= dtp <= self.file_size else self.file_size
+        self.streams = self._parse_xml(xml)
+        self._by_id = {s.id: s for s in self.streams}
+        for s in self.streams:
+            if not s.supported:
+                warnings.warn(f"{self.path}: stream {s.id} '{s.name}' has type {s.type}, which edi-live does not "
+                              f"read; its packets are skipped", RuntimeWarning, stacklevel=3)
+        self.source_info = self._source_info()
+
+    _dtp_error: str | None = None
+
+    def _parse_xml(self, xml: bytes) -> list[StreamInfo]:
+        if not xml:
+            return []
+        try:
+            root = ET.fromstring(xml.decode("utf-8", "replace"))
+        except ET.ParseError as exc:
+            raise self._error(f"the stream description (infoNode XML) is malformed: {exc}", S.HEADER_START) from None
+        streams = []
+        for node in root.iter("node"):
+            attrs = {a.get("key"): (a.text or "") for a in node.findall("attr")}
+            if "typeIdentifier" not in attrs:
+                continue
+            try:
+                sid = int(node.get("name", ""))
+            except ValueError:
+                continue
+            info = node.find("node[@name='info']")
+            iattrs = {a.get("key"): (a.text or "") for a in info.findall("attr")} if info is not None else {}
+            streams.append(StreamInfo(id=sid, type=attrs["typeIdentifier"].strip(),
+                                      name=attrs.get("originalOutputName", "").strip() or f"stream{sid}",
+                                      width=_int(iattrs.get("sizeX")), height=_int(iattrs.get("sizeY")),
+                                      source=iattrs.get("source", "").strip(),
+                                      compression=attrs.get("compression", "").strip()))
+        return streams
+
+    def _source_info(self) -> SourceInfo:
+        ranked = sorted(self.streams, key=lambda s: (s.type != "EVTS", s.type != "FRME", s.id))
+        sized = [s for s in ranked if s.width > 0 and s.height > 0]
+        label = next((s.source for s in ranked if s.source), "")
+        name, serial = split_camera_label(label)
+        w, h = (sized[0].width, sized[0].height) if sized else (0, 0)
+        return SourceInfo(width=w, height=h, name=name, serial=serial, kind="replay")
+
+    # ------------------------------------------------------------------------------------------ packets
+    def packets(self) -> Iterator[tuple[StreamInfo, int, bytes]]:
+        """Raw packets in file order: (stream, file offset of the packet header, decompressed payload).
+
+        Packets of unknown or undeclared streams are skipped (with one warning per stream).
+        """
+        f, end, pos = self._file, self._end, self.data_start
+        f.seek(pos)
+        unpack = _PH.unpack
+        decompress = self._decompressor()
+        by_id = self._by_id
+        while pos < end:
+            if end - pos < 8:
+                raise self._error(f"the file ends inside a packet header ({end - pos} of 8 bytes; truncated)", pos)
+            sid, size = unpack(f.read(8))
+            if size <= 0:
+                raise self._error(f"corrupt packet header (size {size})", pos)
+            if pos + 8 + size > end:
+                what = "the FileDataTable" if end == self.data_table_position else "the end of the file (truncated)"
+                raise self._error(f"packet of {size} bytes runs past {what} at byte {end}", pos)
+            body = f.read(size)
+            if len(body) != size:
+                raise self._error("the file is shorter than its size on disk (read failed)", pos)
+            stream = by_id.get(sid)
+            if stream is None or not stream.supported:
+                if sid not in self._warned:
+                    self._warned.add(sid)
+                    if stream is None:
+                        warnings.warn(f"{self.path}: packet at byte {pos} belongs to stream {sid}, which the header "
+                                      f"does not declare; skipped", RuntimeWarning, stacklevel=2)
+                pos += 8 + size
+                continue
+            try:
+                payload = decompress(body)
+            except Exception as exc:  # lz4/zstandard raise their own types (RuntimeError, ZstdError, ...)
+                raise self._error(f"packet of stream {sid} does not decompress as {self.compression.upper()} "
+                                  f"({exc})", pos) from None
+            yield stream, pos, payload
+            pos += 8 + size
+        if self._dtp_error:
+            raise self._error(self._dtp_error, self.file_size)
+
+    def _decompressor(self):
+        if self.compression == "none":
+            return bytes
+        if self.compression.startswith("lz4"):
+            return lz4.frame.decompress
+        dctx = zstandard.ZstdDecompressor()
+
+        def unzstd(body: bytes) -> bytes:
+            with dctx.stream_reader(body) as reader:
+                out = reader.read(MAX_PACKET_BYTES + 1)
+            if len(out) > MAX_PACKET_BYTES:
+                raise ValueError("decompressed packet larger than 1 GiB")
+            return out
+
+        return unzstd
+
+    # ---------------------------------------------------------------------------------------- decoding
+    def __iter__(self) -> Iterator[tuple[StreamInfo, object]]:
+        for stream, _, data in self.records():
+            yield stream, data
+
+    def records(self) -> Iterator[tuple[StreamInfo, int, object]]:
+        """Like iteration, with the file offset of each packet: (stream, offset, data)."""
+        seqs: dict[int, int] = {}
+        for stream, pos, payload in self.packets():
+            try:
+                t = stream.type
+                if t == "EVTS":
+                    data = self._events(payload, stream, pos)
+                elif t == "FRME":
+                    seq = seqs.get(stream.id, 0)
+                    seqs[stream.id] = seq + 1
+                    data = self._frame(payload, stream, pos, seq)
+                elif t == "IMUS":
+                    data = _imu(payload)
+                else:
+                    data = _triggers(payload)
+            except S.FlatBufferError as exc:
+                raise self._error(f"corrupt {stream.type} packet: {exc} (payload byte {exc.pos})", pos) from None
+            yield stream, pos, data
+
+    def _events(self, payload: bytes, stream: StreamInfo, pos: int) -> np.ndarray:
+        start, count = S.root_table(payload, b"EVTS").vector(0, S.EVENT_RECORD_BYTES)
+        ev = np.frombuffer(payload, dtype=EVENT_DTYPE, count=count, offset=start) if count else _NO_EVENTS
+        if self.validate and count:
+            t = ev["t"]
+            if count > 1 and bool((t[1:] < t[:-1]).any()):
+                raise self._error(f"event timestamps go backwards inside a packet of stream {stream.id}", pos)
+            if stream.width and (int(ev["x"].max()) >= stream.width or int(ev["y"].max()) >= stream.height):
+                raise self._error(f"event coordinates outside the {stream.width}x{stream.height} sensor "
+                                  f"(corrupt packet)", pos)
+        return ev
+
+    def _frame(self, payload: bytes, stream: StreamInfo, pos: int, seq: int) -> Frame:
+        tb = S.root_table(payload, b"FRME")
+        ts = tb.scalar(S.FR_TIMESTAMP, _I64)
+        soe, eoe = tb.scalar(S.FR_SOE, _I64), tb.scalar(S.FR_EOE, _I64)
+        sof, eof = tb.scalar(S.FR_SOF, _I64), tb.scalar(S.FR_EOF, _I64)
+        exposure = tb.scalar(S.FR_EXPOSURE, _I64, None)
+        fmt = tb.scalar(S.FR_FORMAT, _I8)
+        w, h = tb.scalar(S.FR_SIZE_X, _I16), tb.scalar(S.FR_SIZE_Y, _I16)
+        px, py = tb.scalar(S.FR_POS_X, _I16), tb.scalar(S.FR_POS_Y, _I16)
+        if fmt not in S.FRAME_FORMAT_CHANNELS:
+            raise self._error(f"frame pixel format {fmt} is not supported (8/16-bit gray, BGR or BGRA)", pos)
+        channels, depth = S.FRAME_FORMAT_CHANNELS[fmt]
+        if w <= 0 or h <= 0 or px < 0 or py < 0:
+            raise self._error(f"frame with invalid size {w}x{h} at ({px}, {py})", pos)
+        start, count = tb.vector(S.FR_PIXELS, 1)
+        if count != w * h * channels * depth:
+            raise self._error(f"frame holds {count} pixel bytes, {w}x{h}x{channels}x{depth} expected", pos)
+        dtype = np.uint8 if depth == 1 else np.dtype("<u2")
+        img = np.frombuffer(payload, dtype=dtype, count=w * h * channels, offset=start)
+        img = img.reshape(h, w) if channels == 1 else _to_gray(img.reshape(h, w, channels))
+        if (stream.width and stream.height and (w, h) != (stream.width, stream.height)
+                and px + w <= stream.width and py + h <= stream.height):
+            full = np.zeros((stream.height, stream.width), dtype=img.dtype)  # an ROI frame: place it on the sensor
+            full[py:py + h, px:px + w] = img
+            img = full
+        if soe or eoe:
+            lo, hi = soe, eoe if eoe else soe + (exposure or 0)
+        else:  # no exposure timestamps: newer layouts give timestamp = start plus an exposure duration
+            lo, hi = ts, ts + (exposure or 0)
+        if hi < lo or (exposure is not None and exposure < 0):
+            raise self._error(f"frame with a negative exposure (start {lo} µs, end {hi} µs)", pos)
+        return Frame(image=img, exposure_start_us=lo, exposure_end_us=hi,
+                     start_us=sof or None, end_us=eof or None, seq=seq)
+
+    # ------------------------------------------------------------------------------------- data table
+    def data_table(self) -> np.ndarray | None:
+        """The FileDataTable as a DATA_TABLE_DTYPE array (missing fields are 0), or None when the file has none."""
+        dtp = self.data_table_position
+        if dtp < 0 or self._dtp_error:
+            return None
+        self._file.seek(dtp)
+        body = self._file.read(self.file_size - dtp)
+        try:
+            payload = self._decompressor()(body)
+        except Exception as exc:
+            raise self._error(f"the FileDataTable does not decompress ({exc})", dtp) from None
+        try:
+            entries = S.root_table(payload, b"FTAB").tables(0)
+            out = np.zeros(len(entries), dtype=DATA_TABLE_DTYPE)
+            for i, e in enumerate(entries):
+                p = e.field_pos(1, 8)
+                sid, size = _PH.unpack_from(payload, p) if p else (0, 0)
+                out[i] = (e.scalar(0, _I64), sid, size, e.scalar(2, _I64), e.scalar(3, _I64), e.scalar(4, _I64))
+        except S.FlatBufferError as exc:
+            raise self._error(f"corrupt FileDataTable: {exc}", dtp) from None
+        return out
+
+    def time_range(self) -> tuple[int, int] | None:
+        """(first, last) timestamp in µs from the FileDataTable, or None when the table lacks timestamps."""
+        table = self.data_table()
+        if table is None or not len(table) or not table["t_end"].any():
+            return None
+        valid = table[table["t_end"] != 0]
+        return int(valid["t_start"].min()), int(valid["t_end"].max())
+
+    # -------------------------------------------------------------------------------------- lifecycle
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> "Aedat4Reader":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+_NO_EVENTS = np.zeros(0, dtype=EVENT_DTYPE)
+_NO_EVENTS.flags.writeable = False
+
+
+def _int(text: str | None) -> int:
+    try:
+        return max(0, int((text or "0").strip()))
+    except ValueError:
+        return 0
+
+
+def _to_gray(img: np.ndarray) -> np.ndarray:
+    """BGR(A) -> gray with the ITU-R BT.601 weights, keeping the bit depth."""
+    b, g, r = (img[..., i].astype(np.float32) for i in range(3))
+    return np.rint(0.114 * b + 0.587 * g + 0.299 * r).astype(img.dtype)
+
+
+def _imu(payload: bytes) -> np.ndarray:
+    tables = S.root_table(payload, b"IMUS").tables(0)
+    out = np.zeros(len(tables), dtype=IMU_DTYPE)
+    for i, tb in enumerate(tables):
+        v = [tb.scalar(s, _F32, 0.0) for s in range(1, 11)]
+        out[i] = (tb.scalar(0, _I64), v[0], v[1:4], v[4:7], v[7:10])
+    return out
+
+
+def _triggers(payload: bytes) -> np.ndarray:
+    tables = S.root_table(payload, b"TRIG").tables(0)
+    out = np.zeros(len(tables), dtype=TRIGGER_DTYPE)
+    for i, tb in enumerate(tables):
+        out[i] = (tb.scalar(0, _I64), tb.scalar(1, _I8))
+    return out

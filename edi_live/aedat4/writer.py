@@ -1,0 +1,232 @@
+"""AEDAT 4.0 writer: events, frames (exposure window and frame source), IMU and triggers.
+
+Owns: the IOHeader (dataTablePosition stored explicitly so it can be patched in place), the infoNode XML, one
+compressed packet per write call (LZ4 by default, zstd or none), per-stream monotonic-time checks (DV tools reject
+anything else), and the FileDataTable written at close() with `dataTablePosition` patched, so DV tools can seek.
+close() runs from `__exit__` even when the block raised, so the file is always finalised.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+from xml.sax.saxutils import escape
+
+import lz4.frame
+import numpy as np
+import zstandard
+
+from edi_live.aedat4 import schema as S
+from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, Frame
+from edi_live.errors import RecordingError
+
+_STREAMS = (("events", "EVTS"), ("frames", "FRME"), ("imu", "IMUS"), ("triggers", "TRIG"))
+MAX_EVENTS_PER_PACKET = 1 << 20  # larger write_events() calls are split, keeping packets (and readers) bounded
+
+# IMU element table: soffset, t, temperature, accel xyz, gyro xyz, mag xyz (itemsize 56: 4 mod 8 start + 52 + pad)
+_IMU_REC = np.dtype({"names": ["so", "t", "f"], "formats": ["<i4", "<i8", ("<f4", (10,))],
+                     "offsets": [0, 4, 12], "itemsize": 56})
+_IMU_SLOTS = [4] + [12 + 4 * i for i in range(10)]
+_TRIG_REC = np.dtype({"names": ["so", "t", "type"], "formats": ["<i4", "<i8", "i1"],
+                      "offsets": [0, 4, 12], "itemsize": 16})
+_TRIG_SLOTS = [4, 12]
+# FileDataDefinition: soffset, ByteOffset, PacketInfo{stream, size}, NumElements, TimestampStart, TimestampEnd
+_FTAB_REC = np.dtype({"names": ["so", "off", "sid", "size", "n", "t0", "t1"],
+                      "formats": ["<i4", "<i8", "<i4", "<i4", "<i8", "<i8", "<i8"],
+                      "offsets": [0, 4, 12, 16, 20, 28, 36], "itemsize": 48})
+_FTAB_SLOTS = [4, 12, 20, 28, 36]
+
+
+class Aedat4Writer:
+    """Write an AEDAT4 file that dv-processing and `aedat` open. A context manager; always call close()."""
+
+    def __init__(self, path: str | os.PathLike, width: int, height: int, *, events: bool = True,
+                 frames: bool = True, imu: bool = False, triggers: bool = False, compression: str = "lz4",
+                 camera_name: str = "edi-live", frame_source: str = "aps") -> None:
+        self.path = os.fspath(path)
+        if compression not in S.COMPRESSION_CODES:
+            raise RecordingError(f"unknown compression '{compression}' (use one of {', '.join(S.COMPRESSION_CODES)})",
+                                 self.path)
+        if frame_source not in S.FRAME_SOURCES:
+            raise RecordingError(f"unknown frame source '{frame_source}' (use one of "
+                                 f"{', '.join(S.FRAME_SOURCES)})", self.path)
+        if not (0 < width < 32768 and 0 < height < 32768):
+            raise RecordingError(f"invalid resolution {width}x{height}", self.path)
+        self.width, self.height = int(width), int(height)
+        self.compression = compression
+        self.camera_name = camera_name
+        self._frame_source = S.FRAME_SOURCES[frame_source]
+        wanted = {"events": events, "frames": frames, "imu": imu, "triggers": triggers}
+        self._ids = {}
+        for name, _ in _STREAMS:
+            if wanted[name]:
+                self._ids[name] = len(self._ids)
+        self._last_t = {name: -(2**63) for name in self._ids}
+        self._compress = _compressor(compression)
+        self._table: list[tuple[int, int, int, int, int, int]] = []
+        self._closed = False
+        try:
+            self._file = open(self.path, "wb")
+        except OSError as exc:
+            raise RecordingError(f"cannot create the recording ({exc.strerror or exc})", self.path) from exc
+        header, positions = self._header(-2)
+        self._dtp_pos = len(S.MAGIC) + positions[S.IOH_DATA_TABLE_POSITION]
+        self._write(S.MAGIC + header)
+
+    # ------------------------------------------------------------------------------------------ header
+    def _xml(self) -> bytes:
+        comp = self.compression.upper()
+        parts = ['<dv version="2.0">', '<node name="outInfo" path="/outInfo/">']
+        for name, type_id in _STREAMS:
+            if name not in self._ids:
+                continue
+            sid = self._ids[name]
+            base = f"/outInfo/{sid}/"
+            parts.append(f'<node name="{sid}" path="{base}">')
+            for key, val in (("compression", comp), ("originalModuleName", "edi-live"),
+                             ("originalOutputName", name), ("typeDescription", S.TYPE_DESCRIPTIONS[type_id]),
+                             ("typeIdentifier", type_id)):
+                parts.append(f'<attr key="{key}" type="string">{escape(val)}</attr>')
+            parts.append(f'<node name="info" path="{base}info/">')
+            if type_id in ("EVTS", "FRME"):
+                parts.append(f'<attr key="sizeX" type="int">{self.width}</attr>')
+                parts.append(f'<attr key="sizeY" type="int">{self.height}</attr>')
+            parts.append(f'<attr key="source" type="string">{escape(self.camera_name)}</attr>')
+            parts.append("</node></node>")
+        parts.append("</node></dv>")
+        return "\n".join(parts).encode()
+
+    def _header(self, dtp: int) -> tuple[bytes, dict[int, int]]:
+        spec = (S.TableSpec().scalar(S.IOH_COMPRESSION, "i", S.COMPRESSION_CODES[self.compression])
+                .scalar(S.IOH_DATA_TABLE_POSITION, "q", dtp).string(S.IOH_INFO_NODE, self._xml()))
+        return S.build_root(b"IOHE", spec)
+
+    # ------------------------------------------------------------------------------------------ writing
+    def _write(self, data: bytes) -> None:
+        try:
+            self._file.write(data)
+        except OSError as exc:
+            raise RecordingError(f"cannot write the recording ({exc.strerror or exc})", self.path,
+                                 self._file.tell()) from exc
+
+    def _check(self, name: str, t_first: int, t_last: int) -> None:
+        if self._closed:
+            raise RecordingError("write after close()", self.path)
+        if name not in self._ids:
+            raise RecordingError(f"this writer was opened without a {name} stream", self.path)
+        if t_first < self._last_t[name]:
+            raise RecordingError(f"{name} timestamps go backwards ({t_first} µs after {self._last_t[name]} µs); "
+                                 f"AEDAT4 streams must be in time order", self.path)
+
+    def _check_sorted(self, name: str, t: np.ndarray) -> None:
+        if len(t) > 1 and bool((t[1:] < t[:-1]).any()):
+            raise RecordingError(f"{name} passed to the writer are not sorted by time", self.path)
+        self._check(name, int(t[0]), int(t[-1]))
+
+    def _packet(self, name: str, payload: bytes, n: int, t0: int, t1: int) -> None:
+        body = self._compress(payload)
+        offset = self._file.tell()
+        self._write(struct.pack("<ii", self._ids[name], len(body)) + body)
+        self._table.append((offset + 8, self._ids[name], len(body), n, t0, t1))
+        self._last_t[name] = t1
+
+    def write_events(self, events: np.ndarray) -> None:
+        """Append events (EVENT_DTYPE, sorted by t) as one packet (split beyond 2^20 events)."""
+        if events.dtype != EVENT_DTYPE:
+            raise RecordingError(f"write_events needs EVENT_DTYPE, got {events.dtype}", self.path)
+        if not len(events):
+            return
+        self._check_sorted("events", events["t"])
+        for i in range(0, len(events), MAX_EVENTS_PER_PACKET):
+            chunk = np.ascontiguousarray(events[i:i + MAX_EVENTS_PER_PACKET])
+            raw = chunk.view(np.uint8).reshape(-1, 16).copy()
+            raw[:, 12] = chunk["p"]  # polarity byte 0/1, padding zeroed
+            raw[:, 13:] = 0
+            spec = S.TableSpec().vector_bytes(0, raw.tobytes(), len(chunk), align=8)
+            payload, _ = S.build_root(b"EVTS", spec)
+            self._packet("events", payload, len(chunk), int(chunk["t"][0]), int(chunk["t"][-1]))
+
+    def write_frame(self, frame: Frame) -> None:
+        """Append one frame (8- or 16-bit gray): timestamp = exposure start, SOE/EOE and exposure set."""
+        img = np.ascontiguousarray(frame.image)
+        if img.dtype == np.uint8:
+            fmt = S.FRAME_FORMAT_GRAY8
+        elif img.dtype == np.uint16:
+            fmt, img = S.FRAME_FORMAT_GRAY16, img.astype("<u2", copy=False)
+        else:
+            raise RecordingError(f"frames must be uint8 or uint16 gray, got {img.dtype}", self.path)
+        h, w = img.shape
+        soe, eoe = int(frame.exposure_start_us), int(frame.exposure_end_us)
+        self._check("frames", soe, soe)
+        spec = (S.TableSpec().scalar(S.FR_TIMESTAMP, "q", soe)
+                .scalar(S.FR_SOF, "q", int(frame.start_us or 0)).scalar(S.FR_EOF, "q", int(frame.end_us or 0))
+                .scalar(S.FR_SOE, "q", soe).scalar(S.FR_EOE, "q", eoe)
+                .scalar(S.FR_FORMAT, "b", fmt).scalar(S.FR_SIZE_X, "h", w).scalar(S.FR_SIZE_Y, "h", h)
+                .scalar(S.FR_POS_X, "h", 0).scalar(S.FR_POS_Y, "h", 0)
+                .vector_bytes(S.FR_PIXELS, img.tobytes(), img.nbytes, align=1)
+                .scalar(S.FR_EXPOSURE, "q", eoe - soe).scalar(S.FR_SOURCE, "b", self._frame_source))
+        payload, _ = S.build_root(b"FRME", spec)
+        self._packet("frames", payload, 1, soe, soe)
+
+    def write_imu(self, imu: np.ndarray) -> None:
+        """Append IMU samples (IMU_DTYPE, sorted by t) as one packet."""
+        if imu.dtype != IMU_DTYPE:
+            raise RecordingError(f"write_imu needs IMU_DTYPE, got {imu.dtype}", self.path)
+        if not len(imu):
+            return
+        self._check_sorted("imu", imu["t"])
+        rec = np.zeros(len(imu), dtype=_IMU_REC)
+        rec["t"] = imu["t"]
+        rec["f"][:, 0] = imu["temperature_c"]
+        rec["f"][:, 1:4], rec["f"][:, 4:7], rec["f"][:, 7:10] = imu["accel_g"], imu["gyro_dps"], imu["mag_ut"]
+        payload = S.build_table_vector_root(b"IMUS", rec, _IMU_SLOTS)
+        self._packet("imu", payload, len(imu), int(imu["t"][0]), int(imu["t"][-1]))
+
+    def write_triggers(self, triggers: np.ndarray) -> None:
+        """Append triggers (TRIGGER_DTYPE, sorted by t) as one packet."""
+        if triggers.dtype != TRIGGER_DTYPE:
+            raise RecordingError(f"write_triggers needs TRIGGER_DTYPE, got {triggers.dtype}", self.path)
+        if not len(triggers):
+            return
+        self._check_sorted("triggers", triggers["t"])
+        rec = np.zeros(len(triggers), dtype=_TRIG_REC)
+        rec["t"], rec["type"] = triggers["t"], triggers["type"]
+        payload = S.build_table_vector_root(b"TRIG", rec, _TRIG_SLOTS)
+        self._packet("triggers", payload, len(triggers), int(triggers["t"][0]), int(triggers["t"][-1]))
+
+    # ------------------------------------------------------------------------------------------- close
+    def close(self) -> None:
+        """Write the FileDataTable and patch dataTablePosition. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            dtp = self._file.tell()
+            rec = np.zeros(len(self._table), dtype=_FTAB_REC)
+            if self._table:
+                cols = np.array(self._table, dtype=np.int64)
+                for i, name in enumerate(("off", "sid", "size", "n", "t0", "t1")):
+                    rec[name] = cols[:, i]
+            self._write(self._compress(S.build_table_vector_root(b"FTAB", rec, _FTAB_SLOTS)))
+            self._file.seek(self._dtp_pos)
+            self._write(struct.pack("<q", dtp))
+            self._file.flush()
+        finally:
+            self._file.close()
+
+    def __enter__(self) -> "Aedat4Writer":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _compressor(name: str):
+    if name == "none":
+        return bytes
+    if name in ("lz4", "lz4_high"):
+        level = 9 if name == "lz4_high" else 0
+        return lambda data: lz4.frame.compress(data, compression_level=level, store_size=False)
+    level = 19 if name == "zstd_high" else 3
+    cctx = zstandard.ZstdCompressor(level=level, write_content_size=True)
+    return cctx.compress

@@ -1,0 +1,141 @@
+"""The logic-18 register protocol as data: module/parameter addresses, 0xBF/0xC2 vendor-request packing,
+clock-unit conversions, and the configure / start / stop sequences as lists of (module, param, value).
+
+No I/O here: `device.py` sends these through a transport, and the emulator decodes the same packing.
+Source: inivation/libcaer `include/libcaer/devices/davis.h`, `src/usb_utils.h`, `src/davis.c`
+(davis-usb-protocol note §3-§5).
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from typing import Sequence
+
+from drivers.davis.models import DavisModel
+
+REQ_OUT = 0x40  # vendor, device, host-to-device
+REQ_IN = 0xC0   # vendor, device, device-to-host
+VR_CONFIG = 0xBF           # one parameter: wValue = module, wIndex = param, 4-byte big-endian u32
+VR_CONFIG_MULTIPLE = 0xC2  # wValue = N entries of (module u8, param u8, value u32 BE)
+
+MUX, DVS, APS, IMU, EXTINPUT, BIAS, SYSINFO, USB = 0, 1, 2, 3, 4, 5, 6, 9
+
+# MUX
+MUX_RUN, MUX_TIMESTAMP_RUN, MUX_TIMESTAMP_RESET, MUX_RUN_CHIP = 0, 1, 2, 3
+MUX_DROP_EXTINPUT_ON_STALL, MUX_DROP_DVS_ON_STALL = 4, 5
+MUX_HAS_STATISTICS, MUX_STAT_DVS_DROPPED = 80, 83
+# DVS
+DVS_SIZE_COLUMNS, DVS_SIZE_ROWS, DVS_ORIENTATION, DVS_RUN, DVS_WAIT_ON_STALL = 0, 1, 2, 3, 4
+# APS
+APS_SIZE_COLUMNS, APS_SIZE_ROWS, APS_ORIENTATION, APS_COLOR_FILTER, APS_RUN, APS_WAIT_ON_STALL = 0, 1, 2, 3, 4, 5
+APS_HAS_GLOBAL_SHUTTER, APS_GLOBAL_SHUTTER = 6, 7
+APS_START_COLUMN, APS_START_ROW, APS_END_COLUMN, APS_END_ROW = 8, 9, 10, 11
+APS_EXPOSURE, APS_FRAME_INTERVAL = 12, 13
+# IMU
+IMU_TYPE, IMU_ORIENTATION, IMU_RUN_ACCEL, IMU_RUN_GYRO, IMU_RUN_TEMP = 0, 1, 2, 3, 4
+IMU_SAMPLE_RATE_DIVIDER, IMU_ACCEL_DLPF, IMU_ACCEL_FULL_SCALE, IMU_GYRO_FULL_SCALE = 5, 6, 7, 10
+# EXTINPUT
+EXTINPUT_RUN_DETECTOR = 0
+# BIAS/CHIP
+CHIP_GLOBAL_SHUTTER = 142
+# SYSINFO
+SYS_LOGIC_VERSION, SYS_CHIP_ID, SYS_IS_MASTER, SYS_LOGIC_CLOCK, SYS_ADC_CLOCK, SYS_USB_CLOCK = 0, 1, 2, 3, 4, 5
+SYS_CLOCK_DEVIATION, SYS_LOGIC_PATCH = 6, 7
+# USB
+USB_RUN, USB_EARLY_PACKET_DELAY = 0, 1
+
+EXPOSURE_MAX_US = 4_194_303
+FRAME_INTERVAL_MAX_US = 8_388_607
+DEFAULT_EXPOSURE_US = 4000
+DEFAULT_FRAME_INTERVAL_US = 40000
+
+Write = tuple[int, int, int]  # (module, param, value)
+
+
+def pack_value(value: int) -> bytes:
+    """The 4-byte data stage of a 0xBF write (big-endian u32)."""
+    return struct.pack(">I", value & 0xFFFFFFFF)
+
+
+def unpack_value(data: bytes | Sequence[int]) -> int:
+    if len(data) != 4:
+        raise ValueError(f"a register read must return 4 bytes (got {len(data)})")
+    return struct.unpack(">I", bytes(data))[0]
+
+
+def pack_multiple(writes: Sequence[Write]) -> bytes:
+    """The data stage of a 0xC2 batched write: N x (module u8, param u8, value u32 BE), no padding."""
+    return b"".join(struct.pack(">BBI", m, p, v & 0xFFFFFFFF) for m, p, v in writes)
+
+
+def unpack_multiple(count: int, data: bytes) -> list[Write]:
+    if len(data) != 6 * count:
+        raise ValueError(f"0xC2 batch of {count} entries needs {6 * count} bytes (got {len(data)})")
+    return [struct.unpack_from(">BBI", data, 6 * i) for i in range(count)]
+
+
+@dataclass(frozen=True)
+class Clocks:
+    """Clocks read from SYSINFO; actual MHz = nominal x deviation / 1000."""
+
+    logic_mhz: float
+    adc_mhz: float
+    usb_mhz: float
+
+    @classmethod
+    def from_registers(cls, logic: int, adc: int, usb: int, deviation: int) -> "Clocks":
+        f = (deviation or 1000) / 1000.0
+        return cls(logic * f, adc * f, usb * f)
+
+
+def us_to_cycles(us: int, clock_mhz: float) -> int:
+    return int(round(us * clock_mhz))
+
+
+def cycles_to_us(cycles: int, clock_mhz: float) -> int:
+    return int(round(cycles / clock_mhz)) if clock_mhz > 0 else 0
+
+
+def check_exposure(exposure_us: int | None, frame_interval_us: int | None) -> None:
+    if exposure_us is not None and not 0 <= exposure_us <= EXPOSURE_MAX_US:
+        raise ValueError(f"exposure must be 0..{EXPOSURE_MAX_US} µs (got {exposure_us})")
+    if frame_interval_us is not None and not 0 <= frame_interval_us <= FRAME_INTERVAL_MAX_US:
+        raise ValueError(f"frame interval must be 0..{FRAME_INTERVAL_MAX_US} µs (got {frame_interval_us})")
+
+
+def default_config(model: DavisModel, *, has_global_shutter: bool, aps_columns: int, aps_rows: int,
+                   clocks: Clocks, exposure_us: int = DEFAULT_EXPOSURE_US,
+                   frame_interval_us: int = DEFAULT_FRAME_INTERVAL_US) -> list[Write]:
+    """libcaer's sendDefaultConfig: biases, chip options, FPGA defaults, then the USB early-packet delay."""
+    gs = int(has_global_shutter)
+    writes: list[Write] = [(BIAS, p, v) for p, v in model.biases]
+    writes += [(BIAS, p, v) for p, v in model.chip_config] + [(BIAS, CHIP_GLOBAL_SHUTTER, gs)]
+    writes += [
+        (MUX, MUX_TIMESTAMP_RESET, 0), (MUX, MUX_DROP_EXTINPUT_ON_STALL, 1), (MUX, MUX_DROP_DVS_ON_STALL, 1),
+        (DVS, DVS_WAIT_ON_STALL, 0),
+        (APS, APS_WAIT_ON_STALL, 1), (APS, APS_GLOBAL_SHUTTER, gs),
+        (APS, APS_START_COLUMN, 0), (APS, APS_START_ROW, 0),
+        (APS, APS_END_COLUMN, aps_columns - 1), (APS, APS_END_ROW, aps_rows - 1),
+        (APS, APS_EXPOSURE, us_to_cycles(exposure_us, clocks.adc_mhz)),
+        (APS, APS_FRAME_INTERVAL, us_to_cycles(frame_interval_us, clocks.adc_mhz)),
+        (IMU, IMU_SAMPLE_RATE_DIVIDER, 0), (IMU, IMU_ACCEL_DLPF, 1), (IMU, IMU_ACCEL_FULL_SCALE, 1),
+        (IMU, IMU_GYRO_FULL_SCALE, 1),
+        (USB, USB_EARLY_PACKET_DELAY, us_to_cycles(8 * 125, clocks.usb_mhz)),  # 1 ms
+    ]
+    return writes
+
+
+PRODUCERS_OFF: list[Write] = [(DVS, DVS_RUN, 0), (APS, APS_RUN, 0), (IMU, IMU_RUN_ACCEL, 0), (IMU, IMU_RUN_GYRO, 0),
+                              (IMU, IMU_RUN_TEMP, 0), (EXTINPUT, EXTINPUT_RUN_DETECTOR, 0)]
+MUX_OFF: list[Write] = [(MUX, MUX_RUN, 0), (MUX, MUX_TIMESTAMP_RUN, 0), (USB, USB_RUN, 0), (MUX, MUX_RUN_CHIP, 0)]
+# dataStart: all off, sleep 10 ms, clear_halt, start reader, chip on, sleep 200 ms, USB+MUX on, sleep 50 ms,
+# producers on. The timestamp reset (a 0xC2 batch) anchors device time 0 to the host clock.
+START_ALL_OFF: list[Write] = PRODUCERS_OFF + MUX_OFF
+START_CHIP_ON: list[Write] = [(MUX, MUX_RUN_CHIP, 1)]
+START_MUX_ON: list[Write] = [(USB, USB_RUN, 1), (MUX, MUX_TIMESTAMP_RUN, 1), (MUX, MUX_RUN, 1)]
+START_PRODUCERS_ON: list[Write] = [(DVS, DVS_RUN, 1), (APS, APS_RUN, 1), (IMU, IMU_RUN_ACCEL, 1),
+                                   (IMU, IMU_RUN_GYRO, 1), (IMU, IMU_RUN_TEMP, 1), (EXTINPUT, EXTINPUT_RUN_DETECTOR, 1)]
+TIMESTAMP_RESET_BATCH: list[Write] = [(MUX, MUX_TIMESTAMP_RESET, 1), (MUX, MUX_TIMESTAMP_RESET, 0)]
+STOP_SEQUENCE: list[Write] = PRODUCERS_OFF + MUX_OFF
+START_SLEEPS_S = {"drain": 0.010, "chip": 0.200, "mux": 0.050}

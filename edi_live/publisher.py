@@ -198,6 +198,14 @@ class Publisher:
 
     def _open(self, ctx: zmq.Context) -> zmq.Socket:
         sock = ctx.socket(zmq.PUB)
+        try:
+            self._configure(sock)
+        except BaseException:
+            sock.close(linger=0)
+            raise
+        return sock
+
+    def _configure(self, sock: zmq.Socket) -> None:
         sock.setsockopt(zmq.LINGER, 0)
         sock.setsockopt(zmq.SNDHWM, self.sndhwm)
         if self.curve_secret_key is not None:
@@ -214,7 +222,6 @@ class Publisher:
             except zmq.ZMQError as exc:
                 raise BindError(_bind_message(endpoint, exc)) from exc
             self.bound_endpoints.append(sock.getsockopt_string(zmq.LAST_ENDPOINT))
-        return sock
 
     def _run(self) -> None:
         ctx = zmq.Context(io_threads=1)

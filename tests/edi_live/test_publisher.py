@@ -1,0 +1,270 @@
+"""The Publisher over real loopback sockets (tcp://127.0.0.1:*, resolved): round trip, seq, stats, slow and
+dead subscribers, fan-out, bind errors and CURVE. Every receive has a timeout; sockets close with linger 0."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import numpy as np
+import pytest
+import zmq
+
+from edi_live.client import Subscriber
+from edi_live.datatypes import Reconstruction
+from edi_live.errors import BindError, PublishError
+from edi_live.publisher import Publisher, generate_curve_keys, main
+
+ANY = "tcp://127.0.0.1:*"
+RECV_S = 5.0
+
+
+def make_rec(i: int, w: int = 240, h: int = 180, arrival_ns: int = 0) -> Reconstruction:
+    image = ((np.arange(w * h, dtype=np.int64).reshape(h, w) + 7 * i) % 251).astype(np.uint8)
+    return Reconstruction(image=image, t_us=1_000_000 + 1000 * i, kind="deblurred" if i % 10 == 0 else "latent",
+                          ref_t_us=1_000_000, exposure_start_us=995_000, exposure_end_us=1_005_000,
+                          c_on=0.2, c_off=0.2, n_events=i, arrival_ns=arrival_ns)
+
+
+def sync(pub: Publisher, *subs: Subscriber) -> int:
+    """Submit probe frames until every subscriber has received one (slow-joiner fix); returns the next seq."""
+    got = [False] * len(subs)
+    deadline = time.monotonic() + 10
+    while not all(got):
+        assert time.monotonic() < deadline, "subscribers never received a probe frame"
+        pub.submit(make_rec(0, 4, 2))
+        for k, sub in enumerate(subs):
+            while (item := sub.recv(0.02)) is not None:
+                got[k] = True
+    time.sleep(0.05)
+    for sub in subs:  # drain stragglers
+        while sub.recv(0.05) is not None:
+            pass
+    return pub.stats()["last_seq"] + 1
+
+
+@pytest.fixture
+def publisher():
+    made = []
+
+    def factory(*args, **kwargs) -> Publisher:
+        args = args or ([ANY], "DAVIS346_test")
+        pub = Publisher(*args, **kwargs)
+        pub.start()
+        made.append(pub)
+        return pub
+
+    yield factory
+    for pub in made:
+        pub.close()
+
+
+def test_round_trip_headers_pixels_and_seq(publisher):
+    pub = publisher(sndhwm=1000)
+    assert pub.bound_endpoints[0].startswith("tcp://127.0.0.1:") and not pub.bound_endpoints[0].endswith("*")
+    with Subscriber(pub.bound_endpoints[0], newest_only=False) as sub:
+        seq0 = sync(pub, sub)
+        recs = [make_rec(i) for i in range(1, 41)]
+        for rec in recs:
+            pub.submit(rec)
+        for k, rec in enumerate(recs):
+            item = sub.recv(RECV_S)
+            assert item is not None, f"frame {k} never arrived"
+            header, image = item
+            assert header["seq"] == seq0 + k  # +1 per frame message
+            assert header["source"] == "DAVIS346_test"
+            assert (header["t"], header["kind"], header["n_events"]) == (rec.t_us, rec.kind, rec.n_events)
+            assert (header["ref_t"], header["exp_start"], header["exp_end"]) == (1_000_000, 995_000, 1_005_000)
+            assert header["c"] == pytest.approx(0.2)
+            np.testing.assert_array_equal(image, rec.image)
+
+
+def test_stats_message_merges_provider_and_measures_latency(publisher):
+    calls = []
+
+    def provider():
+        calls.append(1)
+        return {"events_per_s": 1.25e6, "c": 0.21, "reestimations": 2, "ring_occupancy": 0.5,
+                "frames_per_s": 99.0}
+
+    pub = publisher([ANY], "cam", stats_provider=provider, stats_interval_s=0.1, sndhwm=1000)
+    with Subscriber(pub.bound_endpoints[0], newest_only=False) as sub:
+        sync(pub, sub)
+        five_ms_ago = time.monotonic_ns() - 5_000_000
+        for i in range(20):
+            pub.submit(make_rec(i, arrival_ns=five_ms_ago))
+        deadline = time.monotonic() + RECV_S
+        stats = None
+        while time.monotonic() < deadline:
+            stats = sub.recv_stats(0.5)
+            if stats and stats["frames_sent"] >= 20 and stats["latency_p50_us"] is not None:
+                break
+        assert stats is not None, "no stats message within the timeout"
+    assert calls
+    assert stats["v"] == 1 and stats["source"] == "cam"
+    assert stats["events_per_s"] == 1.25e6 and stats["reestimations"] == 2 and stats["ring_occupancy"] == 0.5
+    assert stats["frames_per_s"] == 99.0  # the node's own rate wins over the publisher's
+    assert stats["publish_dropped"] == 0
+    # latency = send time - arrival of the last included event; the events arrived >= 5 ms before sending
+    assert stats["latency_p50_us"] >= 5000 and stats["latency_p99_us"] >= stats["latency_p50_us"]
+
+
+def test_a_failing_stats_provider_does_not_stop_frames(publisher):
+    def provider():
+        raise RuntimeError("boom")
+
+    pub = publisher([ANY], "cam", stats_provider=provider, stats_interval_s=0.05)
+    with Subscriber(pub.bound_endpoints[0]) as sub:
+        sync(pub, sub)
+        stats = sub.recv_stats(RECV_S)
+        assert stats is not None and "frames_sent" in stats
+        pub.submit(make_rec(3))
+        assert sub.recv(RECV_S) is not None
+
+
+def test_slow_subscriber_never_blocks_and_fast_one_keeps_up(publisher):
+    """A subscriber that never reads gets dropped by PUB once its queues fill; the fast one gets every frame."""
+    pub = publisher([ANY], "cam", sndhwm=16)
+    n = 3000  # 3000 x 43 kB = 130 MB: far beyond what the slow peer's kernel buffers and HWM can hold
+    with Subscriber(pub.bound_endpoints[0], newest_only=False, rcvhwm=1, stats=False) as slow, \
+            Subscriber(pub.bound_endpoints[0], newest_only=False, stats=False) as fast:
+        seq0 = sync(pub, slow, fast)
+        for i in range(n):
+            pub.submit(make_rec(i))
+            item = fast.recv(RECV_S)
+            assert item is not None, f"fast subscriber starved at frame {i}: the slow one blocked the publisher"
+            assert item[0]["seq"] == seq0 + i
+            assert pub.pending() <= 64
+        slow_seqs = []
+        while (item := slow.recv(0.5)) is not None:
+            slow_seqs.append(item[0]["seq"])
+    assert len(slow_seqs) < n, "the slow subscriber should have lost frames (PUB drops for it)"
+    assert slow_seqs == sorted(slow_seqs)
+    assert pub.stats()["dropped"] == 0  # drops for one slow peer are not publisher drops
+
+
+def test_burst_submit_never_waits_and_counts_inbox_drops(publisher):
+    pub = publisher([ANY], "cam", inbox_size=8)
+    n = 5000
+    with Subscriber(pub.bound_endpoints[0], newest_only=False, rcvhwm=1, stats=False):  # never reads
+        done = threading.Event()
+        max_pending = []
+
+        def burst():
+            for i in range(n):
+                pub.submit(make_rec(i % 50))
+                max_pending.append(pub.pending())
+            done.set()
+
+        thread = threading.Thread(target=burst, daemon=True)
+        thread.start()
+        assert done.wait(30), "submit() blocked"
+        pub.close()
+    assert max(max_pending) <= 8  # memory stays bounded
+    stats = pub.stats()
+    assert stats["sent"] + stats["dropped_inbox"] + stats["dropped_socket"] == n
+    assert stats["last_seq"] == stats["sent"] + stats["dropped_socket"] - 1
+
+
+def test_two_subscribers_both_receive(publisher):
+    pub = publisher(sndhwm=1000)
+    with Subscriber(pub.bound_endpoints[0], newest_only=False) as a, \
+            Subscriber(pub.bound_endpoints[0], newest_only=False) as b:
+        seq0 = sync(pub, a, b)
+        for i in range(10):
+            pub.submit(make_rec(i))
+        for sub in (a, b):
+            seqs = [sub.recv(RECV_S)[0]["seq"] for _ in range(10)]
+            assert seqs == list(range(seq0, seq0 + 10))
+
+
+def test_several_endpoints_are_bound(publisher, tmp_path):
+    pub = publisher([ANY, f"ipc://{tmp_path}/frames.sock"], "cam", sndhwm=1000)
+    assert len(pub.bound_endpoints) == 2 and pub.bound_endpoints[1].startswith("ipc://")
+    with Subscriber(pub.bound_endpoints[1], newest_only=False) as sub:
+        sync(pub, sub)
+        pub.submit(make_rec(5))
+        header, image = sub.recv(RECV_S)
+        assert header["n_events"] == 5
+
+
+def test_bind_to_a_port_in_use_raises_bind_error():
+    holder = socket.socket()
+    holder.bind(("127.0.0.1", 0))
+    holder.listen(1)
+    port = holder.getsockname()[1]
+    try:
+        pub = Publisher([f"tcp://127.0.0.1:{port}"], "cam")
+        with pytest.raises(BindError, match="already in use") as info:
+            pub.start()
+        assert "\n" not in str(info.value) and str(port) in str(info.value)
+        pub.close()
+        assert not pub._thread.is_alive()
+    finally:
+        holder.close()
+
+
+@pytest.mark.parametrize("endpoint", ["tcp://127.0.0.1", "nonsense", "tcp://256.1.1.1:5555"])
+def test_bad_endpoints_raise_bind_error(endpoint):
+    pub = Publisher([endpoint], "cam")
+    with pytest.raises(BindError, match="cannot publish on"):
+        pub.start()
+    pub.close()
+
+
+def test_curve_encrypted_subscriber_receives_and_plain_one_does_not(publisher, tmp_path):
+    public, secret = generate_curve_keys(tmp_path / "keys")
+    pub = publisher([ANY], "cam", curve_secret_key=secret, sndhwm=1000)
+    endpoint = pub.bound_endpoints[0]
+    with Subscriber(endpoint, newest_only=False, curve_server_key=public) as enc, \
+            Subscriber(endpoint, newest_only=False) as plain:
+        sync(pub, enc)
+        for i in range(20):
+            pub.submit(make_rec(i))
+        got = [enc.recv(RECV_S) for _ in range(20)]
+        assert all(item is not None for item in got)
+        np.testing.assert_array_equal(got[-1][1], make_rec(19).image)
+        assert plain.recv(0.5) is None  # the handshake failed: nothing decrypts for a plain subscriber
+
+
+def test_curve_key_problems_are_clear(tmp_path):
+    public, _ = generate_curve_keys(tmp_path)
+    for key, message in [(tmp_path / "missing.key_secret", "cannot read"), (public, "no secret key")]:
+        pub = Publisher([ANY], "cam", curve_secret_key=key)
+        with pytest.raises(PublishError, match=message):
+            pub.start()
+        pub.close()
+
+
+def test_gen_curve_keys_command(tmp_path, capsys):
+    assert main(["--gen-curve-keys", str(tmp_path / "k")]) == 0
+    assert (tmp_path / "k" / "server.key").is_file() and (tmp_path / "k" / "server.key_secret").is_file()
+    assert "server.key_secret" in capsys.readouterr().out
+    assert (tmp_path / "k" / "server.key_secret").stat().st_mode & 0o077 == 0
+
+
+def test_close_is_prompt_and_idempotent_with_a_stalled_peer():
+    pub = Publisher([ANY], "cam")
+    pub.start()
+    ctx = zmq.Context()
+    stalled = ctx.socket(zmq.SUB)
+    stalled.setsockopt(zmq.LINGER, 0)
+    stalled.setsockopt(zmq.RCVHWM, 1)
+    stalled.setsockopt(zmq.SUBSCRIBE, b"")
+    stalled.connect(pub.bound_endpoints[0])
+    try:
+        for i in range(500):
+            pub.submit(make_rec(i))
+        pub.close(timeout_s=5)  # raises PublishError if the thread hangs on linger
+        pub.close()
+        assert not pub._thread.is_alive()
+    finally:
+        ctx.destroy(linger=0)
+
+
+def test_invalid_limits_are_refused():
+    with pytest.raises(PublishError):
+        Publisher([], "cam")
+    with pytest.raises(PublishError):
+        Publisher([ANY], "cam", inbox_size=0)

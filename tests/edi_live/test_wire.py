@@ -1,0 +1,211 @@
+"""Wire protocol v1 without sockets: encoding matches the contract's keys and values, decoding rejects
+everything malformed with ClientError (never a numpy or msgpack exception)."""
+
+from __future__ import annotations
+
+import math
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from edi_live import wire
+from edi_live.datatypes import Reconstruction
+from edi_live.errors import ClientError
+
+CONTRACT_KEYS = {"v", "seq", "t", "w", "h", "dtype", "kind", "ref_t", "exp_start", "exp_end", "n_events",
+                 "source"}
+
+
+def make_rec(rng, w=240, h=180, c_on=0.2, c_off=0.2, kind="latent", dtype=np.uint8) -> Reconstruction:
+    image = rng.integers(0, 256, size=(h, w)).astype(dtype)
+    return Reconstruction(image=image, t_us=1_700_000_123_456, kind=kind, ref_t_us=1_700_000_100_000,
+                          exposure_start_us=1_700_000_095_000, exposure_end_us=1_700_000_105_000,
+                          c_on=c_on, c_off=c_off, n_events=1000, arrival_ns=42)
+
+
+def as_bytes(parts) -> list[bytes]:
+    return [bytes(p) for p in parts]
+
+
+def header_of(parts) -> dict:
+    return msgpack.unpackb(bytes(parts[1]), raw=False)  # independent of wire.decode
+
+
+def test_frame_parts_follow_the_contract(rng):
+    rec = make_rec(rng)
+    parts = wire.encode_frame(rec, seq=7, source="DAVIS346_00000391")
+    assert len(parts) == 3 and bytes(parts[0]) == b"frame"
+    header = header_of(parts)
+    assert CONTRACT_KEYS <= set(header)
+    assert header["v"] == 1 and header["seq"] == 7 and header["source"] == "DAVIS346_00000391"
+    assert (header["w"], header["h"], header["dtype"]) == (240, 180, "u1")
+    assert (header["t"], header["ref_t"]) == (rec.t_us, rec.ref_t_us)
+    assert (header["exp_start"], header["exp_end"]) == (rec.exposure_start_us, rec.exposure_end_us)
+    assert header["kind"] == "latent" and header["n_events"] == 1000
+    assert header["c"] == pytest.approx(0.2) and "c_on" not in header
+    assert bytes(parts[2]) == rec.image.tobytes(order="C")  # raw row-major pixels
+
+
+def test_separate_thresholds_go_as_c_on_and_c_off(rng):
+    header = header_of(wire.encode_frame(make_rec(rng, c_on=0.25, c_off=0.3), 0, "cam"))
+    assert "c" not in header
+    assert (header["c_on"], header["c_off"]) == pytest.approx((0.25, 0.3))
+    assert wire.thresholds(header) == pytest.approx((0.25, 0.3))
+    assert wire.thresholds({"c": 0.1}) == (0.1, 0.1)
+
+
+@pytest.mark.parametrize("kind", ["deblurred", "latent"])
+@pytest.mark.parametrize("size", [(240, 180), (346, 260), (1, 1), (17, 3)])
+def test_round_trip(rng, kind, size):
+    rec = make_rec(rng, *size, kind=kind)
+    header, image = wire.decode_frame(as_bytes(wire.encode_frame(rec, 123, "cam")))
+    assert image.shape == (size[1], size[0]) and image.dtype == np.uint8
+    np.testing.assert_array_equal(image, rec.image)
+    assert header["kind"] == kind and header["seq"] == 123
+
+
+def test_sixteen_bit_pixels_travel_little_endian(rng):
+    rec = make_rec(rng, 8, 4, dtype=np.dtype(">u2"))
+    parts = wire.encode_frame(rec, 0, "cam")
+    assert header_of(parts)["dtype"] == "<u2"
+    _, image = wire.decode_frame(as_bytes(parts))
+    np.testing.assert_array_equal(image, rec.image.astype(np.uint16))
+
+
+def test_a_non_contiguous_image_is_sent_row_major(rng):
+    big = rng.integers(0, 256, size=(20, 30), dtype=np.uint8)
+    rec = make_rec(rng)
+    rec = Reconstruction(big[::2, ::3], rec.t_us, "latent", 0, 0, 0, 0.2, 0.2, 0)
+    _, image = wire.decode_frame(as_bytes(wire.encode_frame(rec, 0, "cam")))
+    np.testing.assert_array_equal(image, big[::2, ::3])
+
+
+def test_unsupported_pixel_dtype_is_refused_on_encode(rng):
+    rec = make_rec(rng, 4, 4)
+    rec = Reconstruction(rec.image.astype(np.float64), 0, "latent", 0, 0, 0, 0.2, 0.2, 0)
+    with pytest.raises(ValueError, match="cannot go on the wire"):
+        wire.encode_frame(rec, 0, "cam")
+
+
+def good_parts(rng, **header_changes):
+    parts = as_bytes(wire.encode_frame(make_rec(rng, 16, 8), 5, "cam"))
+    header = msgpack.unpackb(parts[1], raw=False)
+    for key, value in header_changes.items():
+        if value is KeyError:
+            header.pop(key)
+        else:
+            header[key] = value
+    parts[1] = msgpack.packb(header)
+    return parts
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"v": 2}, "protocol v2"),
+    ({"v": KeyError}, "version"),
+    ({"seq": -1}, "seq"),
+    ({"seq": 1.5}, "seq"),
+    ({"t": True}, "'t'"),
+    ({"t": KeyError}, "'t'"),
+    ({"w": 0}, "positive"),
+    ({"h": "180"}, "'h'"),
+    ({"w": 17}, "pixel part has"),
+    ({"dtype": "f8"}, "dtype"),
+    ({"dtype": KeyError}, "dtype"),
+    ({"kind": "aps"}, "kind"),
+    ({"source": 3}, "source"),
+    ({"c": float("nan")}, "finite"),
+    ({"c": KeyError}, "c_on"),
+    ({"n_events": KeyError}, "n_events"),
+])
+def test_bad_headers_are_rejected(rng, changes, message):
+    with pytest.raises(ClientError, match=message):
+        wire.decode_frame(good_parts(rng, **changes))
+
+
+@pytest.mark.parametrize("mutate, message", [
+    (lambda p: p[:2], "3 parts"),
+    (lambda p: p + [b""], "3 parts"),
+    (lambda p: [b"stats"] + p[1:], "topic"),
+    (lambda p: [p[0], b"\xc1garbage", p[2]], "not valid msgpack"),
+    (lambda p: [p[0], msgpack.packb([1, 2]), p[2]], "expected a map"),
+    (lambda p: [p[0], msgpack.packb({1: 2}), p[2]], "not valid msgpack"),
+    (lambda p: [p[0], p[1] + b"\x00", p[2]], "not valid msgpack"),
+    (lambda p: [p[0], p[1], p[2][:-1]], "pixel part has"),
+    (lambda p: [p[0], b"\x00" * (wire.MAX_HEADER_BYTES + 1), p[2]], "limit"),
+    (lambda p: [p[0], p[1], 12345], "not a byte buffer"),
+])
+def test_malformed_messages_are_rejected(rng, mutate, message):
+    with pytest.raises(ClientError, match=message):
+        wire.decode_frame(mutate(good_parts(rng)))
+
+
+def test_oversized_messages_are_rejected(rng):
+    parts = as_bytes(wire.encode_frame(make_rec(rng, 240, 180), 0, "cam"))
+    with pytest.raises(ClientError, match="exceeds the limit"):
+        wire.decode_frame(parts, max_bytes=240 * 180)
+    wire.decode_frame(parts, max_bytes=sum(map(len, parts)))  # exactly at the limit is fine
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.binary(max_size=64), min_size=0, max_size=4), st.data())
+def test_fuzzed_parts_give_only_client_errors(parts, data):
+    if len(parts) >= 2 and data.draw(st.booleans()):
+        parts[0] = b"frame"
+    try:
+        wire.decode_frame(parts)
+    except ClientError:
+        pass
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.dictionaries(st.sampled_from(sorted(CONTRACT_KEYS | {"c", "c_on", "c_off"})),
+                       st.one_of(st.integers(-2**70, 2**70), st.floats(), st.text(max_size=4), st.none(),
+                                 st.booleans(), st.binary(max_size=4))),
+       st.binary(max_size=64))
+def test_fuzzed_headers_give_only_client_errors(header, pixels):
+    try:
+        packed = msgpack.packb(header)
+    except (OverflowError, ValueError):
+        return
+    try:
+        wire.decode_frame([b"frame", packed, pixels])
+    except ClientError:
+        pass
+
+
+def test_stats_round_trip_with_units_version_and_numpy_values():
+    stats = {"events_per_s": np.float32(1.5e6), "frames_per_s": 1500.0, "c": np.float64(0.21),
+             "reestimations": np.int64(3), "ring_occupancy": 0.25, "latency_p99_us": None, "sent": 9,
+             "dropped": 2, "nested": {"a": np.int32(1)}, "weird": object()}
+    parts = wire.encode_stats(stats)
+    assert len(parts) == 2 and parts[0] == b"stats"
+    decoded = wire.decode_stats(parts)
+    raw = msgpack.unpackb(parts[1], raw=False)
+    assert decoded == raw
+    assert decoded["v"] == 1
+    assert decoded["events_per_s"] == pytest.approx(1.5e6)
+    assert decoded["reestimations"] == 3 and decoded["ring_occupancy"] == 0.25
+    assert decoded["frames_sent"] == 9 and decoded["publish_dropped"] == 2  # code names mapped to wire keys
+    assert "sent" not in decoded and decoded["latency_p99_us"] is None
+    assert decoded["nested"] == {"a": 1} and isinstance(decoded["weird"], str)
+
+
+@pytest.mark.parametrize("parts, message", [
+    ([b"stats"], "2 parts"),
+    ([b"frame", msgpack.packb({"v": 1})], "topic"),
+    ([b"stats", msgpack.packb({"v": 9})], "v9"),
+    ([b"stats", msgpack.packb({"v": True})], "protocol"),
+    ([b"stats", b"\xff\xff"], "msgpack"),
+    ([b"stats", msgpack.packb("x")], "map"),
+])
+def test_bad_stats_are_rejected(parts, message):
+    with pytest.raises(ClientError, match=message):
+        wire.decode_stats(parts)
+
+
+def test_decoded_numbers_stay_finite(rng):
+    header, _ = wire.decode_frame(as_bytes(wire.encode_frame(make_rec(rng, 4, 4, 0.01, 2.0), 0, "cam")))
+    assert all(math.isfinite(header[k]) for k in ("c_on", "c_off"))

@@ -1,0 +1,50 @@
+"""Pacing: maps sensor time (µs) to host `time.monotonic()` with a speed factor; shared by replay and the emulator.
+
+speed 1 replays in real time, 4 four times faster, 0 as fast as possible. The schedule is anchored once (the first
+timestamp meets the first call), so waiting never accumulates drift.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Callable
+
+
+class Pacer:
+    """Decides when data stamped `t_us` is due on the host clock."""
+
+    def __init__(self, speed: float = 1.0, clock: Callable[[], float] = time.monotonic) -> None:
+        if not speed >= 0:  # also rejects NaN
+            raise ValueError(f"speed must be >= 0 (got {speed})")
+        self.speed = float(speed)
+        self._clock = clock
+        self._anchor_t_us: int | None = None
+        self._anchor_s = 0.0
+
+    @property
+    def unpaced(self) -> bool:
+        return self.speed == 0
+
+    def anchor(self, t_us: int) -> None:
+        """Make sensor time `t_us` correspond to now (done automatically on the first `delay_s`)."""
+        self._anchor_t_us, self._anchor_s = int(t_us), self._clock()
+
+    def delay_s(self, t_us: int) -> float:
+        """Seconds from now until `t_us` is due (<= 0: due already)."""
+        if self.unpaced:
+            return 0.0
+        if self._anchor_t_us is None:
+            self.anchor(t_us)
+        due = self._anchor_s + (int(t_us) - self._anchor_t_us) / (1e6 * self.speed)
+        return due - self._clock()
+
+    def wait(self, t_us: int, timeout_s: float, stop: threading.Event | None = None) -> bool:
+        """Sleep until `t_us` is due, at most `timeout_s`. True when due; False on timeout or when `stop` is set."""
+        delay = self.delay_s(t_us)
+        if delay <= 0:
+            return True
+        if stop is not None:
+            return not stop.wait(min(delay, timeout_s)) and delay <= timeout_s
+        time.sleep(min(delay, timeout_s))
+        return delay <= timeout_s

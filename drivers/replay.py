@@ -1,0 +1,303 @@
+"""AEDAT4 replay: a recording played back as if a camera were plugged in.
+
+Owns `merged_packets()` (the file's streams merged into time-ordered `Packet`s, honouring the ordering contract of
+`edi_live.datatypes.Packet`) and `ReplaySource` (the `edi_live.source.Source` protocol: pacing by timestamps,
+`loop` with monotonic time, `stop()` from any thread, counters).
+
+Why a merge: DV writes packets in arrival order, so a frame packet arrives ~17 ms after the events of its exposure,
+and a trigger packet can precede older events. The merge keeps, per primary stream (the first EVTS, FRME, IMUS and
+TRIG stream), the newest key seen (events: t, frames: exposure end, IMU and triggers: t); every item below the
+smallest of those keys is final and is emitted. A frame goes out right after the events up to its exposure end.
+Memory is bounded: a stream silent for more than `horizon_us` of sensor time stops holding the others back, and
+more than `max_pending_events` buffered events force emission of the events (frames then follow their events late,
+which the contract allows). So the merge holds at most one file packet plus min(horizon, cap) of data.
+"""
+
+from __future__ import annotations
+
+import bisect
+import dataclasses
+import os
+import threading
+import time
+import warnings
+from typing import Iterator
+
+import numpy as np
+
+from edi_live.aedat4 import Aedat4Reader
+from edi_live.datatypes import (EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, Frame, Packet, SourceInfo, SourceStatus,
+                                empty_events, empty_imu, empty_triggers)
+from edi_live.errors import ConfigError, RecordingError
+
+from drivers.pacing import Pacer
+
+_NEG_INF = -(2**62)
+_POS_INF = 2**62
+
+
+class _Merger:
+    """The k-way merge state; feed() one decoded file packet at a time, emit() the packets now final."""
+
+    def __init__(self, path: str, types: list[str], offset_us: int, max_packet_us: int, horizon_us: int,
+                 max_pending_events: int) -> None:
+        self.path, self.offset_us = path, offset_us
+        self.max_packet_us, self.horizon_us, self.max_pending_events = max_packet_us, horizon_us, max_pending_events
+        self.last = {t: _NEG_INF for t in types}  # newest key seen per primary stream type
+        self.max_key = _NEG_INF
+        self.emitted_to = _NEG_INF  # exclusive bound already emitted
+        self.events: list[np.ndarray] = []
+        self.n_events = 0
+        self.frames: list[tuple[int, int, Frame]] = []  # (exposure end, arrival order, frame)
+        self.imu: list[np.ndarray] = []
+        self.triggers: list[np.ndarray] = []
+        self.order = 0
+        self.t_first, self.t_last = _POS_INF, _NEG_INF  # span of all timestamps (for --loop)
+
+    def _span(self, lo: int, hi: int) -> None:
+        self.t_first, self.t_last = min(self.t_first, lo), max(self.t_last, hi)
+
+    def feed(self, kind: str, pos: int, data) -> None:
+        off = self.offset_us
+        if kind == "EVTS":
+            if not len(data):
+                return
+            if off:
+                data = data.copy()
+                data["t"] += off
+            t0, t1 = int(data["t"][0]), int(data["t"][-1])
+            if t0 < self.last["EVTS"] or t0 < self.emitted_to:
+                raise RecordingError(f"event packet starts at {t0 - off} µs, before events already read "
+                                     f"(events out of time order)", self.path, pos)
+            self.events.append(data)
+            self.n_events += len(data)
+            key_lo, key = t0, t1
+        elif kind == "FRME":
+            if off:
+                data = dataclasses.replace(data, exposure_start_us=data.exposure_start_us + off,
+                                           exposure_end_us=data.exposure_end_us + off,
+                                           start_us=None if data.start_us is None else data.start_us + off,
+                                           end_us=None if data.end_us is None else data.end_us + off)
+            key_lo, key = data.exposure_start_us, data.exposure_end_us
+            self.order += 1
+            bisect.insort(self.frames, (key, self.order, data), key=lambda f: (f[0], f[1]))
+        else:
+            if not len(data):
+                return
+            if off:
+                data = data.copy()
+                data["t"] += off
+            if len(data) > 1 and bool((data["t"][1:] < data["t"][:-1]).any()):
+                data = data[np.argsort(data["t"], kind="stable")]
+            (self.imu if kind == "IMUS" else self.triggers).append(data)
+            key_lo, key = int(data["t"].min()), int(data["t"].max())
+        self._span(key_lo, key)
+        self.last[kind] = max(self.last[kind], key)
+        self.max_key = max(self.max_key, key)
+
+    def bound(self) -> int:
+        """Exclusive time bound below which everything has been read."""
+        floor = self.max_key - self.horizon_us
+        w = min(max(k, floor) for k in self.last.values())
+        if self.n_events > self.max_pending_events and "EVTS" in self.last:
+            w = max(w, self.last["EVTS"])
+        return w
+
+    def emit(self, w: int) -> Iterator[Packet]:
+        """Packets holding everything with key < w, split at frame exposure ends and every max_packet_us."""
+        if w <= self.emitted_to and not self._late_pending(w):
+            return
+        events = _take(self.events, w, EVENT_DTYPE)
+        self.n_events -= len(events)
+        frames = []
+        while self.frames and self.frames[0][0] < w:
+            frames.append(self.frames.pop(0)[2])
+        imu = _take(self.imu, w, IMU_DTYPE)
+        trig = _take(self.triggers, w, TRIGGER_DTYPE)
+        lo = self.emitted_to
+        if w > self.emitted_to:
+            self.emitted_to = w
+        if not (len(events) or frames or len(imu) or len(trig)):
+            return
+        yield from _split(events, frames, imu, trig, lo, max(w, lo), self.max_packet_us)
+
+    def _late_pending(self, w: int) -> bool:
+        return bool((self.frames and self.frames[0][0] < w) or (self.imu and int(self.imu[0]["t"][0]) < w)
+                    or (self.triggers and int(self.triggers[0]["t"][0]) < w))
+
+
+def _take(chunks: list[np.ndarray], w: int, dtype: np.dtype) -> np.ndarray:
+    """Pop the items with t < w from a list of t-sorted chunks; whole chunks are taken without copying and at most
+    one chunk is split, so each call costs O(chunks taken), not O(pending)."""
+    taken = []
+    while chunks and int(chunks[0]["t"][-1]) < w:
+        taken.append(chunks.pop(0))
+    if chunks and int(chunks[0]["t"][0]) < w:
+        head = chunks[0]
+        i = int(np.searchsorted(head["t"], w, side="left"))
+        taken.append(head[:i])
+        chunks[0] = head[i:]
+    if not taken:
+        return np.zeros(0, dtype=dtype)
+    return taken[0] if len(taken) == 1 else np.concatenate(taken)
+
+
+def _split(events: np.ndarray, frames: list[Frame], imu: np.ndarray, trig: np.ndarray, lo: int, w: int,
+           max_packet_us: int) -> Iterator[Packet]:
+    t = events["t"]
+    start = int(t[0]) if len(t) else (lo if lo > _NEG_INF else w)
+    if lo <= _NEG_INF:
+        lo = start
+    cuts = {f.exposure_end_us + 1 for f in frames if lo < f.exposure_end_us + 1 < w}
+    if len(t) and max_packet_us > 0 and int(t[-1]) - start >= max_packet_us:
+        q = t // max_packet_us  # cut where events enter a new max_packet_us slot: at most one cut per event
+        cuts.update((q[np.flatnonzero(q[1:] != q[:-1]) + 1] * max_packet_us).tolist())
+    bounds = sorted(c for c in cuts if lo < c < w) + [w]
+    ev_idx = np.searchsorted(t, bounds, side="left")
+    imu_idx = np.searchsorted(imu["t"], bounds, side="left")
+    trig_idx = np.searchsorted(trig["t"], bounds, side="left")
+    fi, e0, i0, g0 = 0, 0, 0, 0
+    now = time.monotonic_ns()
+    for k, hi in enumerate(bounds):
+        e1, i1, g1 = int(ev_idx[k]), int(imu_idx[k]), int(trig_idx[k])
+        fs = []
+        while fi < len(frames) and frames[fi].exposure_end_us < hi:
+            fs.append(frames[fi])
+            fi += 1
+        if e1 > e0 or fs or i1 > i0 or g1 > g0:
+            watermark = hi if k < len(bounds) - 1 else w
+            yield Packet(events=events[e0:e1], frames=fs, imu=imu[i0:i1], triggers=trig[g0:g1],
+                         watermark_us=watermark, arrival_ns=now)
+        e0, i0, g0 = e1, i1, g1
+
+
+def merged_packets(path: str | os.PathLike, *, time_offset_us: int = 0, max_packet_us: int = 10_000,
+                   horizon_us: int = 1_000_000, max_pending_events: int = 4_000_000,
+                   span: dict | None = None) -> Iterator[Packet]:
+    """Time-ordered `Packet`s of an AEDAT4 file (all streams merged), with bounded memory.
+
+    Events are sorted by t across packets; each frame comes in the packet that ends with the last event <= its
+    exposure end; `watermark_us` says no later packet holds an event with t < watermark_us. `time_offset_us` is
+    added to every timestamp (used by `--loop`). Packets span at most `max_packet_us` of event time. On a defect the
+    packets before it are yielded, then `RecordingError` is raised. `span`, if given, receives 't_first'/'t_last'.
+    """
+    with Aedat4Reader(path) as reader:
+        primary: dict[int, str] = {}
+        for s in reader.streams:
+            if s.supported and s.type not in primary.values():
+                primary[s.id] = s.type
+            elif s.supported:
+                warnings.warn(f"{reader.path}: a second {s.type} stream ({s.id} '{s.name}') is not replayed",
+                              RuntimeWarning, stacklevel=2)
+        m = _Merger(reader.path, list(primary.values()), int(time_offset_us), max_packet_us, horizon_us,
+                    max_pending_events)
+        error: RecordingError | None = None
+        try:
+            for stream, pos, data in reader.records():
+                kind = primary.get(stream.id)
+                if kind is None:
+                    continue
+                m.feed(kind, pos, data)
+                yield from m.emit(m.bound())
+        except RecordingError as exc:
+            error = exc
+        # everything read before the end (or the defect) is final: deliver it, then report the defect
+        last_event_t = m.last.get("EVTS", _NEG_INF)
+        end_mark = (last_event_t if last_event_t > _NEG_INF else m.t_last) + 1
+        for packet in list(m.emit(_POS_INF)):
+            packet.watermark_us = min(packet.watermark_us, max(end_mark, m.t_first))
+            yield packet
+        if span is not None:
+            span["t_first"], span["t_last"] = m.t_first, m.t_last
+        if error is not None:
+            raise error
+
+
+class ReplaySource:
+    """Replays an AEDAT4 recording through the `Source` protocol, paced by its timestamps.
+
+    speed 1 = real time (default), 4 = four times faster, 0 = as fast as possible. With `loop=True` the file restarts
+    at its end and every timestamp of the next pass is shifted so time keeps increasing. Iteration yields `Packet`s,
+    or None when nothing is due within `poll_s`; it ends at the end of the file, or soon after `stop()`. A defect in
+    the file raises `RecordingError` after every packet before it has been yielded.
+    """
+
+    def __init__(self, path: str | os.PathLike, *, speed: float = 1.0, loop: bool = False,
+                 max_packet_us: int = 10_000, poll_s: float = 0.1) -> None:
+        if not speed >= 0:
+            raise ConfigError(f"--speed must be 0 (as fast as possible) or positive (got {speed})")
+        self.path = os.fspath(path)
+        self.speed, self.loop = float(speed), bool(loop)
+        self.max_packet_us, self.poll_s = max_packet_us, poll_s
+        with Aedat4Reader(self.path) as reader:
+            info = reader.source_info
+            self._time_range = reader.time_range() if reader.data_table_position >= 0 else None
+        if info.width <= 0 or info.height <= 0:
+            raise RecordingError("the header gives no sensor resolution (sizeX/sizeY of the event or frame stream)",
+                                 self.path, 0)
+        self.info: SourceInfo = info
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._status = SourceStatus()
+        self.loops = 0
+
+    def __enter__(self) -> "ReplaySource":
+        self._stop.clear()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def status(self) -> SourceStatus:
+        with self._lock:
+            return dataclasses.replace(self._status)
+
+    def time_range(self) -> tuple[int, int] | None:
+        """(first, last) µs of the recording from its FileDataTable, or None when the table has no timestamps."""
+        return self._time_range
+
+    def __iter__(self) -> Iterator[Packet | None]:
+        pacer = Pacer(self.speed)
+        offset, seq = 0, 0
+        while not self._stop.is_set():
+            span: dict = {}
+            produced = False
+            for packet in merged_packets(self.path, time_offset_us=offset, max_packet_us=self.max_packet_us,
+                                         span=span):
+                produced = True
+                due = _last_time(packet)
+                while not pacer.wait(due, self.poll_s, self._stop):
+                    if self._stop.is_set():
+                        return
+                    yield None
+                if self._stop.is_set():
+                    return
+                if packet.frames:
+                    packet.frames = [dataclasses.replace(f, seq=seq + i) for i, f in enumerate(packet.frames)]
+                    seq += len(packet.frames)
+                packet.arrival_ns = time.monotonic_ns()
+                with self._lock:
+                    st = self._status
+                    st.packets += 1
+                    st.events += len(packet.events)
+                    st.frames += len(packet.frames)
+                yield packet
+            if not (self.loop and produced) or "t_first" not in span:
+                return
+            offset += span["t_last"] - span["t_first"] + 1
+            self.loops += 1
+
+
+def _last_time(packet: Packet) -> int:
+    times = []
+    if len(packet.events):
+        times.append(int(packet.events["t"][-1]))
+    times.extend(f.exposure_end_us for f in packet.frames)
+    if len(packet.imu):
+        times.append(int(packet.imu["t"].max()))
+    if len(packet.triggers):
+        times.append(int(packet.triggers["t"].max()))
+    return max(times) if times else packet.watermark_us

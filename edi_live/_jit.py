@@ -1,0 +1,175 @@
+"""numba kernels for the EDI hot loops; importing this module raises ImportError when numba is missing.
+
+Owns: the O(events + pixels) level-table build (counting sort by pixel, one pass), the per-pixel divisor
+evaluation, and per-event latent propagation. `edi_live.edi` holds the numpy equivalents and the contracts;
+these must return exactly what the numpy versions return (tests compare both).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def build_table(idx, t, p, ts, te, f, npix, want_segments):
+    n = idx.size
+    count = np.zeros(npix + 1, dtype=np.int64)
+    for i in range(n):
+        count[idx[i] + 1] += 1
+    n_act = 0
+    for k in range(1, npix + 1):
+        if count[k] > 0:
+            n_act += 1
+        count[k] += count[k - 1]
+    # counting sort: events grouped by pixel, time order kept inside each group (sequential reads)
+    fill = count[:-1].copy()
+    st = np.empty(n, dtype=np.int64)
+    sp = np.empty(n, dtype=np.uint8)
+    for i in range(n):
+        q = idx[i]
+        k = fill[q]
+        st[k] = t[i]
+        sp[k] = p[i]
+        fill[q] = k + 1
+    n_seg = n + n_act if want_segments else 0
+    pixels = np.empty(n_act, dtype=np.int64)
+    seg_start = np.zeros(n_act + 1, dtype=np.int64)
+    seg_on = np.empty(n_seg, dtype=np.int32)
+    seg_off = np.empty(n_seg, dtype=np.int32)
+    seg_frac = np.empty(n_seg, dtype=np.float64)
+    lvl_start = np.empty(n_act + 1, dtype=np.int64)
+    lvl_min = np.empty(n_act, dtype=np.int32)
+    lvl_frac = np.zeros(n + n_act, dtype=np.float64)  # a pixel with k events spans at most k + 1 levels
+    inv_t = 1.0 / float(te - ts)
+    g = 0
+    s = 0
+    base = 0
+    for q in range(npix):
+        a = count[q]
+        b = count[q + 1]
+        if a == b:
+            continue
+        # pass 1: net level range counted from ts, and the counts reached at f
+        on0 = np.int64(0)
+        off0 = np.int64(0)
+        lo = 0
+        hi = 0
+        j_on = 0
+        j_off = 0
+        for k in range(a, b):
+            on0 += sp[k]  # branch-free: polarities are unpredictable
+            off0 += 1 - sp[k]
+            if st[k] <= f:
+                j_on = on0
+                j_off = off0
+            net = on0 - off0
+            lo = min(lo, net)
+            hi = max(hi, net)
+        pixels[g] = q
+        lvl_start[g] = base
+        lvl_min[g] = lo - (j_on - j_off)
+        # pass 2: dwell per level (and per ON/OFF state when asked)
+        net = 0
+        frac = (st[a] - ts) * inv_t
+        lvl_frac[base - lo] += frac
+        if want_segments:
+            seg_start[g] = s
+            seg_on[s] = -j_on
+            seg_off[s] = -j_off
+            seg_frac[s] = frac
+            s += 1
+            on0 = 0
+            off0 = 0
+        for k in range(a, b):
+            net += 2 * np.int64(sp[k]) - 1
+            nxt = te if k + 1 == b else st[k + 1]
+            frac = (nxt - st[k]) * inv_t
+            lvl_frac[base + net - lo] += frac
+            if want_segments:
+                on0 += sp[k]
+                off0 += 1 - sp[k]
+                seg_on[s] = on0 - j_on
+                seg_off[s] = off0 - j_off
+                seg_frac[s] = frac
+                s += 1
+        base += hi - lo + 1
+        g += 1
+    seg_start[n_act] = s
+    lvl_start[n_act] = base
+    return pixels, seg_start, seg_on, seg_off, seg_frac, lvl_start, lvl_min, lvl_frac[:base]
+
+
+@njit(cache=True, nogil=True)
+def log_divisor_levels(lvl_start, lvl_min, lvl_frac, c, cap):
+    n_act = lvl_min.size
+    out = np.empty(n_act, dtype=np.float64)
+    wmax = 1
+    for r in range(n_act):
+        w = lvl_start[r + 1] - lvl_start[r]
+        if w > wmax:
+            wmax = w
+    if wmax > cap:
+        wmax = cap
+    ztab = np.empty(wmax, dtype=np.float64)
+    for j in range(wmax):
+        ztab[j] = math.exp(c * j)
+    for r in range(n_act):
+        a = lvl_start[r]
+        b = lvl_start[r + 1]
+        if b - a <= cap:
+            acc = 0.0
+            for k in range(a, b):
+                acc += lvl_frac[k] * ztab[k - a]
+            out[r] = c * lvl_min[r] + math.log(acc)
+        else:  # very wide level range: log-sum-exp over the occupied levels
+            m = -math.inf
+            for k in range(a, b):
+                if lvl_frac[k] > 0.0 and c * (k - a) > m:
+                    m = c * (k - a)
+            acc = 0.0
+            for k in range(a, b):
+                if lvl_frac[k] > 0.0:
+                    acc += lvl_frac[k] * math.exp(c * (k - a) - m)
+            out[r] = c * lvl_min[r] + m + math.log(acc)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def log_divisor_segments(seg_start, seg_on, seg_off, seg_frac, c_on, c_off):
+    n_act = seg_start.size - 1
+    out = np.empty(n_act, dtype=np.float64)
+    for r in range(n_act):
+        a = seg_start[r]
+        b = seg_start[r + 1]
+        m = -math.inf
+        for k in range(a, b):
+            if seg_frac[k] > 0.0:
+                v = c_on * seg_on[k] - c_off * seg_off[k]
+                if v > m:
+                    m = v
+        acc = 0.0
+        for k in range(a, b):
+            if seg_frac[k] > 0.0:
+                acc += seg_frac[k] * math.exp(c_on * seg_on[k] - c_off * seg_off[k] - m)
+        out[r] = m + math.log(acc)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def propagate(flat, idx, p, d_on, d_off, lo, hi, disp, use_disp, gain):
+    for i in range(idx.size):
+        q = idx[i]
+        v = flat[q] + (d_on if p[i] else d_off)
+        if v < lo:
+            v = lo
+        elif v > hi:
+            v = hi
+        flat[q] = v
+        if use_disp:
+            x = gain * math.exp(min(v, 6.0)) + 0.5
+            if x > 255.0:
+                x = 255.0
+            disp[q] = np.uint8(x)

@@ -1,0 +1,217 @@
+"""EdiWorker policy with a stand-in reconstructor that records what it was given.
+
+The stand-in obeys the EdiReconstructor interface of the contract; the oracles are the input events and frames
+(which events belong to an exposure, how many latent frames N events make, which APS frame is nearer).
+The real reconstructor runs end to end in test_node.py.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from edi_live.config import EdiConfig
+from edi_live.datatypes import EVENT_DTYPE, Frame, Packet, Reconstruction
+from edi_live.ring import EventRing
+from edi_live.worker import EdiWorker
+
+
+class StandIn:
+    """Records calls; images carry nothing, times and kinds are what the worker is judged on."""
+
+    def __init__(self, fail_on_frame: bool = False) -> None:
+        self.has_reference = False
+        self.c_on = self.c_off = 0.2
+        self.reestimations = 0
+        self.ref_f = None
+        self.t = None
+        self.frames_given = []  # (frame, events) passed to on_frame
+        self.events_applied = 0
+        self.fail_on_frame = fail_on_frame
+        self.lock = threading.Lock()
+
+    def _rec(self, t, kind):
+        return Reconstruction(np.zeros((2, 2), np.uint8), int(t), kind, int(self.ref_f), 0, 0, self.c_on,
+                              self.c_off, 0)
+
+    def on_frame(self, frame, events, arrival_ns=0):
+        if self.fail_on_frame:
+            raise RuntimeError("boom")
+        self.frames_given.append((frame, events.copy()))
+        self.has_reference = True
+        self.ref_f = frame.mid_exposure_us
+        self.t = int(events["t"][-1]) if len(events) else self.ref_f
+        return self._rec(self.ref_f, "deblurred")
+
+    def on_events(self, events, arrival_ns=0):
+        self.events_applied += len(events)
+        self.t = int(events["t"][-1])
+
+    def render(self):
+        return self._rec(self.t, "latent")
+
+    def render_from_reference(self, t_us, events):
+        return self._rec(t_us, "latent")
+
+
+def events_at(t_us) -> np.ndarray:
+    ev = np.zeros(len(t_us), EVENT_DTYPE)
+    ev["t"] = t_us
+    ev["x"] = np.arange(len(t_us)) % 7
+    return ev
+
+
+def aps(t0, t1) -> Frame:
+    return Frame(np.zeros((2, 2), np.uint8), exposure_start_us=t0, exposure_end_us=t1)
+
+
+def run_worker(packets, config, rec=None, timeout_s=10.0, close=True):
+    ring = EventRing(capacity_events=1 << 14, capacity_frames=8, policy="wait")
+    rec = rec or StandIn()
+    out, errors = [], []
+    worker = EdiWorker(ring, rec, config, [out.append], on_error=errors.append)
+    worker.start()
+    for p in packets:
+        assert ring.push(p, timeout_s=timeout_s)
+    if close:
+        ring.close()
+        assert worker.done.wait(timeout_s), "worker did not finish after close()"
+    return worker, rec, out, errors
+
+
+def test_deblur_gets_every_event_of_the_exposure_and_latent_frames_follow_every_n():
+    t = np.arange(0, 20_000, 4)  # 5000 events, one per 4 µs
+    ev = events_at(t)
+    f = aps(1000, 3000)
+    # the frame is delivered in the packet that holds its exposure end, as the Packet contract requires
+    packets = [Packet(events=ev[:600]), Packet(events=ev[600:900], frames=[f]), Packet(events=ev[900:])]
+    worker, rec, out, errors = run_worker(packets, EdiConfig(every=500))
+    assert not errors
+    (frame, given), = rec.frames_given
+    inside = ev[(ev["t"] >= 1000) & (ev["t"] <= 3000)]
+    assert np.all(np.isin(inside["t"], given["t"])), "every exposure event reaches on_frame"
+    assert given["t"].min() >= 1000
+    assert [r.kind for r in out][0] == "deblurred"
+    after = np.sum(ev["t"] > given["t"].max())  # events streamed after the deblur
+    assert rec.events_applied == after
+    assert sum(r.kind == "latent" for r in out) == after // 500
+    assert all(a.t_us <= b.t_us for a, b in zip(out, out[1:])), "frames leave in time order"
+
+
+def test_no_frames_before_the_first_aps_frame():
+    worker, rec, out, errors = run_worker([Packet(events=events_at(np.arange(5000)))], EdiConfig(every=100))
+    assert not errors and out == [] and rec.events_applied == 0
+
+
+def test_max_fps_caps_latent_frames_and_counts_the_rest():
+    ev = events_at(np.arange(0, 100_000, 2))
+    packets = [Packet(events=ev[:10], frames=[aps(0, 10)]), Packet(events=ev[10:])]
+    worker, rec, out, errors = run_worker(packets, EdiConfig(every=100, max_fps=0.5))
+    latent = sum(r.kind == "latent" for r in out)
+    assert latent + worker.skipped_max_fps == (len(ev) - 6) // 100
+    assert latent <= 1  # one frame per 2 s at most; the run takes far less
+
+
+def test_static_scene_heartbeat_only_and_no_busy_loop():
+    ring = EventRing(capacity_events=1 << 12, policy="wait")
+    rec = StandIn()
+    out = []
+    worker = EdiWorker(ring, rec, EdiConfig(every=100, heartbeat_s=0.05), [out.append])
+    worker.start()
+    ring.push(Packet(events=events_at(np.arange(10)), frames=[aps(0, 9)]))
+    deadline = threading.Event()
+    deadline.wait(0.5)  # nothing arrives: only heartbeats may go out
+    ring.close()
+    assert worker.done.wait(5)
+    kinds = [r.kind for r in out]
+    assert kinds[0] == "deblurred"
+    assert 1 <= worker.heartbeats == len(kinds) - 1
+    assert worker.heartbeats <= 0.5 / 0.05 + 2
+    assert worker.wakeups <= 60, "the worker sleeps on the ring's condition instead of spinning"
+
+
+def test_static_aps_frames_are_not_sent_again():
+    # two APS frames with almost no events between them: the second one is a static scene
+    ev = events_at(np.arange(0, 50))
+    packets = [Packet(events=ev[:10], frames=[aps(0, 9)]), Packet(events=ev[10:], frames=[aps(20, 49)])]
+    worker, rec, out, errors = run_worker(packets, EdiConfig(every=1000, heartbeat_s=60))
+    assert len(rec.frames_given) == 2  # both deblurred (the reference follows the newest frame)
+    assert [r.kind for r in out] == ["deblurred"]
+    assert worker.skipped_static == 1
+
+
+def test_gap_suspends_latent_frames_until_the_next_aps_frame():
+    ev = events_at(np.arange(0, 30_000, 3))
+    packets = [Packet(events=ev[:100], frames=[aps(0, 250)]),
+               Packet(events=ev[100:4000]),
+               Packet(events=ev[4000:8000], gap=True),
+               Packet(events=ev[8000:8100], frames=[aps(24_000, 24_250)]),
+               Packet(events=ev[8100:])]
+    worker, rec, out, errors = run_worker(packets, EdiConfig(every=500))
+    assert worker.gaps == 1
+    t_gap, t_frame2 = int(ev["t"][4000]), 24_250
+    assert not [r for r in out if r.kind == "latent" and t_gap <= r.t_us < t_frame2]
+    assert any(r.kind == "latent" and r.t_us > t_frame2 for r in out)
+
+
+def test_nearest_mode_references_each_latent_frame_to_the_nearer_aps_frame():
+    ev = events_at(np.arange(0, 100_000, 5))
+    frames = [aps(k * 20_000, k * 20_000 + 2_000) for k in range(5)]  # f = 1000, 21000, ...
+    packets = []
+    cut = 0
+    for f in frames:
+        end = int(np.searchsorted(ev["t"], f.exposure_end_us, side="right"))
+        packets.append(Packet(events=ev[cut:end], frames=[f]))
+        cut = end
+    packets.append(Packet(events=ev[cut:]))
+    worker, rec, out, errors = run_worker(packets, EdiConfig(every=400, mode="nearest"))
+    assert not errors
+    fs = np.array([f.mid_exposure_us for f in frames])
+    latent = [r for r in out if r.kind == "latent"]
+    assert len(latent) > 20
+    for r in latent:
+        nearest_f = fs[np.argmin(np.abs(fs - r.t_us))]
+        if frames[1].exposure_end_us < r.t_us < fs[-1]:  # once two frames gave the interval
+            assert r.ref_t_us == nearest_f, (r.t_us, r.ref_t_us, nearest_f)
+    assert all(a.t_us <= b.t_us for a, b in zip(out, out[1:]))
+    assert worker.stats()["nearest_added_latency_ms_p50"] is not None
+
+
+def test_causal_mode_uses_the_latest_frame():
+    ev = events_at(np.arange(0, 60_000, 5))
+    frames = [aps(k * 20_000, k * 20_000 + 2_000) for k in range(3)]
+    packets, cut = [], 0
+    for f in frames:
+        end = int(np.searchsorted(ev["t"], f.exposure_end_us, side="right"))
+        packets.append(Packet(events=ev[cut:end], frames=[f]))
+        cut = end
+    packets.append(Packet(events=ev[cut:]))
+    worker, rec, out, errors = run_worker(packets, EdiConfig(every=400))
+    for r in out:
+        assert r.ref_t_us <= r.t_us
+
+
+def test_reconstructor_failure_reaches_on_error_and_ends_the_thread():
+    ev = events_at(np.arange(100))
+    worker, rec, out, errors = run_worker([Packet(events=ev, frames=[aps(0, 50)])], EdiConfig(),
+                                          rec=StandIn(fail_on_frame=True))
+    assert len(errors) == 1 and "boom" in str(errors[0])
+    assert worker.done.is_set()
+
+
+def test_abort_stops_without_draining():
+    ring = EventRing(capacity_events=1 << 12, policy="wait")
+    worker = EdiWorker(ring, StandIn(), EdiConfig(), [])
+    worker.start()
+    worker.abort()
+    assert worker.join(timeout_s=2)
+
+
+@pytest.mark.parametrize("mode", ["causal", "nearest"])
+def test_stats_map_has_the_published_keys(mode):
+    worker, rec, out, errors = run_worker([], EdiConfig(mode=mode))
+    s = worker.stats()
+    for key in ("c", "c_on", "c_off", "reestimations", "frames_latent", "frames_deblurred", "events_processed"):
+        assert key in s

@@ -33,7 +33,7 @@ from edi_live.datatypes import EVENT_DTYPE
 try:  # optional compiled kernels; every function below has a numpy fallback
     if os.environ.get("EDI_LIVE_NO_NUMBA"):
         raise ImportError("disabled by EDI_LIVE_NO_NUMBA")
-    from edi_live import _jit
+    import edi_live._jit as _jit
 except ImportError:  # pragma: no cover - depends on the environment
     _jit = None
 

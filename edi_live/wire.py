@@ -181,6 +181,7 @@ def decode_frame(parts: Sequence[object], max_bytes: int = DEFAULT_MAX_BYTES) ->
         raise ClientError(f"frame {header['seq']}: header says {w}x{h} {header['dtype']} = {expected} bytes, "
                           f"pixel part has {len(bufs[2])} bytes")
     image = np.frombuffer(bufs[2], dtype=dtype).reshape(h, w)
+    image.flags.writeable = False  # it shares the message buffer; copy it to modify
     return header, image
 
 

@@ -1,0 +1,221 @@
+"""EDI math: the exact double integral against brute force, deblurring, latent propagation, and stability."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import edi_live.edi as edi
+from edi_live.datatypes import EVENT_DTYPE
+
+
+def random_events(rng, n, width, height, t0, t1):
+    ev = np.zeros(n, EVENT_DTYPE)
+    ev["t"] = np.sort(rng.integers(t0, t1 + 1, n))
+    ev["x"] = rng.integers(0, width, n)
+    ev["y"] = rng.integers(0, height, n)
+    ev["p"] = rng.random(n) < 0.5
+    return ev
+
+
+def brute_divisor(events, width, height, ts, te, f, c_on, c_off):
+    """(1/T) * sum over every 1-µs step of exp(c E) sampled at the step's midpoint: exact for integer event times."""
+    s = np.arange(ts, te) + 0.5
+    out = np.ones(width * height)
+    idx = events["y"].astype(np.int64) * width + events["x"]
+    for q in np.unique(idx):
+        ev = events[idx == q]
+        t_on = np.sort(ev["t"][ev["p"]])
+        t_off = np.sort(ev["t"][~ev["p"]])
+        n_on = np.searchsorted(t_on, s, side="right") - np.searchsorted(t_on, f, side="right")
+        n_off = np.searchsorted(t_off, s, side="right") - np.searchsorted(t_off, f, side="right")
+        out[q] = np.mean(np.exp(c_on * n_on - c_off * n_off))
+    return out
+
+
+@pytest.fixture(params=["numba", "numpy"])
+def backend(request, monkeypatch):
+    if request.param == "numpy":
+        monkeypatch.setattr(edi, "_jit", None)
+    elif not edi.have_numba():
+        pytest.skip("numba not installed")
+    return request.param
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_divisor_matches_brute_force_integral(backend, seed):
+    rng = np.random.default_rng(seed)
+    w, h = 5, 4
+    ts, te = 1000, 1000 + int(rng.integers(50, 3000))
+    f = int(rng.integers(ts, te + 1))
+    ev = random_events(rng, int(rng.integers(1, 120)), w, h, ts - 500, te + 500)  # some outside the exposure
+    table = edi.build_level_table(ev, w, h, ts, te, f)
+    for c_on, c_off in [(0.2, 0.2), (0.35, 0.15), (1.7, 1.7), (0.01, 0.4)]:
+        want = brute_divisor(ev[(ev["t"] >= ts) & (ev["t"] <= te)], w, h, ts, te, f, c_on, c_off)
+        got = np.ones(w * h)
+        got[table.pixels] = np.exp(edi.log_divisor(table, c_on, c_off))
+        np.testing.assert_allclose(got, want, rtol=1e-6)
+
+
+def test_numba_and_numpy_tables_agree(rng):
+    if not edi.have_numba():
+        pytest.skip("numba not installed")
+    ev = random_events(rng, 5000, 30, 20, 0, 10_000)
+    idx, t, p = edi._select(ev, 30, 20, 0, 10_000, None)
+    a = edi._jit.build_table(idx, t, p.view(np.uint8), 0, 10_000, 4321, 600, True)
+    b = edi._build_numpy(idx, t, p, 0, 10_000, 4321, 600)
+    for x, y in zip(a, b):
+        np.testing.assert_allclose(x, y, rtol=0, atol=1e-12)
+
+
+def test_normalised_by_exposure_not_event_span(backend):
+    # one ON event at the very end: the pixel spent the whole exposure at level -1 relative to f = te
+    ev = np.zeros(1, EVENT_DTYPE)
+    ev["t"], ev["x"], ev["y"], ev["p"] = 1900, 0, 0, True
+    table = edi.build_level_table(ev, 1, 1, 1000, 2000, 2000)
+    c = 0.5
+    want = (900 * np.exp(-c) + 100 * 1.0) / 1000
+    assert np.exp(edi.log_divisor(table, c))[0] == pytest.approx(want, rel=1e-12)
+
+
+def test_deblur_inverts_the_blur_model(backend, rng):
+    w, h, ts, te = 8, 6, 0, 4000
+    ev = random_events(rng, 300, w, h, ts, te)
+    sharp = rng.uniform(20, 200, (h, w)).astype(np.float32)
+    c = 0.15
+    blurry = sharp * brute_divisor(ev, w, h, ts, te, 2000, c, c).reshape(h, w)
+    table = edi.build_level_table(ev, w, h, ts, te)
+    informative = np.ones((h, w), bool)
+    np.testing.assert_allclose(edi.deblur(blurry, table, c, informative=informative), sharp, rtol=1e-5)
+
+
+def test_pixels_without_events_or_saturated_keep_b(backend):
+    w, h = 4, 1
+    ev = np.zeros(6, EVENT_DTYPE)
+    ev["t"] = [100, 200, 300, 100, 200, 300]
+    ev["x"] = [1, 1, 1, 2, 2, 2]
+    ev["p"] = True
+    image = np.array([[50, 50, 255, 0]], np.uint8)
+    b, informative = edi.blurry_to_float(image)
+    table = edi.build_level_table(ev, w, h, 0, 1000)
+    out = edi.deblur(b, table, 0.3, informative=informative)
+    assert out[0, 0] == pytest.approx(50, rel=1e-5)  # no events
+    assert out[0, 1] > 50  # it brightened before f = 500, so L(f) is above the exposure mean
+    assert out[0, 2] == pytest.approx(255, rel=1e-5)  # saturated: uninformative, kept
+    assert out[0, 3] == pytest.approx(0, abs=1)
+
+
+def test_latent_propagation_forward_back_and_against_formula(backend, rng):
+    w, h = 7, 5
+    log_l = rng.uniform(1, 5, (h, w)).astype(np.float32)
+    start = log_l.copy()
+    ev = random_events(rng, 400, w, h, 0, 1000)
+    display = np.zeros((h, w), np.uint8)
+    edi.propagate_log(log_l, ev, 0.3, 0.2, display=display)
+    n_on, n_off = edi.signed_counts(ev, w, h)
+    want = start + (0.3 * n_on - 0.2 * n_off).reshape(h, w)
+    np.testing.assert_allclose(log_l, np.clip(want, edi.LOG_MIN, edi.LOG_MAX), atol=1e-4)
+    touched = (n_on + n_off).reshape(h, w) > 0
+    np.testing.assert_array_equal(display[touched], edi.to_uint8(log_l[touched]))
+    assert (display[~touched] == 0).all()  # untouched pixels were not rewritten
+    edi.propagate_log(log_l, ev, 0.3, 0.2, sign=-1)
+    np.testing.assert_allclose(log_l, start, atol=1e-4)
+
+
+def test_take_restricts_rows(rng):
+    ev = random_events(rng, 2000, 20, 10, 0, 5000)
+    table = edi.build_level_table(ev, 20, 10, 0, 5000)
+    rows = np.arange(0, table.n_active, 3)
+    sub = table.take(rows)
+    np.testing.assert_array_equal(sub.pixels, table.pixels[rows])
+    np.testing.assert_allclose(edi.log_divisor(sub, 0.4), edi.log_divisor(table, 0.4)[rows])
+    np.testing.assert_allclose(edi.log_divisor(sub, 0.4, 0.1), edi.log_divisor(table, 0.4, 0.1)[rows])
+
+
+def test_hot_pixel_found_among_moving_edges(rng):
+    w, h = 60, 40
+    counts = np.zeros(w * h, np.int64)
+    edge_pixels = rng.choice(w * h, 800, replace=False)
+    counts[edge_pixels] = rng.integers(1, 25, 800)  # a moving texture: many pixels, a few events each
+    counts[123] = 2000  # 1 kHz over 2 s
+    mask = edi.hot_pixel_mask(counts, 2_000_000)
+    assert mask[123]
+    assert mask.sum() == 1
+
+
+def test_isolated_events_found():
+    ev = np.zeros(4, EVENT_DTYPE)
+    ev["x"] = [5, 10, 11, 20]
+    ev["y"] = [5, 10, 10, 2]
+    m = edi.isolated_event_mask(ev, 30, 20)
+    assert m[5, 5] and m[2, 20]
+    assert not m[10, 10] and not m[10, 11]
+
+
+def test_rejects_reversed_exposure():
+    with pytest.raises(ValueError, match="exposure ends before it starts"):
+        edi.build_level_table(np.zeros(0, EVENT_DTYPE), 2, 2, 100, 50)
+
+
+# ---- numerical stability (property-based) ----
+
+@st.composite
+def hard_cases(draw):
+    w = draw(st.integers(1, 6))
+    h = draw(st.integers(1, 4))
+    exposure = draw(st.sampled_from([1, 2, 17, 1000, 20_000, 1_000_000]))
+    ts = draw(st.integers(0, 10**12))
+    te = ts + exposure
+    n_hot = draw(st.sampled_from([0, 1, 50, 10_000]))  # events at one pixel
+    n_rand = draw(st.integers(0, 60))
+    seed = draw(st.integers(0, 2**32 - 1))
+    rng = np.random.default_rng(seed)
+    hot = np.zeros(n_hot, EVENT_DTYPE)
+    hot["t"] = rng.integers(ts, te + 1, n_hot)
+    polarity = draw(st.sampled_from(["on", "off", "mixed"]))
+    hot["p"] = True if polarity == "on" else (False if polarity == "off" else rng.random(n_hot) < 0.5)
+    rand = random_events(rng, n_rand, w, h, ts - exposure, te + exposure)  # some outside the exposure
+    ev = np.concatenate([hot, rand]).astype(EVENT_DTYPE)
+    ev = ev[np.argsort(ev["t"], kind="stable")]
+    c_on = draw(st.floats(0.01, 2.0))
+    c_off = draw(st.one_of(st.just(c_on), st.floats(0.01, 2.0)))
+    b_kind = draw(st.sampled_from(["zero", "full", "random", "mixed"]))
+    if b_kind == "zero":
+        image = np.zeros((h, w), np.uint8)
+    elif b_kind == "full":
+        image = np.full((h, w), 255, np.uint8)
+    else:
+        image = rng.integers(0 if b_kind == "mixed" else 1, 256, (h, w)).astype(np.uint8)
+    return ev, w, h, ts, te, c_on, c_off, image
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(hard_cases())
+def test_deblur_and_latent_are_finite_and_non_negative(case):
+    ev, w, h, ts, te, c_on, c_off, image = case
+    b, informative = edi.blurry_to_float(image)
+    table = edi.build_level_table(ev, w, h, ts, te)
+    ld = edi.log_divisor(table, c_on, c_off)
+    assert np.isfinite(ld).all()
+    out = edi.deblur(b, table, c_on, c_off, informative=informative)
+    assert out.shape == (h, w) and np.isfinite(out).all() and (out >= 0).all()
+    # saturated / black pixels carry no information and are left as B
+    np.testing.assert_allclose(out[~informative], np.clip(b[~informative], 0, None), atol=1.0)
+    log_l = edi.deblur_log(b, table, c_on, c_off, informative=informative)
+    display = np.zeros((h, w), np.uint8)
+    edi.propagate_log(log_l, ev, c_on, c_off, display=display)
+    assert np.isfinite(log_l).all()
+    edi.propagate_log(log_l, ev, c_on, c_off, sign=-1)
+    assert np.isfinite(log_l).all()
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(1, 10**6), st.floats(0.01, 2.0), st.integers(0, 255))
+def test_empty_exposure_keeps_b(exposure, c, value):
+    image = np.full((3, 3), value, np.uint8)
+    b, informative = edi.blurry_to_float(image)
+    table = edi.build_level_table(np.zeros(0, EVENT_DTYPE), 3, 3, 5, 5 + exposure)
+    out = edi.deblur(b, table, c, informative=informative)
+    np.testing.assert_allclose(out, max(value, edi.DARK_FLOOR), rtol=1e-5)

@@ -1,0 +1,393 @@
+"""Accuracy-versus-run-time benchmark of EDI and its baselines on simulated scenes with ground truth.
+
+Owns the scene suite, the PSNR/SSIM metrics and the per-method harness. For every scene (texture, speed,
+contrast thresholds incl. c_on != c_off, noise, hot pixels, one static scene) and every method it measures
+(a) the deblurred frame at mid-exposure f and (b) the latent frames between APS frames against the
+simulator's sharp ground truth, and the milliseconds each output costs (one core).
+
+Methods: the blurry frame; direct integration from the blurry frame; the complementary filter
+(Scheerlinck 2018); EDI with the true c (oracle); EDI with each c estimator of `edi_live.contrast`; and
+the `EdiReconstructor` default. Prints a markdown table and saves a PSNR-versus-ms plot (the run-time/error
+trade-off across c-search settings) to docs/bench_accuracy.png.
+
+    python tools/bench_accuracy.py            # full suite, a few minutes on one core
+    python tools/bench_accuracy.py --quick    # 4 short scenes
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")  # one core, as the targets say
+
+import argparse  # noqa: E402
+import dataclasses  # noqa: E402
+import inspect  # noqa: E402
+import math  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Callable, Iterator  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from tools import baselines as bl  # noqa: E402
+from tools.simulate import SKIMAGE_TEXTURES, SceneConfig, Simulation, preset, simulate  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
+cv2.setNumThreads(1)
+
+
+# --------------------------------------------------------------------------------------------- metrics
+
+def psnr(img: np.ndarray, ref: np.ndarray, data_range: float = 255.0) -> float:
+    """PSNR in dB of img against ref, both clipped to [0, data_range]."""
+    a = np.clip(np.asarray(img, np.float64), 0, data_range)
+    b = np.clip(np.asarray(ref, np.float64), 0, data_range)
+    mse = float(np.mean((a - b) ** 2))
+    return float("inf") if mse == 0 else 10.0 * math.log10(data_range ** 2 / mse)
+
+
+def ssim(img: np.ndarray, ref: np.ndarray, data_range: float = 255.0, win: int = 7) -> float:
+    """Mean SSIM (Wang et al. 2004) with a uniform win x win window, K1=0.01, K2=0.03 and the sample
+    covariance, averaged away from the borders: the same definition as skimage.metrics.structural_similarity
+    with its defaults, written with cv2 box filters."""
+    a = np.clip(np.asarray(img, np.float64), 0, data_range)
+    b = np.clip(np.asarray(ref, np.float64), 0, data_range)
+    n = win * win
+    box = lambda z: cv2.blur(z, (win, win), borderType=cv2.BORDER_REFLECT_101)  # noqa: E731
+    ux, uy = box(a), box(b)
+    cov_norm = n / (n - 1.0)
+    vx = cov_norm * (box(a * a) - ux * ux)
+    vy = cov_norm * (box(b * b) - uy * uy)
+    vxy = cov_norm * (box(a * b) - ux * uy)
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+    s = ((2 * ux * uy + c1) * (2 * vxy + c2)) / ((ux * ux + uy * uy + c1) * (vx + vy + c2))
+    pad = (win - 1) // 2
+    return float(s[pad:-pad, pad:-pad].mean())
+
+
+# --------------------------------------------------------------------------------------------- scenes
+
+def _texture(name: str) -> str:
+    """scikit-image textures when installed (test extra), procedural ones otherwise."""
+    if name in SKIMAGE_TEXTURES:
+        try:
+            import skimage.data  # noqa: F401
+        except ImportError:
+            return {"camera": "blocks", "astronaut": "blocks", "brick": "noise", "grass": "noise"}.get(name, "noise")
+    return name
+
+
+def scene_suite(quick: bool = False) -> list[tuple[str, SceneConfig]]:
+    """(label, config) of every benchmark scene, 240x180 unless the label says 346."""
+    d = 0.35 if quick else 0.5
+    common = dict(duration_s=d, c_sigma=0.03, latent_per_interval=4, noise_rate_hz=0.1)
+    scenes = [
+        ("blocks translate c=0.2", preset("translate", texture=_texture("blocks"), velocity_px_s=(300.0, 40.0),
+                                          c_on=0.2, c_off=0.2, seed=1, **common)),
+        ("camera rot+transl c=0.2", preset("translate", texture=_texture("camera"), velocity_px_s=(200.0, 80.0),
+                                           rotation_deg_s=40.0, c_on=0.2, c_off=0.2, seed=2, **common)),
+        ("brick fast c=0.3", preset("fast", texture=_texture("brick"), c_on=0.3, c_off=0.3, seed=3, **common)),
+        ("static + noise/hot c=0.2", preset("static", texture=_texture("camera"), seed=8,
+                                            **{**common, "noise_rate_hz": 1.0}, hot_pixels=5, hot_rate_hz=1000.0)),
+    ]
+    if quick:
+        return scenes
+    scenes[3:3] = [
+        ("grass zoom c=0.15", preset("zoom", texture=_texture("grass"), zoom_per_s=0.6, c_on=0.15, c_off=0.15,
+                                     seed=4, **common)),
+        ("astronaut rotate c_on=.25 c_off=.35", preset("rotate", texture=_texture("astronaut"), rotation_deg_s=90.0,
+                                                       c_on=0.25, c_off=0.35, seed=5, **common)),
+        ("noise c=0.4 + noise/hot/read", preset("noisy", texture="noise", velocity_px_s=(250.0, -60.0), c_on=0.4,
+                                                c_off=0.4, seed=6, **{**common, "noise_rate_hz": 5.0},
+                                                hot_pixels=10, hot_rate_hz=3000.0, aps_noise_dn=1.0)),
+        ("346x260 camera c=0.2", preset("davis346", texture=_texture("camera"), c_on=0.2, c_off=0.2, seed=7,
+                                        **common)),
+    ]
+    return scenes
+
+
+# --------------------------------------------------------------------------------------------- harness
+
+@dataclass
+class Outputs:
+    """What one method produced on one scene: images keyed by ground-truth index, with the ms each cost."""
+
+    deblurred: dict[int, tuple[np.ndarray, float]] = field(default_factory=dict)
+    latent: dict[int, tuple[np.ndarray, float]] = field(default_factory=dict)
+    note: str = ""
+
+
+def _events_between(ev: np.ndarray, t0: int, t1: int, *, left: str = "right") -> np.ndarray:
+    """Events with t0 < t <= t1 (left='right') or t0 <= t <= t1 (left='left')."""
+    t = ev["t"]
+    return ev[np.searchsorted(t, t0, side=left):np.searchsorted(t, t1, side="right")]
+
+
+def _gt_targets(sim: Simulation) -> tuple[dict[int, int], dict[int, list[int]]]:
+    """frame index -> gt index of its mid-exposure; frame index -> gt indices of latent times after it."""
+    mids = {int(sim.gt_frame[i]): i for i in np.flatnonzero(sim.gt_kind == 0)}
+    lat: dict[int, list[int]] = {}
+    for i in np.flatnonzero(sim.gt_kind == 1):
+        lat.setdefault(int(sim.gt_frame[i]), []).append(int(i))
+    return mids, lat
+
+
+def run_blurry(sim: Simulation) -> Outputs:
+    out = Outputs()
+    mids, lat = _gt_targets(sim)
+    for k, f in enumerate(sim.frames):
+        t0 = time.perf_counter()
+        img = bl.blurry(f)
+        ms = (time.perf_counter() - t0) * 1e3
+        out.deblurred[mids[k]] = (img, ms)
+        for g in lat.get(k, []):
+            out.latent[g] = (img, 0.0)  # the newest frame stays on screen until the next one
+    return out
+
+
+def run_direct(sim: Simulation) -> Outputs:
+    cfg = sim.config
+    out = Outputs(note="true c")
+    mids, lat = _gt_targets(sim)
+    for k, f in enumerate(sim.frames):
+        t0 = time.perf_counter()
+        out.deblurred[mids[k]] = (bl.blurry(f), (time.perf_counter() - t0) * 1e3)
+        for g in lat.get(k, []):
+            t0 = time.perf_counter()
+            img = bl.direct_integration(f, sim.events, int(sim.gt_t_us[g]), cfg.c_on, cfg.c_off)
+            out.latent[g] = (img, (time.perf_counter() - t0) * 1e3)
+    return out
+
+
+def run_complementary(sim: Simulation, cutoff_hz: float = 0.5) -> Outputs:
+    cfg = sim.config
+    out = Outputs(note=f"true c, cutoff {cutoff_hz:g} Hz")
+    cf = bl.ComplementaryFilter(cfg.width, cfg.height, cfg.c_on, cfg.c_off, cutoff_hz=cutoff_hz)
+    ev = sim.events
+    # timeline: every output time and every frame arrival (exposure end), in order
+    todo = [(int(sim.gt_t_us[g]), 1, g) for g in range(sim.gt_t_us.size)]
+    todo += [(f.exposure_end_us, 0, k) for k, f in enumerate(sim.frames)]
+    todo.sort()
+    last_t = int(ev["t"][0]) - 1 if ev.size else 0
+    started = False
+    for t, kind, i in todo:
+        t0 = time.perf_counter()
+        cf.add_events(_events_between(ev, last_t, t)) if started else None
+        last_t = t
+        if kind == 0:
+            cf.add_frame(sim.frames[i])
+            started = True
+            continue
+        if not started:  # before the first frame the filter has nothing to show: use the first frame
+            img = bl.blurry(sim.frames[0])
+        else:
+            img = cf.image_at(t)
+        ms = (time.perf_counter() - t0) * 1e3
+        (out.deblurred if sim.gt_kind[i] == 0 else out.latent)[i] = (img, ms)
+    return out
+
+
+def run_edi_functions(sim: Simulation, c_on: float | None = None, c_off: float | None = None) -> Outputs:
+    """EDI from edi_live.edi's pure functions with a given (default: the simulator's true) c."""
+    from edi_live import edi
+
+    cfg = sim.config
+    c_on = cfg.c_on if c_on is None else c_on
+    c_off = cfg.c_off if c_off is None else c_off
+    out = Outputs(note=f"c_on={c_on:g} c_off={c_off:g}")
+    mids, lat = _gt_targets(sim)
+    ev = sim.events
+    for k, f in enumerate(sim.frames):
+        t0 = time.perf_counter()
+        b, informative = edi.blurry_to_float(f.image)
+        table = edi.build_level_table(ev, cfg.width, cfg.height, f.exposure_start_us, f.exposure_end_us,
+                                      segments=c_on != c_off)
+        log_l = edi.deblur_log(b, table, c_on, c_off, informative=informative)
+        img = np.exp(log_l)
+        out.deblurred[mids[k]] = (img, (time.perf_counter() - t0) * 1e3)
+        state = log_l.copy()
+        t_state = table.ref_t_us
+        for g in lat.get(k, []):
+            t0 = time.perf_counter()
+            t = int(sim.gt_t_us[g])
+            edi.propagate_log(state, _events_between(ev, t_state, t), c_on, c_off)
+            t_state = t
+            out.latent[g] = (np.exp(state), (time.perf_counter() - t0) * 1e3)
+    return out
+
+
+def run_reconstructor(sim: Simulation, **kwargs) -> Outputs:
+    """The streaming EdiReconstructor, fed like the node feeds it (causal latent frames)."""
+    from edi_live.reconstructor import EdiReconstructor
+
+    cfg = sim.config
+    rec = EdiReconstructor(cfg.width, cfg.height, **kwargs)
+    out = Outputs()
+    mids, lat = _gt_targets(sim)
+    ev = sim.events
+    cs = []
+    for k, f in enumerate(sim.frames):
+        t0 = time.perf_counter()
+        r = rec.on_frame(f, _events_between(ev, f.exposure_start_us, f.exposure_end_us, left="left"))
+        out.deblurred[mids[k]] = (r.image.astype(np.float32), (time.perf_counter() - t0) * 1e3)
+        cs.append((r.c_on, r.c_off))
+        t_applied = f.exposure_end_us
+        for g in lat.get(k, []):
+            t = int(sim.gt_t_us[g])
+            t0 = time.perf_counter()
+            if t <= t_applied:  # still inside this frame's exposure: go from the reference L(f)
+                r = rec.render_from_reference(t, _events_between(ev, min(t, f.mid_exposure_us),
+                                                                 max(t, f.mid_exposure_us)))
+            else:
+                rec.on_events(_events_between(ev, t_applied, t))
+                t_applied = t
+                r = rec.render()
+            out.latent[g] = (r.image.astype(np.float32), (time.perf_counter() - t0) * 1e3)
+    c = np.array(cs[1:] or cs)
+    out.note = f"c_on={np.median(c[:, 0]):.3f} c_off={np.median(c[:, 1]):.3f} (median)"
+    if hasattr(rec, "reestimations"):
+        out.note += f", {rec.reestimations} re-est."
+    return out
+
+
+def available_methods() -> list[tuple[str, Callable[[Simulation], Outputs], str]]:
+    """(name, runner, group) for every method this checkout can run. group: 'baseline', 'oracle', 'auto'."""
+    methods: list[tuple[str, Callable[[Simulation], Outputs], str]] = [
+        ("blurry frame", run_blurry, "baseline"),
+        ("direct integration", run_direct, "baseline"),
+        ("complementary 0.5 Hz", run_complementary, "baseline"),
+        ("complementary 5 Hz", lambda s: run_complementary(s, 5.0), "baseline"),
+    ]
+    try:
+        import edi_live.edi  # noqa: F401
+        methods.append(("EDI oracle c (edi.py)", run_edi_functions, "oracle"))
+    except ImportError:
+        pass
+    try:
+        from edi_live.reconstructor import EdiReconstructor
+    except ImportError:
+        return methods
+    methods.append(("EDI oracle c (reconstructor)",
+                    lambda s: run_reconstructor(s, c_on=s.config.c_on, c_off=s.config.c_off), "oracle"))
+    for est in estimator_names():
+        methods.append((f"EDI auto c: {est}", lambda s, e=est: run_reconstructor(s, estimator=e), "auto"))
+    methods.append(("EDI default (reconstructor)", lambda s: run_reconstructor(s), "default"))
+    del EdiReconstructor
+    return methods
+
+
+def estimator_names() -> list[str]:
+    """c estimators that edi_live.contrast offers (its ESTIMATORS registry when present)."""
+    try:
+        from edi_live import contrast
+    except ImportError:
+        return []
+    reg = getattr(contrast, "ESTIMATORS", None)
+    if isinstance(reg, dict):
+        return list(reg)
+    if isinstance(reg, (list, tuple)):
+        return list(reg)
+    return []
+
+
+# --------------------------------------------------------------------------------------------- scoring
+
+@dataclass
+class Score:
+    psnr_deblur: float
+    ssim_deblur: float
+    psnr_latent: float
+    ssim_latent: float
+    ms_deblur: float  # median per APS frame
+    ms_latent: float  # median per latent frame
+    note: str = ""
+
+
+def score(sim: Simulation, out: Outputs, *, skip_first: int = 1) -> Score:
+    """Mean PSNR/SSIM over frames >= skip_first (the first frame warms up stateful methods)."""
+    def agg(items: dict[int, tuple[np.ndarray, float]]):
+        keep = [(g, v) for g, v in items.items() if sim.gt_frame[g] >= skip_first]
+        if not keep:
+            return float("nan"), float("nan"), float("nan")
+        p = [psnr(img, sim.gt_images[g]) for g, (img, _) in keep]
+        s = [ssim(img, sim.gt_images[g]) for g, (img, _) in keep]
+        return float(np.mean(p)), float(np.mean(s)), float(np.median([ms for _, (_, ms) in keep]))
+    pd, sd, md = agg(out.deblurred)
+    pl, sl, ml = agg(out.latent)
+    return Score(pd, sd, pl, sl, md, ml, out.note)
+
+
+def run_suite(scenes, methods, *, log=print) -> dict[str, dict[str, Score]]:
+    results: dict[str, dict[str, Score]] = {}
+    for label, cfg in scenes:
+        t0 = time.perf_counter()
+        sim = simulate(cfg)
+        log(f"# {label}: {sim.events.size} events, {len(sim.frames)} frames, simulated in {sim.wall_s:.1f} s")
+        results[label] = {}
+        for name, runner, _ in methods:
+            try:
+                results[label][name] = score(sim, runner(sim))
+            except Exception as exc:  # a method that fails is reported, not fatal to the benchmark
+                log(f"  {name}: FAILED {type(exc).__name__}: {exc}")
+        log(f"  done in {time.perf_counter() - t0:.1f} s")
+    return results
+
+
+# --------------------------------------------------------------------------------------------- reporting
+
+def markdown_table(results: dict[str, dict[str, Score]], methods) -> str:
+    names = [m[0] for m in methods]
+    lines = []
+    for label, per in results.items():
+        lines.append(f"\n**{label}**\n")
+        lines.append("| method | PSNR f (dB) | SSIM f | PSNR latent (dB) | SSIM latent | ms/APS frame | ms/latent frame | note |")
+        lines.append("|---|---:|---:|---:|---:|---:|---:|---|")
+        for n in names:
+            if n in per:
+                s = per[n]
+                lines.append(f"| {n} | {s.psnr_deblur:.2f} | {s.ssim_deblur:.3f} | {s.psnr_latent:.2f} | "
+                             f"{s.ssim_latent:.3f} | {s.ms_deblur:.2f} | {s.ms_latent:.2f} | {s.note} |")
+    return "\n".join(lines)
+
+
+def summary_table(results: dict[str, dict[str, Score]], methods) -> str:
+    """Mean over all scenes, one row per method."""
+    lines = ["| method | mean PSNR f (dB) | mean SSIM f | mean PSNR latent (dB) | mean SSIM latent | "
+             "median ms/APS frame | median ms/latent frame |", "|---|---:|---:|---:|---:|---:|---:|"]
+    for n, _, _ in methods:
+        rows = [per[n] for per in results.values() if n in per]
+        if len(rows) != len(results):
+            continue
+        lines.append(f"| {n} | {np.mean([r.psnr_deblur for r in rows]):.2f} | {np.mean([r.ssim_deblur for r in rows]):.3f} | "
+                     f"{np.mean([r.psnr_latent for r in rows]):.2f} | {np.mean([r.ssim_latent for r in rows]):.3f} | "
+                     f"{np.median([r.ms_deblur for r in rows]):.2f} | {np.median([r.ms_latent for r in rows]):.2f} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python tools/bench_accuracy.py", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="4 short scenes instead of 8")
+    ap.add_argument("--plot", default=str(REPO / "docs" / "bench_accuracy.png"), help="PNG path ('' = none)")
+    args = ap.parse_args(argv)
+    methods = available_methods()
+    scenes = scene_suite(args.quick)
+    t0 = time.perf_counter()
+    results = run_suite(scenes, methods)
+    print("\n## Mean over the suite\n")
+    print(summary_table(results, methods))
+    print("\n## Per scene\n")
+    print(markdown_table(results, methods))
+    print(f"\nwall time {time.perf_counter() - t0:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -36,6 +36,17 @@ POLICIES = ("drop_oldest", "wait")
 _EMPTY_I8 = np.zeros(0, dtype=np.int64)
 
 
+def as_events(events: np.ndarray) -> np.ndarray:
+    """`events` in EVENT_DTYPE exactly. np.concatenate of padded structured arrays returns a packed 13-byte
+    dtype with the same fields; such arrays (and other field-compatible ones) are converted here."""
+    if events.dtype == EVENT_DTYPE:
+        return events
+    out = np.empty(len(events), EVENT_DTYPE)
+    for name in ("t", "x", "y", "p"):
+        out[name] = events[name]
+    return out
+
+
 def _raw(events: np.ndarray) -> np.ndarray:
     """View events as (n, 2) int64 for fast copies (the dtype is exactly 16 bytes)."""
     return np.ascontiguousarray(events).view(np.int64).reshape(-1, 2)
@@ -116,7 +127,7 @@ class EventRing:
         could not make room within `timeout_s` (the part already written stays)."""
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         arrival = packet.arrival_ns or time.monotonic_ns()
-        events = packet.events
+        events = as_events(packet.events)
         if packet.gap:
             self._mark_gap_at_head()
         frames = sorted(packet.frames, key=lambda f: f.exposure_end_us)

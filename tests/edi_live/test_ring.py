@@ -251,3 +251,13 @@ def test_stress_one_producer_one_consumer(rng, policy):
     else:
         assert len(got) + ring.dropped_events == len(ev)
         assert len(frames_out) + ring.dropped_frames == len(frames_in)
+
+
+def test_packed_event_arrays_are_accepted(rng):
+    # np.concatenate of EVENT_DTYPE arrays yields a packed 13-byte dtype; the ring must store it correctly
+    ev = make_events(np.arange(20), rng)
+    packed = np.concatenate([ev[:10], ev[10:]])
+    assert packed.dtype.itemsize != EVENT_DTYPE.itemsize
+    ring = EventRing(capacity_events=64, policy="wait")
+    ring.push(Packet(events=packed))
+    np.testing.assert_array_equal(drain(ring), ev)

@@ -5,8 +5,9 @@ Two implementations with identical results: a numba loop (used when numba is imp
 numpy fallback. `tools/bench_usb_decode.py` measures both. Events are written straight into the 16-byte
 EVENT_DTYPE layout viewed as int64 pairs: [t, x | y << 16 | p << 32].
 
-State vector (int64[6]): wrap_add, current (device µs), last_y (-1 = unknown), offset (added to device time),
-started (a timestamp or wrap word was seen), bad (count of words dropped as out of range).
+State vector (int64[8]): wrap_add, current (device µs), last_y (-1 = unknown), offset (added to device time),
+started (a timestamp or wrap word was seen), bad (words dropped as out of range), last_out (last event time
+emitted), backwards (events whose time went backwards, e.g. after garbage words; clamped so output stays sorted).
 """
 
 from __future__ import annotations
@@ -14,11 +15,11 @@ from __future__ import annotations
 import numpy as np
 
 WRAP_STEP = 0x8000
-S_WRAP, S_CURRENT, S_LAST_Y, S_OFFSET, S_STARTED, S_BAD = range(6)
+S_WRAP, S_CURRENT, S_LAST_Y, S_OFFSET, S_STARTED, S_BAD, S_LAST_OUT, S_BACKWARDS = range(8)
 
 
 def new_state(offset_us: int = 0) -> np.ndarray:
-    return np.array([0, 0, -1, offset_us, 0, 0], dtype=np.int64)
+    return np.array([0, 0, -1, offset_us, 0, 0, -(2**62), 0], dtype=np.int64)
 
 
 def _scan_py(words, state, cols, rows, swap, ev, ctrl_idx, ctrl_t):
@@ -29,6 +30,8 @@ def _scan_py(words, state, cols, rows, swap, ev, ctrl_idx, ctrl_t):
     offset = state[3]
     started = state[4]
     bad = state[5]
+    last_out = state[6]
+    backwards = state[7]
     n_ev = 0
     n_ctrl = 0
     for i in range(words.shape[0]):
@@ -41,7 +44,12 @@ def _scan_py(words, state, cols, rows, swap, ev, ctrl_idx, ctrl_t):
         data = w & 0xFFF
         if code == 2 or code == 3:
             if data < cols and last_y >= 0:
-                ev[n_ev, 0] = current + offset
+                t = current + offset
+                if t < last_out:
+                    backwards += 1
+                    t = last_out
+                last_out = t
+                ev[n_ev, 0] = t
                 if swap:
                     ev[n_ev, 1] = last_y | (data << 16) | ((code & 1) << 32)
                 else:
@@ -73,6 +81,8 @@ def _scan_py(words, state, cols, rows, swap, ev, ctrl_idx, ctrl_t):
     state[3] = offset
     state[4] = started
     state[5] = bad
+    state[6] = last_out
+    state[7] = backwards
     return n_ev, n_ctrl
 
 
@@ -95,6 +105,11 @@ def _segment_np(w, state, cols, rows, swap):
     is_x = (hi == 2) | (hi == 3)
     good = is_x & (data < cols) & (ly >= 0)
     t = cur[good] + state[S_OFFSET]
+    if t.size:
+        mono = np.maximum.accumulate(np.concatenate([[state[S_LAST_OUT]], t]))[1:]
+        state[S_BACKWARDS] += int(np.count_nonzero(mono != t))
+        t = mono
+        state[S_LAST_OUT] = t[-1]
     x, y, p = data[good], ly[good], hi[good] & 1
     if swap:
         x, y = y, x

@@ -55,8 +55,9 @@ class DavisDecoder:
         self._reanchor = False
         self._last_arrival_ns = 0
         self._seq = 0
+        self._wm = -(2**62)  # highest watermark promised so far; later events are clamped to it
         self.counters = {"words": 0, "events": 0, "frames": 0, "frames_dropped": 0, "imu": 0,
-                         "timestamp_resets": 0, "bad_words": 0, "gaps": 0, "skipped_words": 0}
+                         "timestamp_resets": 0, "bad_words": 0, "backwards_events": 0, "gaps": 0, "skipped_words": 0}
         # APS state
         self._aps_ignore = True  # until the first frame start (stale data at startup)
         self._roi = [0, 0, self.aps_width - 1, self.aps_height - 1]
@@ -94,7 +95,7 @@ class DavisDecoder:
     @property
     def watermark_us(self) -> int:
         """No later packet holds an event earlier than this (the current output time)."""
-        return int(self._state[_kernel.S_CURRENT] + self._state[_kernel.S_OFFSET])
+        return self._wm
 
     def mark_gap(self) -> None:
         """Raw bytes were lost before the next chunk: drop partial frame/IMU/row state, re-anchor the wrap
@@ -124,9 +125,12 @@ class DavisDecoder:
             gap = True
         self.counters["words"] += int(words.size)
         bad_before = int(self._state[_kernel.S_BAD])
+        self._state[_kernel.S_LAST_OUT] = max(int(self._state[_kernel.S_LAST_OUT]), self._wm)
         ev2, ctrl_idx, ctrl_t = _kernel.scan(words, self._state, self.dvs_cols, self.dvs_rows, self.dvs_swap,
                                              self.use_numba)
         self.counters["bad_words"] += int(self._state[_kernel.S_BAD]) - bad_before
+        self.counters["backwards_events"] = int(self._state[_kernel.S_BACKWARDS])
+        self._wm = max(self._wm, int(self._state[_kernel.S_CURRENT] + self._state[_kernel.S_OFFSET]))
         if ev2.shape[0] < words.shape[0] // 2:
             ev2 = ev2.copy()  # do not pin a mostly empty buffer
         events = ev2.view(EVENT_DTYPE).reshape(-1) if ev2.size else empty_events()
@@ -157,7 +161,7 @@ class DavisDecoder:
         last_dev = int(st[_kernel.S_CURRENT])
         probe = _kernel.new_state(0)
         probe[_kernel.S_LAST_Y] = 0
-        _kernel.scan(words, probe, self.dvs_cols, self.dvs_rows, False, False if words.size < 64 else None)
+        _kernel.scan(words, probe, self.dvs_cols, self.dvs_rows, False, self.use_numba)
         rel_end = int(probe[_kernel.S_CURRENT])
         first_low = int(words[0]) & 0x7FFF
         if arrival_ns and self._last_arrival_ns:

@@ -1,0 +1,66 @@
+"""Listing attached DAVIS cameras (`edi-live --list-devices`) and picking one by model and serial."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from drivers.davis import models, transport
+from edi_live.errors import DeviceNotFoundError, SourceError
+
+
+@dataclass(frozen=True)
+class DeviceDescription:
+    """One attached camera as seen on the bus (before opening it for streaming)."""
+
+    model: str            # "davis240" or "davis346" (from the USB product ID)
+    product_id: int
+    serial: str | None    # None when it could not be read (see `error`)
+    bus: int | None
+    address: int | None
+    firmware_version: int
+    error: str | None = None
+
+    def __str__(self) -> str:
+        s = f"{self.model} serial={self.serial or '?'} usb={self.bus}:{self.address} firmware={self.firmware_version}"
+        return s + (f" ({self.error})" if self.error else "")
+
+
+def _describe(dev: Any) -> DeviceDescription:
+    model = models.MODEL_BY_PID[dev.idProduct]
+    serial, error = None, None
+    try:
+        serial = transport.read_serial(dev)
+    except SourceError as exc:
+        error = str(exc).split(":")[0]
+    return DeviceDescription(model.name, int(dev.idProduct), serial, dev.bus, dev.address,
+                             int(dev.bcdDevice) & 0xFF, error)
+
+
+def list_devices(backend: Any = None) -> list[DeviceDescription]:
+    """Every attached DAVIS240/DAVIS346 visible through the pyusb `backend` (None = libusb)."""
+    return [_describe(d) for d in transport.find_davis(backend)]
+
+
+def select_device(model: str = "auto", serial: str | None = None, backend: Any = None) -> Any:
+    """The pyusb device matching model ("auto", "davis240", "davis346") and serial; raises DeviceNotFoundError."""
+    if model != "auto":
+        models.get_model(model)
+    devices = transport.find_davis(backend)
+    candidates = [d for d in devices if model == "auto" or models.MODEL_BY_PID[d.idProduct].name == model]
+    if serial is not None:
+        matching = []
+        for d in candidates:
+            if transport.read_serial(d) == serial:
+                matching.append(d)
+        if not matching:
+            seen = ", ".join(str(_describe(d)) for d in devices) or "none"
+            raise DeviceNotFoundError(f"no {model if model != 'auto' else 'DAVIS'} camera with serial {serial} "
+                                      f"(attached: {seen}); check --serial or run edi-live --list-devices")
+        candidates = matching
+    if not candidates:
+        what = "DAVIS camera" if model == "auto" else f"{model} camera"
+        other = f" (found only: {', '.join(str(_describe(d)) for d in devices)})" if devices else ""
+        raise DeviceNotFoundError(f"no {what} found on USB{other}: check the cable and power, run "
+                                  "edi-live --list-devices, or use --usb-backend drivers.emulator:backend to emulate one")
+    return candidates[0]

@@ -1,0 +1,519 @@
+"""An emulated DAVIS240C/DAVIS346 camera as a pyusb backend, so the unchanged driver runs without hardware.
+
+`backend()` returns a `usb.backend.IBackend` presenting the camera's descriptors, answering the 0xBF/0xC2
+register protocol from a register file (versions, chip ID, sizes, orientation; every write is recorded), and
+streaming the 16-bit word stream synthesised by `drivers.davis.encoder` from a recording (an .aedat4 path read
+through `drivers.replay.merged_packets`, or any iterable of `Packet`s) or, with no recording, from a generated
+scene. Pacing maps device time to host time (`speed`, 0 = as fast as read). Faults are injected by keyword:
+no_device, permission_denied, busy, logic_version/logic_patch/firmware, unplug_after_bytes (+ replug_after_s),
+garbage_words, reset_at_us (timestamp reset mid-stream). Options: serial, width/height, dvs_orientation,
+aps_orientation, imu_orientation, chip_id, seed, holdback_us.
+
+Usable as `edi-live --usb-backend drivers.emulator:backend` (generated scene); `--emulate-from FILE` makes the
+CLI call `backend(recording=FILE, model=...)`.
+"""
+
+from __future__ import annotations
+
+import errno
+import threading
+import time
+from array import array
+from typing import Any, Callable, Iterable, Iterator
+
+import numpy as np
+import usb.backend
+import usb.core
+
+from drivers.davis import models, protocol as P
+from drivers.davis.encoder import WordEncoder
+from edi_live.datatypes import Frame, Packet
+
+_FAULTS = {"no_device", "permission_denied", "busy", "logic_version", "logic_patch", "firmware",
+           "unplug_after_bytes", "replug_after_s", "garbage_words", "reset_at_us", "serial", "width", "height",
+           "dvs_orientation", "aps_orientation", "imu_orientation", "chip_id", "seed", "holdback_us"}
+
+
+class _Desc:
+    def __init__(self, **kw: Any) -> None:
+        self.extra_descriptors = []
+        self.__dict__.update(kw)
+
+
+def _usb_error(msg: str, code: int, backend_code: int) -> usb.core.USBError:
+    return usb.core.USBError(msg, errno=code, backend_error_code=backend_code)
+
+
+# ---- the word stream ------------------------------------------------------------------------------------
+class _WordStream:
+    """Packets -> device-time word blocks, holding events back so a frame's exposure-start block (known only
+    when the frame arrives after its events) lands in time order."""
+
+    def __init__(self, factory: Callable[[], Iterable[Packet]], enc: WordEncoder, loop: bool, holdback_us: int,
+                 reset_at_us: int | None) -> None:
+        self.factory, self.enc, self.loop, self.holdback_us = factory, enc, loop, holdback_us
+        self.reset_at_us = reset_at_us
+        self.it: Iterator[Packet] = iter(factory())
+        self.shift: int | None = None   # recording time of device time 0
+        self.ev: list[np.ndarray] = []
+        self.blocks: list[tuple[int, int, int, Any]] = []  # (t, order, n, payload)
+        self.latest = None
+        self.done = False
+        self.late_blocks = 0
+        self._n = 0
+
+    def _add(self, pkt: Packet) -> None:
+        times = [int(pkt.events["t"][0])] if len(pkt.events) else []
+        times += [f.exposure_start_us for f in pkt.frames] + [int(x) for x in pkt.imu["t"][:1]]
+        times += [int(x) for x in pkt.triggers["t"][:1]]
+        if self.shift is None and times:
+            self.shift = min(times)
+        if len(pkt.events):
+            self.ev.append(pkt.events)
+            self.latest = max(self.latest or -(2**62), int(pkt.events["t"][-1]))
+        for f in pkt.frames:
+            self._block(f.exposure_start_us, 0, ("fs", f))
+            self._block(f.exposure_end_us, 1, ("fe", f))
+        for s in pkt.imu:
+            self._block(int(s["t"]), 1, ("imu", s))
+        for tr in pkt.triggers:
+            self._block(int(tr["t"]), 1, ("trig", int(tr["type"])))
+
+    def _block(self, t: int, order: int, payload: Any) -> None:
+        self._n += 1
+        self.blocks.append((t, order, self._n, payload))
+
+    def next_block(self) -> tuple[np.ndarray, int] | None:
+        """The next words and the device time they reach, or None at the end of the recording."""
+        while True:
+            if self.done:
+                return None
+            try:
+                pkt = next(self.it)
+                self._add(pkt)
+                if self.latest is None:
+                    continue
+                horizon = self.latest - self.holdback_us
+            except StopIteration:
+                horizon = 2**62
+                if self.loop and (self.ev or self.blocks or self.shift is not None):
+                    words = self._encode_until(horizon)
+                    self._restart_loop()
+                    return words
+                self.done = True
+            words = self._encode_until(horizon)
+            if words is not None or self.done:
+                return words
+
+    def _restart_loop(self) -> None:
+        last_dev = self.enc.last_t
+        self.it = iter(self.factory())
+        first = None
+        self.latest = None
+        while first is None:
+            try:
+                pkt = next(self.it)
+            except StopIteration:
+                self.done = True
+                return
+            saved, self.shift = self.shift, None
+            self._add(pkt)
+            first, self.shift = self.shift, saved
+        self.shift = first - (last_dev + 1000)  # continue device time 1 ms after the previous pass
+        self._shift_pending()
+
+    def _shift_pending(self) -> None:
+        pass  # pending items keep recording time; conversion happens at encode time
+
+    def _encode_until(self, horizon: int) -> tuple[np.ndarray, int] | None:
+        if self.shift is None:
+            return None
+        ev = np.concatenate(self.ev) if self.ev else None
+        self.ev = []
+        if ev is not None:
+            k = int(np.searchsorted(ev["t"], horizon, side="right"))
+            if k < len(ev):
+                self.ev = [ev[k:]]
+            ev = ev[:k]
+        self.blocks.sort(key=lambda b: (b[0], b[1], b[2]))
+        due = [b for b in self.blocks if b[0] <= horizon]
+        self.blocks = [b for b in self.blocks if b[0] > horizon]
+        parts: list[np.ndarray] = []
+        pos = 0
+        ts = ev["t"] if ev is not None else np.zeros(0, np.int64)
+        for t, order, _, payload in due:
+            k = int(np.searchsorted(ts, t, side="right"))
+            if k > pos:
+                parts += self._events(ev[pos:k])
+                pos = k
+            parts += self._payload(t, payload)
+        if ev is not None and pos < len(ev):
+            parts += self._events(ev[pos:])
+        if not parts:
+            return None
+        return np.concatenate(parts), self.enc.last_t
+
+    def _dev(self, t: int) -> int:
+        d = int(t) - self.shift
+        if d < self.enc.last_t:
+            self.late_blocks += 1
+            d = self.enc.last_t
+        return d
+
+    def _maybe_reset(self, next_dev_t: int) -> list[np.ndarray]:
+        if self.reset_at_us is not None and next_dev_t >= self.reset_at_us and self.enc.started:
+            self.reset_at_us = None
+            self.shift += self.enc.last_t
+            return [self.enc.timestamp_reset()]
+        return []
+
+    def _events(self, ev: np.ndarray) -> list[np.ndarray]:
+        t = ev["t"].astype(np.int64) - self.shift
+        out = []
+        if self.reset_at_us is not None and len(t) and t[-1] >= self.reset_at_us:
+            k = int(np.searchsorted(t, self.reset_at_us, side="left"))
+            if k:
+                out.append(self.enc.encode_events(np.maximum(t[:k], self.enc.last_t), ev["x"][:k], ev["y"][:k], ev["p"][:k]))
+            out += self._maybe_reset(int(t[k]) if k < len(t) else int(t[-1]))
+            ev, t = ev[k:], ev["t"][k:].astype(np.int64) - self.shift
+        if len(t):
+            t = np.maximum(t, self.enc.last_t)
+            out.append(self.enc.encode_events(t, ev["x"], ev["y"], ev["p"]))
+        return out
+
+    def _payload(self, t: int, payload: Any) -> list[np.ndarray]:
+        kind, obj = payload
+        out = self._maybe_reset(int(t) - self.shift)
+        d = self._dev(t)
+        if kind == "fs":
+            out.append(self.enc.encode_frame_start(d, obj))
+        elif kind == "fe":
+            out.append(self.enc.encode_frame_end(d, obj))
+        elif kind == "imu":
+            out.append(self.enc.encode_imu(d, obj["accel_g"], obj["gyro_dps"], float(obj["temperature_c"])))
+        else:
+            out.append(self.enc.encode_trigger(d, obj))
+        return out
+
+
+def generated_scene(width: int = 240, height: int = 180, *, epoch_us: int | None = None,
+                    seed: int = 7) -> Iterator[Packet]:
+    """An endless synthetic scene: a bright bar sweeping right over a dark background, 10 ms packets, APS
+    frames every 40 ms (4 ms exposure), 1 kHz IMU. Deterministic for a given seed and epoch."""
+    rng = np.random.default_rng(seed)
+    t0 = time.time_ns() // 1000 if epoch_us is None else epoch_us
+    bar_w, speed_px_per_ms = max(4, width // 12), 0.25
+    step_ms = 10
+    k = 0
+    while True:
+        t_start = t0 + k * step_ms * 1000
+        evs = []
+        for ms in range(step_ms):
+            now = k * step_ms + ms
+            for edge, pol in ((now * speed_px_per_ms, True), (now * speed_px_per_ms - bar_w, False)):
+                c0, c1 = int(edge) % width, int(edge + speed_px_per_ms) % width
+                if c0 == c1:
+                    continue
+                ys = np.arange(height // 4, 3 * height // 4)
+                ev = np.zeros(len(ys), dtype=[("t", "<i8"), ("x", "<u2"), ("y", "<u2"), ("p", "?")])
+                ev["t"] = t0 + now * 1000 + rng.integers(0, 1000, len(ys))
+                ev["x"], ev["y"], ev["p"] = c1, ys, pol
+                evs.append(ev)
+        from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE
+        events = np.zeros(sum(len(e) for e in evs), EVENT_DTYPE)
+        if evs:
+            allev = np.concatenate(evs)
+            allev = allev[np.argsort(allev["t"], kind="stable")]
+            for name in ("t", "x", "y", "p"):
+                events[name] = allev[name]
+        frames = []
+        if (k * step_ms) % 40 == 0:
+            img = np.full((height, width), 40, np.uint8)
+            pos = int(k * step_ms * speed_px_per_ms)
+            cols = (np.arange(pos - bar_w, pos) % width)
+            img[height // 4: 3 * height // 4, cols] = 200
+            frames.append(Frame(img, t_start, t_start + 4000, t_start, t_start + 4000, k // 4))
+        imu = np.zeros(step_ms, IMU_DTYPE)
+        imu["t"] = t_start + np.arange(step_ms) * 1000 + 500
+        imu["temperature_c"] = 30.0
+        imu["accel_g"] = (0.0, -1.0, 0.0)
+        k += 1
+        # frames after the events up to their exposure end: exposure ends within this 10 ms packet
+        yield Packet(events=events, frames=frames, imu=imu, watermark_us=t_start + step_ms * 1000)
+
+
+def _recording_factory(recording: Any) -> Callable[[], Iterable[Packet]]:
+    if isinstance(recording, (str, bytes)) or hasattr(recording, "__fspath__"):
+        from drivers.replay import merged_packets  # the replay engineer's reader: time-ordered packets
+        return lambda: merged_packets(recording)
+    packets = list(recording)
+    return lambda: packets
+
+
+def _recording_size(recording: Any) -> tuple[int, int] | None:
+    if isinstance(recording, (str, bytes)) or hasattr(recording, "__fspath__"):
+        from edi_live.aedat4.reader import Aedat4Reader
+        with Aedat4Reader(recording) as r:
+            return r.source_info.width, r.source_info.height
+    return None
+
+
+# ---- the pyusb backend ---------------------------------------------------------------------------------
+class EmulatorBackend(usb.backend.IBackend):
+    """A pyusb backend with one emulated DAVIS on bus 1, address 7."""
+
+    edi_live_emulator = True
+
+    def __init__(self, recording: Any = None, *, model: str | None = None, speed: float = 1.0, loop: bool = False,
+                 **faults: Any) -> None:
+        unknown = set(faults) - _FAULTS
+        if unknown:
+            raise TypeError(f"unknown emulator options {sorted(unknown)} (known: {sorted(_FAULTS)})")
+        if speed < 0:
+            raise ValueError(f"speed must be >= 0 (got {speed})")
+        self.faults = faults
+        self.speed = float(speed)
+        size = _recording_size(recording) if recording is not None else None
+        mdl = models.get_model(model) if model else (models.DAVIS240 if size is None or size == (240, 180)
+                                                      else models.DAVIS346)
+        self.model = mdl
+        w = int(faults.get("width") or (size[0] if size else mdl.width))
+        h = int(faults.get("height") or (size[1] if size else mdl.height))
+        self.width, self.height = w, h
+        dvs_o, aps_o = int(faults.get("dvs_orientation", 0)), int(faults.get("aps_orientation", 0))
+        imu_o = int(faults.get("imu_orientation", 0))
+        self.encoder = WordEncoder(w, h, dvs_orientation=dvs_o, aps_orientation=aps_o, imu_orientation=imu_o,
+                                   adc_x2=mdl.adc_x2)
+        if recording is None:
+            epoch = time.time_ns() // 1000
+            seed = int(faults.get("seed", 7))
+            factory = lambda: generated_scene(w, h, epoch_us=epoch, seed=seed)  # noqa: E731
+        else:
+            factory = _recording_factory(recording)
+        self.stream = _WordStream(factory, self.encoder, loop, int(faults.get("holdback_us", 1_000_000)),
+                                  faults.get("reset_at_us"))
+        self.regs = self._register_file(mdl, w, h, dvs_o, aps_o, imu_o)
+        self.writes: list[tuple[int, int, int]] = []
+        self.serial = str(faults.get("serial", "EMU00001"))[:8]
+        self._lock = threading.Lock()
+        self._pending: list[tuple[bytes, int]] = []  # (data, device time it reaches)
+        self._sent_bytes = 0
+        self._unplugged_at: float | None = None
+        self._opened = 0
+        self._claimed = False
+        self._t0_mono: float | None = None
+        self._garbage = int(faults.get("garbage_words", 0))
+        self._rng = np.random.default_rng(int(faults.get("seed", 7)))
+        self._stream_epoch: int | None = None
+
+    # -- register file --
+    def _register_file(self, mdl: models.DavisModel, w: int, h: int, dvs_o: int, aps_o: int, imu_o: int) -> dict:
+        dcols, drows = (h, w) if dvs_o & 4 else (w, h)
+        acols, arows = (h, w) if aps_o & 4 else (w, h)
+        regs = {
+            (P.SYSINFO, P.SYS_LOGIC_VERSION): int(self.faults.get("logic_version", models.LOGIC_VERSION)),
+            (P.SYSINFO, P.SYS_LOGIC_PATCH): int(self.faults.get("logic_patch", models.LOGIC_MIN_PATCH)),
+            (P.SYSINFO, P.SYS_CHIP_ID): int(self.faults.get("chip_id", mdl.chip_id)),
+            (P.SYSINFO, P.SYS_IS_MASTER): 1, (P.SYSINFO, P.SYS_LOGIC_CLOCK): 104 if mdl.adc_x2 else 100,
+            (P.SYSINFO, P.SYS_ADC_CLOCK): 30 if mdl.adc_x2 else 100, (P.SYSINFO, P.SYS_USB_CLOCK): 30 if mdl.adc_x2 else 80,
+            (P.SYSINFO, P.SYS_CLOCK_DEVIATION): 1000,
+            (P.DVS, P.DVS_SIZE_COLUMNS): dcols, (P.DVS, P.DVS_SIZE_ROWS): drows, (P.DVS, P.DVS_ORIENTATION): dvs_o & 4,
+            (P.APS, P.APS_SIZE_COLUMNS): acols, (P.APS, P.APS_SIZE_ROWS): arows, (P.APS, P.APS_ORIENTATION): aps_o & 7,
+            (P.APS, P.APS_HAS_GLOBAL_SHUTTER): 1, (P.IMU, P.IMU_TYPE): 1, (P.IMU, P.IMU_ORIENTATION): imu_o & 7,
+            (P.MUX, P.MUX_HAS_STATISTICS): 0,
+        }
+        return regs
+
+    @property
+    def streaming(self) -> bool:
+        r = self.regs
+        return bool(r.get((P.MUX, P.MUX_RUN)) and r.get((P.USB, P.USB_RUN)) and r.get((P.MUX, P.MUX_TIMESTAMP_RUN)))
+
+    @property
+    def edi_live_epoch_us(self) -> int | None:
+        """Recording time of device time 0 (the driver adds it so timestamps match the recording)."""
+        with self._lock:
+            if self.stream.shift is None and not self.stream.done:
+                self._fill_locked(need_one=True)
+            return self.stream.shift
+
+    def stream_ended(self) -> bool:
+        with self._lock:
+            return self.stream.done and not self._pending
+
+    def _present(self) -> bool:
+        if self.faults.get("no_device"):
+            return False
+        if self._unplugged_at is not None:
+            replug = self.faults.get("replug_after_s")
+            if replug is None or time.monotonic() - self._unplugged_at < replug:
+                return False
+        return True
+
+    # -- IBackend: descriptors --
+    def enumerate_devices(self):
+        if self._present():
+            yield "emulated-davis"
+
+    def get_device_descriptor(self, dev):
+        return _Desc(bLength=18, bDescriptorType=1, bcdUSB=0x0200 if self.model.adc_x2 else 0x0300,
+                     bDeviceClass=0xFF, bDeviceSubClass=0, bDeviceProtocol=0, bMaxPacketSize0=64,
+                     idVendor=models.VENDOR_ID, idProduct=self.model.product_id,
+                     bcdDevice=int(self.faults.get("firmware", self.model.firmware)), iManufacturer=1, iProduct=2,
+                     iSerialNumber=3, bNumConfigurations=1, address=7, bus=1, port_number=1, port_numbers=(1,),
+                     speed=3 if self.model.adc_x2 else 4)
+
+    def get_configuration_descriptor(self, dev, config):
+        return _Desc(bLength=9, bDescriptorType=2, wTotalLength=32, bNumInterfaces=1, bConfigurationValue=1,
+                     iConfiguration=0, bmAttributes=0x80, bMaxPower=250)
+
+    def get_interface_descriptor(self, dev, intf, alt, config):
+        return _Desc(bLength=9, bDescriptorType=4, bInterfaceNumber=0, bAlternateSetting=0, bNumEndpoints=1,
+                     bInterfaceClass=0xFF, bInterfaceSubClass=0, bInterfaceProtocol=0, iInterface=0)
+
+    def get_endpoint_descriptor(self, dev, ep, intf, alt, config):
+        return _Desc(bLength=7, bDescriptorType=5, bEndpointAddress=models.DATA_ENDPOINT, bmAttributes=2,
+                     wMaxPacketSize=self.model.max_packet_bytes, bInterval=0, bRefresh=0, bSynchAddress=0)
+
+    # -- IBackend: handles --
+    def open_device(self, dev):
+        if not self._present():
+            raise _usb_error("No such device (it may have been disconnected)", errno.ENODEV, -4)
+        if self.faults.get("permission_denied"):
+            raise _usb_error("Access denied (insufficient permissions)", errno.EACCES, -3)
+        self._opened += 1
+        return "handle"
+
+    def close_device(self, dev_handle):
+        self._opened = max(0, self._opened - 1)
+
+    def get_configuration(self, dev_handle):
+        return 1
+
+    def set_configuration(self, dev_handle, config_value):
+        pass
+
+    def claim_interface(self, dev_handle, intf):
+        if self.faults.get("busy"):
+            raise _usb_error("Resource busy", errno.EBUSY, -6)
+        self._claimed = True
+
+    def release_interface(self, dev_handle, intf):
+        self._claimed = False
+
+    def is_kernel_driver_active(self, dev_handle, intf):
+        return False
+
+    def clear_halt(self, dev_handle, ep):
+        self._check_plugged()
+        with self._lock:
+            self._pending.clear()
+
+    def _check_plugged(self) -> None:
+        if self._unplugged_at is not None:
+            raise _usb_error("No such device (it may have been disconnected)", errno.ENODEV, -4)
+
+    # -- control transfers --
+    def ctrl_transfer(self, dev_handle, bmRequestType, bRequest, wValue, wIndex, data, timeout):
+        self._check_plugged()
+        if bmRequestType == 0x80 and bRequest == 6 and wValue >> 8 == 3:  # GET_DESCRIPTOR(string)
+            idx = wValue & 0xFF
+            text = {1: "iniVation", 2: self.model.chip_name, 3: self.serial}.get(idx, "")
+            payload = b"\x09\x04" if idx == 0 else text.encode("utf-16-le")
+            desc = bytes([2 + len(payload), 3]) + payload
+            n = min(len(data), len(desc))
+            data[:n] = array("B", desc[:n])
+            return n
+        if bmRequestType == P.REQ_IN and bRequest == P.VR_CONFIG:
+            value = P.pack_value(self.regs.get((wValue, wIndex), 0))
+            data[:4] = array("B", value)
+            return 4
+        if bmRequestType == P.REQ_OUT and bRequest == P.VR_CONFIG:
+            self._write(wValue, wIndex, P.unpack_value(bytes(data)))
+            return len(data)
+        if bmRequestType == P.REQ_OUT and bRequest == P.VR_CONFIG_MULTIPLE:
+            for m, p, v in P.unpack_multiple(wValue, bytes(data)):
+                self._write(m, p, v)
+            return len(data)
+        raise _usb_error("Pipe error", errno.EPIPE, -9)  # a STALL, as a device does for unknown requests
+
+    def _write(self, module: int, param: int, value: int) -> None:
+        self.writes.append((module, param, value))
+        if (module, param) in ((P.SYSINFO, p) for p in range(8)):
+            return  # read-only
+        was = self.streaming
+        self.regs[(module, param)] = value
+        if module == P.MUX and param == P.MUX_TIMESTAMP_RESET and value == 1:
+            with self._lock:
+                if self.stream.shift is not None and self.encoder.started:
+                    self.stream.shift += self.encoder.last_t
+                    self._pending.append((self.encoder.timestamp_reset().tobytes(), 0))
+        if self.streaming and not was:
+            self._t0_mono = time.monotonic()
+
+    # -- bulk data --
+    def _fill_locked(self, need_one: bool = False) -> None:
+        while (need_one or not self._pending) and not self.stream.done:
+            blk = self.stream.next_block()
+            if blk is None:
+                return
+            words, dev_t = blk
+            if self._garbage:
+                k = min(self._garbage, 3)
+                pos = self._rng.integers(0, len(words) + 1, k)
+                words = np.insert(words, np.sort(pos), self._rng.integers(0, 0x10000, k).astype(np.uint16))
+                self._garbage -= k
+            self._pending.append((words.tobytes(), dev_t))
+            need_one = False
+
+    def bulk_read(self, dev_handle, ep, intf, buff, timeout):
+        self._check_plugged()
+        deadline = time.monotonic() + (timeout or 1000) / 1000.0
+        while True:
+            with self._lock:
+                if self.streaming:
+                    self._fill_locked()
+                    n = self._take_locked(buff)
+                    if n:
+                        return n
+            wait = deadline - time.monotonic()
+            if wait <= 0:
+                raise usb.core.USBTimeoutError("Operation timed out", errno=errno.ETIMEDOUT, backend_error_code=-7)
+            time.sleep(min(wait, 0.002))
+
+    def _take_locked(self, buff) -> int:
+        if not self._pending:
+            return 0
+        data, dev_t = self._pending[0]
+        if self.speed > 0 and self._t0_mono is not None:
+            if time.monotonic() < self._t0_mono + dev_t / 1e6 / self.speed:
+                return 0
+        limit = self.faults.get("unplug_after_bytes")
+        n = min(len(buff), len(data))
+        if limit is not None:
+            n = min(n, int(limit) - self._sent_bytes)
+            if n <= 0:
+                self._unplug()
+        buff[:n] = array("B", data[:n])
+        self._pending[0] = (data[n:], dev_t)
+        if not self._pending[0][0]:
+            self._pending.pop(0)
+        self._sent_bytes += n
+        return n
+
+    def _unplug(self) -> None:
+        self._unplugged_at = time.monotonic()
+        self.faults["unplug_after_bytes"] = None  # after a replug the stream continues
+        self.regs[(P.MUX, P.MUX_RUN)] = 0
+        self._pending.clear()
+        raise _usb_error("No such device (it may have been disconnected)", errno.ENODEV, -4)
+
+
+def backend(recording: Any = None, *, model: str | None = None, speed: float = 1.0, loop: bool = False,
+            **faults: Any) -> usb.backend.IBackend:
+    """An emulated DAVIS as a pyusb backend. No arguments: a DAVIS240C showing a generated scene.
+
+    recording: an .aedat4 path or an iterable of Packets; model: "davis240" or "davis346" (default: from the
+    recording's size); speed: 1.0 real time, 0 unpaced; loop: replay the recording forever; faults: see module doc.
+    """
+    return EmulatorBackend(recording, model=model, speed=speed, loop=loop, **faults)

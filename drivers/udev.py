@@ -1,0 +1,46 @@
+"""The Linux udev rule that lets ordinary users open iniVation DAVIS cameras, and a tiny CLI to print or
+install it: `python -m drivers.udev` prints it, `sudo python -m drivers.udev --install` installs it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import subprocess
+from pathlib import Path
+
+RULES_FILE = Path(__file__).resolve().parent / "99-edi-live-davis.rules"
+RULE_TEXT = ('SUBSYSTEM=="usb", ATTR{idVendor}=="152a", ATTR{idProduct}=="84[0-1]?", MODE="0666", '
+             'TAG+="uaccess"')
+INSTALL_DIR = Path("/etc/udev/rules.d")
+
+
+def install(dest_dir: Path = INSTALL_DIR) -> Path:
+    """Copy the rules file into `dest_dir` and ask udev to reload (needs root for /etc)."""
+    dest = Path(dest_dir) / RULES_FILE.name
+    shutil.copyfile(RULES_FILE, dest)
+    for cmd in (["udevadm", "control", "--reload-rules"], ["udevadm", "trigger"]):
+        try:
+            subprocess.run(cmd, check=False, timeout=10)
+        except (OSError, subprocess.TimeoutExpired):
+            pass  # no udevadm (containers): the file is in place, replugging applies it on the host
+    return dest
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m drivers.udev", description=__doc__)
+    ap.add_argument("--install", action="store_true", help=f"copy the rule to {INSTALL_DIR} and reload udev")
+    args = ap.parse_args(argv)
+    if not args.install:
+        print(RULES_FILE.read_text(), end="")
+        return 0
+    try:
+        print(f"installed {install()}; unplug and replug the camera")
+    except PermissionError:
+        print(f"permission denied writing {INSTALL_DIR}: run with sudo")
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

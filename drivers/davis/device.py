@@ -318,6 +318,6 @@ class DavisSource:
                 self._close()
             if deadline is not None and time.monotonic() > deadline:
                 raise err
-        return False
             if self._user_stop.wait(0.2):
                 return False
+        return False

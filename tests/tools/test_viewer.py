@@ -1,0 +1,245 @@
+"""tools/viewer.py against a real Publisher on loopback: PNG and MP4 recording, the HTTP endpoints, the CLI
+(--help, a timed run, Ctrl-C, a busy port), and the live MJPEG page in real headless Chromium."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from edi_live.datatypes import Reconstruction
+from edi_live.publisher import Publisher
+from tools import viewer
+
+REPO = Path(__file__).resolve().parents[2]
+W, H = 240, 180
+
+
+def pattern(i: int) -> np.ndarray:
+    """A textured test card; pixel block (0..7, 0..7) carries i so a saved frame can be matched to its source."""
+    y, x = np.mgrid[0:H, 0:W]
+    image = ((x * 255) // (W - 1)).astype(np.uint8)
+    image[(y // 30 + x // 30) % 2 == 0] //= 3
+    image[60:120, 150:210] = 255
+    image[:8, :8] = i % 200
+    return image
+
+
+def rec(i: int) -> Reconstruction:
+    return Reconstruction(pattern(i), 1000 * i, "latent", 0, 0, 0, 0.2, 0.2, i)
+
+
+class Feeder:
+    """A Publisher fed with pattern(i) frames every period_s from a thread."""
+
+    def __init__(self, period_s: float = 0.02) -> None:
+        self.pub = Publisher(["tcp://127.0.0.1:*"], "test-cam", sndhwm=1000, stats_interval_s=0.2,
+                             stats_provider=lambda: {"events_per_s": 2.0e6, "c": 0.2})
+        self.pub.start()
+        self.endpoint = self.pub.bound_endpoints[0]
+        self._stop = threading.Event()
+        self._period_s = period_s
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        i = 0
+        while not self._stop.wait(self._period_s):
+            self.pub.submit(rec(i))
+            i += 1
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        self.pub.close()
+
+
+@pytest.fixture
+def feeder():
+    f = Feeder()
+    yield f
+    f.close()
+
+
+def start_viewer(argv: list[str]) -> tuple[viewer.Viewer, threading.Thread]:
+    v = viewer.Viewer(viewer.build_parser().parse_args(argv))
+    thread = threading.Thread(target=v.run, daemon=True)
+    thread.start()
+    return v, thread
+
+
+def stop_viewer(v: viewer.Viewer, thread: threading.Thread) -> None:
+    v.stop.set()
+    thread.join(10)
+    assert not thread.is_alive(), "viewer loop did not stop"
+    v.close()
+
+
+def wait_for(predicate, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not reached within the timeout"
+        time.sleep(0.02)
+
+
+def test_help_teaches():
+    out = subprocess.run([sys.executable, str(REPO / "tools" / "viewer.py"), "--help"], capture_output=True,
+                         text=True, timeout=60)
+    assert out.returncode == 0
+    for needle in ("--mp4", "--png", "127.0.0.1:8080", "--endpoint", "examples:", "--curve-server-key"):
+        assert needle in out.stdout
+
+
+def test_rates_count_seq_gaps_and_status_line():
+    rates = viewer.Rates()
+    for seq in (5, 6, 9, 10, 20):
+        rates.add(seq)
+    assert rates.lost == 2 + 9 and rates.frames == 5
+    line = viewer.status_line(rates, 3, {"frames_per_s": 100.0, "events_per_s": 1.5e6, "c": 0.2,
+                                         "latency_p50_us": 350.0, "latency_p99_us": 900.0, "publish_dropped": 4})
+    assert "1.50 Mev/s" in line and "p50 0.35 ms" in line and "p99 0.90 ms" in line and "lost 11" in line
+    assert "no stats yet" in viewer.status_line(rates, 0, None)
+    assert "c 0.25/0.30" in viewer.status_line(rates, 0, {"c_on": 0.25, "c_off": 0.3, "latency_p50_us": None})
+
+
+def test_to_u8_scales_other_depths():
+    assert viewer.to_u8(np.array([[0, 65535]], np.uint16)).tolist() == [[0, 255]]
+    assert viewer.to_u8(np.array([[-3.0, 300.0, np.nan]], np.float32)).tolist() == [[0, 255, 0]]
+
+
+def test_png_and_mp4_recording(feeder, tmp_path):
+    png_dir, mp4 = tmp_path / "png", tmp_path / "out.mp4"
+    v, thread = start_viewer(["--endpoint", feeder.endpoint, "--all", "--no-http", "--quiet",
+                              "--png", str(png_dir), "--mp4", str(mp4), "--max-frames", "15"])
+    thread.join(30)
+    assert not thread.is_alive()
+    v.close()
+    pngs = sorted(png_dir.glob("frame_*.png"))
+    assert len(pngs) == 15
+    for path in pngs:
+        saved = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        np.testing.assert_array_equal(saved, pattern(int(saved[0, 0])))  # PNG is lossless
+    cap = cv2.VideoCapture(str(mp4))
+    frames = []
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        frames.append(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY))
+    cap.release()
+    assert len(frames) == 15 and frames[0].shape == (H, W)
+    assert np.abs(frames[-1].astype(int) - pattern(0).astype(int))[8:, 8:].mean() < 8  # lossy but the same card
+
+
+def test_http_endpoints_serve_the_frame_and_stats(feeder):
+    v, thread = start_viewer(["--endpoint", feeder.endpoint, "--http", "127.0.0.1:0", "--quiet"])
+    try:
+        assert v.url.startswith("http://127.0.0.1:")
+        wait_for(lambda: v.rates.frames > 3 and v.hub.status.get("node"))
+        with urllib.request.urlopen(v.url + "frame.jpg", timeout=10) as resp:
+            assert resp.headers["Content-Type"] == "image/jpeg"
+            jpeg = cv2.imdecode(np.frombuffer(resp.read(), np.uint8), cv2.IMREAD_GRAYSCALE)
+        assert np.abs(jpeg.astype(int) - pattern(0).astype(int))[8:, 8:].mean() < 8
+        with urllib.request.urlopen(v.url + "status.json", timeout=10) as resp:
+            status = json.load(resp)
+        assert status["node"]["events_per_s"] == 2.0e6 and status["viewer_fps"] >= 0
+        with urllib.request.urlopen(v.url + "stream.mjpg", timeout=10) as resp:
+            assert resp.headers["Content-Type"].startswith("multipart/x-mixed-replace")
+            chunk = resp.read(2000)
+        assert chunk.startswith(f"--{viewer.BOUNDARY}\r\nContent-Type: image/jpeg".encode())
+        with urllib.request.urlopen(v.url, timeout=10) as resp:
+            assert b'src="/stream.mjpg"' in resp.read()
+    finally:
+        stop_viewer(v, thread)
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (Debian: apt-get install -y chromium); "
+                                             "tools/test.sh installs it when run as root")
+def test_mjpeg_page_shows_the_frame_in_headless_chromium(feeder, tmp_path):
+    v, thread = start_viewer(["--endpoint", feeder.endpoint, "--http", "127.0.0.1:0", "--quiet"])
+    try:
+        wait_for(lambda: v.rates.frames > 3)
+        shot = tmp_path / "shot.png"
+        cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+               "--disable-background-networking", "--disable-component-update", "--disable-sync",
+               f"--user-data-dir={tmp_path / 'profile'}", f"--screenshot={shot}", "--window-size=400,300",
+               "--hide-scrollbars", "--force-device-scale-factor=1", "--timeout=5000", v.url]
+        out = subprocess.run(cmd, capture_output=True, text=True, timeout=50)
+        assert shot.is_file(), f"chromium wrote no screenshot (exit {out.returncode}): {out.stderr[-500:]}"
+    finally:
+        stop_viewer(v, thread)
+    page = cv2.imread(str(shot), cv2.IMREAD_GRAYSCALE)
+    assert page.shape == (300, 400)
+    shown = page[:H, :W].astype(float)  # the <img> sits at the top-left corner at its natural size
+    card = pattern(0).astype(float)
+    assert shown[8:, 8:].std() > 30, "the page shows a blank area where the frame should be"
+    assert np.abs(shown - card)[8:, 8:].mean() < 10
+    assert np.corrcoef(shown[8:, 8:].ravel(), card[8:, 8:].ravel())[0, 1] > 0.95
+
+
+def run_cli(args: list[str], **kwargs) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, str(REPO / "tools" / "viewer.py"), *args], stderr=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True, **kwargs)
+
+
+def test_cli_ctrl_c_stops_cleanly_and_finalizes_the_mp4(feeder, tmp_path):
+    mp4 = tmp_path / "live.mp4"
+    proc = run_cli(["--endpoint", feeder.endpoint, "--no-http", "--mp4", str(mp4), "--all"])
+    try:
+        wait_for(lambda: mp4.is_file() and mp4.stat().st_size > 0, 30)
+        time.sleep(0.3)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err and "received" in err
+    cap = cv2.VideoCapture(str(mp4))
+    ok, frame = cap.read()
+    cap.release()
+    assert ok and frame.shape[:2] == (H, W)  # a finalized, readable file
+
+
+def test_cli_busy_http_port_is_one_line_error(tmp_path):
+    import socket
+
+    holder = socket.socket()
+    holder.bind(("127.0.0.1", 0))
+    holder.listen(1)
+    try:
+        proc = run_cli(["--http", f"127.0.0.1:{holder.getsockname()[1]}", "--duration", "1"])
+        _, err = proc.communicate(timeout=30)
+    finally:
+        holder.close()
+    assert proc.returncode == 1
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "cannot serve the live page" in lines[0] and "--http" in lines[0]
+
+
+def test_cli_bad_usage_exits_2():
+    proc = run_cli(["--http", "nonsense"])
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 2 and "HOST:PORT" in err
+
+
+def test_cli_timed_run_prints_rates(feeder):
+    proc = run_cli(["--endpoint", feeder.endpoint, "--no-http", "--duration", "2.5"],
+                   env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert "recv" in err and "Mev/s" in err and "latency p50" in err

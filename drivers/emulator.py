@@ -41,7 +41,7 @@ class _Desc:
 
 
 def _usb_error(msg: str, code: int, backend_code: int) -> usb.core.USBError:
-    return usb.core.USBError(msg, errno=code, backend_error_code=backend_code)
+    return usb.core.USBError(msg, backend_code, code)
 
 
 # ---- the word stream ------------------------------------------------------------------------------------
@@ -448,7 +448,11 @@ class EmulatorBackend(usb.backend.IBackend):
                 if self.stream.shift is not None and self.encoder.started:
                     self.stream.shift += self.encoder.last_t
                     self._pending.append((self.encoder.timestamp_reset().tobytes(), 0))
-        if self.streaming and not was:
+        if self.streaming and not was:  # (re)start: like a power-cycled camera, device time restarts at 0
+            with self._lock:
+                if self.stream.shift is not None and self.encoder.started:
+                    self.stream.shift += self.encoder.last_t
+                    self.encoder.timestamp_reset()
             self._t0_mono = time.monotonic()
 
     # -- bulk data --
@@ -478,7 +482,7 @@ class EmulatorBackend(usb.backend.IBackend):
                         return n
             wait = deadline - time.monotonic()
             if wait <= 0:
-                raise usb.core.USBTimeoutError("Operation timed out", errno=errno.ETIMEDOUT, backend_error_code=-7)
+                raise usb.core.USBTimeoutError("Operation timed out", -7, errno.ETIMEDOUT)
             time.sleep(min(wait, 0.002))
 
     def _take_locked(self, buff) -> int:

@@ -46,11 +46,11 @@ class _Merger:
         self.last = {t: _NEG_INF for t in types}  # newest key seen per primary stream type
         self.max_key = _NEG_INF
         self.emitted_to = _NEG_INF  # exclusive bound already emitted
-        self.events: list[np.ndarray] = []
+        self.events: list[tuple[int, int, np.ndarray]] = []  # (t_first, t_last, events)
         self.n_events = 0
         self.frames: list[tuple[int, int, Frame]] = []  # (exposure end, arrival order, frame)
-        self.imu: list[np.ndarray] = []
-        self.triggers: list[np.ndarray] = []
+        self.imu: list[tuple[int, int, np.ndarray]] = []
+        self.triggers: list[tuple[int, int, np.ndarray]] = []
         self.order = 0
         self.t_first, self.t_last = _POS_INF, _NEG_INF  # span of all timestamps (for --loop)
 
@@ -69,7 +69,7 @@ class _Merger:
             if t0 < self.last["EVTS"] or t0 < self.emitted_to:
                 raise RecordingError(f"event packet starts at {t0 - off} µs, before events already read "
                                      f"(events out of time order)", self.path, pos)
-            self.events.append(data)
+            self.events.append((t0, t1, data))
             self.n_events += len(data)
             key_lo, key = t0, t1
         elif kind == "FRME":
@@ -87,10 +87,12 @@ class _Merger:
             if off:
                 data = data.copy()
                 data["t"] += off
-            if len(data) > 1 and bool((data["t"][1:] < data["t"][:-1]).any()):
-                data = data[np.argsort(data["t"], kind="stable")]
-            (self.imu if kind == "IMUS" else self.triggers).append(data)
-            key_lo, key = int(data["t"].min()), int(data["t"].max())
+            t = data["t"]
+            if len(t) > 1 and bool((t[1:] < t[:-1]).any()):
+                data = data[np.argsort(t, kind="stable")]
+                t = data["t"]
+            key_lo, key = int(t[0]), int(t[-1])
+            (self.imu if kind == "IMUS" else self.triggers).append((key_lo, key, data))
         self._span(key_lo, key)
         self.last[kind] = max(self.last[kind], key)
         self.max_key = max(self.max_key, key)
@@ -122,24 +124,32 @@ class _Merger:
         yield from _split(events, frames, imu, trig, lo, max(w, lo), self.max_packet_us)
 
     def _late_pending(self, w: int) -> bool:
-        return bool((self.frames and self.frames[0][0] < w) or (self.imu and int(self.imu[0]["t"][0]) < w)
-                    or (self.triggers and int(self.triggers[0]["t"][0]) < w))
+        return bool((self.frames and self.frames[0][0] < w) or (self.imu and self.imu[0][0] < w)
+                    or (self.triggers and self.triggers[0][0] < w))
 
 
-def _take(chunks: list[np.ndarray], w: int, dtype: np.dtype) -> np.ndarray:
-    """Pop the items with t < w from a list of t-sorted chunks; whole chunks are taken without copying and at most
-    one chunk is split, so each call costs O(chunks taken), not O(pending)."""
+def _take(chunks: list[tuple[int, int, np.ndarray]], w: int, dtype: np.dtype) -> np.ndarray:
+    """Pop the items with t < w from a list of (t_first, t_last, t-sorted array) chunks. Whole chunks are taken
+    without copying and at most one is split, so a call costs O(items taken), not O(items pending)."""
     taken = []
-    while chunks and int(chunks[0]["t"][-1]) < w:
-        taken.append(chunks.pop(0))
-    if chunks and int(chunks[0]["t"][0]) < w:
-        head = chunks[0]
+    while chunks and chunks[0][1] < w:
+        taken.append(chunks.pop(0)[2])
+    if chunks and chunks[0][0] < w:
+        t0, t1, head = chunks[0]
         i = int(np.searchsorted(head["t"], w, side="left"))
         taken.append(head[:i])
-        chunks[0] = head[i:]
+        chunks[0] = (int(head["t"][i]), t1, head[i:])
     if not taken:
         return np.zeros(0, dtype=dtype)
-    return taken[0] if len(taken) == 1 else np.concatenate(taken)
+    if len(taken) == 1:
+        return taken[0]
+    return _concat(taken, dtype)
+
+
+def _concat(arrays: list[np.ndarray], dtype: np.dtype) -> np.ndarray:
+    """np.concatenate for structured arrays at memcpy speed (as opaque records: 10x faster than field-wise)."""
+    void = np.dtype(f"V{dtype.itemsize}")
+    return np.concatenate([np.ascontiguousarray(a).view(void) for a in arrays]).view(dtype)
 
 
 def _split(events: np.ndarray, frames: list[Frame], imu: np.ndarray, trig: np.ndarray, lo: int, w: int,
@@ -171,6 +181,17 @@ def _split(events: np.ndarray, frames: list[Frame], imu: np.ndarray, trig: np.nd
         e0, i0, g0 = e1, i1, g1
 
 
+def _check_events(ev: np.ndarray, width: int, height: int, path: str, pos: int) -> None:
+    """Events must be sorted and on the sensor; anything else means a corrupt packet (read near byte `pos`)."""
+    if not len(ev):
+        return
+    t = ev["t"]
+    if len(t) > 1 and bool((t[1:] < t[:-1]).any()):
+        raise RecordingError("event timestamps go backwards (corrupt event packet)", path, pos)
+    if width and (int(ev["x"].max()) >= width or int(ev["y"].max()) >= height):
+        raise RecordingError(f"events outside the {width}x{height} sensor (corrupt event packet)", path, pos)
+
+
 def merged_packets(path: str | os.PathLike, *, time_offset_us: int = 0, max_packet_us: int = 10_000,
                    horizon_us: int = 1_000_000, max_pending_events: int = 4_000_000,
                    span: dict | None = None) -> Iterator[Packet]:
@@ -181,7 +202,7 @@ def merged_packets(path: str | os.PathLike, *, time_offset_us: int = 0, max_pack
     added to every timestamp (used by `--loop`). Packets span at most `max_packet_us` of event time. On a defect the
     packets before it are yielded, then `RecordingError` is raised. `span`, if given, receives 't_first'/'t_last'.
     """
-    with Aedat4Reader(path) as reader:
+    with Aedat4Reader(path, validate=False) as reader:  # events are validated below, in larger batches
         primary: dict[int, str] = {}
         for s in reader.streams:
             if s.supported and s.type not in primary.values():
@@ -189,6 +210,7 @@ def merged_packets(path: str | os.PathLike, *, time_offset_us: int = 0, max_pack
             elif s.supported:
                 warnings.warn(f"{reader.path}: a second {s.type} stream ({s.id} '{s.name}') is not replayed",
                               RuntimeWarning, stacklevel=2)
+        width, height = reader.source_info.width, reader.source_info.height
         m = _Merger(reader.path, list(primary.values()), int(time_offset_us), max_packet_us, horizon_us,
                     max_pending_events)
         error: RecordingError | None = None
@@ -198,13 +220,21 @@ def merged_packets(path: str | os.PathLike, *, time_offset_us: int = 0, max_pack
                 if kind is None:
                     continue
                 m.feed(kind, pos, data)
-                yield from m.emit(m.bound())
+                for packet in m.emit(m.bound()):
+                    _check_events(packet.events, width, height, reader.path, pos)
+                    yield packet
         except RecordingError as exc:
             error = exc
         # everything read before the end (or the defect) is final: deliver it, then report the defect
         last_event_t = m.last.get("EVTS", _NEG_INF)
         end_mark = (last_event_t if last_event_t > _NEG_INF else m.t_last) + 1
         for packet in list(m.emit(_POS_INF)):
+            if error is None:
+                try:
+                    _check_events(packet.events, width, height, reader.path, reader.file_size)
+                except RecordingError as exc:
+                    error = exc
+                    break
             packet.watermark_us = min(packet.watermark_us, max(end_mark, m.t_first))
             yield packet
         if span is not None:

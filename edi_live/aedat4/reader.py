@@ -15,8 +15,9 @@ import struct
 import warnings
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
-from typing import Iterator
+from typing import Iterable, Iterator
 
+import lz4.block
 import lz4.frame
 import numpy as np
 import zstandard
@@ -26,6 +27,7 @@ from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, Frame, Sou
 from edi_live.errors import RecordingError
 
 SUPPORTED_TYPES = ("EVTS", "FRME", "IMUS", "TRIG")
+READ_CHUNK = 1 << 20
 MAX_PACKET_BYTES = 1 << 30  # decompressed; a larger packet is treated as corrupt (bounded memory)
 
 DATA_TABLE_DTYPE = np.dtype([("byte_offset", "<i8"), ("stream_id", "<i4"), ("size", "<i4"),
@@ -169,28 +171,40 @@ class Aedat4Reader:
         return SourceInfo(width=w, height=h, name=name, serial=serial, kind="replay")
 
     # ------------------------------------------------------------------------------------------ packets
-    def packets(self) -> Iterator[tuple[StreamInfo, int, bytes]]:
+    def packets(self, types: Iterable[str] | None = None) -> Iterator[tuple[StreamInfo, int, bytes]]:
         """Raw packets in file order: (stream, file offset of the packet header, decompressed payload).
 
-        Packets of unknown or undeclared streams are skipped (with one warning per stream).
+        Packets of unknown or undeclared streams are skipped (with one warning per stream), and so, without being
+        decompressed, are packets whose type is not in `types` (when given, e.g. ("EVTS",)).
         """
         f, end, pos = self._file, self._end, self.data_start
-        f.seek(pos)
-        unpack = _PH.unpack
+        unpack_from = _PH.unpack_from
         decompress = self._decompressor()
         by_id = self._by_id
+        wanted = None if types is None else {s.id for s in self.streams if s.type in set(types)}
+        # The file is read in chunks of READ_CHUNK bytes (or one packet, if larger) and packets are sliced out of
+        # the chunk as memoryviews: one read per many packets, and never more than one chunk in memory.
+        buf, view, base = b"", memoryview(b""), pos
         while pos < end:
-            if end - pos < 8:
-                raise self._error(f"the file ends inside a packet header ({end - pos} of 8 bytes; truncated)", pos)
-            sid, size = unpack(f.read(8))
+            rel = pos - base
+            if rel + 8 > len(buf):
+                if end - pos < 8:
+                    raise self._error(f"the file ends inside a packet header ({end - pos} of 8 bytes; truncated)",
+                                      pos)
+                buf, view, base, rel = self._chunk(pos, 8), None, pos, 0
+                view = memoryview(buf)
+            sid, size = unpack_from(buf, rel)
             if size <= 0:
                 raise self._error(f"corrupt packet header (size {size})", pos)
             if pos + 8 + size > end:
                 what = "the FileDataTable" if end == self.data_table_position else "the end of the file (truncated)"
                 raise self._error(f"packet of {size} bytes runs past {what} at byte {end}", pos)
-            body = f.read(size)
-            if len(body) != size:
-                raise self._error("the file is shorter than its size on disk (read failed)", pos)
+            if wanted is not None and sid not in wanted and sid in by_id:
+                pos += 8 + size
+                continue
+            if rel + 8 + size > len(buf):
+                buf, view, base, rel = self._chunk(pos, 8 + size), None, pos, 0
+                view = memoryview(buf)
             stream = by_id.get(sid)
             if stream is None or not stream.supported:
                 if sid not in self._warned:
@@ -201,7 +215,7 @@ class Aedat4Reader:
                 pos += 8 + size
                 continue
             try:
-                payload = decompress(body)
+                payload = decompress(view[rel + 8:rel + 8 + size])
             except Exception as exc:  # lz4/zstandard raise their own types (RuntimeError, ZstdError, ...)
                 raise self._error(f"packet of stream {sid} does not decompress as {self.compression.upper()} "
                                   f"({exc})", pos) from None
@@ -210,11 +224,19 @@ class Aedat4Reader:
         if self._dtp_error:
             raise self._error(self._dtp_error, self.file_size)
 
+    def _chunk(self, pos: int, need: int) -> bytes:
+        """Bytes from `pos`: at least `need` (the caller checked they exist), at most max(READ_CHUNK, need)."""
+        self._file.seek(pos)
+        data = self._file.read(min(max(READ_CHUNK, need), self._end - pos))
+        if len(data) < need:
+            raise self._error("the file is shorter than its size on disk (read failed)", pos)
+        return data
+
     def _decompressor(self):
         if self.compression == "none":
-            return bytes
+            return bytes  # a copy, so a payload never pins the read chunk
         if self.compression.startswith("lz4"):
-            return lz4.frame.decompress
+            return lz4_decompress
         dctx = zstandard.ZstdDecompressor()
 
         def unzstd(body: bytes) -> bytes:
@@ -231,10 +253,10 @@ class Aedat4Reader:
         for stream, _, data in self.records():
             yield stream, data
 
-    def records(self) -> Iterator[tuple[StreamInfo, int, object]]:
-        """Like iteration, with the file offset of each packet: (stream, offset, data)."""
+    def records(self, types: Iterable[str] | None = None) -> Iterator[tuple[StreamInfo, int, object]]:
+        """Like iteration, with the file offset of each packet: (stream, offset, data); `types` as in packets()."""
         seqs: dict[int, int] = {}
-        for stream, pos, payload in self.packets():
+        for stream, pos, payload in self.packets(types):
             try:
                 t = stream.type
                 if t == "EVTS":
@@ -251,8 +273,13 @@ class Aedat4Reader:
                 raise self._error(f"corrupt {stream.type} packet: {exc} (payload byte {exc.pos})", pos) from None
             yield stream, pos, data
 
+    def events(self) -> Iterator[np.ndarray]:
+        """Only the event arrays, in file order (other packets are skipped undecompressed)."""
+        for _, _, ev in self.records(("EVTS",)):
+            yield ev
+
     def _events(self, payload: bytes, stream: StreamInfo, pos: int) -> np.ndarray:
-        start, count = S.root_table(payload, b"EVTS").vector(0, S.EVENT_RECORD_BYTES)
+        start, count = _event_vector(payload)
         ev = np.frombuffer(payload, dtype=EVENT_DTYPE, count=count, offset=start) if count else _NO_EVENTS
         if self.validate and count:
             t = ev["t"]
@@ -310,12 +337,12 @@ class Aedat4Reader:
         except Exception as exc:
             raise self._error(f"the FileDataTable does not decompress ({exc})", dtp) from None
         try:
-            entries = S.root_table(payload, b"FTAB").tables(0)
-            out = np.zeros(len(entries), dtype=DATA_TABLE_DTYPE)
-            for i, e in enumerate(entries):
-                p = e.field_pos(1, 8)
-                sid, size = _PH.unpack_from(payload, p) if p else (0, 0)
-                out[i] = (e.scalar(0, _I64), sid, size, e.scalar(2, _I64), e.scalar(3, _I64), e.scalar(4, _I64))
+            start, count = S.root_table(payload, b"FTAB").vector(0, 4)
+            cols = S.table_vector_fields(payload, start, count, {0: "<i8", 1: "<i8", 2: "<i8", 3: "<i8", 4: "<i8"})
+            out = np.zeros(count, dtype=DATA_TABLE_DTYPE)
+            info = cols[1].astype("<i8")  # PacketInfo struct {i32 stream id, i32 size}, little-endian
+            out["byte_offset"], out["num_elements"], out["t_start"], out["t_end"] = cols[0], cols[2], cols[3], cols[4]
+            out["stream_id"], out["size"] = (info & 0xFFFFFFFF).astype("<u4").view("<i4"), (info >> 32)
         except S.FlatBufferError as exc:
             raise self._error(f"corrupt FileDataTable: {exc}", dtp) from None
         return out
@@ -339,6 +366,57 @@ class Aedat4Reader:
         self.close()
 
 
+_LZ4_HEAD = struct.Struct("<IBBxI")  # magic, FLG, BD, (HC), first block size: the frame without content size
+_U32 = struct.Struct("<I")
+_EVTS_HEAD = struct.Struct("<II4s")
+
+
+def lz4_decompress(body) -> bytes:
+    """Decompress one LZ4 frame. A frame holding a single block (the usual DV packet, <= 64 KB) is handed straight
+    to the block decoder, which skips the frame machinery's per-call cost; anything else goes to lz4.frame."""
+    n = len(body)
+    if n >= 15:
+        magic, flg, bd, bs = _LZ4_HEAD.unpack_from(body, 0)
+        if magic == 0x184D2204 and flg & 0xD9 == 0x40:  # version 01; no block checksum, content size or dict id
+            end = 11 + bs
+            if end + 4 + (4 if flg & 0x04 else 0) == n and _U32.unpack_from(body, end)[0] == 0:
+                return lz4.block.decompress(body[11:end], uncompressed_size=1 << (8 + 2 * ((bd >> 4) & 7)))
+    return lz4.frame.decompress(body)
+
+
+def _event_vector(payload: bytes) -> tuple[int, int]:
+    """(first record position, count) of an EVTS packet: the vtable walk of schema.Table, inlined for speed."""
+    n = len(payload)
+    if n < 16:
+        raise S.FlatBufferError("buffer too short for a FlatBuffer", 0)
+    size, root, ident = _EVTS_HEAD.unpack_from(payload, 0)
+    if ident != b"EVTS":
+        raise S.FlatBufferError(f"identifier {ident!r} is not b'EVTS'", 8)
+    if size + 4 > n:
+        raise S.FlatBufferError(f"size prefix {size} exceeds the buffer ({n} bytes)", 0)
+    return S.root_table(payload, b"EVTS").vector(0, S.EVENT_RECORD_BYTES) if root + 8 > n else \
+        _event_vector_at(payload, root + 4, n)
+
+
+def _event_vector_at(payload: bytes, table: int, n: int) -> tuple[int, int]:
+    vt = table - struct.unpack_from("<i", payload, table)[0]
+    if vt < 0 or vt + 6 > n:
+        return S.Table(payload, table).vector(0, S.EVENT_RECORD_BYTES)  # raises the precise error
+    vt_len, _, off = struct.unpack_from("<HHH", payload, vt)
+    if vt_len < 6 or off == 0:
+        return S.Table(payload, table).vector(0, S.EVENT_RECORD_BYTES)
+    field = table + off
+    if field + 4 > n:
+        raise S.FlatBufferError("field 0 outside the buffer", field)
+    v = field + _U32.unpack_from(payload, field)[0]
+    if v + 4 > n:
+        raise S.FlatBufferError("offset of field 0 points outside the buffer", field)
+    count = _U32.unpack_from(payload, v)[0]
+    if v + 4 + count * S.EVENT_RECORD_BYTES > n:
+        raise S.FlatBufferError(f"vector of field 0 runs past the buffer ({count} elements)", v)
+    return v + 4, count
+
+
 _NO_EVENTS = np.zeros(0, dtype=EVENT_DTYPE)
 _NO_EVENTS.flags.writeable = False
 
@@ -356,18 +434,25 @@ def _to_gray(img: np.ndarray) -> np.ndarray:
     return np.rint(0.114 * b + 0.587 * g + 0.299 * r).astype(img.dtype)
 
 
+_IMU_FIELDS = struct.Struct("<q10f")
+
+
 def _imu(payload: bytes) -> np.ndarray:
-    tables = S.root_table(payload, b"IMUS").tables(0)
-    out = np.zeros(len(tables), dtype=IMU_DTYPE)
-    for i, tb in enumerate(tables):
-        v = [tb.scalar(s, _F32, 0.0) for s in range(1, 11)]
-        out[i] = (tb.scalar(0, _I64), v[0], v[1:4], v[4:7], v[7:10])
+    start, count = S.root_table(payload, b"IMUS").vector(0, 4)
+    if count > 16:  # many samples: vectorised gather
+        cols = S.table_vector_fields(payload, start, count, {0: "<i8", **{s: "<f4" for s in range(1, 11)}})
+        rows = zip(*(cols[s].tolist() for s in range(11)))
+    else:  # DV writes 1-20 samples per packet: per-table reads are cheaper than numpy set-up
+        rows = (S.table_scalars(payload, start + 4 * i, "q" + "f" * 10) for i in range(count))
+    out = np.zeros(count, dtype=IMU_DTYPE)
+    for i, v in enumerate(rows):
+        out[i] = (v[0], v[1], v[2:5], v[5:8], v[8:11])
     return out
 
 
 def _triggers(payload: bytes) -> np.ndarray:
-    tables = S.root_table(payload, b"TRIG").tables(0)
-    out = np.zeros(len(tables), dtype=TRIGGER_DTYPE)
-    for i, tb in enumerate(tables):
-        out[i] = (tb.scalar(0, _I64), tb.scalar(1, _I8))
+    start, count = S.root_table(payload, b"TRIG").vector(0, 4)
+    out = np.zeros(count, dtype=TRIGGER_DTYPE)
+    for i in range(count):
+        out[i] = S.table_scalars(payload, start + 4 * i, "qb")
     return out

@@ -1,0 +1,50 @@
+"""Shared builders for the driver tests: random recordings as in-memory Packets (the oracle) and collectors."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, Frame, Packet
+
+
+def random_recording(rng: np.random.Generator, width: int, height: int, *, n_events: int = 20000,
+                     duration_us: int = 300_000, t0_us: int = 1_700_000_000_000_000, n_frames: int = 3,
+                     n_imu: int = 20, even_pixels: bool = False) -> list[Packet]:
+    """Time-ordered packets obeying the Packet ordering contract: random events (with long quiet stretches so
+    several timestamp wraps happen), frames after the events up to their exposure end, IMU samples."""
+    t = np.sort(rng.integers(0, duration_us, n_events)) + t0_us
+    t[n_events // 2:] += 200_000  # a 200 ms silence: several wraps with no timestamp in between
+    ev = np.zeros(n_events, EVENT_DTYPE)
+    ev["t"], ev["x"], ev["y"], ev["p"] = t, rng.integers(0, width, n_events), rng.integers(0, height, n_events), \
+        rng.random(n_events) < 0.5
+    end = int(t[-1])
+    frames = []
+    for k in range(n_frames):
+        es = t0_us + 20_000 + k * (end - t0_us - 40_000) // max(n_frames, 1)
+        img = rng.integers(0, 256, (height, width)).astype(np.uint8)
+        if even_pixels:
+            img &= 0xFE
+        frames.append(Frame(img, int(es), int(es) + 4000 + 1000 * k, seq=k))
+    imu = np.zeros(n_imu, IMU_DTYPE)
+    imu["t"] = np.sort(rng.integers(t0_us, end, n_imu))
+    imu["accel_g"] = rng.uniform(-3.9, 3.9, (n_imu, 3))
+    imu["gyro_dps"] = rng.uniform(-490, 490, (n_imu, 3))
+    imu["temperature_c"] = rng.uniform(20, 40, n_imu)
+    # one packet per 10 ms, frames placed after their exposure end
+    packets = []
+    edges = list(range(t0_us, end + 10_000, 10_000))
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        e = ev[(ev["t"] >= lo) & (ev["t"] < hi)]
+        fr = [f for f in frames if lo <= f.exposure_end_us < hi]
+        im = imu[(imu["t"] >= lo) & (imu["t"] < hi)]
+        packets.append(Packet(events=e, frames=fr, imu=im, watermark_us=hi))
+    return packets
+
+
+def flatten(packets):
+    ps = [p for p in packets if p is not None]
+    events = np.concatenate([p.events for p in ps]) if ps else np.zeros(0, EVENT_DTYPE)
+    frames = [f for p in ps for f in p.frames]
+    imu = np.concatenate([p.imu for p in ps]) if ps else np.zeros(0, IMU_DTYPE)
+    return events, frames, imu
+

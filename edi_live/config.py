@@ -191,7 +191,9 @@ class NodeConfig:
         """The effective overflow policy: lossless waiting for replay, never blocking for a live device."""
         if self.ring.policy is not None:
             return self.ring.policy
-        return "wait" if self.source.kind == "replay" else "drop_oldest"
+        if self.source.kind == "replay" or self.source.emulate_from is not None:
+            return "wait"  # a recording (direct or through the emulated camera) can always wait
+        return "drop_oldest"
 
     @classmethod
     def from_options(cls, options: Mapping[str, Any]) -> "NodeConfig":

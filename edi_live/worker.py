@@ -11,9 +11,10 @@ Policy:
   every event up to its exposure end is in; the events from its exposure start come from the ring's history.
 - Then a latent frame (kind "latent") every `every` events, updated incrementally (`on_events`), at most
   `max_fps` per second (frames over the cap are skipped and counted, their events roll into the next frame).
-- Frames follow events: a deblurred frame is sent when at least `every` events arrived since the last sent
-  frame (or none was sent yet); otherwise the scene is static and only the keyframe heartbeat (the current
-  latent image, every `heartbeat_s`) goes out. Between wake-ups the thread blocks on the ring's condition.
+- Frames follow events: a deblurred frame is sent when at least `every` events arrived since its exposure
+  start or since the last sent frame (or none was sent yet); otherwise the scene is static: the frame still
+  becomes the reference, and only the keyframe heartbeat (the current latent image, every `heartbeat_s`)
+  goes out. Between wake-ups the thread blocks on the ring's condition.
 - mode "causal": each latent frame is rendered from the latest deblurred frame, immediately.
   mode "nearest": a latent time past the midpoint to the next APS frame (predicted from the last interval) is
   held back until that frame is deblurred and rendered from it instead; the extra wait is measured
@@ -200,7 +201,7 @@ class EdiWorker:
         late = self._deferred
         self._deferred = []
         out.extend(self._render_at(t, a) for t, a in late)  # from the new, nearer reference
-        if first or self._since >= self.config.every or out:
+        if first or out or len(events) >= self.config.every or self._since >= self.config.every:
             out.append(deblurred)
         else:
             self.skipped_static += 1

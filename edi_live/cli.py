@@ -1,0 +1,259 @@
+"""The `edi-live` command line: flags (and --config TOML) -> NodeConfig -> a source -> Node.run().
+
+Owns: the flag definitions and help text, logging set-up, resolving `--usb-backend MODULE:CALLABLE`, signal
+handling (SIGINT/SIGTERM stop the node cleanly), the summary, and mapping errors to exit codes:
+0 success (also after Ctrl-C/SIGTERM), 2 usage error, 1 runtime error; every error is one line
+`edi-live: error: ...` (a traceback only with --log-level debug).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import signal
+import sys
+import traceback
+from pathlib import Path
+from typing import Any, Sequence
+
+from edi_live import __version__
+from edi_live.config import DEFAULT_ENDPOINT, LOG_LEVELS, NodeConfig, merge_options, read_toml
+from edi_live.errors import ConfigError, EdiLiveError, RecordingError, SourceError
+
+PROG = "edi-live"
+log = logging.getLogger("edi_live")
+
+EXAMPLES = f"""\
+examples:
+  # replay a recording as fast as possible, publish on {DEFAULT_ENDPOINT}, save the sharp frames
+  edi-live --replay rec.aedat4 --speed 0 --every 1000 --out sharp.aedat4
+
+  # a live DAVIS346 with a fixed contrast threshold, 500 latent frames/s at most, raw input recorded
+  edi-live --device davis346 --c 0.2 --max-fps 500 --record raw.aedat4
+
+  # no camera: the built-in emulator replays a recording through the USB driver
+  edi-live --device davis240 --usb-backend drivers.emulator:backend --emulate-from rec.aedat4
+
+Ctrl-C or SIGTERM stops cleanly (files finalised, exit 0). Exit codes: 0 ok, 1 runtime error, 2 usage error.
+Every flag can also be set in --config FILE.toml with the same name (e.g. `every = 1000`, `c-on = 0.2`).
+"""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit 2 (argparse would print the usage block too)
+        raise ConfigError(f"{message} (see {PROG} --help)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog=PROG, argument_default=argparse.SUPPRESS, formatter_class=argparse.RawDescriptionHelpFormatter,
+                description="Real-time EDI deblurring for DAVIS event cameras: one blurry APS frame plus its events "
+                            "become sharp video, streamed over ZeroMQ.",
+                epilog=EXAMPLES)
+    src = p.add_argument_group("input (one of)")
+    src.add_argument("--device", choices=("davis240", "davis346", "auto"),
+                     help="a live DAVIS camera over USB ('auto': the first one found)")
+    src.add_argument("--replay", metavar="FILE.aedat4", help="replay an AEDAT4 recording as if a camera were attached")
+    src.add_argument("--list-devices", action="store_true", help="list attached DAVIS cameras and exit")
+    dev = p.add_argument_group("device options")
+    dev.add_argument("--serial", metavar="S", help="pick the camera with this serial number")
+    dev.add_argument("--exposure-us", type=int, metavar="US", help="APS exposure in µs (default: the camera's)")
+    dev.add_argument("--frame-interval-us", type=int, metavar="US",
+                     help="time between APS frames in µs (default: the camera's)")
+    dev.add_argument("--reconnect", action="store_true", help="after an unplug, wait for the camera and resume")
+    dev.add_argument("--usb-backend", metavar="MODULE:CALLABLE",
+                     help="pyusb backend factory; CALLABLE() returns a usb.backend.IBackend (default: libusb)")
+    dev.add_argument("--emulate-from", metavar="FILE.aedat4",
+                     help="with --usb-backend drivers.emulator:backend: the recording the emulated camera streams")
+    pace = p.add_argument_group("pacing")
+    pace.add_argument("--speed", type=float, metavar="X",
+                      help="replay speed: 1 = real time (default), 4 = 4x faster, 0 = as fast as possible")
+    pace.add_argument("--loop", action="store_true", help="restart the replay at its end (time keeps increasing)")
+    pace.add_argument("--duration", type=float, metavar="SECONDS", help="stop after this many seconds (default: run "
+                                                                         "until the input ends or Ctrl-C)")
+    edi = p.add_argument_group("EDI reconstruction")
+    edi.add_argument("--every", type=int, metavar="N", help="emit a latent frame every N events (default: 1000)")
+    edi.add_argument("--c", type=float, metavar="C", help="fixed contrast threshold for both polarities "
+                                                          "(default: estimated, re-estimated when it stops fitting)")
+    edi.add_argument("--c-on", type=float, metavar="C", help="fixed ON threshold (with --c-off)")
+    edi.add_argument("--c-off", type=float, metavar="C", help="fixed OFF threshold (with --c-on)")
+    edi.add_argument("--mode", choices=("causal", "nearest"),
+                     help="causal (default): latent frames from the latest deblurred APS frame, lowest latency; "
+                          "nearest: wait for the next APS frame when it is nearer (adds latency, reported)")
+    edi.add_argument("--max-fps", type=float, metavar="FPS", help="cap on latent frames per second (default: none)")
+    edi.add_argument("--heartbeat-s", type=float, metavar="S",
+                     help="keyframe interval on a static scene, seconds (default: 1.0)")
+    edi.add_argument("--reestimate-every", type=int, metavar="K",
+                     help="also re-estimate c every K APS frames (default: 0 = only when it stops fitting)")
+    out = p.add_argument_group("output")
+    out.add_argument("--publish", action="append", metavar="ENDPOINT",
+                     help=f"ZeroMQ PUB endpoint, repeatable (default: {DEFAULT_ENDPOINT}; loopback only)")
+    out.add_argument("--no-publish", action="store_true", help="do not publish (e.g. only write --out)")
+    out.add_argument("--curve-secret-key", metavar="FILE",
+                     help="encrypt with CURVE using this server secret key file "
+                          "(make one: python -m edi_live.publisher --gen-curve-keys DIR)")
+    out.add_argument("--out", metavar="FILE.aedat4", help="also write every emitted frame (8-bit gray, lossless)")
+    out.add_argument("--record", metavar="FILE.aedat4", help="record the raw input as received, for --replay")
+    adv = p.add_argument_group("advanced")
+    adv.add_argument("--ring-events", type=int, metavar="N",
+                     help="ring capacity in events, half kept as exposure history (default: 4194304 = 64 MiB)")
+    adv.add_argument("--ring-frames", type=int, metavar="N", help="APS frames the ring holds (default: 16)")
+    adv.add_argument("--ring-policy", choices=("drop_oldest", "wait"),
+                     help="overflow policy (default: wait for replay/emulation, drop_oldest for a live camera)")
+    other = p.add_argument_group("other")
+    other.add_argument("--config", metavar="FILE.toml", help="read options from a TOML file; flags override it")
+    other.add_argument("--log-level", choices=LOG_LEVELS, help="log verbosity on stderr (default: info; debug "
+                                                               "also prints tracebacks)")
+    other.add_argument("--status-interval-s", type=float, metavar="S",
+                       help="status line period (default: 0.5 s live line on a terminal, 5 s plain lines otherwise)")
+    other.add_argument("--version", action="version", version=f"{PROG} {__version__}")
+    return p
+
+
+def options_from_args(argv: Sequence[str] | None) -> tuple[dict[str, Any], Path | None]:
+    """Explicitly given flags (flag name -> value) and the --config path."""
+    args = vars(build_parser().parse_args(argv))
+    config_path = args.pop("config", None)
+    return args, (Path(config_path) if config_path else None)
+
+
+def build_config(flags: dict[str, Any], config_path: Path | None) -> NodeConfig:
+    file_options = read_toml(config_path) if config_path is not None else {}
+    options = merge_options(file_options, flags)
+    options.pop("list_devices", None)
+    config = NodeConfig.from_options(options)
+    if config.source.device is None and config.source.replay is None:
+        raise ConfigError(f"choose an input: --device davis240|davis346|auto or --replay FILE.aedat4 "
+                          f"(see {PROG} --help)")
+    return config
+
+
+def load_usb_backend(spec: str, **kwargs: Any) -> Any:
+    """Import MODULE, call CALLABLE(**kwargs): a pyusb IBackend (a public hook for emulators and others)."""
+    module_name, _, attr = spec.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise ConfigError(f"--usb-backend {spec}: cannot import module {module_name!r} ({exc})") from exc
+    factory = getattr(module, attr, None)
+    if not callable(factory):
+        raise ConfigError(f"--usb-backend {spec}: module {module_name!r} has no callable {attr!r}")
+    try:
+        return factory(**kwargs)
+    except EdiLiveError:
+        raise
+    except Exception as exc:
+        raise SourceError(f"--usb-backend {spec} failed to create a backend: {type(exc).__name__}: {exc}") from exc
+
+
+def make_source(config: NodeConfig, explicit: set[str] | frozenset = frozenset()) -> Any:
+    """The driver for the configured input (not yet opened)."""
+    import drivers
+
+    s = config.source
+    if s.replay is not None:
+        if not Path(s.replay).is_file():
+            raise RecordingError("no such file (check the --replay path)", str(s.replay))
+        return drivers.open_source("replay", path=str(s.replay), speed=s.speed, loop=s.loop)
+    backend = None
+    if s.usb_backend is not None:
+        kwargs: dict[str, Any] = {}
+        if s.emulate_from is not None:
+            if not Path(s.emulate_from).is_file():
+                raise RecordingError("no such file (check the --emulate-from path)", str(s.emulate_from))
+            kwargs["recording"] = str(s.emulate_from)
+            if "speed" in explicit:
+                kwargs["speed"] = s.speed
+            if s.loop:
+                kwargs["loop"] = True
+        backend = load_usb_backend(s.usb_backend, **kwargs)
+    return drivers.open_source(s.device, serial=s.serial, backend=backend, exposure_us=s.exposure_us,
+                               frame_interval_us=s.frame_interval_us, reconnect=s.reconnect,
+                               policy=config.ring_policy)
+
+
+def list_devices_command(flags: dict[str, Any]) -> int:
+    import drivers
+
+    backend = load_usb_backend(flags["usb_backend"]) if flags.get("usb_backend") else None
+    devices = drivers.list_devices(backend)
+    if not devices:
+        print("no DAVIS camera found (is it plugged in? on Linux, is the udev rule installed?)")
+    for d in devices:
+        print(d)
+    return 0
+
+
+def _setup_logging(level: str) -> None:
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("edi-live: %(levelname)s: %(message)s"))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(getattr(logging, level.upper()))
+
+
+def _install_signal_handlers(node: Any) -> dict:
+    previous = {}
+
+    def handler(signum: int, frame: Any) -> None:
+        if node._stop.is_set() and signum == signal.SIGINT:
+            raise KeyboardInterrupt  # a second Ctrl-C: stop waiting for the drain
+        log.info("%s: stopping", signal.Signals(signum).name)
+        node.stop()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        previous[sig] = signal.signal(sig, handler)
+    return previous
+
+
+def _error_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return f"{PROG}: error: {text}"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    level = "info"
+    try:
+        flags, config_path = options_from_args(argv)
+        level = flags.get("log_level", "info")
+        _setup_logging(level)
+        if flags.pop("list_devices", False):
+            return list_devices_command(flags)
+        config = build_config(flags, config_path)
+        level = config.log_level
+        _setup_logging(level)
+        source = make_source(config, explicit=set(flags))
+        from edi_live.node import Node
+
+        node = Node(config, source, status_stream=sys.stderr)
+        previous = _install_signal_handlers(node)
+        try:
+            node.run()
+        finally:
+            for sig, old in previous.items():
+                signal.signal(sig, old)
+            if node.final_stats:
+                from edi_live.stats import format_summary
+
+                print(format_summary(node.final_stats, node.elapsed_s), file=sys.stderr)
+        return 0
+    except SystemExit as exc:  # --help / --version
+        return int(exc.code or 0)
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
+    except EdiLiveError as exc:
+        if level == "debug":
+            traceback.print_exc()
+        print(_error_line(exc), file=sys.stderr)
+        return exc.exit_code
+    except Exception as exc:  # a bug: still one line, the traceback at --log-level debug
+        if level == "debug":
+            traceback.print_exc()
+        print(_error_line(f"internal error: {type(exc).__name__}: {exc} (rerun with --log-level debug for the "
+                          f"traceback and report it)"), file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

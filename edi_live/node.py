@@ -1,0 +1,291 @@
+"""The composition root and supervisor: source -> [pump] -> ring -> [edi-worker] -> publisher / out-writer.
+
+`Node(config, source).run()` opens the source, builds the ring, reconstructor, publisher and writers, starts the
+threads, supervises them from the calling (main) thread, stops them in flow order and returns the final stats;
+it re-raises the first failure of any thread on the calling thread.
+
+Threads ([name]):
+- [pump] iterates the source (so a driver's decoding runs here), pushes each packet into the ring (policy
+  "wait" for replay: lossless; "drop_oldest" live: never blocks the driver) and tees it to [record-writer].
+- [edi-worker] (worker.py), [publisher] (publisher.py), [out-writer] / [record-writer] (writers.py).
+
+Start order is reverse flow order: the source is opened first only because its resolution sizes everything
+downstream, then writers and publisher (a failed bind is fatal here, before any data flows), the worker, and the
+pump last. Stop is in flow order: source, pump (closes the ring), worker (drains what was received), publisher
+(sends what it holds, linger 0), writers (finalise their files), then the source is released.
+
+Failures: every thread hands its exception to `fail()`; the first one is kept. A source fault (truncated file,
+unplugged camera) only ends the input: data already received still flows to the sinks and files are finalised,
+then run() raises. Any other fault aborts the worker at once. Every join has a timeout; a thread that does not
+stop is named in a NodeError.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import threading
+import time
+from typing import Any, Callable, TextIO
+
+from edi_live.config import EdiConfig, NodeConfig
+from edi_live.errors import EdiLiveError, NodeError, SourceError
+from edi_live.ring import EventRing, as_events
+from edi_live.source import Source
+from edi_live.stats import Rates, StatusLine, collect, with_rates
+from edi_live.worker import EdiWorker
+from edi_live.writers import OutWriter, RecordWriter
+
+log = logging.getLogger(__name__)
+
+ReconstructorFactory = Callable[[int, int, EdiConfig], Any]
+PublisherFactory = Callable[..., Any]
+
+_POLL_S = 0.1
+_PUMP_JOIN_S = 5.0
+_DRAIN_ON_STOP_S = 2.0  # after Ctrl-C/--duration the worker may finish what it holds for this long
+_JOIN_S = 5.0
+
+
+def default_reconstructor(width: int, height: int, edi: EdiConfig) -> Any:
+    """The EDI core's reconstructor with the thresholds and re-estimation policy from the config."""
+    from edi_live.reconstructor import EdiReconstructor
+
+    kwargs: dict[str, Any] = {}
+    if edi.c is not None:
+        kwargs["c"] = edi.c
+    if edi.c_on is not None:
+        kwargs["c_on"], kwargs["c_off"] = edi.c_on, edi.c_off
+    if edi.reestimate_every:
+        kwargs["reestimate_every"] = edi.reestimate_every
+    return EdiReconstructor(width, height, **kwargs)
+
+
+def default_publisher(**kwargs: Any) -> Any:
+    from edi_live.publisher import Publisher
+
+    return Publisher(**kwargs)
+
+
+class Node:
+    """Runs one source through the pipeline until the input ends, stop() is called, or --duration passes."""
+
+    def __init__(self, config: NodeConfig, source: Source, *,
+                 reconstructor_factory: ReconstructorFactory = default_reconstructor,
+                 publisher_factory: PublisherFactory = default_publisher,
+                 status_stream: TextIO | None = None) -> None:
+        self.config = config
+        self.source = source
+        self._make_reconstructor = reconstructor_factory
+        self._make_publisher = publisher_factory
+        self._status_stream = status_stream
+        self.ring: EventRing | None = None
+        self.worker: EdiWorker | None = None
+        self.publisher: Any = None
+        self.out_writer: OutWriter | None = None
+        self.record_writer: RecordWriter | None = None
+        self._pump: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self._failure: tuple[BaseException, str] | None = None
+        self._stop = threading.Event()
+        self._aborting = threading.Event()
+        self._started = threading.Event()
+        self._rates = Rates()
+        self.t_start = 0.0
+        self.elapsed_s = 0.0
+        self.final_stats: dict[str, Any] = {}
+
+    # ---------------------------------------------------------------- any thread
+
+    def stop(self) -> None:
+        """Ask the node to stop (Ctrl-C, SIGTERM, --duration). Safe from signal handlers and other threads."""
+        self._stop.set()
+
+    def fail(self, exc: BaseException, thread: str = "main", input_fault: bool = False) -> None:
+        """Record a thread's failure (the first one wins). A fault of the input lets received data drain;
+        any other fault aborts at once."""
+        with self._lock:
+            if self._failure is None:
+                self._failure = (exc, thread)
+                log.debug("%s failed", thread, exc_info=exc)
+            else:
+                log.debug("%s also failed: %s", thread, exc)
+        if not input_fault:
+            self._aborting.set()
+            if self.worker is not None:
+                self.worker.abort()
+            if self.ring is not None:
+                self.ring.close()
+            self._stop.set()
+
+    def stats(self) -> dict[str, Any]:
+        """Every counter of every stage (see stats.collect)."""
+        return collect(self.source, self.ring, self.worker, self.publisher, (self.out_writer, self.record_writer))
+
+    def stats_map(self) -> dict[str, Any]:
+        """The map for the publisher's once-a-second stats message (it adds its own latency figures)."""
+        s = with_rates(self.stats(), self._rates)
+        keep = ("events_per_s", "frames_per_s", "c", "c_on", "c_off", "reestimations", "hot_pixels", "drops",
+                "ring_occupancy", "ring_dropped_events", "ring_dropped_frames", "events_in", "events_processed",
+                "aps_frames_in", "frames_deblurred", "frames_latent", "heartbeats", "skipped_max_fps",
+                "source_dropped_events", "source_gaps", "nearest_added_latency_ms_p50", "out_wait_s")
+        return {k: s[k] for k in keep if k in s and s[k] is not None}
+
+    @property
+    def bound_endpoints(self) -> list[str]:
+        return list(getattr(self.publisher, "bound_endpoints", []) or [])
+
+    @property
+    def started(self) -> threading.Event:
+        """Set once every thread runs (the publisher is bound)."""
+        return self._started
+
+    # ---------------------------------------------------------------- main thread
+
+    def run(self) -> dict[str, Any]:
+        """Run to the end; returns the final stats. Raises the first failure (EdiLiveError subclasses as they
+        are, anything else wrapped in NodeError naming the thread)."""
+        self.t_start = time.monotonic()
+        entered = False
+        try:
+            self.source.__enter__()
+            entered = True
+            self._build_and_start()
+            self._started.set()
+            self._supervise()
+        except BaseException as exc:
+            if not isinstance(exc, KeyboardInterrupt):
+                self.fail(exc, "main")
+            else:
+                self._stop.set()
+        finally:
+            try:
+                self._shutdown(entered)
+            except BaseException as exc:
+                self.fail(exc, "main")
+            self.elapsed_s = time.monotonic() - self.t_start
+            self.final_stats = self.stats()
+        if self._failure is not None:
+            exc, thread = self._failure
+            if isinstance(exc, EdiLiveError):
+                raise exc
+            raise NodeError(f"the {thread} thread failed: {type(exc).__name__}: {exc}") from exc
+        return self.final_stats
+
+    def _build_and_start(self) -> None:
+        cfg = self.config
+        info = self.source.info
+        self.ring = EventRing(cfg.ring.capacity_events, cfg.ring.capacity_frames, cfg.ring_policy)
+        reconstructor = self._make_reconstructor(info.width, info.height, cfg.edi)
+        sinks = []
+        if cfg.output.out is not None:
+            self.out_writer = OutWriter(cfg.output.out, info.width, info.height, camera_name=info.label,
+                                        queue_items=cfg.output.queue_items,
+                                        on_error=lambda e: self.fail(e, "out-writer"))
+            self.out_writer.start()
+        if cfg.output.record is not None:
+            self.record_writer = RecordWriter(cfg.output.record, info.width, info.height, camera_name=info.label,
+                                              queue_items=cfg.output.queue_items,
+                                              on_error=lambda e: self.fail(e, "record-writer"))
+            self.record_writer.start()
+        if cfg.publisher.enabled:
+            self.publisher = self._make_publisher(
+                endpoints=list(cfg.publisher.endpoints), source=info.label,
+                curve_secret_key=cfg.publisher.curve_secret_key, stats_provider=self.stats_map,
+                stats_interval_s=cfg.publisher.stats_interval_s, on_error=lambda e: self.fail(e, "publisher"))
+            self.publisher.start()
+            sinks.append(self.publisher.submit)
+            log.info("publishing on %s", ", ".join(self.bound_endpoints))
+        if self.out_writer is not None:
+            sinks.append(self.out_writer.submit)
+        self.worker = EdiWorker(self.ring, reconstructor, cfg.edi, sinks,
+                                on_error=lambda e: self.fail(e, "edi-worker"))
+        self.worker.start()
+        self._pump = threading.Thread(target=self._pump_loop, name="pump", daemon=True)
+        self._pump.start()
+
+    def _pump_loop(self) -> None:
+        """[pump] thread: source -> ring (and --record)."""
+        ring, record = self.ring, self.record_writer
+        try:
+            for packet in self.source:
+                if self._stop.is_set():
+                    break
+                if packet is None:
+                    continue
+                packet.events = as_events(packet.events)
+                if record is not None:
+                    record.submit(packet)
+                if not ring.push(packet):
+                    break  # the ring was closed: we are stopping
+        except BaseException as exc:
+            self.fail(exc, "pump", input_fault=isinstance(exc, SourceError))
+        finally:
+            ring.close()
+
+    def _supervise(self) -> None:
+        duration = self.config.duration_s
+        status = None
+        if self._status_stream is not None:
+            status = StatusLine(self._status_stream, self.config.status_interval_s)
+        try:
+            while not self.worker.done.is_set() and not self._stop.is_set():
+                self._stop.wait(_POLL_S)
+                if duration is not None and time.monotonic() - self.t_start >= duration:
+                    log.info("--duration %.1f s reached", duration)
+                    self._stop.set()
+                if status is not None:
+                    status.maybe_draw(self.stats)
+        finally:
+            if status is not None:
+                status.finish()
+
+    def _shutdown(self, entered: bool) -> None:
+        """Stop in flow order; every join has a timeout. Collects the first error, raises nothing."""
+        stuck: list[str] = []
+
+        def guard(what: str, fn: Callable[[], Any]) -> None:
+            try:
+                fn()
+            except BaseException as exc:
+                self.fail(exc, what, input_fault=True)
+
+        if entered:
+            guard("source", self.source.stop)
+        if self._pump is not None:
+            self._pump.join(_PUMP_JOIN_S / 2)
+            if self._pump.is_alive():  # stuck in a push: closing the ring releases it
+                self.ring.close()
+                self._pump.join(_PUMP_JOIN_S / 2)
+                if self._pump.is_alive():
+                    stuck.append("pump")
+        if self.worker is not None:
+            if self.ring is not None:
+                self.ring.close()
+            drain_s = _JOIN_S if not (self._stop.is_set() or self._aborting.is_set()) else _DRAIN_ON_STOP_S
+            if self._aborting.is_set():
+                self.worker.abort()
+            if not self.worker.join(drain_s):
+                self.worker.abort()
+                if not self.worker.join(_JOIN_S):
+                    stuck.append("edi-worker")
+        if self.publisher is not None:
+            guard("publisher", lambda: self.publisher.close(timeout_s=2.0))
+        for writer in (self.out_writer, self.record_writer):
+            if writer is not None:
+                guard(writer.name, lambda w=writer: w.close(timeout_s=10.0))
+        if entered:
+            guard("source", lambda: self.source.__exit__(None, None, None))
+        if stuck:
+            self.fail(NodeError(f"thread(s) {', '.join(stuck)} did not stop within their timeout"), "main")
+
+    def __enter__(self) -> "Node":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def run_node(config: NodeConfig, source: Source, status_stream: TextIO | None = sys.stderr, **kwargs: Any) -> dict:
+    """Convenience for scripts: build and run a node, returning its final stats."""
+    return Node(config, source, status_stream=status_stream, **kwargs).run()

@@ -1,0 +1,148 @@
+"""Counters of a running node: the published stats map, the terminal status line and the final summary.
+
+`collect()` merges the counters every stage exposes (source status, ring, worker, publisher, writers) into one
+flat map with unit-suffixed keys. `Rates` turns running totals into per-second rates between two calls (one
+instance per reader, so the publisher's once-a-second map and the status line do not disturb each other).
+`StatusLine` draws one live line on a TTY (rewritten in place) or plain lines every few seconds otherwise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any, Callable, TextIO
+
+
+def collect(source: Any = None, ring: Any = None, worker: Any = None, publisher: Any = None,
+            writers: tuple[Any, ...] = ()) -> dict[str, Any]:
+    """One flat map of every counter; missing stages are skipped. Safe to call from any thread."""
+    out: dict[str, Any] = {}
+    src_dropped = 0
+    if source is not None:
+        try:
+            st = source.status()
+        except Exception:  # a source that cannot report must not take the stats down
+            st = None
+        if st is not None:
+            out.update({f"source_{k}": v for k, v in dataclasses.asdict(st).items()})
+            src_dropped = int(st.dropped_events)
+    if ring is not None:
+        out.update(ring.stats())
+        out["events_in"] = ring.pushed_events
+    if worker is not None:
+        out.update(worker.stats())
+    pub_dropped = 0
+    if publisher is not None:
+        ps = publisher.stats()
+        pub_dropped = int(ps.get("dropped", 0))
+        out.update({"frames_sent": ps.get("sent", 0), "publish_dropped": pub_dropped,
+                    "latency_p50_us": ps.get("latency_p50_us"), "latency_p99_us": ps.get("latency_p99_us")})
+    for w in writers:
+        if w is not None:
+            out.update(w.stats())
+    out["frames_out"] = out.get("frames_deblurred", 0) + out.get("frames_latent", 0)
+    out["drops"] = src_dropped + out.get("ring_dropped_events", 0) + out.get("ring_dropped_frames", 0) + pub_dropped
+    return out
+
+
+class Rates:
+    """Per-second rates of running totals between consecutive calls."""
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        self._clock = clock
+        self._last_t = clock()
+        self._last: dict[str, float] = {}
+
+    def update(self, totals: dict[str, float]) -> dict[str, float]:
+        now = self._clock()
+        dt = max(now - self._last_t, 1e-9)
+        rates = {k: (v - self._last.get(k, 0)) / dt for k, v in totals.items()}
+        self._last_t, self._last = now, dict(totals)
+        return rates
+
+
+def with_rates(stats: dict[str, Any], rates: Rates) -> dict[str, Any]:
+    """`stats` plus events_per_s and frames_per_s since the previous call on `rates`."""
+    r = rates.update({"events": stats.get("events_processed", 0), "frames": stats.get("frames_out", 0)})
+    return {**stats, "events_per_s": round(r["events"], 1), "frames_per_s": round(r["frames"], 1)}
+
+
+def _si(value: float) -> str:
+    for unit, scale in (("G", 1e9), ("M", 1e6), ("k", 1e3)):
+        if abs(value) >= scale:
+            return f"{value / scale:.2f}{unit}"
+    return f"{value:.0f}"
+
+
+def _ms(value_us: float | None) -> str:
+    return "-" if value_us is None else f"{value_us / 1000:.2f}ms"
+
+
+def format_status(s: dict[str, Any]) -> str:
+    """events/s, frames/s, c, latency p50/p99, drops, ring occupancy: one line."""
+    c = s.get("c_on"), s.get("c_off")
+    c_text = "c=-" if c[0] is None or c[0] != c[0] else (
+        f"c={c[0]:.3f}" if abs(c[0] - c[1]) < 1e-9 else f"c_on={c[0]:.3f} c_off={c[1]:.3f}")
+    return (f"{_si(s.get('events_per_s', 0))} ev/s  {s.get('frames_per_s', 0):.0f} fps  {c_text}  "
+            f"latency p50 {_ms(s.get('latency_p50_us'))} p99 {_ms(s.get('latency_p99_us'))}  "
+            f"drops {s.get('drops', 0)}  ring {100 * s.get('ring_occupancy', 0):.0f}%")
+
+
+def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
+    """The end-of-run report: totals, rates over the whole run, c and its re-estimations, drops."""
+    events = s.get("events_processed", 0)
+    frames = s.get("frames_out", 0)
+    el = max(elapsed_s, 1e-9)
+    lines = [
+        f"edi-live: done in {elapsed_s:.2f} s: {events} events ({_si(events / el)} ev/s), "
+        f"{s.get('aps_frames_in', 0)} APS frames in, {frames} frames out "
+        f"({s.get('frames_deblurred', 0)} deblurred, {s.get('frames_latent', 0)} latent, "
+        f"{s.get('heartbeats', 0)} heartbeats; {frames / el:.0f} fps)",
+        f"  c_on={s.get('c_on', float('nan')):.4f} c_off={s.get('c_off', float('nan')):.4f}, "
+        f"re-estimated {s.get('reestimations', 0)} times; drops {s.get('drops', 0)} "
+        f"(ring events {s.get('ring_dropped_events', 0)}, ring frames {s.get('ring_dropped_frames', 0)}, "
+        f"publish {s.get('publish_dropped', 0)}, source events {s.get('source_dropped_events', 0)}); "
+        f"skipped: static {s.get('skipped_static', 0)}, max-fps {s.get('skipped_max_fps', 0)}",
+    ]
+    if "frames_sent" in s:
+        lines.append(f"  published {s['frames_sent']} frames; last-second latency p50 "
+                     f"{_ms(s.get('latency_p50_us'))} p99 {_ms(s.get('latency_p99_us'))}")
+    if s.get("nearest_added_latency_ms_p50") is not None:
+        lines.append(f"  mode nearest: held-back frames waited {s['nearest_added_latency_ms_p50']:.2f} ms (p50)")
+    for key, label in (("out_frames", "--out frames written"), ("record_events", "--record events written")):
+        if key in s:
+            lines.append(f"  {label}: {s[key]}")
+    return "\n".join(lines)
+
+
+class StatusLine:
+    """A live status line on a TTY (redrawn in place every `interval_s`), plain lines otherwise."""
+
+    def __init__(self, stream: TextIO, interval_s: float | None = None, tty: bool | None = None) -> None:
+        self.stream = stream
+        self.tty = bool(tty if tty is not None else getattr(stream, "isatty", lambda: False)())
+        self.interval_s = interval_s if interval_s is not None else (0.5 if self.tty else 5.0)
+        self._next = time.monotonic() + self.interval_s
+        self._rates = Rates()
+        self._drawn = 0
+
+    def maybe_draw(self, stats_fn: Callable[[], dict[str, Any]]) -> None:
+        now = time.monotonic()
+        if now < self._next:
+            return
+        self._next = now + self.interval_s
+        line = format_status(with_rates(stats_fn(), self._rates))
+        if self.tty:
+            pad = max(0, self._drawn - len(line))
+            self.stream.write("\r" + line + " " * pad)
+            self._drawn = len(line)
+        else:
+            self.stream.write("edi-live: " + line + "\n")
+        self.stream.flush()
+
+    def finish(self) -> None:
+        """End the live line so the next output starts on a fresh line."""
+        if self.tty and self._drawn:
+            self.stream.write("\n")
+            self.stream.flush()
+            self._drawn = 0

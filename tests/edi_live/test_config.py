@@ -1,0 +1,98 @@
+"""NodeConfig: validation with "(got ...)" messages, TOML with the flags' keys, precedence flags > file > defaults."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from edi_live.config import DEFAULT_ENDPOINT, NodeConfig, merge_options, read_toml
+from edi_live.errors import ConfigError
+
+
+def test_defaults_are_safe():
+    cfg = NodeConfig.from_options({"replay": "x.aedat4"})
+    assert cfg.publisher.endpoints == (DEFAULT_ENDPOINT,)  # loopback by default
+    assert cfg.source.speed == 1.0 and cfg.edi.mode == "causal" and cfg.edi.every >= 1
+    assert cfg.ring_policy == "wait"  # replay is lossless
+    assert NodeConfig.from_options({"device": "auto"}).ring_policy == "drop_oldest"  # live never blocks USB
+    emulated = NodeConfig.from_options({"device": "davis240", "usb_backend": "drivers.emulator:backend",
+                                        "emulate_from": "x.aedat4"})
+    assert emulated.ring_policy == "wait"
+
+
+@pytest.mark.parametrize("options,fragment", [
+    ({"replay": "x", "every": 0}, "every must be an integer >= 1"),
+    ({"replay": "x", "speed": -1}, "speed must be >= 0"),
+    ({"replay": "x", "c": 0}, "(got 0"),
+    ({"replay": "x", "c_on": 0.2}, "c-on and c-off go together"),
+    ({"replay": "x", "c": 0.2, "c_on": 0.2, "c_off": 0.2}, "either c or c-on/c-off"),
+    ({"replay": "x", "mode": "fast"}, "(got 'fast')"),
+    ({"replay": "x", "max_fps": 0}, "max-fps must be a positive number"),
+    ({"replay": "x", "device": "davis240"}, "choose one input"),
+    ({"device": "davis999"}, "(got 'davis999')"),
+    ({"device": "auto", "usb_backend": "nocolon"}, "MODULE:CALLABLE"),
+    ({"device": "auto", "emulate_from": "x"}, "needs --usb-backend"),
+    ({"replay": "x", "publish": ["5555"]}, "(got '5555')"),
+    ({"replay": "x", "out": "a.aedat4", "record": "a.aedat4"}, "different files"),
+    ({"replay": "x", "ring_events": 10}, "ring-events"),
+    ({"replay": "x", "duration": -2}, "duration must be a positive number (got -2"),
+    ({"replay": "x", "frobnicate": 1}, "unknown option(s) frobnicate"),
+    ({"replay": "x", "log_level": "loud"}, "log-level"),
+])
+def test_invalid_values_name_the_key_and_the_value(options, fragment):
+    with pytest.raises(ConfigError) as info:
+        NodeConfig.from_options(options)
+    assert fragment in str(info.value)
+    assert info.value.exit_code == 2
+
+
+def test_no_publish_empties_the_endpoints():
+    cfg = NodeConfig.from_options({"replay": "x", "no_publish": True})
+    assert not cfg.publisher.enabled
+
+
+def test_toml_uses_the_flag_names_and_flags_override_it(tmp_path: Path):
+    path = tmp_path / "edi.toml"
+    path.write_text('replay = "rec.aedat4"\nspeed = 0\nevery = 500\nc-on = 0.2\nc_off = 0.3\n'
+                    'publish = ["tcp://127.0.0.1:6000", "ipc:///tmp/edi"]\nmode = "nearest"\n')
+    file_cfg = NodeConfig.from_toml(path)
+    assert file_cfg.source.replay == tmp_path / "rec.aedat4"  # relative to the config file
+    assert file_cfg.source.speed == 0 and file_cfg.edi.every == 500
+    assert (file_cfg.edi.c_on, file_cfg.edi.c_off) == (0.2, 0.3)
+    assert file_cfg.publisher.endpoints == ("tcp://127.0.0.1:6000", "ipc:///tmp/edi")
+    flagged = NodeConfig.from_toml(path, {"every": 2000, "mode": "causal"})
+    assert flagged.edi.every == 2000 and flagged.edi.mode == "causal"  # flags win
+    assert flagged.edi.c_on == 0.2  # the file still beats the defaults
+    assert NodeConfig.from_options({"replay": "x"}).edi.every != 500
+
+
+def test_a_device_flag_replaces_a_replay_from_the_file():
+    merged = merge_options({"replay": "a.aedat4", "no_publish": True}, {"device": "auto", "publish": ["tcp://*:1"]})
+    cfg = NodeConfig.from_options(merged)
+    assert cfg.source.device == "auto" and cfg.source.replay is None
+    assert cfg.publisher.endpoints == ("tcp://*:1",)
+
+
+@pytest.mark.parametrize("text,fragment", [
+    ("every = [", "not valid TOML"),
+    ("[edi]\nevery = 3\n", "keys go at the top level"),
+    ("evry = 3\n", "unknown key(s) evry"),
+])
+def test_bad_toml_files_are_config_errors_naming_the_file(tmp_path: Path, text, fragment):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        read_toml(path)
+    assert fragment in str(info.value) and str(path) in str(info.value)
+
+
+def test_missing_toml_file(tmp_path: Path):
+    with pytest.raises(ConfigError, match="not found"):
+        read_toml(tmp_path / "nope.toml")
+
+
+def test_config_is_frozen():
+    cfg = NodeConfig.from_options({"replay": "x"})
+    with pytest.raises(Exception):
+        cfg.edi.every = 3  # type: ignore[misc]

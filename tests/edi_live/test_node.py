@@ -1,0 +1,186 @@
+"""A real replay node end to end: ReplaySource -> ring -> EdiWorker (real EdiReconstructor) -> Publisher -> SUB.
+
+Oracles: the recording itself (resolution, time range, number of APS frames), the wire contract (seq +1 per
+frame message, kinds), dv-processing reopening the --out file. Every wait has a timeout.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from edi_live.config import NodeConfig
+from edi_live.errors import BindError, NodeError, RecordingError
+from edi_live.node import Node
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_worker import StandIn  # noqa: E402
+
+DEMO = "emlb_demo-01_davis346.aedat4"  # 0.51 s, 13 APS frames, 346x260, motion blur
+
+
+def real_reconstructor(width, height, edi):
+    reconstructor = pytest.importorskip("edi_live.reconstructor")
+    from edi_live.node import default_reconstructor
+
+    assert reconstructor is not None
+    return default_reconstructor(width, height, edi)
+
+
+@pytest.fixture
+def needs_reconstructor():
+    pytest.importorskip("edi_live.reconstructor")
+
+
+class GatedSource:
+    """Wraps a source and holds its first packet until `gate` is set, so a subscriber can join first."""
+
+    def __init__(self, inner, gate: threading.Event):
+        self.inner, self.gate, self.info = inner, gate, inner.info
+
+    def __enter__(self):
+        self.inner.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        self.inner.__exit__(*exc)
+
+    def stop(self):
+        self.gate.set()
+        self.inner.stop()
+
+    def status(self):
+        return self.inner.status()
+
+    def __iter__(self):
+        while not self.gate.wait(0.1):
+            yield None
+        yield from self.inner
+
+
+def replay(path, **options):
+    import drivers
+
+    return drivers.open_source("replay", path=str(path), **options)
+
+
+def start_in_thread(node: Node):
+    result = {}
+
+    def target():
+        try:
+            result["stats"] = node.run()
+        except BaseException as exc:  # handed to the test thread
+            result["error"] = exc
+
+    thread = threading.Thread(target=target, name="test-node-run", daemon=True)
+    thread.start()
+    return thread, result
+
+
+def test_replay_node_streams_deblurred_and_latent_frames_then_stops_cleanly(real_recordings, needs_reconstructor):
+    from edi_live.client import Subscriber
+
+    path = real_recordings[DEMO]
+    cfg = NodeConfig.from_options({"replay": str(path), "speed": 1, "every": 2000,
+                                   "publish": ["tcp://127.0.0.1:*"], "stats_interval_s": 0.2})
+    gate = threading.Event()
+    node = Node(cfg, GatedSource(replay(path, speed=1), gate), reconstructor_factory=real_reconstructor)
+    thread, result = start_in_thread(node)
+    assert node.started.wait(20), result.get("error")
+    endpoint = node.bound_endpoints[0]
+    headers = []
+    with Subscriber(endpoint, newest_only=False, rcvhwm=0) as sub:
+        assert sub.recv_stats(timeout_s=10) is not None, "no stats message: the subscription never became live"
+        gate.set()
+        while True:
+            got = sub.recv(timeout_s=3)
+            if got is None:
+                break
+            header, image = got
+            headers.append(header)
+            assert image.shape == (260, 346) and image.dtype == np.uint8
+        stats = sub.recv_stats(timeout_s=1) or sub.last_stats
+    thread.join(20)
+    assert not thread.is_alive(), "the node did not stop at the end of the recording"
+    assert "error" not in result, result.get("error")
+    seqs = [h["seq"] for h in headers]
+    assert all(b > a for a, b in zip(seqs, seqs[1:])), "seq increases"
+    kinds = {h["kind"] for h in headers}
+    assert kinds == {"deblurred", "latent"}
+    t0, t1 = 1643243628737093, 1643243629248083  # the recording's event time range (its README)
+    assert all(t0 <= h["t"] <= t1 for h in headers)
+    assert all(h["ref_t"] <= h["t"] for h in headers if h["kind"] == "latent")  # causal mode
+    final = result["stats"]
+    assert len(headers) >= final["frames_sent"] * 0.9
+    assert final["aps_frames_in"] == 13
+    assert final["events_processed"] == 319_512  # lossless replay: every event of the file
+    assert final["drops"] == 0
+    for key in ("events_per_s", "frames_per_s", "c_on", "c_off", "reestimations", "drops", "ring_occupancy"):
+        assert key in stats, key
+    leftovers = [t.name for t in threading.enumerate() if t.name in ("pump", "edi-worker", "publisher")]
+    assert leftovers == []
+
+
+def test_truncated_recording_delivers_frames_before_the_fault_and_finalises_out(real_recordings, tmp_path,
+                                                                               needs_reconstructor):
+    dv = pytest.importorskip("dv_processing")
+    data = real_recordings[DEMO].read_bytes()
+    cut = tmp_path / "cut.aedat4"
+    cut.write_bytes(data[: int(len(data) * 0.7)])
+    out = tmp_path / "sharp.aedat4"
+    cfg = NodeConfig.from_options({"replay": str(cut), "speed": 0, "every": 2000, "no_publish": True,
+                                   "out": str(out)})
+    node = Node(cfg, replay(cut, speed=0), reconstructor_factory=real_reconstructor)
+    with pytest.raises(RecordingError) as info:
+        node.run()
+    assert "cut.aedat4" in str(info.value) and "\n" not in str(info.value)
+    written = node.final_stats["out_frames"]
+    assert written > 0 and node.final_stats["aps_frames_in"] >= 1
+    rec = dv.io.MonoCameraRecording(str(out))
+    times = []
+    while (frame := rec.getNextFrame()) is not None:
+        times.append(frame.timestamp)
+    assert len(times) == written and times == sorted(times)
+
+
+def test_duration_and_stop_end_a_looping_replay(real_recordings):
+    path = real_recordings[DEMO]
+    cfg = NodeConfig.from_options({"replay": str(path), "speed": 1, "loop": True, "no_publish": True,
+                                   "duration": 0.6})
+    node = Node(cfg, replay(path, speed=1, loop=True), reconstructor_factory=lambda w, h, e: StandIn())
+    thread, result = start_in_thread(node)
+    thread.join(15)
+    assert not thread.is_alive() and "error" not in result
+    assert result["stats"]["events_processed"] > 0
+
+    cfg = NodeConfig.from_options({"replay": str(path), "speed": 1, "loop": True, "no_publish": True})
+    node = Node(cfg, replay(path, speed=1, loop=True), reconstructor_factory=lambda w, h, e: StandIn())
+    thread, result = start_in_thread(node)
+    assert node.started.wait(10)
+    node.stop()
+    thread.join(15)
+    assert not thread.is_alive() and "error" not in result
+
+
+def test_worker_failure_is_reraised_naming_the_thread(real_recordings, tmp_path):
+    path = real_recordings[DEMO]
+    out = tmp_path / "sharp.aedat4"
+    cfg = NodeConfig.from_options({"replay": str(path), "speed": 0, "no_publish": True, "out": str(out)})
+    node = Node(cfg, replay(path, speed=0), reconstructor_factory=lambda w, h, e: StandIn(fail_on_frame=True))
+    with pytest.raises(NodeError, match="edi-worker thread failed: RuntimeError: boom"):
+        node.run()
+    assert out.stat().st_size > 0  # finalised (header + table) even though nothing was emitted
+
+
+def test_bind_failure_is_raised_before_data_flows(real_recordings):
+    path = real_recordings[DEMO]
+    cfg = NodeConfig.from_options({"replay": str(path), "speed": 0, "publish": ["tcp://192.0.2.1:5555"]})
+    node = Node(cfg, replay(path, speed=0), reconstructor_factory=lambda w, h, e: StandIn())
+    with pytest.raises(BindError, match="192.0.2.1"):
+        node.run()
+    assert node.final_stats.get("events_processed", 0) == 0

@@ -102,9 +102,12 @@ class Subscriber:
 
     def _recv_parts(self, sock: zmq.Socket, timeout_s: float | None) -> tuple[list[zmq.Frame] | None, int]:
         """The next message (or the newest available one with newest_only) and how many were skipped."""
-        if not self._wait(sock, timeout_s):
-            return None, 0
-        parts = sock.recv_multipart(copy=False)
+        try:  # a message already waiting costs no poll
+            parts = sock.recv_multipart(flags=zmq.NOBLOCK, copy=False)
+        except zmq.Again:
+            if not self._wait(sock, timeout_s):
+                return None, 0
+            parts = sock.recv_multipart(copy=False)
         skipped = 0
         while self.newest_only and skipped < _MAX_DRAIN:
             try:

@@ -61,11 +61,6 @@ STATS_KEYS = {
 }
 
 _INT_KEYS = ("seq", "t", "w", "h", "ref_t", "exp_start", "exp_end", "n_events")
-_INT64_MIN, _UINT64_MAX = -(2**63), 2**64 - 1
-
-
-def _is_int(value: object) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def _is_number(value: object) -> bool:
@@ -82,17 +77,19 @@ def dtype_name(dtype: np.dtype) -> str:
 
 
 def frame_header(rec: Reconstruction, seq: int, source: str) -> dict[str, Any]:
-    """The v1 header map for one reconstruction (wire keys)."""
+    """The v1 header map for one reconstruction (wire keys; FRAME_KEYS lists the renames)."""
     height, width = rec.image.shape
-    header: dict[str, Any] = {"v": PROTOCOL_VERSION, "seq": int(seq), "w": int(width), "h": int(height),
-                              "dtype": dtype_name(rec.image.dtype), "source": str(source)}
-    for code_name, wire_key in FRAME_KEYS.items():
-        value = getattr(rec, code_name)
-        header[wire_key] = value if isinstance(value, str) else int(value)
-    if float(rec.c_on) == float(rec.c_off):
-        header["c"] = float(rec.c_on)
+    dtype = "u1" if rec.image.dtype == np.uint8 else dtype_name(rec.image.dtype)
+    header: dict[str, Any] = {
+        "v": PROTOCOL_VERSION, "seq": int(seq), "t": int(rec.t_us), "w": int(width), "h": int(height),
+        "dtype": dtype, "kind": str(rec.kind), "ref_t": int(rec.ref_t_us),
+        "exp_start": int(rec.exposure_start_us), "exp_end": int(rec.exposure_end_us),
+        "n_events": int(rec.n_events), "source": str(source)}
+    c_on, c_off = float(rec.c_on), float(rec.c_off)
+    if c_on == c_off:
+        header["c"] = c_on
     else:
-        header["c_on"], header["c_off"] = float(rec.c_on), float(rec.c_off)
+        header["c_on"], header["c_off"] = c_on, c_off
     return header
 
 
@@ -106,7 +103,8 @@ def encode_frame(rec: Reconstruction, seq: int, source: str) -> list[bytes | mem
 
 def _as_buffer(part: object, what: str) -> memoryview:
     try:
-        return memoryview(part).cast("B")  # bytes, bytearray, memoryview and zmq.Frame all qualify
+        view = memoryview(part)
+        return view if view.format == "B" and view.ndim == 1 else view.cast("B")  # bytes, bytearray, memoryview and zmq.Frame all qualify
     except TypeError as exc:
         raise ClientError(f"message {what} is a {type(part).__name__}, not a byte buffer") from exc
 
@@ -139,29 +137,26 @@ def _check_parts(parts: Sequence[object], topic: bytes, count: int, max_bytes: i
 
 def _check_header(header: dict) -> None:
     version = header.get("v")
-    if not _is_int(version):
+    if type(version) is not int:  # `type() is int` also refuses bool, which msgpack keeps apart
         raise ClientError(f"frame header has no integer protocol version 'v' (got {version!r})")
     if version != PROTOCOL_VERSION:
         raise ClientError(f"frame uses wire protocol v{version}; this client speaks v{PROTOCOL_VERSION}: "
                           "upgrade edi-live on the subscriber side")
-    for key in _INT_KEYS:
-        value = header.get(key)
-        if not _is_int(value) or not _INT64_MIN <= value <= _UINT64_MAX:
-            raise ClientError(f"frame header key {key!r} must be an integer (got {value!r})")
-    for key in ("seq", "n_events"):
-        if header[key] < 0:
-            raise ClientError(f"frame header key {key!r} must be >= 0 (got {header[key]})")
+    bad = [key for key in _INT_KEYS if type(header.get(key)) is not int]
+    if bad:
+        raise ClientError(f"frame header key {bad[0]!r} must be an integer (got {header.get(bad[0])!r})")
+    if header["seq"] < 0 or header["n_events"] < 0:
+        raise ClientError(f"frame header keys 'seq' and 'n_events' must be >= 0 "
+                          f"(got {header['seq']}, {header['n_events']})")
     if header["w"] <= 0 or header["h"] <= 0:
         raise ClientError(f"frame size must be positive (got w={header['w']}, h={header['h']})")
     if header.get("dtype") not in DTYPES:
         raise ClientError(f"frame dtype {header.get('dtype')!r} is unknown (known: {sorted(DTYPES)})")
     if header.get("kind") not in KINDS:
         raise ClientError(f"frame kind {header.get('kind')!r} is unknown (known: {list(KINDS)})")
-    if not isinstance(header.get("source"), str):
+    if type(header.get("source")) is not str:
         raise ClientError(f"frame header key 'source' must be a string (got {header.get('source')!r})")
-    has_c = "c" in header
-    thresholds = ["c"] if has_c else ["c_on", "c_off"]
-    for key in thresholds:
+    for key in ("c",) if "c" in header else ("c_on", "c_off"):
         if not _is_number(header.get(key)):
             raise ClientError(f"frame header needs 'c' or both 'c_on' and 'c_off' as finite numbers "
                               f"(got {key}={header.get(key)!r})")
@@ -221,7 +216,7 @@ def decode_stats(parts: Sequence[object], max_bytes: int = MAX_HEADER_BYTES + 16
     """Validate and decode a stats message into a map with wire keys. Raises ClientError."""
     bufs = _check_parts(parts, STATS_TOPIC, 2, max_bytes)
     stats = _unpack_map(bufs[1], "stats map")
-    if stats.get("v") != PROTOCOL_VERSION or not _is_int(stats.get("v")):
+    if type(stats.get("v")) is not int or stats["v"] != PROTOCOL_VERSION:
         raise ClientError(f"stats message uses wire protocol v{stats.get('v')!r}; this client speaks "
                           f"v{PROTOCOL_VERSION}")
     return stats

@@ -1,0 +1,146 @@
+"""`python -m edi_live` in subprocesses: exit codes, one-line errors, --help, signals, the --out file.
+
+Every subprocess runs under a timeout; sockets bind random ports (tcp://127.0.0.1:*), read back from the log.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+DEMO = "emlb_demo-01_davis346.aedat4"
+
+
+def _env() -> dict:
+    extra = os.environ.get("PYTHONPATH")
+    return {**os.environ, "PYTHONPATH": str(REPO) + (os.pathsep + extra if extra else "")}
+
+
+def run_cli(*args: str, timeout_s: float = 40.0) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "edi_live", *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=timeout_s, env=_env())
+
+
+def error_lines(stderr: str) -> list[str]:
+    return [line for line in stderr.splitlines() if line.startswith("edi-live: error:")]
+
+
+@pytest.fixture
+def needs_reconstructor():
+    pytest.importorskip("edi_live.reconstructor")
+
+
+def test_help_teaches_groups_units_defaults_and_examples():
+    proc = run_cli("--help")
+    assert proc.returncode == 0
+    out = proc.stdout
+    for group in ("input (one of)", "device options", "pacing", "EDI reconstruction", "output"):
+        assert group in out
+    for flag in ("--device", "--replay", "--speed", "--loop", "--duration", "--every", "--c-on", "--mode",
+                 "--max-fps", "--publish", "--no-publish", "--curve-secret-key", "--out", "--record", "--config",
+                 "--log-level", "--usb-backend", "--list-devices", "--exposure-us"):
+        assert flag in out, flag
+    assert "tcp://127.0.0.1:5555" in out and "default: 1000" in out and "µs" in out
+    examples = [line for line in out.split("examples:")[1].splitlines() if line.strip().startswith("edi-live ")]
+    assert len(examples) == 3
+
+
+@pytest.mark.parametrize("args,code,fragment", [
+    (("--bogus",), 2, "unrecognized arguments: --bogus"),
+    (("--replay", "x.aedat4", "--every", "zero"), 2, "invalid int value"),
+    (("--replay", "x.aedat4", "--every", "0"), 2, "every must be an integer >= 1"),
+    ((), 2, "choose an input"),
+    (("--device", "davis240", "--replay", "x.aedat4"), 2, "choose one input"),
+    (("--replay", "does-not-exist.aedat4"), 1, "does-not-exist.aedat4: no such file"),
+    (("--device", "davis240", "--usb-backend", "no_such_module:backend"), 2, "cannot import module"),
+    (("--config", "no-such.toml"), 2, "config file no-such.toml not found"),
+])
+def test_errors_are_one_line_with_the_right_exit_code(args, code, fragment):
+    proc = run_cli(*args)
+    assert proc.returncode == code, proc.stderr
+    lines = error_lines(proc.stderr)
+    assert len(lines) == 1 and fragment in lines[0], proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert proc.stderr.strip().count("\n") == 0, "nothing but the one error line"
+
+
+def test_not_an_aedat4_file_is_one_line_exit_1(tmp_path):
+    bad = tmp_path / "bad.aedat4"
+    bad.write_bytes(b"this is not an AEDAT4 file at all" * 10)
+    proc = run_cli("--replay", str(bad), "--no-publish")
+    assert proc.returncode == 1
+    assert len(error_lines(proc.stderr)) == 1 and "bad.aedat4" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_debug_log_level_adds_the_traceback(tmp_path):
+    bad = tmp_path / "bad.aedat4"
+    bad.write_bytes(b"x" * 100)
+    proc = run_cli("--replay", str(bad), "--no-publish", "--log-level", "debug")
+    assert proc.returncode == 1 and "Traceback" in proc.stderr and len(error_lines(proc.stderr)) == 1
+
+
+def test_list_devices_through_an_emulated_backend():
+    proc = run_cli("--list-devices", "--usb-backend", "drivers.emulator:backend")
+    assert proc.returncode == 0, proc.stderr
+    assert "davis240" in proc.stdout
+
+
+def test_replay_speed_0_ends_by_itself_with_a_summary_and_a_dv_readable_out(real_recordings, tmp_path,
+                                                                           needs_reconstructor):
+    dv = pytest.importorskip("dv_processing")
+    out = tmp_path / "sharp.aedat4"
+    toml = tmp_path / "edi.toml"
+    toml.write_text(f'replay = "{real_recordings[DEMO]}"\nspeed = 0\nevery = 5000\n')
+    proc = run_cli("--config", str(toml), "--publish", "tcp://127.0.0.1:*", "--out", str(out), timeout_s=60)
+    assert proc.returncode == 0, proc.stderr
+    assert "done in" in proc.stderr and "13 APS frames in" in proc.stderr
+    written = int(re.search(r"--out frames written: (\d+)", proc.stderr).group(1))
+    rec = dv.io.MonoCameraRecording(str(out))
+    frames = []
+    while (f := rec.getNextFrame()) is not None:
+        frames.append(f)
+    assert len(frames) == written > 13
+    assert rec.getFrameResolution() == (346, 260)
+    assert [f.timestamp for f in frames] == sorted(f.timestamp for f in frames)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_signals_stop_cleanly_and_finalise_out(real_recordings, tmp_path, sig, needs_reconstructor):
+    dv = pytest.importorskip("dv_processing")
+    out = tmp_path / "sharp.aedat4"
+    proc = subprocess.Popen([sys.executable, "-m", "edi_live", "--replay", str(real_recordings[DEMO]), "--loop",
+                             "--speed", "1", "--every", "2000", "--publish", "tcp://127.0.0.1:*", "--out", str(out)],
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=_env())
+    try:
+        endpoint = None
+        deadline = time.monotonic() + 30
+        while endpoint is None and time.monotonic() < deadline:
+            line = proc.stderr.readline()
+            if not line:
+                break
+            m = re.search(r"publishing on (tcp://\S+)", line)
+            endpoint = m.group(1) if m else None
+        assert endpoint, "the node never reported its endpoint"
+        from edi_live.client import Subscriber
+
+        with Subscriber(endpoint) as sub:
+            assert sub.recv(timeout_s=20) is not None, "no frame before the signal"
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err and "done in" in err
+    rec = dv.io.MonoCameraRecording(str(out))
+    assert rec.getNextFrame() is not None

@@ -481,9 +481,10 @@ def targets_report(results: dict[str, dict[str, Score]], methods) -> str:
     """Issue 2's accuracy targets: auto c within 0.3 dB of oracle c (mean over the whole suite, deblurred and
     latent); on the static scene never more than 0.5 dB below the blurry frame."""
     oracle = {"functions": "EDI oracle c (edi.py)", "reconstructor": "EDI oracle c (reconstructor)"}
-    lines = ["| method | vs | mean dPSNR f (dB) | mean dPSNR latent (dB) | target <= 0.3 dB below | "
-             "static: PSNR f - blurry | static: PSNR latent - blurry | target >= -0.5 dB |",
-             "|---|---|---:|---:|---|---:|---:|---|"]
+    lines = ["| method | vs | dPSNR f, all scenes (dB) | dPSNR latent, all | dPSNR f, moving only | "
+             "dPSNR latent, moving only | target: >= -0.3 dB | static: PSNR f - blurry | "
+             "static: PSNR latent - blurry | target: >= -0.5 dB |",
+             "|---|---|---:|---:|---:|---:|---|---:|---:|---|"]
     labels = list(results)
     static = [lab for lab in labels if is_static(lab)]
     for n, _, group in methods:
@@ -495,7 +496,11 @@ def targets_report(results: dict[str, dict[str, Score]], methods) -> str:
             continue
         dd = float(np.mean([a.psnr_deblur - b.psnr_deblur for a, b in pairs]))
         dl = float(np.mean([a.psnr_latent - b.psnr_latent for a, b in pairs]))
-        ok = "met" if dd >= -0.3 and dl >= -0.3 else "MISSED"
+        mv = [(results[lab][n], results[lab][ref]) for lab in labels
+              if not is_static(lab) and n in results[lab] and ref in results[lab]]
+        md = float(np.mean([a.psnr_deblur - b.psnr_deblur for a, b in mv])) if mv else float("nan")
+        ml = float(np.mean([a.psnr_latent - b.psnr_latent for a, b in mv])) if mv else float("nan")
+        ok = "met" if min(dd, dl, md, ml) >= -0.3 else "MISSED"
         st = ["n/a", "n/a", "n/a"]
         for lab in static:
             per = results[lab]
@@ -503,7 +508,8 @@ def targets_report(results: dict[str, dict[str, Score]], methods) -> str:
                 sd = per[n].psnr_deblur - per["blurry frame"].psnr_deblur
                 sl = per[n].psnr_latent - per["blurry frame"].psnr_latent
                 st = [f"{sd:+.2f}", f"{sl:+.2f}", "met" if min(sd, sl) >= -0.5 else "MISSED"]
-        lines.append(f"| {n} | {ref} | {dd:+.2f} | {dl:+.2f} | {ok} | {st[0]} | {st[1]} | {st[2]} |")
+        lines.append(f"| {n} | {ref} | {dd:+.2f} | {dl:+.2f} | {md:+.2f} | {ml:+.2f} | {ok} | "
+                     f"{st[0]} | {st[1]} | {st[2]} |")
     return "\n".join(lines)
 
 
@@ -552,8 +558,9 @@ def save_plot(path: str | Path, results: dict[str, dict[str, Score]], methods, s
             xs = [max(a[i_ms], 1e-3) for _, a in pts]
             ys = [a[i_ps] for _, a in pts]
             ax.plot(xs, ys, "-", lw=1, alpha=0.7, marker=".", label=f"sweep {curve}")
-            for (setting, _), x, y in zip(pts, xs, ys):
-                ax.annotate(setting, (x, y), fontsize=6, xytext=(3, -9), textcoords="offset points")
+            for j, ((setting, _), x, y) in enumerate(zip(pts, xs, ys)):
+                ax.annotate(setting, (x, y), fontsize=6, rotation=35,
+                            xytext=(2, 6 if j % 2 else -14), textcoords="offset points")
     for ax, what in zip(axes, ("deblurred frame at f (ms per APS frame, incl. c search)",
                                "latent frames between APS frames (ms per latent frame)")):
         ax.set_xscale("log")

@@ -75,6 +75,7 @@ class SceneConfig:
     first_exposure_us: int = 10_000  # start of the first exposure, relative to t0
     aps_noise_dn: float = 0.0  # Gaussian read noise before 8-bit rounding (DN)
     latent_per_interval: int = 4  # ground-truth latent frames between consecutive mid-exposures
+    gt_extra_us: tuple[int, ...] = ()  # more ground-truth times (µs after t0), e.g. the times a node emits
     # rendering
     step_us: int = 0  # render grid; 0 = automatic (<= max_step_px of motion per step)
     max_step_px: float = 0.25
@@ -253,8 +254,8 @@ class Simulation:
     aps_linear: np.ndarray  # (n_frames, H, W) float32: exact exposure means on 0..255, before noise/rounding
     gt_t_us: np.ndarray  # (n_gt,) int64 ground-truth times
     gt_images: np.ndarray  # (n_gt, H, W) float32 sharp linear intensity on 0..255
-    gt_kind: np.ndarray  # (n_gt,) int8: 0 = mid-exposure of frame gt_frame[i], 1 = latent after that frame
-    gt_frame: np.ndarray  # (n_gt,) int32: index of the APS frame whose mid-exposure precedes (or is) t
+    gt_kind: np.ndarray  # (n_gt,) int8: 0 = mid-exposure of frame gt_frame[i], 1 = latent after it, 2 = extra
+    gt_frame: np.ndarray  # (n_gt,) int32: index of the APS frame whose mid-exposure precedes (or is) t; -1 none
     c_on_map: np.ndarray  # (H, W) float32 per-pixel ON thresholds actually used
     c_off_map: np.ndarray
     hot_pixel_xy: np.ndarray  # (n_hot, 2) int
@@ -366,7 +367,14 @@ def simulate(cfg: SceneConfig) -> Simulation:
             for j in range(1, cfg.latent_per_interval + 1):
                 gt_t.append(m + (mids[i + 1] - m) * j // (cfg.latent_per_interval + 1))
                 gt_kind.append(1), gt_frame.append(i)
-    gt_t = np.array(gt_t, np.int64)
+    for t in cfg.gt_extra_us:
+        if not 0 <= t <= duration_us:
+            raise ValueError(f"ground-truth time {t} µs is outside the simulated 0..{duration_us} µs")
+        gt_t.append(int(t)), gt_kind.append(2), gt_frame.append(int(np.searchsorted(mids, t, side="right")) - 1)
+    order = np.argsort(np.array(gt_t, np.int64), kind="stable")
+    gt_t = np.array(gt_t, np.int64)[order]
+    gt_kind = [gt_kind[i] for i in order]
+    gt_frame = [gt_frame[i] for i in order]
     gt_images = np.zeros((gt_t.size, h, w), np.float32)
     aps_acc = np.zeros((starts.size, h * w), np.float64)
 
@@ -393,7 +401,7 @@ def simulate(cfg: SceneConfig) -> Simulation:
             seg = e0 * ratio
             for a in active:
                 aps_acc[a] += seg
-        while gt_pos < gt_t.size and gt_t[gt_pos] <= tb:
+        while gt_pos < gt_t.size and gt_t[gt_pos] <= tb:  # sorted, so each is rendered in its segment
             a = (gt_t[gt_pos] - ta) / step_us
             gt_images[gt_pos] = (255.0 * np.exp(l0 + a * (l1 - l0))).reshape(h, w)
             gt_pos += 1
@@ -532,6 +540,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--hot-rate-hz", type=float)
     ap.add_argument("--aps-noise-dn", type=float)
     ap.add_argument("--latent-per-interval", type=int)
+    ap.add_argument("--gt-times-us", type=lambda v: tuple(int(x) for x in v.split(",")), metavar="T1,T2,...",
+                    help="extra ground-truth times, µs after the start")
     ap.add_argument("--imu", action="store_true", help="also write an IMU stream")
     ap.add_argument("--no-ground-truth", action="store_true", help="do not write OUT.npz")
     args = ap.parse_args(argv)
@@ -545,7 +555,7 @@ def main(argv: list[str] | None = None) -> int:
               "frame_interval_us": args.frame_interval_us, "refractory_us": args.refractory_us,
               "noise_rate_hz": args.noise_rate_hz, "hot_pixels": args.hot_pixels, "hot_rate_hz": args.hot_rate_hz,
               "aps_noise_dn": args.aps_noise_dn, "latent_per_interval": args.latent_per_interval,
-              "velocity_px_s": args.velocity}
+              "velocity_px_s": args.velocity, "gt_extra_us": args.gt_times_us}
     over.update({k: v for k, v in simple.items() if v is not None})
     if args.c is not None:
         over["c_on"] = over["c_off"] = args.c

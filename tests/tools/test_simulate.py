@@ -97,11 +97,13 @@ def test_aps_frame_is_the_mean_of_linear_intensity_over_the_exposure():
 
 
 def test_ground_truth_matches_the_rendered_scene_at_its_times():
-    cfg = small(velocity_px_s=(150.0, 40.0), rotation_deg_s=20.0)
+    cfg = small(velocity_px_s=(150.0, 40.0), rotation_deg_s=20.0, gt_extra_us=(77_777, 3_001))
     s = simulate(cfg)
     assert np.all(np.diff(s.gt_t_us) > 0)
-    assert set(s.gt_kind.tolist()) == {0, 1}
-    for i in (0, 3, len(s.gt_t_us) - 1):
+    assert set(s.gt_kind.tolist()) == {0, 1, 2}
+    extra = np.flatnonzero(s.gt_kind == 2)
+    np.testing.assert_array_equal(s.gt_t_us[extra] - cfg.t0_us, [3_001, 77_777])
+    for i in (0, 3, len(s.gt_t_us) - 1, *extra):
         expected = 255.0 * np.exp(_log_at(cfg, s.step_us, s.gt_t_us[i] - cfg.t0_us))
         np.testing.assert_allclose(s.gt_images[i], expected, rtol=1e-4)
     mids = s.gt_t_us[s.gt_kind == 0]

@@ -58,7 +58,8 @@ class _WordStream:
         self.ev: list[np.ndarray] = []
         self.blocks: list[tuple[int, int, int, Any]] = []  # (t, order, n, payload)
         self.latest = None
-        self.done = False
+        self.done = False       # everything encoded
+        self.exhausted = False  # the packet iterator has ended
         self.late_blocks = 0
         self._n = 0
 
@@ -83,47 +84,47 @@ class _WordStream:
         self._n += 1
         self.blocks.append((t, order, self._n, payload))
 
+    def ensure_shift(self) -> None:
+        """Read packets (without encoding) until the recording time of device time 0 is known."""
+        while self.shift is None and not self.exhausted:
+            try:
+                self._add(next(self.it))
+            except StopIteration:
+                self.exhausted = True
+
     def next_block(self) -> tuple[np.ndarray, int] | None:
         """The next words and the device time they reach, or None at the end of the recording."""
-        while True:
-            if self.done:
-                return None
-            try:
-                pkt = next(self.it)
-                self._add(pkt)
-                if self.latest is None:
-                    continue
-                horizon = self.latest - self.holdback_us
-            except StopIteration:
-                horizon = 2**62
-                if self.loop and (self.ev or self.blocks or self.shift is not None):
-                    words = self._encode_until(horizon)
+        while not self.done:
+            if not self.exhausted:
+                try:
+                    self._add(next(self.it))
+                except StopIteration:
+                    self.exhausted = True
+            if self.exhausted:
+                words = self._encode_until(2**62)
+                if self.loop and self.shift is not None:
                     self._restart_loop()
-                    return words
-                self.done = True
-            words = self._encode_until(horizon)
-            if words is not None or self.done:
+                else:
+                    self.done = True
+            elif self.latest is None:
+                continue
+            else:
+                words = self._encode_until(self.latest - self.holdback_us)
+            if words is not None:
                 return words
+        return None
 
     def _restart_loop(self) -> None:
         last_dev = self.enc.last_t
         self.it = iter(self.factory())
-        first = None
+        self.exhausted = False
         self.latest = None
-        while first is None:
-            try:
-                pkt = next(self.it)
-            except StopIteration:
-                self.done = True
-                return
-            saved, self.shift = self.shift, None
-            self._add(pkt)
-            first, self.shift = self.shift, saved
-        self.shift = first - (last_dev + 1000)  # continue device time 1 ms after the previous pass
-        self._shift_pending()
-
-    def _shift_pending(self) -> None:
-        pass  # pending items keep recording time; conversion happens at encode time
+        saved, self.shift = self.shift, None
+        self.ensure_shift()
+        if self.shift is None:  # an empty recording
+            self.done, self.shift = True, saved
+            return
+        self.shift -= last_dev + 1000  # continue device time 1 ms after the previous pass
 
     def _encode_until(self, horizon: int) -> tuple[np.ndarray, int] | None:
         if self.shift is None:
@@ -251,11 +252,21 @@ def _recording_factory(recording: Any) -> Callable[[], Iterable[Packet]]:
 
 
 def _recording_size(recording: Any) -> tuple[int, int] | None:
+    """(width, height): from the file header, or for in-memory packets from a frame or the event extent."""
     if isinstance(recording, (str, bytes)) or hasattr(recording, "__fspath__"):
         from edi_live.aedat4.reader import Aedat4Reader
         with Aedat4Reader(recording) as r:
             return r.source_info.width, r.source_info.height
-    return None
+    packets = [p for p in recording if isinstance(p, Packet)]
+    for p in packets:
+        if p.frames:
+            return p.frames[0].width, p.frames[0].height
+    xs = [int(p.events["x"].max()) for p in packets if len(p.events)]
+    ys = [int(p.events["y"].max()) for p in packets if len(p.events)]
+    if not xs:
+        return None
+    fits240 = max(xs) < 240 and max(ys) < 180
+    return (240, 180) if fits240 else (max(346, max(xs) + 1), max(260, max(ys) + 1))
 
 
 # ---- the pyusb backend ---------------------------------------------------------------------------------
@@ -273,6 +284,8 @@ class EmulatorBackend(usb.backend.IBackend):
             raise ValueError(f"speed must be >= 0 (got {speed})")
         self.faults = faults
         self.speed = float(speed)
+        if recording is not None and not (isinstance(recording, (str, bytes)) or hasattr(recording, "__fspath__")):
+            recording = list(recording)  # in-memory packets: read twice (size, then stream)
         size = _recording_size(recording) if recording is not None else None
         mdl = models.get_model(model) if model else (models.DAVIS240 if size is None or size == (240, 180)
                                                       else models.DAVIS346)
@@ -333,12 +346,13 @@ class EmulatorBackend(usb.backend.IBackend):
     def edi_live_epoch_us(self) -> int | None:
         """Recording time of device time 0 (the driver adds it so timestamps match the recording)."""
         with self._lock:
-            if self.stream.shift is None and not self.stream.done:
-                self._fill_locked(need_one=True)
+            self.stream.ensure_shift()
             return self.stream.shift
 
     def stream_ended(self) -> bool:
         with self._lock:
+            if not self.stream.done and self.streaming and not self._pending:
+                self._fill_locked()
             return self.stream.done and not self._pending
 
     def _present(self) -> bool:

@@ -97,6 +97,11 @@ class DavisDecoder:
         """No later packet holds an event earlier than this (the current output time)."""
         return self._wm
 
+    def anchor(self, arrival_ns: int) -> None:
+        """Host time (monotonic ns) at which the device's current time was reached, e.g. when streaming
+        started at device time 0; lets a gap before the first chunk still be re-anchored."""
+        self._last_arrival_ns = int(arrival_ns)
+
     def mark_gap(self) -> None:
         """Raw bytes were lost before the next chunk: drop partial frame/IMU/row state, re-anchor the wrap
         count on the next chunk from host arrival times, and flag the next packet as `gap`."""

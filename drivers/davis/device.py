@@ -261,6 +261,7 @@ class DavisSource:
                                      dvs_orientation=info["dvs_orientation"], aps_orientation=info["aps_orientation"],
                                      imu_orientation=info["imu_orientation"], imu_type=info["imu_type"],
                                      adc_x2=model.adc_x2, time_offset_us=epoch_us)
+        self._decoder.anchor(time.monotonic_ns())  # device time 0 ~ now (MUX and timestamps just started)
         self._reader = threading.Thread(target=self._read_loop, args=(t, self._queue), name="usb-reader",
                                         daemon=True)
         self._reader.start()

@@ -76,6 +76,7 @@ class SceneConfig:
     aps_noise_dn: float = 0.0  # Gaussian read noise before 8-bit rounding (DN)
     latent_per_interval: int = 4  # ground-truth latent frames between consecutive mid-exposures
     gt_extra_us: tuple[int, ...] = ()  # more ground-truth times (µs after t0), e.g. the times a node emits
+    ground_truth: bool = True  # False: no sharp frames (long recordings: they cost H*W*4 bytes each)
     # rendering
     step_us: int = 0  # render grid; 0 = automatic (<= max_step_px of motion per step)
     max_step_px: float = 0.25
@@ -371,12 +372,16 @@ def simulate(cfg: SceneConfig) -> Simulation:
         if not 0 <= t <= duration_us:
             raise ValueError(f"ground-truth time {t} µs is outside the simulated 0..{duration_us} µs")
         gt_t.append(int(t)), gt_kind.append(2), gt_frame.append(int(np.searchsorted(mids, t, side="right")) - 1)
+    if not cfg.ground_truth:
+        gt_t, gt_kind, gt_frame = [], [], []
     order = np.argsort(np.array(gt_t, np.int64), kind="stable")
     gt_t = np.array(gt_t, np.int64)[order]
     gt_kind = [gt_kind[i] for i in order]
     gt_frame = [gt_frame[i] for i in order]
     gt_images = np.zeros((gt_t.size, h, w), np.float32)
-    aps_acc = np.zeros((starts.size, h * w), np.float64)
+    aps_linear = np.zeros((starts.size, h, w), np.float32)
+    aps_acc: dict[int, np.ndarray] = {}  # only the exposures open right now (float64 accumulators)
+    n_seg = cfg.exposure_us // step_us
 
     l0 = renderer.log_frame(0.0).ravel()
     ref = l0.copy()
@@ -400,7 +405,12 @@ def simulate(cfg: SceneConfig) -> Simulation:
             np.divide(np.expm1(dl), dl, out=ratio, where=np.abs(dl) > 1e-6)
             seg = e0 * ratio
             for a in active:
-                aps_acc[a] += seg
+                if a in aps_acc:
+                    aps_acc[a] += seg
+                else:
+                    aps_acc[a] = seg.astype(np.float64)
+        for a in np.flatnonzero(ends == tb):
+            aps_linear[a] = (255.0 * aps_acc.pop(int(a)) / n_seg).reshape(h, w)
         while gt_pos < gt_t.size and gt_t[gt_pos] <= tb:  # sorted, so each is rendered in its segment
             a = (gt_t[gt_pos] - ta) / step_us
             gt_images[gt_pos] = (255.0 * np.exp(l0 + a * (l1 - l0))).reshape(h, w)
@@ -419,7 +429,6 @@ def simulate(cfg: SceneConfig) -> Simulation:
     events = _to_events(pix[order], t_us[order] + cfg.t0_us, pol[order], w)
     is_noise = is_noise[order]
 
-    aps_linear = (255.0 * aps_acc / (cfg.exposure_us // step_us)).reshape(-1, h, w).astype(np.float32)
     frames = []
     for i in range(starts.size):
         img = aps_linear[i].astype(np.float64)
@@ -565,6 +574,8 @@ def main(argv: list[str] | None = None) -> int:
         over["c_off"] = args.c_off
     if args.imu:
         over["imu"] = True
+    if args.no_ground_truth:
+        over["ground_truth"] = False
     try:
         cfg = preset(args.preset, **over)
         sim = simulate(cfg)

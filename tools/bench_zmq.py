@@ -8,7 +8,8 @@ message, as a real client does). Two publisher sides are measured:
 Lossless: SNDHWM = RCVHWM = 0, and a readiness handshake so the slow-joiner effect loses nothing.
 
     python tools/bench_zmq.py                      # 240x180 u1, 20,000 frames, 5 runs, every combination
-    python tools/bench_zmq.py --size 346x260 --runs 3 --mode raw
+    python tools/bench_zmq.py --size 346x260 --runs 3 --mode raw --latency-fps 0
+It also measures one-way latency (Publisher.submit -> decoded in the subscriber process) at a paced rate.
 """
 
 from __future__ import annotations
@@ -126,6 +127,50 @@ def publish_node(endpoint_holder, n: int, image: np.ndarray, ready, start_sub) -
         print(f"  (publisher dropped {dropped})")
 
 
+def latency_subscriber(endpoint: str, n: int, ready, result) -> None:
+    """Receives frames whose `t` is the publisher's time.monotonic_ns() // 1000; records the one-way age."""
+    from edi_live.client import Subscriber
+
+    ages_us = []
+    with Subscriber(endpoint, newest_only=False, rcvhwm=0, stats=False) as sub:
+        deadline = time.monotonic() + 60
+        while len(ages_us) < n and time.monotonic() < deadline:
+            item = sub.recv(1.0)
+            if item is None:
+                continue
+            now_us = time.monotonic_ns() // 1000
+            if item[0]["n_events"] == 0:  # warm-up
+                ready.set()
+                continue
+            ages_us.append(now_us - item[0]["t"])
+    result.put(ages_us)
+
+
+def latency_run(fps: float, seconds: float, image: np.ndarray) -> list[int]:
+    """Paced Publisher.submit() at `fps`; one-way latency submit -> decoded in the subscriber process."""
+    from edi_live.publisher import Publisher
+
+    ctx = mp.get_context("spawn")
+    ready, result = ctx.Event(), ctx.Queue()
+    n = int(fps * seconds)
+    pub = Publisher(["tcp://127.0.0.1:*"], "bench")
+    pub.start()
+    proc = ctx.Process(target=latency_subscriber, args=(pub.bound_endpoints[0], n, ready, result), daemon=True)
+    proc.start()
+    h, w = image.shape
+    while not ready.wait(0.01):
+        pub.submit(Reconstruction(image, 0, "latent", 0, 0, 0, 0.2, 0.2, 0))
+    t0 = time.monotonic()
+    for i in range(n):
+        while time.monotonic() < t0 + i / fps:
+            time.sleep(min(0.0005, max(0.0, t0 + i / fps - time.monotonic())))
+        pub.submit(Reconstruction(image, time.monotonic_ns() // 1000, "latent", 0, 0, 0, 0.2, 0.2, 1))
+    ages = result.get(timeout=90)
+    proc.join(10)
+    pub.close()
+    return ages
+
+
 def one_run(mode: str, n: int, image: np.ndarray, kind: str) -> tuple[int, float]:
     ctx = mp.get_context("spawn")
     ready, result = ctx.Event(), ctx.Queue()
@@ -149,6 +194,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--subscriber", choices=["client", "bare", "both"], default="both",
                         help="client = edi_live.client.Subscriber (validates every message); bare = a plain "
                              "SUB socket reading only the header (default: both)")
+    parser.add_argument("--latency-fps", type=float, default=1000.0,
+                        help="also measure one-way latency at this paced frame rate (0 = skip; default 1000)")
+    parser.add_argument("--latency-s", type=float, default=3.0, help="seconds of paced frames (default 3)")
     args = parser.parse_args(argv)
     w, h = (int(v) for v in args.size.lower().split("x"))
     image = np.random.default_rng(0).integers(0, 256, size=(h, w), dtype=np.uint8)
@@ -166,6 +214,11 @@ def main(argv: list[str] | None = None) -> int:
             med = statistics.median(rates)
             print(f"{mode:>9} -> {kind:<6}: median {med:,.0f} frames/s = {med * w * h / 1e9:.2f} GB/s "
                   f"(runs {min(rates):,.0f}-{max(rates):,.0f})")
+    if args.latency_fps > 0:
+        ages = np.array(latency_run(args.latency_fps, args.latency_s, image))
+        p50, p99 = np.percentile(ages, [50, 99])
+        print(f"latency at {args.latency_fps:.0f} fps paced, Publisher.submit -> client decoded: "
+              f"p50 {p50:.0f} us, p99 {p99:.0f} us, max {ages.max():.0f} us ({len(ages)} frames)")
     return 0
 
 

@@ -181,17 +181,6 @@ def _split(events: np.ndarray, frames: list[Frame], imu: np.ndarray, trig: np.nd
         e0, i0, g0 = e1, i1, g1
 
 
-def _check_events(ev: np.ndarray, width: int, height: int, path: str, pos: int) -> None:
-    """Events must be sorted and on the sensor; anything else means a corrupt packet (read near byte `pos`)."""
-    if not len(ev):
-        return
-    t = ev["t"]
-    if len(t) > 1 and bool((t[1:] < t[:-1]).any()):
-        raise RecordingError("event timestamps go backwards (corrupt event packet)", path, pos)
-    if width and (int(ev["x"].max()) >= width or int(ev["y"].max()) >= height):
-        raise RecordingError(f"events outside the {width}x{height} sensor (corrupt event packet)", path, pos)
-
-
 def merged_packets(path: str | os.PathLike, *, time_offset_us: int = 0, max_packet_us: int = 10_000,
                    horizon_us: int = 1_000_000, max_pending_events: int = 4_000_000,
                    span: dict | None = None) -> Iterator[Packet]:
@@ -202,7 +191,7 @@ def merged_packets(path: str | os.PathLike, *, time_offset_us: int = 0, max_pack
     added to every timestamp (used by `--loop`). Packets span at most `max_packet_us` of event time. On a defect the
     packets before it are yielded, then `RecordingError` is raised. `span`, if given, receives 't_first'/'t_last'.
     """
-    with Aedat4Reader(path, validate=False) as reader:  # events are validated below, in larger batches
+    with Aedat4Reader(path, validate=True) as reader:  # each event packet: sorted and on the sensor
         primary: dict[int, str] = {}
         for s in reader.streams:
             if s.supported and s.type not in primary.values():
@@ -210,7 +199,6 @@ def merged_packets(path: str | os.PathLike, *, time_offset_us: int = 0, max_pack
             elif s.supported:
                 warnings.warn(f"{reader.path}: a second {s.type} stream ({s.id} '{s.name}') is not replayed",
                               RuntimeWarning, stacklevel=2)
-        width, height = reader.source_info.width, reader.source_info.height
         m = _Merger(reader.path, list(primary.values()), int(time_offset_us), max_packet_us, horizon_us,
                     max_pending_events)
         error: RecordingError | None = None
@@ -220,21 +208,13 @@ def merged_packets(path: str | os.PathLike, *, time_offset_us: int = 0, max_pack
                 if kind is None:
                     continue
                 m.feed(kind, pos, data)
-                for packet in m.emit(m.bound()):
-                    _check_events(packet.events, width, height, reader.path, pos)
-                    yield packet
+                yield from m.emit(m.bound())
         except RecordingError as exc:
             error = exc
         # everything read before the end (or the defect) is final: deliver it, then report the defect
         last_event_t = m.last.get("EVTS", _NEG_INF)
         end_mark = (last_event_t if last_event_t > _NEG_INF else m.t_last) + 1
         for packet in list(m.emit(_POS_INF)):
-            if error is None:
-                try:
-                    _check_events(packet.events, width, height, reader.path, reader.file_size)
-                except RecordingError as exc:
-                    error = exc
-                    break
             packet.watermark_us = min(packet.watermark_us, max(end_mark, m.t_first))
             yield packet
         if span is not None:

@@ -23,6 +23,7 @@ import numpy as np
 import zstandard
 
 from edi_live.aedat4 import schema as S
+from edi_live.aedat4._check import check_events
 from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, Frame, SourceInfo
 from edi_live.errors import RecordingError
 
@@ -269,8 +270,12 @@ class Aedat4Reader:
                     data = _imu(payload)
                 else:
                     data = _triggers(payload)
+            except RecordingError:
+                raise
             except S.FlatBufferError as exc:
                 raise self._error(f"corrupt {stream.type} packet: {exc} (payload byte {exc.pos})", pos) from None
+            except Exception as exc:  # anything else a damaged payload provokes (struct, numpy, ...) is the same fault
+                raise self._error(f"corrupt {stream.type} packet ({type(exc).__name__}: {exc})", pos) from exc
             yield stream, pos, data
 
     def events(self) -> Iterator[np.ndarray]:
@@ -280,15 +285,15 @@ class Aedat4Reader:
 
     def _events(self, payload: bytes, stream: StreamInfo, pos: int) -> np.ndarray:
         start, count = _event_vector(payload)
-        ev = np.frombuffer(payload, dtype=EVENT_DTYPE, count=count, offset=start) if count else _NO_EVENTS
-        if self.validate and count:
-            t = ev["t"]
-            if count > 1 and bool((t[1:] < t[:-1]).any()):
-                raise self._error(f"event timestamps go backwards inside a packet of stream {stream.id}", pos)
-            if stream.width and (int(ev["x"].max()) >= stream.width or int(ev["y"].max()) >= stream.height):
-                raise self._error(f"event coordinates outside the {stream.width}x{stream.height} sensor "
-                                  f"(corrupt packet)", pos)
-        return ev
+        if not count:
+            return _NO_EVENTS
+        if self.validate:
+            first, why = check_events(np.frombuffer(payload, np.uint8, count * 16, start), stream.width,
+                                      stream.height, -(2**63))
+            if why:
+                raise self._error(f"corrupt event packet of stream {stream.id}: event {first} of {count} "
+                                  f"{_WHY[why].format(w=stream.width, h=stream.height)}", pos)
+        return np.frombuffer(payload, dtype=EVENT_DTYPE, count=count, offset=start)
 
     def _frame(self, payload: bytes, stream: StreamInfo, pos: int, seq: int) -> Frame:
         tb = S.root_table(payload, b"FRME")
@@ -417,6 +422,7 @@ def _event_vector_at(payload: bytes, table: int, n: int) -> tuple[int, int]:
     return v + 4, count
 
 
+_WHY = {1: "goes back in time", 2: "lies outside the {w}x{h} sensor", 3: "has a polarity byte other than 0/1"}
 _NO_EVENTS = np.zeros(0, dtype=EVENT_DTYPE)
 _NO_EVENTS.flags.writeable = False
 

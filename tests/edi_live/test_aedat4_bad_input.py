@@ -1,0 +1,299 @@
+"""Damaged AEDAT4 files: one RecordingError naming the file and byte offset, the valid part before the fault still
+yielded, never a hang or a foreign exception (also under hypothesis fuzzing of mutated real recordings)."""
+
+from __future__ import annotations
+
+import struct
+import warnings
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from drivers.replay import merged_packets
+from edi_live.aedat4 import Aedat4Reader, Aedat4Writer
+from edi_live.aedat4 import schema as S
+from edi_live.datatypes import EVENT_DTYPE, Frame
+from edi_live.errors import RecordingError
+
+T0 = 1_700_000_000_000_000
+
+
+def _packet_offsets(data: bytes) -> list[tuple[int, int, int]]:
+    """(header offset, stream id, size) of every packet, walked independently of the reader."""
+    n = struct.unpack_from("<I", data, 14)[0]
+    root = 18 + struct.unpack_from("<I", data, 18)[0]
+    # dataTablePosition: the FileDataTable begins with the LZ4/zstd magic or, uncompressed, its size prefix; we
+    # stop at the first "packet" whose stream id is not a small number instead of parsing the header again.
+    del root
+    out, pos = [], 18 + n
+    while pos + 8 <= len(data):
+        sid, size = struct.unpack_from("<ii", data, pos)
+        if not 0 <= sid < 16 or size <= 0 or pos + 8 + size > len(data):
+            break
+        out.append((pos, sid, size))
+        pos += 8 + size
+    return out
+
+
+def _read(path):
+    """Everything the reader yields before it raises: (list of (type, data), error or None)."""
+    got = []
+    try:
+        with Aedat4Reader(path) as reader:
+            for stream, data in reader:
+                got.append((stream.type, data))
+            reader.data_table()
+    except RecordingError as exc:
+        return got, exc
+    return got, None
+
+
+def _simple_file(path, compression="none", n_packets=5):
+    rng = np.random.default_rng(5)
+    with Aedat4Writer(path, 64, 48, compression=compression) as w:
+        for k in range(n_packets):
+            ev = np.zeros(100, dtype=EVENT_DTYPE)
+            ev["t"] = T0 + 1000 * k + np.arange(100)
+            ev["x"], ev["y"] = rng.integers(0, 64, 100), rng.integers(0, 48, 100)
+            w.write_events(ev)
+        w.write_frame(Frame(np.full((48, 64), 7, np.uint8), T0 + 10_000, T0 + 12_000))
+    return path.read_bytes()
+
+
+def test_empty_file(tmp_path):
+    path = tmp_path / "empty.aedat4"
+    path.write_bytes(b"")
+    with pytest.raises(RecordingError, match="empty") as info:
+        Aedat4Reader(path)
+    assert info.value.offset == 0 and str(path) in str(info.value)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(RecordingError, match="cannot open"):
+        Aedat4Reader(tmp_path / "nope.aedat4")
+
+
+@pytest.mark.parametrize("content, match", [
+    (b"hello world, this is not a recording at all", "not an AEDAT4"),
+    (b"#!AER-DAT3.1\r\n#Format: RAW\r\n", "3.1 is not supported"),
+    (b"#!AER-DAT4", "truncated"),
+    (b"#!AER-DAT4.0\r\n\x10\x00", "truncated"),
+])
+def test_wrong_magic_or_cut_header(tmp_path, content, match):
+    path = tmp_path / "bad.aedat4"
+    path.write_bytes(content)
+    with pytest.raises(RecordingError, match=match) as info:
+        Aedat4Reader(path)
+    assert str(path) in str(info.value) and "at byte" in str(info.value)
+
+
+def test_unknown_compression_value(tmp_path):
+    path = tmp_path / "f.aedat4"
+    data = bytearray(_simple_file(path))
+    root = S.root_table(bytes(data[14:]), b"IOHE")
+    pos = 14 + root.field_pos(S.IOH_COMPRESSION, 4)
+    data[pos:pos + 4] = struct.pack("<i", 9)
+    path.write_bytes(bytes(data))
+    with pytest.raises(RecordingError, match="unknown compression type 9") as info:
+        Aedat4Reader(path)
+    assert info.value.offset == pos
+
+
+@pytest.mark.parametrize("cut_into", [3, "header"])
+def test_truncated_mid_packet_yields_the_packets_before(tmp_path, cut_into):
+    path = tmp_path / "f.aedat4"
+    data = _simple_file(path, "lz4")
+    packets = _packet_offsets(data)
+    pos, _, size = packets[3]
+    cut = pos + 4 if cut_into == "header" else pos + 8 + size // 2
+    path.write_bytes(data[:cut])
+    got, err = _read(path)
+    assert err is not None and err.offset == pos and "truncated" in str(err)
+    assert [len(d) for _, d in got] == [100, 100, 100]  # the three complete packets
+
+
+def test_truncated_exactly_between_packets(tmp_path):
+    path = tmp_path / "f.aedat4"
+    data = _simple_file(path, "lz4")
+    pos = _packet_offsets(data)[2][0]
+    path.write_bytes(data[:pos])
+    got, err = _read(path)
+    assert len(got) == 2 and err is not None and "FileDataTable" in str(err) and "truncated" in str(err)
+
+
+def test_file_without_data_table_reads_fully(tmp_path):
+    # an interrupted recording: dataTablePosition = -1 and no table at the end
+    path = tmp_path / "f.aedat4"
+    data = bytearray(_simple_file(path, "lz4"))
+    root = S.root_table(bytes(data[14:]), b"IOHE")
+    dtp_pos = 14 + root.field_pos(S.IOH_DATA_TABLE_POSITION, 8)
+    dtp = struct.unpack_from("<q", data, dtp_pos)[0]
+    data[dtp_pos:dtp_pos + 8] = struct.pack("<q", -1)
+    path.write_bytes(bytes(data[:dtp]))
+    with Aedat4Reader(path) as reader:
+        got = list(reader)
+        assert reader.data_table() is None and reader.time_range() is None
+    assert [s.type for s, _ in got] == ["EVTS"] * 5 + ["FRME"]
+
+
+def test_packet_size_past_end_of_file(tmp_path):
+    path = tmp_path / "f.aedat4"
+    data = bytearray(_simple_file(path, "lz4"))
+    pos = _packet_offsets(bytes(data))[1][0]
+    data[pos + 4:pos + 8] = struct.pack("<i", 1 << 30)
+    path.write_bytes(bytes(data))
+    got, err = _read(path)
+    assert len(got) == 1 and err.offset == pos and "runs past" in str(err)
+
+
+def test_bad_compression_in_a_packet(tmp_path):
+    path = tmp_path / "f.aedat4"
+    data = bytearray(_simple_file(path, "lz4"))
+    pos, _, size = _packet_offsets(bytes(data))[2]
+    data[pos + 8:pos + 8 + size] = b"\xff" * size
+    path.write_bytes(bytes(data))
+    got, err = _read(path)
+    assert len(got) == 2 and err.offset == pos and "decompress" in str(err)
+
+
+def test_bad_flatbuffer_in_a_packet(tmp_path):
+    path = tmp_path / "f.aedat4"
+    data = bytearray(_simple_file(path, "none"))
+    pos = _packet_offsets(bytes(data))[1][0]
+    data[pos + 8 + 4:pos + 8 + 8] = struct.pack("<I", 0x7FFFFFF0)  # root table offset far outside the packet
+    path.write_bytes(bytes(data))
+    got, err = _read(path)
+    assert len(got) == 1 and err.offset == pos and "corrupt EVTS packet" in str(err)
+
+
+def test_wrong_identifier_in_a_packet(tmp_path):
+    path = tmp_path / "f.aedat4"
+    data = bytearray(_simple_file(path, "none"))
+    pos = _packet_offsets(bytes(data))[0][0]
+    data[pos + 16:pos + 20] = b"FRME"
+    path.write_bytes(bytes(data))
+    got, err = _read(path)
+    assert got == [] and err.offset == pos and "identifier" in str(err)
+
+
+def test_frame_with_negative_exposure(tmp_path):
+    path = tmp_path / "f.aedat4"
+    data = bytearray(_simple_file(path, "none"))
+    pos, sid, size = _packet_offsets(bytes(data))[-1]
+    assert sid == 1
+    payload = bytes(data[pos + 8:pos + 8 + size])
+    eoe = pos + 8 + S.root_table(payload, b"FRME").field_pos(S.FR_EOE, 8)
+    data[eoe:eoe + 8] = struct.pack("<q", T0 + 9_000)  # before the exposure start T0 + 10_000
+    path.write_bytes(bytes(data))
+    got, err = _read(path)
+    assert len(got) == 5 and err.offset == pos and "negative exposure" in str(err)
+
+
+def test_events_off_the_sensor_are_a_corrupt_packet_in_replay(tmp_path):
+    path = tmp_path / "f.aedat4"
+    data = bytearray(_simple_file(path, "none"))
+    pos = _packet_offsets(bytes(data))[2][0]
+    payload_start = pos + 8
+    # first event record of the third packet: find it through the reader's own vtable helper
+    from edi_live.aedat4.reader import _event_vector
+
+    first, count = _event_vector(bytes(data[payload_start:]))
+    x_at = payload_start + first + 8
+    data[x_at:x_at + 2] = struct.pack("<H", 5000)
+    path.write_bytes(bytes(data))
+    n = 0
+    with pytest.raises(RecordingError, match="outside the 64x48 sensor"):
+        for packet in merged_packets(path):
+            n += len(packet.events)
+    assert n >= 100  # what came before the fault was delivered
+
+
+# ------------------------------------------------------------------------------------------------- fuzzing
+def _mutations():
+    flips = st.lists(st.tuples(st.integers(0, 10**9), st.integers(1, 255)), min_size=1, max_size=8)
+    cut = st.integers(0, 10**9)
+    garbage = st.tuples(st.integers(0, 10**9), st.binary(min_size=1, max_size=64))
+    return st.one_of(flips.map(lambda f: ("flip", f)), cut.map(lambda c: ("cut", c)),
+                     garbage.map(lambda g: ("insert", g)))
+
+
+def _mutate(data: bytes, mutation) -> bytes:
+    kind, arg = mutation
+    buf = bytearray(data)
+    if kind == "flip":
+        for where, xor in arg:
+            buf[where % len(buf)] ^= xor
+    elif kind == "cut":
+        del buf[arg % len(buf):]
+    else:
+        where, junk = arg
+        buf[where % len(buf):where % len(buf)] = junk
+    return bytes(buf)
+
+
+@pytest.fixture(scope="module")
+def small_real(real_recordings):
+    return real_recordings["evlib_sample_davis346.aedat4"].read_bytes()
+
+
+@settings(max_examples=120, deadline=5000, suppress_health_check=[HealthCheck.function_scoped_fixture,
+                                                                 HealthCheck.too_slow])
+@given(mutation=_mutations())
+def test_fuzz_reader_and_replay_raise_only_recording_errors(tmp_path, small_real, mutation):
+    path = tmp_path / "fuzz.aedat4"
+    path.write_bytes(_mutate(small_real, mutation))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _read(path)  # returns or raises RecordingError; anything else fails the test
+        try:
+            for _ in merged_packets(path):
+                pass
+        except RecordingError:
+            pass
+
+
+@settings(max_examples=25, deadline=10000, suppress_health_check=[HealthCheck.function_scoped_fixture,
+                                                                HealthCheck.too_slow])
+@given(mutation=_mutations())
+def test_fuzz_aestream_recording(tmp_path, real_recordings, mutation):
+    path = tmp_path / "fuzz.aedat4"
+    path.write_bytes(_mutate(real_recordings["aestream_davis346.aedat4"].read_bytes(), mutation))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _read(path)
+        try:
+            for _ in merged_packets(path):
+                pass
+        except RecordingError:
+            pass
+
+
+@pytest.fixture(scope="module")
+def uncompressed_real(real_recordings, tmp_path_factory):
+    """The evlib clip re-encoded without compression, so mutations hit FlatBuffer structure, not LZ4 data."""
+    path = tmp_path_factory.mktemp("fuzz") / "plain.aedat4"
+    with Aedat4Reader(real_recordings["evlib_sample_davis346.aedat4"]) as reader, \
+            Aedat4Writer(path, 346, 260, imu=True, triggers=True, compression="none") as writer:
+        put = {"EVTS": writer.write_events, "FRME": writer.write_frame, "IMUS": writer.write_imu,
+               "TRIG": writer.write_triggers}
+        for stream, data in reader:
+            put[stream.type](data)
+    return path.read_bytes()
+
+
+@settings(max_examples=150, deadline=5000, suppress_health_check=[HealthCheck.function_scoped_fixture,
+                                                                 HealthCheck.too_slow])
+@given(mutation=_mutations())
+def test_fuzz_uncompressed_flatbuffers(tmp_path, uncompressed_real, mutation):
+    path = tmp_path / "fuzz.aedat4"
+    path.write_bytes(_mutate(uncompressed_real, mutation))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _read(path)
+        try:
+            for _ in merged_packets(path):
+                pass
+        except RecordingError:
+            pass

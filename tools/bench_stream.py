@@ -1,0 +1,391 @@
+"""End-to-end streaming benchmarks of the edi-live node (numbers, not pass/fail).
+
+    python tools/bench_stream.py throughput   # replay --speed 0 -> worker -> publish -> 1 subscriber, --every 1000
+    python tools/bench_stream.py latency      # paced replay at ~1 M events/s: latency p50/p99, arrival -> sent
+    python tools/bench_stream.py memory       # RSS over a looped replay (--seconds 60; 600 for the 10-minute run)
+    python tools/bench_stream.py static       # CPU of the node on a static scene (APS frames, no events)
+    python tools/bench_stream.py scaling      # worker cost per latent frame vs changed pixels and resolution
+    python tools/bench_stream.py all
+
+Input: `--input FILE.aedat4`, or by default a 240x180 recording simulated once by tools/simulate.py (preset
+"fast") and cached in the temp directory. The subscriber runs in its own process, as a viewer would.
+Figures are medians of `--repeat` runs where it makes sense; each mode prints what limits it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import os
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+if __package__ in (None, ""):  # run as a script: make the repository importable
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from edi_live.config import NodeConfig  # noqa: E402
+from edi_live.datatypes import EVENT_DTYPE, Frame, Packet, SourceInfo, SourceStatus  # noqa: E402
+from edi_live.node import Node, default_reconstructor  # noqa: E402
+
+
+# ------------------------------------------------------------------------------------------------ inputs
+
+def default_recording(width: int = 240, height: int = 180) -> Path:
+    """A simulated fast-motion recording, generated once (a few seconds) and cached."""
+    cache = Path(tempfile.gettempdir()) / "edi-live-bench"
+    cache.mkdir(exist_ok=True)
+    path = cache / f"fast_{width}x{height}.aedat4"
+    if not path.exists():
+        from tools import simulate
+
+        print(f"simulating {path.name} (once) ...", flush=True)
+        cfg = simulate.preset("fast", width=width, height=height, duration_s=1.0, texture="blocks")
+        sim = simulate.simulate(cfg)
+        tmp = path.with_suffix(".part")
+        simulate.write_aedat4(sim, tmp)
+        tmp.replace(path)
+    return path
+
+
+def recording_stats(path: Path) -> tuple[int, int, int]:
+    """(events, first t, last t) of a recording, via the replay merge."""
+    from drivers.replay import merged_packets
+
+    n, t0, t1 = 0, None, None
+    for p in merged_packets(path):
+        if len(p.events):
+            n += len(p.events)
+            t0 = int(p.events["t"][0]) if t0 is None else t0
+            t1 = int(p.events["t"][-1])
+    return n, t0 or 0, t1 or 0
+
+
+class GatedSource:
+    """Holds the first packet until `gate` is set (the subscriber is connected); records the first-packet time."""
+
+    def __init__(self, inner, gate: threading.Event, max_loops: int | None = None) -> None:
+        self.inner, self.gate, self.info = inner, gate, inner.info
+        self.max_loops = max_loops  # with a looping replay: end after this many passes
+        self.first_packet_s: float | None = None
+
+    def __enter__(self):
+        self.inner.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        self.inner.__exit__(*exc)
+
+    def stop(self):
+        self.gate.set()
+        self.inner.stop()
+
+    def status(self):
+        return self.inner.status()
+
+    def __iter__(self):
+        while not self.gate.wait(0.1):
+            yield None
+        for packet in self.inner:
+            if self.first_packet_s is None and packet is not None:
+                self.first_packet_s = time.perf_counter()
+            if self.max_loops is not None and getattr(self.inner, "loops", 0) >= self.max_loops:
+                return
+            yield packet
+
+
+def _replay(path: Path, speed: float, loop: bool = False):
+    import drivers
+
+    return drivers.open_source("replay", path=str(path), speed=speed, loop=loop)
+
+
+# ------------------------------------------------------------------------------------------------ subscriber
+
+def _subscriber(endpoint: str, conn) -> None:
+    """Child process: receive every frame (no newest-only skipping), report count, seq gaps and timing."""
+    from edi_live.client import Subscriber
+
+    with Subscriber(endpoint, newest_only=False, rcvhwm=0) as sub:
+        while sub.recv_stats(timeout_s=0.5) is None:  # the subscription is live once stats arrive
+            pass
+        conn.send("ready")
+        n, first_s, last_s, seqs_ok, last_seq, gaps = 0, None, None, True, -1, 0
+        while True:
+            got = sub.recv(timeout_s=2.0)
+            if got is None:
+                if conn.poll():
+                    break
+                continue
+            header, _ = got
+            now = time.perf_counter()
+            first_s = first_s or now
+            last_s = now
+            if header["seq"] <= last_seq:
+                seqs_ok = False
+            gaps += max(0, header["seq"] - last_seq - 1) if last_seq >= 0 else 0
+            last_seq = header["seq"]
+            n += 1
+        conn.send({"frames": n, "seq_increasing": seqs_ok, "seq_gaps": gaps,
+                   "span_s": (last_s - first_s) if n > 1 else 0.0})
+
+
+class _RecordingPublisher:
+    """A Publisher that also keeps every frame's latency (arrival of its last event -> sent), for percentiles."""
+
+    def __new__(cls, **kwargs):
+        from edi_live.publisher import Publisher
+
+        class Recording(Publisher):
+            def __init__(self, **kw):
+                super().__init__(**kw)
+                self.latencies_us: list[float] = []
+
+            def _send_frame(self, sock, rec):
+                sent_before = self._sent
+                super()._send_frame(sock, rec)
+                if self._sent > sent_before and rec.arrival_ns > 0:
+                    self.latencies_us.append((time.monotonic_ns() - rec.arrival_ns) / 1e3)
+
+        return Recording(**kwargs)
+
+
+def _lossless_publisher(**kwargs):
+    # the benchmark measures what the node sustains when nothing is dropped: a deep inbox and no HWM
+    return _RecordingPublisher(**kwargs, inbox_size=1 << 20, sndhwm=0)
+
+
+def run_with_subscriber(path: Path, options: dict, speed: float, publisher_factory=_lossless_publisher,
+                        passes: int | None = None):
+    cfg = NodeConfig.from_options({"replay": str(path), "speed": speed, "publish": ["tcp://127.0.0.1:*"],
+                                   "stats_interval_s": 0.2, **options})
+    gate = threading.Event()
+    loop = passes is not None or bool(options.get("loop"))
+    source = GatedSource(_replay(path, speed, loop=loop), gate, max_loops=passes)
+    node = Node(cfg, source, publisher_factory=publisher_factory)
+    result: dict = {}
+
+    def run():
+        try:
+            result["stats"] = node.run()
+        except BaseException as exc:
+            result["error"] = exc
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    if not node.started.wait(30):
+        raise SystemExit(f"node did not start: {result.get('error')}")
+    ctx = mp.get_context("spawn")
+    parent, child = ctx.Pipe()
+    proc = ctx.Process(target=_subscriber, args=(node.bound_endpoints[0], child), daemon=True)
+    proc.start()
+    if not parent.poll(30):
+        raise SystemExit("subscriber did not connect")
+    parent.recv()
+    gate.set()
+    thread.join(600)
+    end_s = time.perf_counter()
+    parent.send("stop")
+    sub = parent.recv() if parent.poll(30) else {}
+    proc.join(10)
+    if "error" in result:
+        raise SystemExit(f"node failed: {result['error']}")
+    return result["stats"], sub, (end_s - source.first_packet_s), node.publisher
+
+
+# ------------------------------------------------------------------------------------------------ modes
+
+def bench_throughput(path: Path, every: int, repeat: int, passes: int) -> None:
+    n_events, t0, t1 = recording_stats(path)
+    print(f"\n## throughput: replay --speed 0 -> worker -> publish -> 1 subscriber, --every {every}")
+    print(f"input {path.name}: {n_events} events over {(t1 - t0) / 1e6:.2f} s of sensor time, replayed "
+          f"{passes} times back to back (--loop)")
+    rows = []
+    for _ in range(repeat):
+        stats, sub, wall_s, pub = run_with_subscriber(path, {"every": every}, speed=0, passes=passes)
+        rows.append((stats["events_processed"] / wall_s, sub.get("frames", 0) / wall_s, sub.get("frames", 0),
+                     stats["frames_out"], stats["worker_busy_s"], wall_s, sub.get("seq_gaps")))
+    ev_s, fr_s = float(np.median([r[0] for r in rows])), float(np.median([r[1] for r in rows]))
+    print("| run | events/s | frames/s received | frames received / emitted | worker busy s | wall s | seq gaps |")
+    print("|---|---|---|---|---|---|---|")
+    for i, r in enumerate(rows):
+        print(f"| {i} | {r[0] / 1e6:.2f} M | {r[1]:.0f} | {r[2]} / {r[3]} | {r[4]:.2f} | {r[5]:.2f} | {r[6]} |")
+    print(f"median: {ev_s / 1e6:.2f} M events/s, {fr_s:.0f} frames/s (target >= 12 M events/s, >= 12,000 frames/s)")
+
+
+def bench_latency(path: Path, every: int, rate_ev_s: float, seconds: float) -> None:
+    n_events, t0, t1 = recording_stats(path)
+    file_rate = n_events / max((t1 - t0) / 1e6, 1e-9)
+    speed = rate_ev_s / file_rate
+    print(f"\n## latency: paced replay at {rate_ev_s / 1e6:.2f} M events/s (file rate {file_rate / 1e6:.2f} M/s, "
+          f"--speed {speed:.3f}), --every {every}, last-event arrival -> frame sent")
+    stats, sub, wall_s, pub = run_with_subscriber(path, {"every": every, "loop": seconds > (t1 - t0) / 1e6 / speed,
+                                                         "duration": seconds}, speed=speed)
+    lat = np.array(pub.latencies_us)
+    if not len(lat):
+        print("no frames")
+        return
+    p50, p90, p99, pmax = np.percentile(lat, [50, 90, 99, 100])
+    print(f"frames {len(lat)}, received {sub.get('frames')}: latency p50 {p50 / 1000:.3f} ms, p90 {p90 / 1000:.3f} ms, "
+          f"p99 {p99 / 1000:.3f} ms, max {pmax / 1000:.3f} ms (target p99 <= 1 ms)")
+    print(f"achieved event rate {stats['events_processed'] / wall_s / 1e6:.2f} M/s over {wall_s:.1f} s; "
+          f"replay packets span up to 10 ms of events, so a packet's frames share one arrival stamp")
+
+
+def _rss_mib() -> float:
+    with open("/proc/self/statm") as fh:
+        return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def bench_memory(path: Path, every: int, seconds: float, speed: float) -> None:
+    print(f"\n## memory: looped replay --speed {speed} for {seconds:.0f} s, --every {every}, publishing, RSS of the "
+          f"node process")
+    cfg = NodeConfig.from_options({"replay": str(path), "speed": speed, "loop": True, "every": every,
+                                   "publish": ["tcp://127.0.0.1:*"], "duration": seconds})
+    node = Node(cfg, _replay(path, speed, loop=True))
+    samples: list[tuple[float, float]] = []
+    done = threading.Event()
+
+    def sample():
+        t_start = time.monotonic()
+        while not done.wait(max(1.0, seconds / 30)):
+            samples.append((time.monotonic() - t_start, _rss_mib()))
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    stats = node.run()
+    done.set()
+    sampler.join(5)
+    if len(samples) < 3:
+        print("run too short for a trend")
+        return
+    t = np.array([s[0] for s in samples])
+    rss = np.array([s[1] for s in samples])
+    half = len(rss) // 2
+    slope = np.polyfit(t[half:], rss[half:], 1)[0] * 60
+    print("| t s | RSS MiB |\n|---|---|")
+    for ts, r in samples[:: max(1, len(samples) // 10)]:
+        print(f"| {ts:.0f} | {r:.1f} |")
+    print(f"RSS first {rss[0]:.1f} MiB, last {rss[-1]:.1f} MiB, max {rss.max():.1f} MiB; second-half slope "
+          f"{slope:+.2f} MiB/min; {stats['events_processed']} events, {stats['frames_out']} frames")
+
+
+class StaticSource:
+    """A camera looking at a still scene with a perfect sensor: APS frames at `fps`, no events."""
+
+    def __init__(self, width: int = 240, height: int = 180, fps: float = 20.0, exposure_us: int = 10_000) -> None:
+        self.info = SourceInfo(width, height, name="static", kind="replay")
+        self.fps, self.exposure_us = fps, exposure_us
+        self._stop = threading.Event()
+        self._image = np.random.default_rng(0).integers(20, 235, (height, width)).astype(np.uint8)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+
+    def stop(self):
+        self._stop.set()
+
+    def status(self):
+        return SourceStatus()
+
+    def __iter__(self):
+        t0_s = time.monotonic()
+        k = 0
+        while not self._stop.is_set():
+            due = t0_s + k / self.fps
+            if self._stop.wait(max(0.0, min(0.1, due - time.monotonic()))):
+                return
+            if time.monotonic() < due:
+                yield None
+                continue
+            t_us = int(k * 1e6 / self.fps)
+            frame = Frame(self._image, exposure_start_us=t_us, exposure_end_us=t_us + self.exposure_us)
+            yield Packet(events=np.zeros(0, EVENT_DTYPE), frames=[frame], watermark_us=t_us + self.exposure_us,
+                         arrival_ns=time.monotonic_ns())
+            k += 1
+
+
+def bench_static(seconds: float) -> None:
+    print(f"\n## static scene: 240x180, APS at 20 fps, no events, for {seconds:.0f} s (node with publisher)")
+    cfg = NodeConfig.from_options({"device": "auto", "publish": ["tcp://127.0.0.1:*"], "duration": seconds})
+    node = Node(cfg, StaticSource())
+    cpu0, wall0 = time.process_time(), time.monotonic()
+    stats = node.run()
+    cpu, wall = time.process_time() - cpu0, time.monotonic() - wall0
+    print(f"process CPU {cpu:.3f} s over {wall:.1f} s wall = {100 * cpu / wall:.2f} % of one core; frames out "
+          f"{stats['frames_out']} ({stats['frames_deblurred']} deblurred, {stats['heartbeats']} heartbeats), "
+          f"APS frames in {stats['aps_frames_in']}, worker wake-ups {node.worker.wakeups}")
+
+
+def bench_scaling(every: int, repeat: int) -> None:
+    print(f"\n## scaling: one latent frame (on_events of {every} events + render) vs changed pixels and resolution")
+    from edi_live.config import EdiConfig
+
+    rng = np.random.default_rng(1)
+    print("| resolution | changed pixels | µs per frame (median) | of which render µs |\n|---|---|---|---|")
+    for w, h in ((240, 180), (346, 260), (640, 480), (1280, 720)):
+        rec = default_reconstructor(w, h, EdiConfig(c=0.2))
+        img = rng.integers(20, 235, (h, w)).astype(np.uint8)
+        ev0 = np.zeros(0, EVENT_DTYPE)
+        rec.on_frame(Frame(img, exposure_start_us=0, exposure_end_us=10_000), ev0)
+        t_us = 10_000
+        for k in (10, 100, 1000):
+            k = min(k, w * h)
+            pix = rng.choice(w * h, k, replace=False)
+            times, render_times = [], []
+            for _ in range(repeat * 20):
+                ev = np.zeros(every, EVENT_DTYPE)
+                ev["t"] = t_us + np.arange(every)
+                t_us += every
+                sel = pix[rng.integers(0, k, every)]
+                ev["x"], ev["y"] = sel % w, sel // w
+                ev["p"] = rng.integers(0, 2, every).astype(bool)
+                a = time.perf_counter()
+                rec.on_events(ev)
+                b = time.perf_counter()
+                rec.render()
+                c = time.perf_counter()
+                times.append(c - a)
+                render_times.append(c - b)
+            print(f"| {w}x{h} | {k} | {1e6 * np.median(times):.1f} | {1e6 * np.median(render_times):.1f} |")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python tools/bench_stream.py", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("mode", choices=("throughput", "latency", "memory", "static", "scaling", "all"))
+    ap.add_argument("--input", type=Path, help="an .aedat4 recording (default: simulated 240x180, cached)")
+    ap.add_argument("--every", type=int, default=1000, help="events per latent frame (default 1000)")
+    ap.add_argument("--repeat", type=int, default=3, help="runs for medians (default 3)")
+    ap.add_argument("--passes", type=int, default=5, help="throughput: passes over the recording (default 5)")
+    ap.add_argument("--rate", type=float, default=1e6, help="latency mode: paced event rate, events/s (default 1e6)")
+    ap.add_argument("--seconds", type=float, default=None,
+                    help="memory: run length (default 60; use 600 for the 10-minute run); latency/static: 10")
+    ap.add_argument("--speed", type=float, default=1.0, help="memory mode: replay speed (default 1 = real time)")
+    args = ap.parse_args(argv)
+    path = args.input
+    if args.mode in ("throughput", "latency", "memory", "all") and path is None:
+        path = default_recording()
+    print(f"machine: {os.cpu_count()} CPUs, Python {sys.version.split()[0]}, numpy {np.__version__}")
+    if args.mode in ("throughput", "all"):
+        bench_throughput(path, args.every, args.repeat, args.passes)
+    if args.mode in ("latency", "all"):
+        bench_latency(path, args.every, args.rate, args.seconds or 10.0)
+    if args.mode in ("static", "all"):
+        bench_static(args.seconds or 10.0)
+    if args.mode in ("scaling", "all"):
+        bench_scaling(args.every, args.repeat)
+    if args.mode in ("memory", "all"):
+        bench_memory(path, args.every, args.seconds or 60.0, args.speed)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

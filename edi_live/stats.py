@@ -105,8 +105,10 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         f"skipped: static {s.get('skipped_static', 0)}, max-fps {s.get('skipped_max_fps', 0)}",
     ]
     if "frames_sent" in s:
-        lines.append(f"  published {s['frames_sent']} frames; last-second latency p50 "
-                     f"{_ms(s.get('latency_p50_us'))} p99 {_ms(s.get('latency_p99_us'))}")
+        latency = ""
+        if s.get("latency_p99_us") is not None:
+            latency = f"; last-interval latency p50 {_ms(s.get('latency_p50_us'))} p99 {_ms(s['latency_p99_us'])}"
+        lines.append(f"  published {s['frames_sent']} frames{latency}")
     if s.get("nearest_added_latency_ms_p50") is not None:
         lines.append(f"  mode nearest: held-back frames waited {s['nearest_added_latency_ms_p50']:.2f} ms (p50)")
     for key, label in (("out_frames", "--out frames written"), ("record_events", "--record events written")):

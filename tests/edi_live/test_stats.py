@@ -1,0 +1,65 @@
+"""Status line and summary: one live line on a TTY, plain lines otherwise; rates from running totals."""
+
+from __future__ import annotations
+
+import io
+
+from edi_live.stats import Rates, StatusLine, collect, format_status, format_summary
+
+
+class FakeTTY(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+STATS = {"events_processed": 1000, "frames_out": 10, "c_on": 0.2, "c_off": 0.25, "drops": 3,
+         "ring_occupancy": 0.5, "latency_p50_us": 250.0, "latency_p99_us": 900.0}
+
+
+def test_tty_status_is_redrawn_in_place():
+    stream = FakeTTY()
+    line = StatusLine(stream, interval_s=0.0)
+    for _ in range(3):
+        line.maybe_draw(lambda: STATS)
+    line.finish()
+    text = stream.getvalue()
+    assert text.count("\r") == 3 and text.count("\n") == 1 and text.endswith("\n")
+    assert "c_on=0.200 c_off=0.250" in text and "p99 0.90ms" in text and "drops 3" in text
+
+
+def test_plain_status_lines_when_not_a_terminal():
+    stream = io.StringIO()
+    line = StatusLine(stream, interval_s=0.0)
+    line.maybe_draw(lambda: STATS)
+    line.maybe_draw(lambda: STATS)
+    line.finish()
+    lines = stream.getvalue().splitlines()
+    assert len(lines) == 2 and all(x.startswith("edi-live: ") for x in lines) and "\r" not in stream.getvalue()
+
+
+def test_rates_between_calls():
+    clock = iter([0.0, 2.0, 3.0])
+    rates = Rates(clock=lambda: next(clock))
+    assert rates.update({"events": 1000}) == {"events": 500.0}
+    assert rates.update({"events": 1500}) == {"events": 500.0}
+
+
+def test_status_and_summary_text():
+    assert "c=0.200" in format_status({**STATS, "c_off": 0.2})
+    summary = format_summary({**STATS, "aps_frames_in": 4, "frames_deblurred": 4, "frames_latent": 6}, 2.0)
+    assert "1000 events" in summary and "4 APS frames in" in summary and "10 frames out" in summary
+
+
+def test_collect_sums_drops_of_every_stage():
+    class Ring:
+        pushed_events = 5
+
+        def stats(self):
+            return {"ring_dropped_events": 2, "ring_dropped_frames": 1, "ring_occupancy": 0.1}
+
+    class Pub:
+        def stats(self):
+            return {"sent": 7, "dropped": 4, "latency_p50_us": None, "latency_p99_us": None}
+
+    s = collect(ring=Ring(), publisher=Pub())
+    assert s["drops"] == 7 and s["frames_sent"] == 7 and s["events_in"] == 5

@@ -70,7 +70,8 @@ def make_scene(tex: str = "brick", *, width: int = 64, height: int = 48, c_on: f
         thr_on = np.clip(thr_on + rng.normal(0, sigma_c, thr_on.shape), 0.3 * c_on, None)
         thr_off = np.clip(thr_off + rng.normal(0, sigma_c, thr_off.shape), 0.3 * c_off, None)
     prev = np.log(render(0).astype(np.float64))
-    ref = prev.copy()
+    # a real pixel's reference level was set at its last event, long before the scene starts: random offset
+    ref = prev + rng.uniform(-0.5, 0.5, prev.shape) * np.minimum(thr_on, thr_off)
     chunks = []
     frames_lin = [render(0)]
     for k in range(1, times.size):

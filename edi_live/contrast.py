@@ -1,0 +1,290 @@
+"""Contrast-threshold (c) estimators for EDI: a protocol, fixed c, the paper's energy, and frame-to-frame consistency.
+
+Owns: choosing c for an APS frame from its level table (edi.LevelTable) and, for the consistency estimator, the
+previous frame. Every c evaluation reuses the per-frame level tables (O(pixels x levels), events are not touched
+again). Pure numpy/cv2, no state beyond the estimator's parameters.
+
+- `FixedContrast`: c_on/c_off given by the user.
+- `EnergyContrast` (Pan et al. 2019, Sec. 4.2): minimise TV(L) - lambda * xcorr(Sobel|L|, Sobel|M|) by golden-section
+  search, M the time-decayed signed event map around f. Both terms are normalised by their value at L = B.
+- `ConsistencyContrast` (mEDI-style, physically grounded): consecutive deblurred frames must agree through the events
+  between them, log B_k+1 - log D_k+1(c) = log B_k - log D_k(c) + c * E(f_k -> f_k+1); minimise a robust sum of
+  the residuals over a pixel subsample (coarse log grid, then golden section).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable, Protocol, Sequence
+
+import cv2
+import numpy as np
+
+import edi_live.edi as edi
+
+GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+
+
+@dataclass
+class FrameData:
+    """One APS frame as the estimators see it: B (8-bit scale, float32), which pixels are informative, its
+    level table, and the signed event map M around f (for the energy estimator; None when not needed)."""
+
+    blurry: np.ndarray
+    informative: np.ndarray
+    table: edi.LevelTable
+    event_map: np.ndarray | None = None
+
+
+@dataclass
+class FramePair:
+    """Two consecutive frames and the ON/OFF event counts per pixel from f_prev to f_cur (flat int arrays)."""
+
+    prev: FrameData
+    cur: FrameData
+    n_on: np.ndarray
+    n_off: np.ndarray
+    mask: np.ndarray | None = None  # flat bool: pixels to ignore (hot)
+
+
+class ContrastEstimator(Protocol):
+    name: str
+    needs_pair: bool
+    separate: bool
+
+    def estimate(self, cur: FrameData, pairs: Sequence[FramePair], c_init: tuple[float, float]) \
+            -> tuple[float, float] | None:
+        """(c_on, c_off) for `cur`, or None when the data say nothing about c (keep the current value).
+        `pairs`: recent consecutive-frame pairs, newest last (empty for the first frame)."""
+        ...
+
+    def fits(self, cur: FrameData, pairs: Sequence[FramePair], c: tuple[float, float]) -> bool:
+        """Cheap test (a few evaluations) that c is still near the optimum of this estimator's criterion."""
+        ...
+
+
+def golden_section(fn: Callable[[float], float], lo: float, hi: float, *, tol: float = 1e-3,
+                   max_evals: int = 40) -> tuple[float, float, int]:
+    """Minimise a unimodal fn on [lo, hi]; returns (x, fn(x), evaluations)."""
+    a, b = lo, hi
+    x1 = b - GOLDEN * (b - a)
+    x2 = a + GOLDEN * (b - a)
+    f1, f2 = fn(x1), fn(x2)
+    n = 2
+    while b - a > tol and n < max_evals:
+        if f1 <= f2:
+            b, x2, f2 = x2, x1, f1
+            x1 = b - GOLDEN * (b - a)
+            f1 = fn(x1)
+        else:
+            a, x1, f1 = x1, x2, f2
+            x2 = a + GOLDEN * (b - a)
+            f2 = fn(x2)
+        n += 1
+    return (x1, f1, n) if f1 <= f2 else (x2, f2, n)
+
+
+def grid_then_golden(fn: Callable[[float], float], lo: float, hi: float, *, n_grid: int = 8,
+                     tol: float = 1e-3) -> tuple[float, int]:
+    """Coarse geometric grid (robust to a non-unimodal criterion), then golden section around the best point."""
+    grid = np.geomspace(lo, hi, n_grid)
+    vals = [fn(float(c)) for c in grid]
+    i = int(np.argmin(vals))
+    a = float(grid[max(i - 1, 0)])
+    b = float(grid[min(i + 1, n_grid - 1)])
+    x, fx, n = golden_section(fn, a, b, tol=tol)
+    if vals[i] < fx:
+        x = float(grid[i])
+    return x, n_grid + n
+
+
+def _three_point_fit(fn: Callable[[float], float], c: float, step: float) -> bool:
+    mid = fn(c)
+    return mid <= min(fn(c * (1.0 - step)), fn(c * (1.0 + step)))
+
+
+@dataclass
+class FixedContrast:
+    c_on: float
+    c_off: float
+    name: str = "fixed"
+    needs_pair: bool = False
+    separate: bool = True
+
+    def estimate(self, cur, pairs, c_init):
+        return self.c_on, self.c_off
+
+    def fits(self, cur, pairs, c):
+        return True
+
+
+def event_map(events: np.ndarray, width: int, height: int, ref_t_us: int, t0: int, t1: int,
+              tau_us: float) -> np.ndarray:
+    """M(f) = sum over events in [t0, t1] of polarity * exp(-|t - f| / tau), (H, W) float32."""
+    sel = events[(events["t"] >= t0) & (events["t"] <= t1)]
+    sel = sel[(sel["x"] < width) & (sel["y"] < height)]
+    w = np.exp(-np.abs(sel["t"] - ref_t_us) / max(tau_us, 1.0)) * np.where(sel["p"], 1.0, -1.0)
+    idx = sel["y"].astype(np.int64) * width + sel["x"]
+    return np.bincount(idx, weights=w, minlength=width * height).reshape(height, width).astype(np.float32)
+
+
+def _grad_mag(img: np.ndarray) -> np.ndarray:
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
+    return cv2.magnitude(gx, gy)
+
+
+def _tv(img: np.ndarray) -> float:
+    dx = np.abs(np.diff(img, axis=1)).sum()
+    dy = np.abs(np.diff(img, axis=0)).sum()
+    return float(dx + dy)
+
+
+@dataclass
+class EnergyContrast:
+    """The paper's energy: TV(L)/TV(B) - lam * <|grad L|, |grad M|> / <|grad B|, |grad M|>, golden-section search."""
+
+    lam: float = 1.0
+    c_min: float = 0.03
+    c_max: float = 1.0
+    tol: float = 2e-3
+    fit_step: float = 0.1
+    name: str = "energy"
+    needs_pair: bool = False
+    separate: bool = False
+
+    def _energy_fn(self, cur: FrameData) -> Callable[[float], float] | None:
+        if cur.event_map is None or cur.table.n_active == 0:
+            return None
+        em = _grad_mag(cur.event_map)
+        b = np.maximum(cur.blurry, edi.DARK_FLOOR)
+        tv_b = max(_tv(b), 1e-6)
+        xc_b = max(float((_grad_mag(b) * em).sum()), 1e-6)
+
+        def energy(c: float) -> float:
+            lat = np.exp(edi.deblur_log(b, cur.table, c, informative=cur.informative))
+            np.clip(lat, 0.0, 4 * 255.0, out=lat)
+            return _tv(lat) / tv_b - self.lam * float((_grad_mag(lat) * em).sum()) / xc_b
+
+        return energy
+
+    def estimate(self, cur, pairs, c_init):
+        fn = self._energy_fn(cur)
+        if fn is None:
+            return None
+        c = golden_section(fn, self.c_min, self.c_max, tol=self.tol)[0]
+        return c, c
+
+    def fits(self, cur, pairs, c):
+        fn = self._energy_fn(cur)
+        return True if fn is None else _three_point_fit(fn, c[0], self.fit_step)
+
+
+@dataclass
+class ConsistencyContrast:
+    """Frame-to-frame consistency through the events between two deblurred frames (needs the previous frame)."""
+
+    c_min: float = 0.02
+    c_max: float = 2.0
+    tol: float = 1e-3
+    n_grid: int = 10
+    max_pixels: int = 4000
+    min_pixels: int = 30
+    b_low: float = 6.0  # 8-bit scale: darker pixels are dominated by read noise and quantisation
+    b_high: float = 250.0
+    delta: float = 0.1  # pseudo-Huber scale of the log residual
+    fit_step: float = 0.1
+    spread_weight: float = 0.5
+    separate: bool = False
+    name: str = "consistency"
+    needs_pair: bool = True
+    last_evaluations: int = field(default=0, init=False)
+
+    def _problem(self, pairs: Sequence[FramePair]):
+        """Sum of the pairs' robust residual costs, or None when no pair has enough informative pixels."""
+        costs = [c for c in (self._pair_problem(p) for p in pairs) if c is not None]
+        if not costs:
+            return None
+        if len(costs) == 1:
+            return costs[0]
+        return lambda c_on, c_off: sum(fn(c_on, c_off) for fn in costs)
+
+    def _pair_problem(self, pair: FramePair):
+        """Residual setup on a deterministic subsample; returns cost(c_on, c_off) or None."""
+        prev, cur = pair.prev, pair.cur
+        bp = prev.blurry.reshape(-1)
+        bc = cur.blurry.reshape(-1)
+        ok = prev.informative.reshape(-1) & cur.informative.reshape(-1)
+        ok &= (bp >= self.b_low) & (bp <= self.b_high) & (bc >= self.b_low) & (bc <= self.b_high)
+        if pair.mask is not None:
+            ok &= ~pair.mask
+        signal = (pair.n_on + pair.n_off) > 0
+        signal[prev.table.pixels] = True
+        signal[cur.table.pixels] = True
+        cand = np.flatnonzero(ok & signal)
+        if cand.size < self.min_pixels:
+            return None
+        if cand.size > self.max_pixels:
+            cand = cand[np.linspace(0, cand.size - 1, self.max_pixels).astype(np.int64)]
+        dlog_b = np.log(bc[cand].astype(np.float64)) - np.log(bp[cand].astype(np.float64))
+        n_on = pair.n_on[cand].astype(np.float64)
+        n_off = pair.n_off[cand].astype(np.float64)
+        parts = []
+        spread = np.zeros(cand.size)
+        for frame in (prev, cur):
+            tab = frame.table
+            pos = np.searchsorted(tab.pixels, cand)
+            pos = np.minimum(pos, max(tab.n_active - 1, 0))
+            hit = (tab.pixels[pos] == cand) if tab.n_active else np.zeros(cand.size, bool)
+            spread[hit] += np.diff(tab.lvl_start)[pos[hit]] - 1
+            parts.append((hit, tab.take(pos[hit])))
+        # pixels that crossed many levels within an exposure carry more quantisation error in L(f)
+        weight = 1.0 / (1.0 + self.spread_weight * spread)
+        (hit_p, sub_p), (hit_c, sub_c) = parts
+        delta2 = self.delta ** 2
+
+        def cost(c_on: float, c_off: float) -> float:
+            pred = c_on * n_on - c_off * n_off
+            if sub_c.n_active:
+                pred[hit_c] += edi.log_divisor(sub_c, c_on, c_off)
+            if sub_p.n_active:
+                pred[hit_p] -= edi.log_divisor(sub_p, c_on, c_off)
+            r = dlog_b - pred
+            return float(np.sum(weight * np.sqrt(delta2 + r * r)))
+
+        return cost
+
+    def estimate(self, cur, pairs, c_init):
+        cost = self._problem(pairs)
+        if cost is None:
+            return None
+        c, n = grid_then_golden(lambda c: cost(c, c), self.c_min, self.c_max, n_grid=self.n_grid, tol=self.tol)
+        c_on = c_off = c
+        if self.separate:
+            for _ in range(2):  # coordinate descent on the two thresholds around the common value
+                c_off, _, k1 = golden_section(lambda x: cost(c_on, x), 0.5 * c_off, 2.0 * c_off, tol=self.tol)
+                c_on, _, k2 = golden_section(lambda x: cost(x, c_off), 0.5 * c_on, 2.0 * c_on, tol=self.tol)
+                n += k1 + k2
+        self.last_evaluations = n
+        return c_on, c_off
+
+    def fits(self, cur, pairs, c):
+        cost = self._problem(pairs)
+        if cost is None:
+            return True
+        ratio = c[1] / c[0]
+        return _three_point_fit(lambda x: cost(x, x * ratio), c[0], self.fit_step)
+
+
+ESTIMATORS = {"consistency": ConsistencyContrast, "energy": EnergyContrast}
+DEFAULT_ESTIMATOR = "consistency"
+
+
+def make_estimator(name: str, **kwargs) -> ContrastEstimator:
+    """Estimator by name ('consistency', 'energy'); kwargs go to its constructor."""
+    try:
+        cls = ESTIMATORS[name]
+    except KeyError:
+        raise ValueError(f"unknown c estimator {name!r} (choose from {sorted(ESTIMATORS)})") from None
+    return cls(**kwargs)

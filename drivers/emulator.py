@@ -92,8 +92,8 @@ class _WordStream:
             except StopIteration:
                 self.exhausted = True
 
-    def next_block(self) -> tuple[np.ndarray, int] | None:
-        """The next words and the device time they reach, or None at the end of the recording."""
+    def next_block(self) -> list[tuple[np.ndarray, int]] | None:
+        """The next (words, device time reached) parts, or None at the end of the recording."""
         while not self.done:
             if not self.exhausted:
                 try:
@@ -126,7 +126,9 @@ class _WordStream:
             return
         self.shift -= last_dev + 1000  # continue device time 1 ms after the previous pass
 
-    def _encode_until(self, horizon: int) -> tuple[np.ndarray, int] | None:
+    def _encode_until(self, horizon: int) -> list[tuple[np.ndarray, int]] | None:
+        """Encode everything up to `horizon` (recording time) as (words, device time reached) parts of at most
+        ~1 ms of device time each, so pacing releases data as a camera would (early-packet delay 1 ms)."""
         if self.shift is None:
             return None
         ev = np.concatenate(self.ev) if self.ev else None
@@ -139,7 +141,7 @@ class _WordStream:
         self.blocks.sort(key=lambda b: (b[0], b[1], b[2]))
         due = [b for b in self.blocks if b[0] <= horizon]
         self.blocks = [b for b in self.blocks if b[0] > horizon]
-        parts: list[np.ndarray] = []
+        parts: list[tuple[np.ndarray, int]] = []
         pos = 0
         ts = ev["t"] if ev is not None else np.zeros(0, np.int64)
         for t, order, _, payload in due:
@@ -147,12 +149,10 @@ class _WordStream:
             if k > pos:
                 parts += self._events(ev[pos:k])
                 pos = k
-            parts += self._payload(t, payload)
+            parts += [(w, self.enc.last_t) for w in self._payload(t, payload)]
         if ev is not None and pos < len(ev):
             parts += self._events(ev[pos:])
-        if not parts:
-            return None
-        return np.concatenate(parts), self.enc.last_t
+        return parts or None
 
     def _dev(self, t: int) -> int:
         d = int(t) - self.shift
@@ -168,18 +168,26 @@ class _WordStream:
             return [self.enc.timestamp_reset()]
         return []
 
-    def _events(self, ev: np.ndarray) -> list[np.ndarray]:
+    def _events(self, ev: np.ndarray) -> list[tuple[np.ndarray, int]]:
+        out: list[tuple[np.ndarray, int]] = []
         t = ev["t"].astype(np.int64) - self.shift
-        out = []
         if self.reset_at_us is not None and len(t) and t[-1] >= self.reset_at_us:
             k = int(np.searchsorted(t, self.reset_at_us, side="left"))
-            if k:
-                out.append(self.enc.encode_events(np.maximum(t[:k], self.enc.last_t), ev["x"][:k], ev["y"][:k], ev["p"][:k]))
-            out += self._maybe_reset(int(t[k]) if k < len(t) else int(t[-1]))
-            ev, t = ev[k:], ev["t"][k:].astype(np.int64) - self.shift
-        if len(t):
-            t = np.maximum(t, self.enc.last_t)
-            out.append(self.enc.encode_events(t, ev["x"], ev["y"], ev["p"]))
+            out += self._event_slices(ev[:k])
+            out += [(w, 0) for w in self._maybe_reset(int(t[k]) if k < len(t) else int(t[-1]))]
+            ev = ev[k:]
+        return out + self._event_slices(ev)
+
+    def _event_slices(self, ev: np.ndarray, slice_us: int = 1000) -> list[tuple[np.ndarray, int]]:
+        if not len(ev):
+            return []
+        t = np.maximum(ev["t"].astype(np.int64) - self.shift, self.enc.last_t)
+        cuts = np.searchsorted(t, np.arange(t[0] + slice_us, t[-1] + 1, slice_us), side="left")
+        out = []
+        for a, b in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [len(t)]])):
+            if b > a:
+                out.append((self.enc.encode_events(t[a:b], ev["x"][a:b], ev["y"][a:b], ev["p"][a:b]),
+                            int(t[b - 1])))
         return out
 
     def _payload(self, t: int, payload: Any) -> list[np.ndarray]:
@@ -303,7 +311,7 @@ class EmulatorBackend(usb.backend.IBackend):
             factory = lambda: generated_scene(w, h, epoch_us=epoch, seed=seed)  # noqa: E731
         else:
             factory = _recording_factory(recording)
-        self.stream = _WordStream(factory, self.encoder, loop, int(faults.get("holdback_us", 1_000_000)),
+        self.stream = _WordStream(factory, self.encoder, loop, int(faults.get("holdback_us", 200_000)),
                                   faults.get("reset_at_us"))
         self.regs = self._register_file(mdl, w, h, dvs_o, aps_o, imu_o)
         self.writes: list[tuple[int, int, int]] = []
@@ -362,6 +370,7 @@ class EmulatorBackend(usb.backend.IBackend):
             replug = self.faults.get("replug_after_s")
             if replug is None or time.monotonic() - self._unplugged_at < replug:
                 return False
+            self._unplugged_at = None  # plugged back in
         return True
 
     # -- IBackend: descriptors --
@@ -475,13 +484,13 @@ class EmulatorBackend(usb.backend.IBackend):
             blk = self.stream.next_block()
             if blk is None:
                 return
-            words, dev_t = blk
-            if self._garbage:
-                k = min(self._garbage, 3)
-                pos = self._rng.integers(0, len(words) + 1, k)
-                words = np.insert(words, np.sort(pos), self._rng.integers(0, 0x10000, k).astype(np.uint16))
-                self._garbage -= k
-            self._pending.append((words.tobytes(), dev_t))
+            for words, dev_t in blk:
+                if self._garbage and len(words) > 64:
+                    k = min(self._garbage, 3)
+                    pos = self._rng.integers(0, len(words) + 1, k)
+                    words = np.insert(words, np.sort(pos), self._rng.integers(0, 0x10000, k).astype(np.uint16))
+                    self._garbage -= k
+                self._pending.append((words.tobytes(), dev_t))
             need_one = False
 
     def bulk_read(self, dev_handle, ep, intf, buff, timeout):

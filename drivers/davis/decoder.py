@@ -153,7 +153,7 @@ class DavisDecoder:
     # ---- gap re-anchoring ----------------------------------------------------------------------------
     def _apply_reanchor(self, words: np.ndarray, arrival_ns: int) -> np.ndarray:
         """Drop words before the first timestamp word, then pick the wrap count that puts this chunk's last
-        timestamp where host time says it should be (one wrap, 32.8 ms, dwarfs host jitter)."""
+        timestamp just before the host arrival time says it was sent."""
         ts_pos = np.flatnonzero(words >= 0x8000)
         if ts_pos.size == 0:
             self.counters["skipped_words"] += int(words.size)
@@ -170,8 +170,11 @@ class DavisDecoder:
         rel_end = int(probe[_kernel.S_CURRENT])
         first_low = int(words[0]) & 0x7FFF
         if arrival_ns and self._last_arrival_ns:
-            target_end = last_dev + (arrival_ns - self._last_arrival_ns) // 1000
-            base = int(round((target_end - rel_end) / _kernel.WRAP_STEP)) * _kernel.WRAP_STEP
+            # data reaches the host after its timestamp (USB latency, a reader running behind): host time is an
+            # upper bound, so take the latest wrap that does not put the chunk's end after it (2 ms slack for
+            # clock granularity). Correct while the latency stays below one wrap period minus the slack.
+            target_end = last_dev + (arrival_ns - self._last_arrival_ns) // 1000 + 2000
+            base = ((target_end - rel_end) // _kernel.WRAP_STEP) * _kernel.WRAP_STEP
         else:
             base = (last_dev >> 15) << 15
         min_base = (last_dev >> 15) << 15

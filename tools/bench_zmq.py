@@ -50,9 +50,12 @@ def bare_receiver(endpoint: str):
     sock.connect(endpoint)
 
     def recv(timeout_s: float):
-        if not sock.poll(int(timeout_s * 1000)):
-            return None
-        parts = sock.recv_multipart(copy=False)
+        try:
+            parts = sock.recv_multipart(flags=zmq.NOBLOCK, copy=False)
+        except zmq.Again:
+            if not sock.poll(int(timeout_s * 1000)):
+                return None
+            parts = sock.recv_multipart(copy=False)
         return msgpack.unpackb(parts[1].bytes), parts[2]
 
     return recv, lambda: ctx.destroy(linger=0)

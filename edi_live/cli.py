@@ -232,7 +232,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         finally:
             for sig, old in previous.items():
                 signal.signal(sig, old)
-            if node.final_stats:
+            if node.final_stats and node.started.is_set():  # no summary when it never got going
                 from edi_live.stats import format_summary
 
                 print(format_summary(node.final_stats, node.elapsed_s), file=sys.stderr)

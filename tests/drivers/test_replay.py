@@ -1,0 +1,313 @@
+"""Replay: merged_packets' ordering contract on real DV files (dv-processing as the oracle), ReplaySource's Source
+behaviour (pacing, loop, stop, None on idle, faults), Pacer arithmetic, and the memory bound."""
+
+from __future__ import annotations
+
+import threading
+import tracemalloc
+
+import numpy as np
+import pytest
+
+from drivers.pacing import Pacer
+from drivers.replay import ReplaySource, merged_packets
+from edi_live.aedat4 import Aedat4Reader, Aedat4Writer
+from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, Frame, Packet
+from edi_live.errors import ConfigError, RecordingError
+from edi_live.source import Source
+
+NAMES = ["emlb_demo-01_davis346.aedat4", "aestream_davis346.aedat4", "evlib_sample_davis346.aedat4"]
+T0 = 1_700_000_000_000_000
+
+
+def _dv_oracle(path):
+    import dv_processing as dv
+
+    rec = dv.io.MonoCameraRecording(str(path))
+    events = []
+    while (b := rec.getNextEventBatch()) is not None:
+        events.append(b.numpy()["timestamp"].copy())
+    frames = []
+    while (f := rec.getNextFrame()) is not None:
+        frames.append((f.timestamp, f.timestamp + int(f.exposure.total_seconds() * 1e6 + 0.5)))
+    return np.concatenate(events), frames
+
+
+@pytest.fixture(scope="module")
+def merged(real_recordings):
+    return {name: list(merged_packets(real_recordings[name])) for name in NAMES}
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_merged_events_are_all_events_in_time_order(merged, real_recordings, name):
+    packets = merged[name]
+    oracle_t, _ = _dv_oracle(real_recordings[name])
+    t = np.concatenate([p.events["t"] for p in packets])
+    assert np.array_equal(t, oracle_t)  # nothing lost, nothing duplicated, in order
+    assert np.all(np.diff(t) >= 0)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_frame_comes_after_every_event_of_its_exposure(merged, real_recordings, name):
+    packets = merged[name]
+    oracle_t, oracle_frames = _dv_oracle(real_recordings[name])
+    delivered = 0
+    frames = []
+    for p in packets:
+        delivered += len(p.events)
+        for f in p.frames:
+            # every event with t <= exposure end is in this packet or an earlier one
+            assert delivered >= np.searchsorted(oracle_t, f.exposure_end_us, side="right")
+            frames.append((f.exposure_start_us, f.exposure_end_us))
+    assert frames == oracle_frames
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_watermark_promise_holds(merged, name):
+    packets = merged[name]
+    for i, p in enumerate(packets):
+        later = [q.events["t"] for q in packets[i + 1:] if len(q.events)]
+        if later:
+            assert int(min(a[0] for a in later)) >= p.watermark_us
+        if len(p.events):
+            assert p.watermark_us > int(p.events["t"][-1])
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_imu_and_triggers_delivered_in_time_order(merged, real_recordings, name):
+    packets = merged[name]
+    imu_t = np.concatenate([p.imu["t"] for p in packets])
+    trig_t = np.concatenate([p.triggers["t"] for p in packets])
+    with Aedat4Reader(real_recordings[name]) as reader:
+        n_imu = sum(len(d) for s, d in reader if s.type == "IMUS")
+    assert len(imu_t) == n_imu and np.all(np.diff(imu_t) >= 0) and np.all(np.diff(trig_t) >= 0)
+
+
+def test_aestream_arrival_order_is_undone(merged):
+    # the file starts with a trigger packet at ...976518, older events (...975950) follow it
+    first = merged["aestream_davis346.aedat4"][0]
+    assert int(first.events["t"][0]) == 1633953690975950
+    assert len(first.triggers) == 0 or int(first.triggers["t"][0]) >= int(first.events["t"][0])
+
+
+def test_packets_are_short(merged):
+    for p in merged["aestream_davis346.aedat4"]:
+        if len(p.events):
+            assert int(p.events["t"][-1]) - int(p.events["t"][0]) < 10_000
+
+
+def test_time_offset_shifts_everything(real_recordings):
+    path = real_recordings["evlib_sample_davis346.aedat4"]
+    a = list(merged_packets(path))
+    b = list(merged_packets(path, time_offset_us=1_000_000))
+    ta, tb = (np.concatenate([p.events["t"] for p in x]) for x in (a, b))
+    assert np.array_equal(tb, ta + 1_000_000)
+    fa = [f.exposure_start_us for p in a for f in p.frames]
+    assert [f.exposure_start_us for p in b for f in p.frames] == [t + 1_000_000 for t in fa]
+
+
+# ---------------------------------------------------------------------------------------------- ReplaySource
+def test_replay_source_protocol_and_info(real_recordings):
+    src = ReplaySource(real_recordings["emlb_demo-01_davis346.aedat4"], speed=0)
+    assert isinstance(src, Source)
+    assert (src.info.width, src.info.height, src.info.label, src.info.kind) == (346, 260, "DAVIS346_00000391",
+                                                                                "replay")
+    with src:
+        packets = [p for p in src if p is not None]
+    assert sum(len(p.events) for p in packets) == 319_512
+    st = src.status()
+    assert (st.packets, st.events, st.frames) == (len(packets), 319_512, 13)
+    assert [f.seq for p in packets for f in p.frames] == list(range(13))
+    assert all(isinstance(p, Packet) and p.arrival_ns > 0 for p in packets)
+    assert src.time_range() == (1643243628737093, 1643243629248083)
+
+
+def test_invalid_speed_is_a_usage_error(real_recordings):
+    with pytest.raises(ConfigError, match="speed"):
+        ReplaySource(real_recordings["aestream_davis346.aedat4"], speed=-1)
+
+
+def test_any_resolution_from_the_header(tmp_path):
+    for w, h in ((240, 180), (346, 260), (101, 37)):
+        path = tmp_path / f"r{w}.aedat4"
+        with Aedat4Writer(path, w, h, camera_name="DAVIS240C_00000123") as writer:
+            ev = np.zeros(3, dtype=EVENT_DTYPE)
+            ev["t"], ev["x"], ev["y"] = T0 + np.arange(3), w - 1, h - 1
+            writer.write_events(ev)
+        src = ReplaySource(path, speed=0)
+        assert (src.info.width, src.info.height, src.info.name, src.info.serial) == (w, h, "DAVIS240C", "00000123")
+        with src:
+            assert sum(len(p.events) for p in src if p is not None) == 3
+
+
+def _run_in_thread(fn, timeout_s=20.0):
+    result = {}
+
+    def target():
+        try:
+            result["value"] = fn()
+        except BaseException as exc:  # handed to the test thread
+            result["error"] = exc
+
+    th = threading.Thread(target=target, daemon=True)
+    th.start()
+    th.join(timeout_s)
+    assert not th.is_alive(), "replay did not end (hang)"
+    if "error" in result:
+        raise result["error"]
+    return result["value"]
+
+
+def test_idle_yields_none_and_stop_ends_iteration(real_recordings):
+    # speed 1e-4: the second packet is due hours later, so the source keeps yielding None until stopped
+    src = ReplaySource(real_recordings["aestream_davis346.aedat4"], speed=1e-4, poll_s=0.01)
+
+    def consume():
+        seen = []
+        with src:
+            for p in src:
+                seen.append(p)
+                if sum(x is None for x in seen) == 3:
+                    threading.Thread(target=src.stop).start()  # stop from another thread
+        return seen
+
+    seen = _run_in_thread(consume)
+    assert isinstance(seen[0], Packet) and None in seen
+    assert seen.count(None) >= 3
+
+
+def test_loop_keeps_time_monotonic(real_recordings):
+    path = real_recordings["evlib_sample_davis346.aedat4"]
+    src = ReplaySource(path, speed=0, loop=True)
+
+    def consume():
+        packets = []
+        with src:
+            for p in src:
+                packets.append(p)
+                if sum(len(q.events) for q in packets) >= 3 * 6_676:
+                    src.stop()
+        return packets
+
+    packets = _run_in_thread(consume)
+    t = np.concatenate([p.events["t"] for p in packets])
+    assert len(t) >= 3 * 6_676 and src.loops >= 2
+    assert np.all(np.diff(t) >= 0)
+    frames = [f for p in packets for f in p.frames]
+    assert all(b.exposure_start_us > a.exposure_start_us for a, b in zip(frames, frames[1:]))
+    assert [f.seq for f in frames] == list(range(len(frames)))
+    assert len(frames) >= 8
+
+
+def test_truncated_file_replays_up_to_the_fault_then_raises(tmp_path, real_recordings):
+    data = real_recordings["aestream_davis346.aedat4"].read_bytes()
+    path = tmp_path / "cut.aedat4"
+    path.write_bytes(data[: len(data) // 2])
+    expected = 0
+    with pytest.raises(RecordingError), Aedat4Reader(path) as reader:
+        for s, d in reader:
+            expected += len(d) if s.type == "EVTS" else 0
+    src = ReplaySource(path, speed=0)
+
+    def consume():
+        got = 0
+        with src:
+            try:
+                for p in src:
+                    got += len(p.events) if p is not None else 0
+            except RecordingError as exc:
+                return got, exc
+        return got, None
+
+    got, err = _run_in_thread(consume)
+    assert err is not None and str(path) in str(err) and "at byte" in str(err)
+    assert got == expected > 0
+
+
+def test_pacer_arithmetic_with_a_fake_clock():
+    now = [100.0]
+    for speed, expect in ((1.0, 1.0), (4.0, 0.25), (0.5, 2.0)):
+        pacer = Pacer(speed, clock=lambda: now[0])
+        assert pacer.delay_s(T0) == 0.0  # the first timestamp anchors to now
+        assert pacer.delay_s(T0 + 1_000_000) == pytest.approx(expect)
+        now[0] += 0.1
+        assert pacer.delay_s(T0 + 1_000_000) == pytest.approx(expect - 0.1)
+        now[0] = 100.0
+    unpaced = Pacer(0, clock=lambda: now[0])
+    assert unpaced.delay_s(T0) == 0 and unpaced.delay_s(T0 + 10**9) == 0
+    with pytest.raises(ValueError):
+        Pacer(float("nan"))
+
+
+def test_pacer_wait_returns_false_on_timeout_and_on_stop():
+    pacer = Pacer(1.0)
+    pacer.anchor(T0)
+    stop = threading.Event()
+    assert pacer.wait(T0 - 5, 0.01, stop) is True  # already due
+    assert pacer.wait(T0 + 10_000_000, 0.01, stop) is False  # 10 s away, 10 ms timeout
+    stop.set()
+    assert pacer.wait(T0 + 10_000_000, 5.0, stop) is False  # returns at once when stopped
+
+
+# ---------------------------------------------------------------------------------------------- memory bound
+def _long_recording(path, n_packets=200, per_packet=10_000, span_us=10_000):
+    """n_packets x per_packet events; frames only during the first 0.2 s; an IMU stream declared but empty,
+    so both the frame and the IMU stream go silent and must stop holding events back."""
+    rng = np.random.default_rng(1)
+    base = np.zeros(per_packet, dtype=EVENT_DTYPE)
+    base["x"], base["y"] = rng.integers(0, 346, per_packet), rng.integers(0, 260, per_packet)
+    base["p"] = rng.random(per_packet) < 0.5
+    offsets = np.sort(rng.integers(0, span_us, per_packet))
+    with Aedat4Writer(path, 346, 260, imu=True) as w:
+        for k in range(n_packets):
+            base["t"] = T0 + k * span_us + offsets
+            w.write_events(base)
+            if k < 20 and k % 4 == 3:
+                w.write_frame(Frame(np.zeros((260, 346), np.uint8), T0 + (k - 3) * span_us, T0 + (k - 2) * span_us))
+    return n_packets * per_packet
+
+
+def test_memory_stays_bounded_while_streaming_a_long_file(tmp_path):
+    path = tmp_path / "long.aedat4"
+    n = _long_recording(path)
+    decoded_bytes = n * EVENT_DTYPE.itemsize  # 32 MB if it were all held
+    for _ in merged_packets(path, horizon_us=200_000):  # warm up: imports and the numba compile are not data
+        break
+    tracemalloc.start()
+    try:
+        count, first_packet_peak = 0, None
+        for p in merged_packets(path, horizon_us=200_000):
+            count += len(p.events)
+            if first_packet_peak is None:
+                first_packet_peak = tracemalloc.get_traced_memory()[1]
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert count == n
+    # the horizon (0.2 s = 200k events = 3.2 MB) bounds what the merge holds; on top: one 1 MB read chunk, the
+    # file buffer and the packet being decoded (without the bound, the whole 32 MB would be held)
+    assert peak < 10e6, f"peak {peak / 1e6:.1f} MB for {decoded_bytes / 1e6:.0f} MB of events"
+    assert first_packet_peak < 10e6  # output started long before the end of the file
+
+
+def test_event_cap_bounds_the_merge_when_another_stream_lags(tmp_path):
+    # IMU samples only at the start and the end: with a huge horizon, the event cap alone must bound the merge
+    path = tmp_path / "lag.aedat4"
+    rng = np.random.default_rng(2)
+    imu = np.zeros(1, dtype=IMU_DTYPE)
+    with Aedat4Writer(path, 64, 64, imu=True) as w:
+        imu["t"] = T0
+        w.write_imu(imu)
+        for k in range(100):
+            ev = np.zeros(5_000, dtype=EVENT_DTYPE)
+            ev["t"] = T0 + k * 5_000 + np.arange(5_000)
+            ev["x"], ev["y"] = rng.integers(0, 64, 5_000), rng.integers(0, 64, 5_000)
+            w.write_events(ev)
+        imu["t"] = T0 + 10**7
+        w.write_imu(imu)
+    sizes = []
+    for p in merged_packets(path, horizon_us=10**9, max_pending_events=20_000):
+        sizes.append(len(p.events))
+    assert sum(sizes) == 500_000
+    # without the cap, every event would wait for the last IMU packet and come out only at the end
+    assert len([s for s in sizes if s]) > 10

@@ -75,6 +75,8 @@ class Subscriber:
         sock = self._ctx.socket(zmq.SUB)
         sock.setsockopt(zmq.LINGER, 0)
         sock.setsockopt(zmq.RCVHWM, self._rcvhwm)
+        sock.setsockopt(zmq.HEARTBEAT_IVL, 1000)  # notice a vanished publisher host and reconnect
+        sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, 3000)
         # libzmq disconnects a peer that sends a larger part: a memory guard well above max_bytes, so
         # moderately oversized messages still arrive and are rejected with a ClientError.
         sock.setsockopt(zmq.MAXMSGSIZE, 4 * self.max_bytes)

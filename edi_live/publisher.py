@@ -36,6 +36,7 @@ log = logging.getLogger(__name__)
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
 DEFAULT_SNDHWM = 16  # frames queued per subscriber inside libzmq before PUB drops for that subscriber
 DEFAULT_INBOX = 64  # reconstructions waiting for the thread; a publisher that keeps up never fills it
+HEARTBEAT_IVL_MS, HEARTBEAT_TIMEOUT_MS = 1000, 3000
 LATENCY_SAMPLES = 8192  # bound on latency samples kept per stats interval (the most recent win)
 _START_TIMEOUT_S = 10.0
 
@@ -208,6 +209,9 @@ class Publisher:
     def _configure(self, sock: zmq.Socket) -> None:
         sock.setsockopt(zmq.LINGER, 0)
         sock.setsockopt(zmq.SNDHWM, self.sndhwm)
+        # ZMTP heartbeats: a subscriber whose host vanished (half-open TCP) is dropped with its queue
+        sock.setsockopt(zmq.HEARTBEAT_IVL, HEARTBEAT_IVL_MS)
+        sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, HEARTBEAT_TIMEOUT_MS)
         if self.curve_secret_key is not None:
             if not zmq.has("curve"):
                 raise PublishError("this libzmq was built without CURVE; cannot use --curve-secret-key")

@@ -196,10 +196,19 @@ class DavisDecoder:
 
     def _control(self, cw: np.ndarray, ct: np.ndarray, out: "_Out") -> bool:
         gap = False
-        hi = cw >> 12
-        non_sample = np.flatnonzero(hi != 4)
+        ns = np.flatnonzero((cw >> 12) != 4)  # every control word that is not an APS sample
+        runs = self._column_runs(cw, ns)
         prev = 0
-        for j in non_sample.tolist():
+        k, n = 0, ns.shape[0]
+        ns_list = ns.tolist()
+        while k < n:
+            j = ns_list[k]
+            if k in runs and self._frame is not None and not self._aps_ignore and self._col_type < 0:
+                k_end, length = runs[k]  # k .. k_end: complete columns of one type and one length
+                self._column_block(cw, ns[k:k_end + 1:2], int(cw[j]) - 11, length)
+                prev = ns_list[k_end + 1] + 1
+                k = k_end + 2
+                continue
             if j > prev:
                 self._samples(cw[prev:j])
             prev = j + 1
@@ -210,9 +219,38 @@ class DavisDecoder:
             elif code == 5:
                 self._misc8((data >> 8) & 0xF, data & 0xFF, t, out)
             # code 6 (misc10: exposure in ADC cycles, for auto-exposure) is not needed
+            k += 1
         if prev < cw.shape[0]:
             self._samples(cw[prev:])
         return gap
+
+    @staticmethod
+    def _column_runs(cw: np.ndarray, ns: np.ndarray) -> dict[int, tuple[int, int]]:
+        """Runs of complete columns (start 11/12, samples, end 13) of one type and one length, keyed by the
+        index in `ns` of the first column start: {k: (index of the last column start, samples per column)}.
+        They are decoded as one 2-D block instead of word by word."""
+        if ns.shape[0] < 4:
+            return {}
+        codes = cw[ns].astype(np.int64)
+        starts = np.flatnonzero(((codes[:-1] == 11) | (codes[:-1] == 12)) & (codes[1:] == 13))
+        if starts.shape[0] < 2:
+            return {}
+        length = ns[starts + 1] - ns[starts] - 1
+        brk = (np.diff(starts) != 2) | (np.diff(codes[starts]) != 0) | (np.diff(length) != 0)
+        first = np.concatenate([[0], np.flatnonzero(brk) + 1])
+        last = np.concatenate([first[1:] - 1, [starts.shape[0] - 1]])
+        return {int(starts[f]): (int(starts[l]), int(length[f])) for f, l in zip(first.tolist(), last.tolist())
+                if l > f}
+
+    def _column_block(self, cw: np.ndarray, col_starts: np.ndarray, r: int, length: int) -> None:
+        f = self._frame
+        ex, ey, _, _ = self._expected()
+        take = min(col_starts.shape[0], ex - f["count"][r])
+        if take <= 0:
+            return
+        idx = col_starts[:take, None] + 1 + np.arange(min(length, ey))
+        f["cols"][r].append(cw[idx] & 0x3FF)
+        f["count"][r] += take
 
     def _samples(self, s: np.ndarray) -> None:
         if self._aps_ignore or self._frame is None or self._col_type < 0:
@@ -280,7 +318,7 @@ class DavisDecoder:
         self._col_parts = []
         self._col_type = -1
         if f["count"][r] < ex:
-            f["cols"][r].append(col[:ey])
+            f["cols"][r].append(col[None, :ey])
             f["count"][r] += 1
 
     def _frame_end(self, t: int, out: "_Out") -> None:
@@ -314,8 +352,10 @@ class DavisDecoder:
     @staticmethod
     def _assemble(cols: list[np.ndarray], ex: int, ey: int) -> np.ndarray:
         a = np.zeros((ex, ey), dtype=np.int32)  # missing samples read as 0 -> white, like an unwritten pixel
-        for i, c in enumerate(cols):
-            a[i, : c.shape[0]] = c
+        i = 0
+        for block in cols:  # 2-D blocks of whole columns
+            a[i:i + block.shape[0], : block.shape[1]] = block
+            i += block.shape[0]
         return a
 
     def _misc8(self, sub: int, byte: int, t: int, out: "_Out") -> None:

@@ -122,8 +122,8 @@ class EdiConfig:
                f"every must be an integer >= 1 (events per latent frame) (got {self.every!r})")
         for name in ("c", "c_on", "c_off"):
             value = getattr(self, name)
-            _check(value is None or (isinstance(value, (int, float)) and 0 < value <= 5),
-                   f"{name.replace('_', '-')} must be a contrast threshold in (0, 5] (got {value!r})")
+            _check(value is None or (isinstance(value, (int, float)) and 0.01 <= value <= 2.0),
+                   f"{name.replace('_', '-')} must be a contrast threshold in [0.01, 2] (got {value!r})")
         _check((self.c_on is None) == (self.c_off is None),
                f"c-on and c-off go together (got c-on={self.c_on!r}, c-off={self.c_off!r})")
         _check(self.c is None or self.c_on is None,

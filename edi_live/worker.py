@@ -148,6 +148,9 @@ class EdiWorker:
             self.gaps += 1
             self._await_reference = True
             self._deferred.clear()
+            mark_gap = getattr(self.rec, "mark_gap", None)  # lets the c estimator skip pairs across the gap
+            if mark_gap is not None:
+                mark_gap()
         if self._await_reference or not self.rec.has_reference:
             self._since += n
             return  # nothing to update before the first (or next, after a gap) APS frame

@@ -51,8 +51,7 @@ try:
                 return i, 3
         return -1, 0
 
-    def check_events(raw: np.ndarray, width: int, height: int, t_floor: int) -> tuple[int, int]:
-        return _check_jit(raw, width, height, t_floor)
+    check_events = _check_jit
 
     HAVE_NUMBA = True
 except ImportError:  # numba is optional: same contract, numpy speed

@@ -178,22 +178,26 @@ class Aedat4Reader:
         Packets of unknown or undeclared streams are skipped (with one warning per stream), and so, without being
         decompressed, are packets whose type is not in `types` (when given, e.g. ("EVTS",)).
         """
-        f, end, pos = self._file, self._end, self.data_start
+        end, pos = self._end, self.data_start
         unpack_from = _PH.unpack_from
         decompress = self._decompressor()
         by_id = self._by_id
         wanted = None if types is None else {s.id for s in self.streams if s.type in set(types)}
-        # The file is read in chunks of READ_CHUNK bytes (or one packet, if larger) and packets are sliced out of
-        # the chunk as memoryviews: one read per many packets, and never more than one chunk in memory.
-        buf, view, base = b"", memoryview(b""), pos
+        # The file is read in chunks of READ_CHUNK bytes (or one packet, if larger) into one reused buffer, and
+        # packets are decompressed straight from memoryviews of it: one read per many packets, no allocation per
+        # read, and never more than one chunk in memory. A payload never points into the buffer (decompression and
+        # the NONE path both produce new bytes), so overwriting it on the next read is safe.
+        buf = bytearray(READ_CHUNK)
+        view = memoryview(buf)
+        base, filled = pos, 0
         while pos < end:
             rel = pos - base
-            if rel + 8 > len(buf):
+            if rel + 8 > filled:
                 if end - pos < 8:
                     raise self._error(f"the file ends inside a packet header ({end - pos} of 8 bytes; truncated)",
                                       pos)
-                buf, view, base, rel = self._chunk(pos, 8), None, pos, 0
-                view = memoryview(buf)
+                view, filled = self._fill(view, pos, 8)
+                buf, base, rel = view.obj, pos, 0
             sid, size = unpack_from(buf, rel)
             if size <= 0:
                 raise self._error(f"corrupt packet header (size {size})", pos)
@@ -203,9 +207,9 @@ class Aedat4Reader:
             if wanted is not None and sid not in wanted and sid in by_id:
                 pos += 8 + size
                 continue
-            if rel + 8 + size > len(buf):
-                buf, view, base, rel = self._chunk(pos, 8 + size), None, pos, 0
-                view = memoryview(buf)
+            if rel + 8 + size > filled:
+                view, filled = self._fill(view, pos, 8 + size)
+                buf, base, rel = view.obj, pos, 0
             stream = by_id.get(sid)
             if stream is None or not stream.supported:
                 if sid not in self._warned:
@@ -225,17 +229,21 @@ class Aedat4Reader:
         if self._dtp_error:
             raise self._error(self._dtp_error, self.file_size)
 
-    def _chunk(self, pos: int, need: int) -> bytes:
-        """Bytes from `pos`: at least `need` (the caller checked they exist), at most max(READ_CHUNK, need)."""
+    def _fill(self, view: memoryview, pos: int, need: int) -> tuple[memoryview, int]:
+        """Read from `pos` into the buffer behind `view` (a larger one when `need` exceeds it): at least `need` bytes
+        (the caller checked they exist), at most the buffer size. Returns (view of the buffer, bytes filled)."""
+        if need > len(view):
+            view = memoryview(bytearray(need))
         self._file.seek(pos)
-        data = self._file.read(min(max(READ_CHUNK, need), self._end - pos))
-        if len(data) < need:
+        want = min(len(view), self._end - pos)
+        got = self._file.readinto(view[:want])
+        if got < need:
             raise self._error("the file is shorter than its size on disk (read failed)", pos)
-        return data
+        return view, got
 
     def _decompressor(self):
         if self.compression == "none":
-            return bytes  # a copy, so a payload never pins the read chunk
+            return bytes  # a copy: the read buffer is reused
         if self.compression.startswith("lz4"):
             return lz4_decompress
         dctx = zstandard.ZstdDecompressor()
@@ -279,8 +287,13 @@ class Aedat4Reader:
             yield stream, pos, data
 
     def events(self) -> Iterator[np.ndarray]:
-        """Only the event arrays, in file order (other packets are skipped undecompressed)."""
-        for _, _, ev in self.records(("EVTS",)):
+        """Only the event arrays, in file order (other packets are skipped undecompressed): the fast path."""
+        decode = self._events
+        for stream, pos, payload in self.packets(("EVTS",)):
+            try:
+                ev = decode(payload, stream, pos)
+            except S.FlatBufferError as exc:
+                raise self._error(f"corrupt EVTS packet: {exc} (payload byte {exc.pos})", pos) from None
             yield ev
 
     def _events(self, payload: bytes, stream: StreamInfo, pos: int) -> np.ndarray:
@@ -289,7 +302,7 @@ class Aedat4Reader:
             return _NO_EVENTS
         if self.validate:
             first, why = check_events(np.frombuffer(payload, np.uint8, count * 16, start), stream.width,
-                                      stream.height, -(2**63))
+                                      stream.height, _T_MIN)
             if why:
                 raise self._error(f"corrupt event packet of stream {stream.id}: event {first} of {count} "
                                   f"{_WHY[why].format(w=stream.width, h=stream.height)}", pos)
@@ -422,6 +435,7 @@ def _event_vector_at(payload: bytes, table: int, n: int) -> tuple[int, int]:
     return v + 4, count
 
 
+_T_MIN = -(2**63)
 _WHY = {1: "goes back in time", 2: "lies outside the {w}x{h} sensor", 3: "has a polarity byte other than 0/1"}
 _NO_EVENTS = np.zeros(0, dtype=EVENT_DTYPE)
 _NO_EVENTS.flags.writeable = False

@@ -305,9 +305,19 @@ def test_event_cap_bounds_the_merge_when_another_stream_lags(tmp_path):
             w.write_events(ev)
         imu["t"] = T0 + 10**7
         w.write_imu(imu)
-    sizes = []
-    for p in merged_packets(path, horizon_us=10**9, max_pending_events=20_000):
-        sizes.append(len(p.events))
-    assert sum(sizes) == 500_000
-    # without the cap, every event would wait for the last IMU packet and come out only at the end
-    assert len([s for s in sizes if s]) > 10
+    for _ in merged_packets(path):  # warm up imports and the numba compile
+        break
+
+    def peak_bytes(cap):
+        tracemalloc.start()
+        try:
+            n = sum(len(p.events) for p in merged_packets(path, horizon_us=10**9, max_pending_events=cap))
+            return n, tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+
+    n, capped = peak_bytes(20_000)
+    n_all, uncapped = peak_bytes(10**9)
+    assert n == n_all == 500_000
+    # without the cap every event waits for the last IMU packet: all 8 MB are held at once
+    assert uncapped > 8e6 and capped < 4e6, (capped, uncapped)

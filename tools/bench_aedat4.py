@@ -1,0 +1,131 @@
+"""Benchmark: AEDAT4 event decode throughput of edi-live's reader against dv-processing (and `aedat`) on the same
+files in the same run, plus the replay merge (merged_packets) and the writer.
+
+    python -m tools.bench_aedat4                 # the real recordings + a generated 10 M-event file
+    python -m tools.bench_aedat4 --events 20000000 --repeat 7
+
+Readers run round-robin (one pass each per round) so machine noise hits all of them alike; the table shows the
+median over rounds in M events/s, and our/dv ratio. The process is pinned to one core (--cores 1) unless told
+otherwise. Only events are decoded (other streams skipped), which is what dv-processing's getNextEventBatch does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from drivers.replay import merged_packets
+from edi_live.aedat4 import Aedat4Reader, Aedat4Writer
+from edi_live.aedat4._check import HAVE_NUMBA
+from edi_live.datatypes import EVENT_DTYPE, Frame
+
+REAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
+REAL_FILES = ("emlb_demo-01_davis346.aedat4", "aestream_davis346.aedat4")
+
+
+def ours(path: Path, validate: bool = True) -> int:
+    with Aedat4Reader(path, validate=validate) as reader:
+        return sum(len(ev) for ev in reader.events())
+
+
+def dv_processing(path: Path) -> int:
+    import dv_processing as dv
+
+    rec = dv.io.MonoCameraRecording(str(path))
+    n = 0
+    while (batch := rec.getNextEventBatch()) is not None:
+        n += len(batch.numpy())
+    return n
+
+
+def aedat_pkg(path: Path) -> int:
+    import aedat
+
+    return sum(len(p["events"]) for p in aedat.Decoder(str(path)) if "events" in p)
+
+
+def replay_merge(path: Path) -> int:
+    return sum(len(p.events) for p in merged_packets(path))
+
+
+def generate(path: Path, n_events: int, per_packet: int = 10_000, seed: int = 0) -> float:
+    """A DAVIS346-sized LZ4 file of random events in 10k-event packets with a frame every 40 ms; returns the
+    writer's throughput in M events/s."""
+    rng = np.random.default_rng(seed)
+    t0 = 1_700_000_000_000_000
+    chunk = np.zeros(per_packet, dtype=EVENT_DTYPE)
+    img = rng.integers(0, 256, (260, 346), dtype=np.uint8)
+    write_s, next_frame = 0.0, t0
+    with Aedat4Writer(path, 346, 260, compression="lz4") as w:
+        for k in range(0, n_events, per_packet):
+            m = min(per_packet, n_events - k)
+            ev = chunk[:m]
+            ev["t"] = t0 + (k + np.arange(m)) // 2  # 2 M events/s
+            ev["x"], ev["y"] = rng.integers(0, 346, m), rng.integers(0, 260, m)
+            ev["p"] = rng.random(m) < 0.5
+            start = time.perf_counter()
+            w.write_events(ev)
+            while next_frame + 20_000 <= int(ev["t"][-1]):
+                w.write_frame(Frame(img, next_frame, next_frame + 20_000))
+                next_frame += 40_000
+            write_s += time.perf_counter() - start
+    return n_events / write_s / 1e6
+
+
+def bench(path: Path, readers: dict, repeat: int) -> dict[str, float]:
+    times: dict[str, list[float]] = {name: [] for name in readers}
+    counts: dict[str, int] = {}
+    for _ in range(repeat):
+        for name, fn in readers.items():
+            start = time.perf_counter()
+            counts[name] = fn(path)
+            times[name].append(time.perf_counter() - start)
+    n = counts[next(iter(readers))]
+    for name, c in counts.items():
+        if c != n:
+            raise SystemExit(f"{name} read {c} events from {path.name}, expected {n}")
+    return {"events": n, **{name: n / statistics.median(ts) / 1e6 for name, ts in times.items()}}
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--events", type=int, default=10_000_000, help="events in the generated file (default 10 M)")
+    ap.add_argument("--repeat", type=int, default=5, help="rounds per file (default 5; median reported)")
+    ap.add_argument("--cores", type=int, default=1, help="pin to this many cores (0 = no pinning)")
+    ap.add_argument("--no-aedat", action="store_true", help="skip the aedat package")
+    args = ap.parse_args(argv)
+    if args.cores and hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[: args.cores])
+    readers = {"ours": ours, "ours (no validation)": lambda p: ours(p, validate=False),
+               "dv-processing": dv_processing}
+    if not args.no_aedat:
+        readers["aedat"] = aedat_pkg
+    readers["replay merge"] = replay_merge
+    ours(REAL / REAL_FILES[1])  # warm up (numba compile, imports)
+    print(f"numba validation kernel: {'yes' if HAVE_NUMBA else 'no (numpy fallback)'}; "
+          f"cores: {len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else '?'}")
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        gen = Path(tmp) / "generated.aedat4"
+        write_mevs = generate(gen, args.events)
+        files = [REAL / name for name in REAL_FILES if (REAL / name).is_file()] + [gen]
+        for path in files:
+            repeat = args.repeat if path == gen else args.repeat * 4
+            rows.append((path.name, path.stat().st_size, bench(path, readers, repeat)))
+    names = list(readers)
+    print(f"\n| file | MB | events | {' | '.join(names)} | ours / dv |")
+    print("|---|---:|---:|" + "---:|" * len(names) + "---:|")
+    for name, size, r in rows:
+        cells = " | ".join(f"{r[k]:.1f}" for k in names)
+        print(f"| {name} | {size / 1e6:.1f} | {r['events']:,} | {cells} | {r['ours'] / r['dv-processing']:.2f} |")
+    print(f"\nM events/s, median of rounds. Writer (LZ4, generated file): {write_mevs:.1f} M events/s.")
+
+
+if __name__ == "__main__":
+    main()

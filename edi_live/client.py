@@ -102,8 +102,9 @@ class Subscriber:
             if deadline is not None and time.monotonic() >= deadline:
                 return False
 
-    def _recv_parts(self, sock: zmq.Socket, timeout_s: float | None) -> tuple[list[zmq.Frame] | None, int]:
-        """The next message (or the newest available one with newest_only) and how many were skipped."""
+    def _recv_parts(self, sock: zmq.Socket, timeout_s: float | None,
+                    newest: bool) -> tuple[list[zmq.Frame] | None, int]:
+        """The next message (or the newest available one when `newest`) and how many were skipped."""
         try:  # a message already waiting costs no poll
             parts = sock.recv_multipart(flags=zmq.NOBLOCK, copy=False)
         except zmq.Again:
@@ -111,7 +112,7 @@ class Subscriber:
                 return None, 0
             parts = sock.recv_multipart(copy=False)
         skipped = 0
-        while self.newest_only and skipped < _MAX_DRAIN:
+        while newest and skipped < _MAX_DRAIN:
             try:
                 parts = sock.recv_multipart(flags=zmq.NOBLOCK, copy=False)
             except zmq.Again:
@@ -123,7 +124,7 @@ class Subscriber:
         """The next frame as (header, image), or None if none arrived within timeout_s (None = wait).
 
         The image is read-only and shares the message buffer. Raises ClientError on a bad message."""
-        parts, skipped = self._recv_parts(self._frames, timeout_s)
+        parts, skipped = self._recv_parts(self._frames, timeout_s, self.newest_only)
         if parts is None:
             return None
         self.skipped += skipped
@@ -135,11 +136,7 @@ class Subscriber:
         """The newest stats map that arrived since the last call (waiting up to timeout_s), or None."""
         if self._stats is None:
             raise ClientError("this Subscriber was created with stats=False")
-        saved, self.newest_only = self.newest_only, True  # stats are always drained to the newest
-        try:
-            parts, _ = self._recv_parts(self._stats, timeout_s)
-        finally:
-            self.newest_only = saved
+        parts, _ = self._recv_parts(self._stats, timeout_s, newest=True)  # only the newest stats matter
         if parts is None:
             return None
         self.last_stats = wire.decode_stats(parts)

@@ -159,7 +159,7 @@ def log_divisor_segments(seg_start, seg_on, seg_off, seg_frac, c_on, c_off):
 
 
 @njit(cache=True, nogil=True)
-def propagate(flat, idx, p, d_on, d_off, lo, hi, disp, use_disp, gain):
+def propagate(flat, idx, p, d_on, d_off, lo, hi, disp, use_disp, gain, acc_on, acc_off, use_acc):
     for i in range(idx.size):
         q = idx[i]
         v = flat[q] + (d_on if p[i] else d_off)
@@ -173,3 +173,6 @@ def propagate(flat, idx, p, d_on, d_off, lo, hi, disp, use_disp, gain):
             if x > 255.0:
                 x = 255.0
             disp[q] = np.uint8(x)
+        if use_acc:
+            acc_on[q] += p[i]
+            acc_off[q] += 1 - p[i]

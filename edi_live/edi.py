@@ -364,11 +364,12 @@ def signed_counts(events: np.ndarray, width: int, height: int, *, t0: int | None
 
 def propagate_log(log_image: np.ndarray, events: np.ndarray, c_on: float, c_off: float | None = None, *,
                   sign: int = 1, mask: np.ndarray | None = None, display: np.ndarray | None = None,
-                  gain: float = 1.0) -> int:
+                  gain: float = 1.0, counts: tuple[np.ndarray, np.ndarray] | None = None) -> int:
     """In place: log L += sign * (c_on * n_on - c_off * n_off) over `events`, touching only their pixels.
 
     sign=+1 moves forward in time (L(t) = L(f) exp(c E(f->t))), sign=-1 backward. If `display` (uint8, same
-    shape) is given, it is refreshed at the touched pixels with clip(gain * exp(log L), 0, 255).
+    shape) is given, it is refreshed at the touched pixels with clip(gain * exp(log L), 0, 255). If `counts`
+    (flat int64 n_on, n_off arrays) is given, the applied events are added to it.
     Returns the number of events applied. log L stays within [LOG_MIN, LOG_MAX].
     """
     c_off = c_on if c_off is None else c_off
@@ -381,20 +382,24 @@ def propagate_log(log_image: np.ndarray, events: np.ndarray, c_on: float, c_off:
     d_off = -float(sign) * float(c_off)
     if _jit is not None and flat.dtype == np.float32 and flat.flags.c_contiguous:
         disp = display.reshape(-1) if display is not None else np.zeros(0, dtype=np.uint8)
+        acc_on, acc_off = counts if counts is not None else (np.zeros(0, np.int64), np.zeros(0, np.int64))
         _jit.propagate(flat, idx, p.view(np.uint8), d_on, d_off, LOG_MIN, LOG_MAX, disp, display is not None,
-                       float(gain))
+                       float(gain), acc_on, acc_off, counts is not None)
         return int(idx.size)
     if idx.size * 8 < flat.size:
         # small batch: unbuffered add at the touched pixels only
         np.add.at(flat, idx, np.where(p, np.float32(d_on), np.float32(d_off)))
-        touched = idx
+        if counts is not None:
+            np.add.at(counts[0], idx[p], 1)
+            np.add.at(counts[1], idx[~p], 1)
     else:
         flat += np.bincount(idx, weights=np.where(p, d_on, d_off), minlength=flat.size).astype(flat.dtype)
-        touched = idx
-    flat[touched] = np.clip(flat[touched], LOG_MIN, LOG_MAX)
+        if counts is not None:
+            counts[0] += np.bincount(idx[p], minlength=flat.size)
+            counts[1] += np.bincount(idx[~p], minlength=flat.size)
+    flat[idx] = np.clip(flat[idx], LOG_MIN, LOG_MAX)
     if display is not None:
-        dflat = display.reshape(-1)
-        dflat[touched] = to_uint8(flat[touched], gain)
+        display.reshape(-1)[idx] = to_uint8(flat[idx], gain)
     return int(idx.size)
 
 

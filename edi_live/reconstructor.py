@@ -1,0 +1,261 @@
+"""EdiReconstructor: the only stateful piece of the EDI math. Runs on the worker thread (not thread-safe).
+
+Owns: the reference L(f) of the latest APS frame (log domain), the current contrast thresholds (cached, re-estimated
+when the estimator's cheap fit test fails or every `reestimate_every` frames), the hot-pixel mask, and the latent
+state L(t) with an incrementally maintained uint8 display buffer. Emitting a latent frame costs O(new events) plus
+one copy of the image.
+
+Time contract (µs, sensor clock): `on_frame(frame, events)` gets every event from frame.exposure_start_us up to the
+caller's "now" (some of them may already have been given to `on_events`); `on_events` gets later events in time
+order. Events before the first APS frame only feed the hot-pixel statistics (there is no reference yet).
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import time
+
+import numpy as np
+
+import edi_live.contrast as contrast
+import edi_live.edi as edi
+from edi_live.datatypes import Frame, Reconstruction
+from edi_live.errors import ConfigError, NodeError
+
+C_RANGE = (0.01, 2.0)
+
+
+def _check_c(name: str, value: float | None) -> float | None:
+    if value is None:
+        return None
+    v = float(value)
+    if not (math.isfinite(v) and C_RANGE[0] <= v <= C_RANGE[1]):
+        raise ConfigError(f"{name} must be a contrast threshold in [{C_RANGE[0]}, {C_RANGE[1]}] (got {value!r})")
+    return v
+
+
+class EdiReconstructor:
+    """Deblurs each APS frame at mid-exposure and advances the latent image event by event."""
+
+    def __init__(self, width: int, height: int, *, c: float | None = None, c_on: float | None = None,
+                 c_off: float | None = None, estimator: str = contrast.DEFAULT_ESTIMATOR, reestimate_every: int = 0,
+                 c_init: float = 0.2, history_pairs: int = 2, mask_hot_pixels: bool = True,
+                 hot_min_rate_hz: float = 300.0, hot_rel_factor: float = 10.0, hot_decay: float = 0.8,
+                 saturation: float | None = None, estimator_options: dict | None = None) -> None:
+        if width <= 0 or height <= 0:
+            raise ConfigError(f"sensor size must be positive (got {width}x{height})")
+        if reestimate_every < 0:
+            raise ConfigError(f"reestimate_every must be >= 0 (got {reestimate_every})")
+        self.width, self.height = int(width), int(height)
+        c, c_on, c_off = _check_c("c", c), _check_c("c_on", c_on), _check_c("c_off", c_off)
+        if (c_on is None) != (c_off is None) and c is None:
+            raise ConfigError("give both c_on and c_off (or a single c)")
+        self._fixed = c is not None or c_on is not None
+        self.c_on = c_on if c_on is not None else (c if c is not None else _check_c("c_init", c_init))
+        self.c_off = c_off if c_off is not None else (c if c is not None else self.c_on)
+        if self._fixed:
+            self._estimator: contrast.ContrastEstimator = contrast.FixedContrast(self.c_on, self.c_off)
+        else:
+            try:
+                self._estimator = contrast.make_estimator(estimator, **(estimator_options or {}))
+            except (ValueError, TypeError) as exc:
+                raise ConfigError(str(exc)) from None
+        self.reestimate_every = int(reestimate_every)
+        self.reestimations = 0
+        self._estimated = False
+        self._frames_since_estimate = 0
+        self._mask_hot = mask_hot_pixels
+        self._hot_min_rate_hz = hot_min_rate_hz
+        self._hot_rel = hot_rel_factor
+        self._hot_decay = hot_decay
+        self._saturation = saturation
+        npix = self.width * self.height
+        self._hot_counts = np.zeros(npix, np.float64)
+        self._hot_duration_us = 0.0
+        self._hot = np.zeros((self.height, self.width), bool)
+        self._log_ref = np.zeros((self.height, self.width), np.float32)
+        self._log_lat = np.zeros((self.height, self.width), np.float32)
+        self._display = np.zeros((self.height, self.width), np.uint8)
+        self._acc = (np.zeros(npix, np.int64), np.zeros(npix, np.int64))  # ON/OFF applied since f
+        self._prev: contrast.FrameData | None = None
+        self._pairs: collections.deque = collections.deque(maxlen=max(1, history_pairs))
+        self.has_reference = False
+        self._ref_t = 0
+        self._exposure = (0, 0)
+        self._t_last = -(2**63)
+        self._pending_events = 0
+        self._arrival_ns = 0
+        self.frames = 0
+        self.events_applied = 0
+        self.last_deblur_ms = 0.0
+        self.last_estimate_ms = 0.0
+
+    # ---- public API ----
+
+    @property
+    def hot_pixels(self) -> int:
+        return int(self._hot.sum())
+
+    @property
+    def hot_pixel_mask(self) -> np.ndarray:
+        return self._hot.copy()
+
+    def mark_gap(self) -> None:
+        """Data were lost: the next frame is not compared with the previous one (no consistency across a gap)."""
+        self._prev = None
+        self._pairs.clear()
+
+    def on_frame(self, frame: Frame, events: np.ndarray, arrival_ns: int = 0) -> Reconstruction:
+        t_start = time.perf_counter()
+        img = frame.image
+        if img.shape != (self.height, self.width):
+            raise ConfigError(f"APS frame is {img.shape[1]}x{img.shape[0]} but the reconstructor was set up for "
+                              f"{self.width}x{self.height}; check the source resolution")
+        ts, te = int(frame.exposure_start_us), int(frame.exposure_end_us)
+        f = frame.mid_exposure_us
+        if self.has_reference and f <= self._ref_t:
+            self.mark_gap()  # time went backwards (new recording, loop without offset): start over
+        self._update_hot(events, ts, te)
+        mask = self._hot if self._mask_hot else None
+        b, informative = edi.blurry_to_float(img, saturation=self._saturation)
+        segments = self._fixed and self.c_on != self.c_off or self._estimator.separate
+        table = edi.build_level_table(events, self.width, self.height, ts, te, f, mask=mask, segments=segments)
+        em = None
+        if self._estimator.name == "energy":
+            em = contrast.event_map(events, self.width, self.height, f, ts, te, 0.25 * max(te - ts, 1))
+        cur = contrast.FrameData(b, informative, table, em)
+        if self._prev is not None and self.has_reference:
+            n_on, n_off = self._counts_between(events, f)
+            self._pairs.append(contrast.FramePair(self._prev, cur, n_on, n_off, self._hot.reshape(-1)))
+        self._choose_c(cur)
+        self._log_ref = edi.deblur_log(b, table, self.c_on, self.c_off, informative=informative)
+        deblurred = edi.to_uint8(self._log_ref)
+        # latent state: from L(f) through the events after f that are already here
+        np.copyto(self._log_lat, self._log_ref)
+        for a in self._acc:
+            a.fill(0)
+        after = events[events["t"] > f] if events.size else events
+        n_new = int(np.count_nonzero(events["t"] > self._t_last)) if events.size else 0
+        edi.propagate_log(self._log_lat, after, self.c_on, self.c_off, mask=mask, counts=self._acc)
+        np.copyto(self._display, edi.to_uint8(self._log_lat))
+        self._prev = cur
+        self.has_reference = True
+        self._ref_t = f
+        self._exposure = (ts, te)
+        if events.size:
+            self._t_last = max(self._t_last, int(events["t"][-1]))
+        self._t_last = max(self._t_last, f)
+        self.frames += 1
+        self.events_applied += n_new
+        n_events = self._pending_events + n_new
+        self._pending_events = 0
+        self._arrival_ns = arrival_ns or self._arrival_ns
+        self.last_deblur_ms = (time.perf_counter() - t_start) * 1e3
+        return self._reconstruction(deblurred, f, "deblurred", n_events)
+
+    def on_events(self, events: np.ndarray, arrival_ns: int = 0) -> None:
+        if events.size == 0:
+            return
+        if not self.has_reference:
+            return  # nothing to advance yet; the first APS frame rebuilds everything
+        mask = self._hot if self._mask_hot else None
+        edi.propagate_log(self._log_lat, events, self.c_on, self.c_off, mask=mask, display=self._display,
+                          counts=self._acc)
+        self._t_last = max(self._t_last, int(events["t"][-1]))
+        self._pending_events += int(events.size)
+        self.events_applied += int(events.size)
+        if arrival_ns:
+            self._arrival_ns = arrival_ns
+
+    def render(self) -> Reconstruction:
+        self._need_reference("render()")
+        n = self._pending_events
+        self._pending_events = 0
+        return self._reconstruction(self._display.copy(), self._t_last, "latent", n)
+
+    def render_from_reference(self, t_us: int, events: np.ndarray) -> Reconstruction:
+        """Latent at t from the current L(f), using the events between t and f (t may be before f)."""
+        self._need_reference("render_from_reference()")
+        t_us = int(t_us)
+        f = self._ref_t
+        mask = self._hot if self._mask_hot else None
+        if t_us >= f:
+            delta = edi.event_delta(events, self.width, self.height, self.c_on, self.c_off, t0=f + 1, t1=t_us,
+                                    mask=mask)
+        else:
+            delta = -edi.event_delta(events, self.width, self.height, self.c_on, self.c_off, t0=t_us + 1, t1=f,
+                                     mask=mask)
+        log_l = np.clip(self._log_ref + delta, edi.LOG_MIN, edi.LOG_MAX)
+        return self._reconstruction(edi.to_uint8(log_l), t_us, "latent", int(events.size))
+
+    def stats(self) -> dict:
+        return {
+            "c_on": self.c_on, "c_off": self.c_off, "c_fixed": self._fixed, "estimator": self._estimator.name,
+            "reestimations": self.reestimations, "hot_pixels": self.hot_pixels, "frames": self.frames,
+            "events_applied": self.events_applied, "has_reference": self.has_reference,
+            "last_deblur_ms": round(self.last_deblur_ms, 3), "last_estimate_ms": round(self.last_estimate_ms, 3),
+        }
+
+    # ---- internals ----
+
+    def _need_reference(self, what: str) -> None:
+        if not self.has_reference:
+            raise NodeError(f"{what} called before the first APS frame was deblurred (check has_reference first)")
+
+    def _reconstruction(self, image: np.ndarray, t_us: int, kind: str, n_events: int) -> Reconstruction:
+        return Reconstruction(image=image, t_us=int(t_us), kind=kind, ref_t_us=int(self._ref_t),
+                              exposure_start_us=self._exposure[0], exposure_end_us=self._exposure[1],
+                              c_on=float(self.c_on), c_off=float(self.c_off), n_events=int(n_events),
+                              arrival_ns=int(self._arrival_ns))
+
+    def _counts_between(self, events: np.ndarray, f: int) -> tuple[np.ndarray, np.ndarray]:
+        """ON/OFF counts per pixel from the previous f to this f, without counting any event twice: the
+        accumulator holds what was applied after the previous f (up to t_last); this batch may overlap it."""
+        n_on, n_off = self._acc[0].copy(), self._acc[1].copy()
+        mask = self._hot if self._mask_hot else None
+        t_last = self._t_last
+        if f < t_last:  # applied events after this f do not belong to the interval
+            on2, off2 = edi.signed_counts(events, self.width, self.height, t0=f + 1, t1=t_last, mask=mask)
+            n_on -= on2
+            n_off -= off2
+        elif f > t_last:  # events up to this f that were not applied yet
+            on2, off2 = edi.signed_counts(events, self.width, self.height, t0=t_last + 1, t1=f, mask=mask)
+            n_on += on2
+            n_off += off2
+        np.maximum(n_on, 0, out=n_on)
+        np.maximum(n_off, 0, out=n_off)
+        return n_on, n_off
+
+    def _choose_c(self, cur: contrast.FrameData) -> None:
+        if self._fixed:
+            return
+        pairs = list(self._pairs)
+        if self._estimator.needs_pair and not pairs:
+            return
+        self._frames_since_estimate += 1
+        t0 = time.perf_counter()
+        due = not self._estimated or (self.reestimate_every and
+                                      self._frames_since_estimate >= self.reestimate_every)
+        if not due:
+            due = not self._estimator.fits(cur, pairs[-1:], (self.c_on, self.c_off))
+        if due:
+            found = self._estimator.estimate(cur, pairs, (self.c_on, self.c_off))
+            if found is not None:
+                self.c_on, self.c_off = (min(max(v, C_RANGE[0]), C_RANGE[1]) for v in found)
+                self._estimated = True
+                self.reestimations += 1
+                self._frames_since_estimate = 0
+        self.last_estimate_ms = (time.perf_counter() - t0) * 1e3
+
+    def _update_hot(self, events: np.ndarray, ts: int, te: int) -> None:
+        if not self._mask_hot or te <= ts:
+            return
+        sel = events[(events["t"] >= ts) & (events["t"] <= te)] if events.size else events
+        counts = np.bincount(edi.flat_index(sel, self.width)[(sel["x"] < self.width) & (sel["y"] < self.height)],
+                             minlength=self.width * self.height) if sel.size else 0
+        self._hot_counts *= self._hot_decay
+        self._hot_counts += counts
+        self._hot_duration_us = self._hot_duration_us * self._hot_decay + (te - ts)
+        self._hot = edi.hot_pixel_mask(self._hot_counts, self._hot_duration_us, min_rate_hz=self._hot_min_rate_hz,
+                                       rel_factor=self._hot_rel).reshape(self.height, self.width)

@@ -7,7 +7,10 @@ through `drivers.replay.merged_packets`, or any iterable of `Packet`s) or, with 
 scene. Pacing maps device time to host time (`speed`, 0 = as fast as read). Faults are injected by keyword:
 no_device, permission_denied, busy, logic_version/logic_patch/firmware, unplug_after_bytes (+ replug_after_s),
 garbage_words, reset_at_us (timestamp reset mid-stream). Options: serial, width/height, dvs_orientation,
-aps_orientation, imu_orientation, chip_id, seed, holdback_us.
+aps_orientation, imu_orientation, chip_id, seed, holdback_us (how far events are held back so that a frame,
+which arrives after the events of its exposure, can still be sent at its exposure start; default 200 ms).
+Data is released in ~1 ms parts of device time, like a camera's 1 ms early-packet delay. On unplug the part in
+flight is lost; after `replug_after_s` the device reappears and its clock restarts at 0.
 
 Usable as `edi-live --usb-backend drivers.emulator:backend` (generated scene); `--emulate-from FILE` makes the
 CLI call `backend(recording=FILE, model=...)`.

@@ -15,11 +15,12 @@ RULE_TEXT = ('SUBSYSTEM=="usb", ATTR{idVendor}=="152a", ATTR{idProduct}=="84[0-1
 INSTALL_DIR = Path("/etc/udev/rules.d")
 
 
-def install(dest_dir: Path = INSTALL_DIR) -> Path:
-    """Copy the rules file into `dest_dir` and ask udev to reload (needs root for /etc)."""
+def install(dest_dir: Path = INSTALL_DIR, *, reload: bool = True) -> Path:
+    """Copy the rules file into `dest_dir` and (if `reload`) ask udev to reload (needs root for /etc)."""
     dest = Path(dest_dir) / RULES_FILE.name
     shutil.copyfile(RULES_FILE, dest)
-    for cmd in (["udevadm", "control", "--reload-rules"], ["udevadm", "trigger"]):
+    commands = [["udevadm", "control", "--reload-rules"], ["udevadm", "trigger"]] if reload else []
+    for cmd in commands:
         try:
             subprocess.run(cmd, check=False, timeout=10)
         except (OSError, subprocess.TimeoutExpired):

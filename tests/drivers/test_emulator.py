@@ -1,0 +1,69 @@
+"""The emulated camera itself: the CLI hook spelling, register protocol packing, looping, listing with faults,
+and the udev helper it points users to."""
+
+from __future__ import annotations
+
+import importlib
+import struct
+import time
+
+import numpy as np
+import usb.backend
+import usb.core
+
+from drivers import udev
+from drivers.davis.device import DavisSource
+from drivers.davis.discovery import list_devices
+from drivers.emulator import backend
+from tests.drivers.helpers import flatten, random_recording
+
+
+def test_cli_hook_spelling_resolves_to_a_no_argument_factory():
+    module, _, name = "drivers.emulator:backend".partition(":")
+    factory = getattr(importlib.import_module(module), name)
+    be = factory()
+    assert isinstance(be, usb.backend.IBackend)
+    dev = usb.core.find(idVendor=0x152A, backend=be)
+    assert (dev.idProduct, dev.bcdDevice & 0xFF) == (0x841B, 4)  # DAVIS240C on an FX2 board, firmware 4
+
+
+def test_register_protocol_bytes_on_the_wire():
+    be = backend(model="davis346", speed=0)
+    dev = usb.core.find(idVendor=0x152A, backend=be)
+    # read SYSINFO/1 (chip ID): 4 bytes, big-endian; DAVIS346B is chip 5
+    assert bytes(dev.ctrl_transfer(0xC0, 0xBF, 6, 1, 4)) == b"\x00\x00\x00\x05"
+    dev.ctrl_transfer(0x40, 0xBF, 2, 12, b"\x00\x01\x02\x03")  # APS exposure, MSB first
+    batch = struct.pack(">BBI", 0, 2, 1) + struct.pack(">BBI", 0, 2, 0)  # timestamp reset pulse via 0xC2
+    dev.ctrl_transfer(0x40, 0xC2, 2, 0, batch)
+    assert be.writes == [(2, 12, 0x00010203), (0, 2, 1), (0, 2, 0)]
+
+
+def test_loop_replays_forever_with_monotonic_time(rng):
+    packets = random_recording(rng, 240, 180, n_events=2000, n_frames=1, n_imu=0, duration_us=100_000)
+    want = flatten(packets)[0]
+    got, deadline = [], time.monotonic() + 20
+    with DavisSource(backend=backend(packets, speed=0, loop=True), policy="wait") as src:
+        for p in src:
+            if p is not None:
+                got.append(p)
+            if sum(len(q.events) for q in got) > 2.5 * len(want) or time.monotonic() > deadline:
+                src.stop()
+    ev, frames, _ = flatten(got)
+    assert len(ev) > 2.5 * len(want) and np.all(np.diff(ev["t"]) >= 0) and len(frames) >= 2
+    # the second pass repeats the first one's addresses and its relative timing
+    second = ev[len(want): 2 * len(want)]
+    assert np.array_equal(second[["x", "y", "p"]], want[["x", "y", "p"]])
+    assert np.array_equal(np.diff(second["t"]), np.diff(want["t"]))
+
+
+def test_listing_reports_unreadable_serial_instead_of_failing():
+    (d,) = list_devices(backend(speed=0, permission_denied=True))
+    assert d.serial is None and "permission denied" in d.error and d.model == "davis240"
+
+
+def test_udev_rule_printed_and_installable(tmp_path, capsys):
+    assert udev.main([]) == 0
+    assert udev.RULE_TEXT in capsys.readouterr().out
+    dest = udev.install(tmp_path, reload=False)
+    assert dest.read_text() == udev.RULES_FILE.read_text()
+    assert 'ATTR{idVendor}=="152a"' in udev.RULE_TEXT

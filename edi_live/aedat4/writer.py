@@ -133,7 +133,9 @@ class Aedat4Writer:
     def write_events(self, events: np.ndarray) -> None:
         """Append events (EVENT_DTYPE, sorted by t) as one packet (split beyond 2^20 events)."""
         if events.dtype != EVENT_DTYPE:
-            raise RecordingError(f"write_events needs EVENT_DTYPE, got {events.dtype}", self.path)
+            if events.dtype.names != EVENT_DTYPE.names:
+                raise RecordingError(f"write_events needs EVENT_DTYPE, got {events.dtype}", self.path)
+            events = events.astype(EVENT_DTYPE)  # e.g. the packed layout np.concatenate makes of EVENT_DTYPE
         if not len(events):
             return
         self._check_sorted("events", events["t"])

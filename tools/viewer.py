@@ -224,9 +224,10 @@ class Rates:
         self._window_frames = 0
         self.fps = 0.0
 
-    def add(self, seq: int) -> None:
+    def add(self, seq: int, skipped: int = 0) -> None:
+        """Count one shown frame; `skipped` frames were received but drained unshown just before it."""
         if self.last_seq is not None and seq > self.last_seq + 1:
-            self.lost += seq - self.last_seq - 1
+            self.lost += max(0, seq - self.last_seq - 1 - skipped)
         self.last_seq = seq
         self.frames += 1
         self._window_frames += 1
@@ -325,6 +326,7 @@ class Viewer:
             self._step()
 
     def _step(self) -> None:
+        skipped_before = self.sub.skipped
         try:
             item = self.sub.recv(0.1)
             self.sub.recv_stats(0)
@@ -334,7 +336,7 @@ class Viewer:
             return
         if item is not None:
             header, image = item
-            self.rates.add(header["seq"])
+            self.rates.add(header["seq"], self.sub.skipped - skipped_before)
             self.hub.put(image)
             self.recorder.write(header, image)
         if self.rates.tick():

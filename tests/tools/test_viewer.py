@@ -106,9 +106,11 @@ def test_rates_count_seq_gaps_and_status_line():
     for seq in (5, 6, 9, 10, 20):
         rates.add(seq)
     assert rates.lost == 2 + 9 and rates.frames == 5
+    rates.add(30, skipped=6)  # 9 missing, 6 of them drained by newest-only: only 3 lost
+    assert rates.lost == 2 + 9 + 3
     line = viewer.status_line(rates, 3, {"frames_per_s": 100.0, "events_per_s": 1.5e6, "c": 0.2,
                                          "latency_p50_us": 350.0, "latency_p99_us": 900.0, "publish_dropped": 4})
-    assert "1.50 Mev/s" in line and "p50 0.35 ms" in line and "p99 0.90 ms" in line and "lost 11" in line
+    assert "1.50 Mev/s" in line and "p50 0.35 ms" in line and "p99 0.90 ms" in line and "lost 14" in line
     assert "no stats yet" in viewer.status_line(rates, 0, None)
     assert "c 0.25/0.30" in viewer.status_line(rates, 0, {"c_on": 0.25, "c_off": 0.3, "latency_p50_us": None})
 

@@ -126,12 +126,12 @@ def test_a_failing_stats_provider_does_not_stop_frames(publisher):
 def test_slow_subscriber_never_blocks_and_fast_one_keeps_up(publisher):
     """A subscriber that never reads gets dropped by PUB once its queues fill; the fast one gets every frame."""
     pub = publisher([ANY], "cam", sndhwm=16)
-    n = 3000  # 3000 x 43 kB = 130 MB: far beyond what the slow peer's kernel buffers and HWM can hold
+    n = 2000  # 2000 x 307 kB = 614 MB: far beyond what the slow peer's kernel buffers and HWM can hold
     with Subscriber(pub.bound_endpoints[0], newest_only=False, rcvhwm=1, stats=False) as slow, \
             Subscriber(pub.bound_endpoints[0], newest_only=False, stats=False) as fast:
         seq0 = sync(pub, slow, fast)
         for i in range(n):
-            pub.submit(make_rec(i))
+            pub.submit(make_rec(i, 640, 480))
             item = fast.recv(RECV_S)
             assert item is not None, f"fast subscriber starved at frame {i}: the slow one blocked the publisher"
             assert item[0]["seq"] == seq0 + i

@@ -17,9 +17,10 @@ from typing import Any, Iterator
 
 from drivers.davis import discovery, models, protocol as P
 from drivers.davis.decoder import DavisDecoder
-from drivers.davis.transport import UsbTransport
+from drivers.davis.transport import UsbTransport, read_serial
 from edi_live.datatypes import Packet, SourceInfo, SourceStatus
-from edi_live.errors import (DeviceDisconnectedError, ProtocolError, SourceError, UnsupportedFirmwareError)
+from edi_live.errors import (DeviceDisconnectedError, DeviceNotFoundError, ProtocolError, SourceError,
+                             UnsupportedFirmwareError)
 
 POLICIES = ("drop_oldest", "wait")
 READ_TIMEOUT_MS = 100
@@ -105,6 +106,7 @@ class DavisSource:
         self._decoder: DavisDecoder | None = None
         self._min_time_us = -(2**62)
         self._pending_gap = False
+        self._dropped_before = 0  # raw bytes dropped by queues of earlier connections
 
     def _kind(self) -> str:
         return "emulator" if getattr(self.backend, "edi_live_emulator", False) else "usb"
@@ -167,15 +169,12 @@ class DavisSource:
             st.dropped_bytes = self._queue.dropped_bytes + self._dropped_before
             yield pkt
 
-    _dropped_before = 0
-
     # ---- open / configure / start -------------------------------------------------------------------
     def _open(self) -> None:
         self._stop.clear()
         dev = discovery.select_device(self.model_name, self.serial, self.backend)
         serial = None
         try:
-            from drivers.davis.transport import read_serial
             serial = read_serial(dev)
         except SourceError:
             pass  # opening below reports the real problem
@@ -313,10 +312,8 @@ class DavisSource:
                 self._pending_gap = True
                 self._status.gaps += 1
                 return True
-            except (DeviceDisconnectedError, SourceError) as exc:
-                if type(exc).__name__ not in ("DeviceNotFoundError", "DeviceDisconnectedError"):
-                    raise
-                self._close()
+            except (DeviceNotFoundError, DeviceDisconnectedError):
+                self._close()  # not back yet
             if deadline is not None and time.monotonic() > deadline:
                 raise err
             if self._user_stop.wait(0.2):

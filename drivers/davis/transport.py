@@ -13,7 +13,7 @@ import usb.util
 
 from drivers.davis import models
 from drivers.udev import RULE_TEXT
-from edi_live.errors import (DeviceBusyError, DeviceDisconnectedError, DeviceNotFoundError, DevicePermissionError,
+from edi_live.errors import (DeviceBusyError, DeviceDisconnectedError, DevicePermissionError,
                              SourceError)
 
 _DISCONNECT_ERRNOS = {errno.ENODEV, errno.EIO, errno.EPIPE, errno.ESHUTDOWN, errno.ENXIO}

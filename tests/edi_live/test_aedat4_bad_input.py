@@ -21,12 +21,9 @@ T0 = 1_700_000_000_000_000
 
 
 def _packet_offsets(data: bytes) -> list[tuple[int, int, int]]:
-    """(header offset, stream id, size) of every packet, walked independently of the reader."""
+    """(header offset, stream id, size) of every packet, walked independently of the reader; stops at the first
+    "packet" whose stream id is not a small number (the FileDataTable has no packet header)."""
     n = struct.unpack_from("<I", data, 14)[0]
-    root = 18 + struct.unpack_from("<I", data, 18)[0]
-    # dataTablePosition: the FileDataTable begins with the LZ4/zstd magic or, uncompressed, its size prefix; we
-    # stop at the first "packet" whose stream id is not a small number instead of parsing the header again.
-    del root
     out, pos = [], 18 + n
     while pos + 8 <= len(data):
         sid, size = struct.unpack_from("<ii", data, pos)
@@ -196,10 +193,8 @@ def test_events_off_the_sensor_are_a_corrupt_packet_in_replay(tmp_path):
     data = bytearray(_simple_file(path, "none"))
     pos = _packet_offsets(bytes(data))[2][0]
     payload_start = pos + 8
-    # first event record of the third packet: find it through the reader's own vtable helper
-    from edi_live.aedat4.reader import _event_vector
-
-    first, count = _event_vector(bytes(data[payload_start:]))
+    # first event record of the third packet, found through the general vtable walker
+    first, count = S.root_table(bytes(data[payload_start:]), b"EVTS").vector(0, 16)
     x_at = payload_start + first + 8
     data[x_at:x_at + 2] = struct.pack("<H", 5000)
     path.write_bytes(bytes(data))

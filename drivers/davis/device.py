@@ -11,6 +11,7 @@ device time 0), `edi_live_emulator` and `stream_ended()`; real backends need non
 from __future__ import annotations
 
 import collections
+import logging
 import threading
 import time
 from typing import Any, Iterator
@@ -22,6 +23,7 @@ from edi_live.datatypes import Packet, SourceInfo, SourceStatus
 from edi_live.errors import (DeviceDisconnectedError, DeviceNotFoundError, ProtocolError, SourceError,
                              UnsupportedFirmwareError)
 
+log = logging.getLogger(__name__)
 POLICIES = ("drop_oldest", "wait")
 READ_TIMEOUT_MS = 100
 
@@ -158,6 +160,9 @@ class DavisSource:
             if seq != expected_seq:
                 self._decoder.mark_gap()
                 self._status.gaps += 1
+                log.warning("USB data arrived faster than it was consumed: dropped %d raw chunks (%d bytes) so far; "
+                            "timestamps re-anchored, packet marked as a gap", self._queue.dropped_chunks,
+                            self._queue.dropped_bytes)
             expected_seq = seq + 1
             pkt = self._decoder.decode(data, arrival_ns)
             if self._pending_gap:

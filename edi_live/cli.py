@@ -189,7 +189,10 @@ def _setup_logging(level: str) -> None:
     handler.setFormatter(logging.Formatter("edi-live: %(levelname)s: %(message)s"))
     root = logging.getLogger()
     root.handlers[:] = [handler]
-    root.setLevel(getattr(logging, level.upper()))
+    wanted = getattr(logging, level.upper())
+    root.setLevel(max(wanted, logging.WARNING))  # third-party debug chatter (numba) stays out
+    for name in ("edi_live", "drivers"):
+        logging.getLogger(name).setLevel(wanted)
 
 
 def _install_signal_handlers(node: Any) -> dict:

@@ -23,6 +23,7 @@ Events are copied as raw int64 pairs: a structured-dtype copy is ~20x slower in 
 
 from __future__ import annotations
 
+import bisect
 import threading
 import time
 from collections import deque
@@ -33,7 +34,6 @@ import numpy as np
 from edi_live.datatypes import EVENT_DTYPE, Frame, Packet
 
 POLICIES = ("drop_oldest", "wait")
-_EMPTY_I8 = np.zeros(0, dtype=np.int64)
 
 
 def as_events(events: np.ndarray) -> np.ndarray:
@@ -66,16 +66,16 @@ class EventChunk:
 
     events: np.ndarray
     first_index: int
-    push_ends: np.ndarray
-    push_arrival_ns: np.ndarray
+    push_ends: list[int]
+    push_arrival_ns: list[int]
     gap: bool
 
     def arrival_ns_at(self, count: int) -> int:
         """Arrival time of the push holding event `count - 1` (the last of the first `count` events)."""
-        if count <= 0 or len(self.push_ends) == 0:
+        if count <= 0 or not self.push_ends:
             return 0
-        i = int(np.searchsorted(self.push_ends, count - 1, side="right"))
-        return int(self.push_arrival_ns[min(i, len(self.push_arrival_ns) - 1)])
+        i = bisect.bisect_right(self.push_ends, count - 1)  # a few pushes per chunk: a list beats numpy here
+        return self.push_arrival_ns[min(i, len(self.push_arrival_ns) - 1)]
 
 
 @dataclass(frozen=True, slots=True)
@@ -296,7 +296,7 @@ class EventRing:
             stop = self._head if until_index is None else min(self._head, until_index)
             n = max(0, min(max_n, stop - start))
             if n == 0:
-                return EventChunk(np.zeros(0, EVENT_DTYPE), start, _EMPTY_I8, _EMPTY_I8, False)
+                return EventChunk(np.zeros(0, EVENT_DTYPE), start, [], [], False)
             raw = self._copy_out(start, start + n)
             ends, arrivals = [], []
             for end, arrival in self._pushes:
@@ -313,7 +313,7 @@ class EventRing:
             self._read = start + n
             self._version += 1
             self._cond.notify_all()  # a waiting producer may have room now
-        return EventChunk(_events(raw), start, np.asarray(ends, np.int64), np.asarray(arrivals, np.int64), gap)
+        return EventChunk(_events(raw), start, ends, arrivals, gap)
 
     def _copy_out(self, start: int, stop: int) -> np.ndarray:
         cap = self.capacity_events

@@ -20,8 +20,9 @@ import logging
 import os
 import threading
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import numpy as np
 import zmq
@@ -188,7 +189,7 @@ class Publisher:
             if self._thread.is_alive():
                 raise PublishError(f"publisher thread did not stop within {timeout_s} s")
 
-    def __enter__(self) -> "Publisher":
+    def __enter__(self) -> Publisher:
         self.start()
         return self
 

@@ -13,7 +13,8 @@ says what was wrong, never a numpy or msgpack exception.
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import msgpack
 import numpy as np

@@ -27,8 +27,8 @@ import numpy as np
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from edi_live import wire  # noqa: E402
-from edi_live.datatypes import Reconstruction  # noqa: E402
+from edi_live import wire
+from edi_live.datatypes import Reconstruction
 
 WARMUP_T = -1
 
@@ -160,7 +160,6 @@ def latency_run(fps: float, seconds: float, image: np.ndarray) -> list[int]:
     pub.start()
     proc = ctx.Process(target=latency_subscriber, args=(pub.bound_endpoints[0], n, ready, result), daemon=True)
     proc.start()
-    h, w = image.shape
     while not ready.wait(0.01):
         pub.submit(Reconstruction(image, 0, "latent", 0, 0, 0, 0.2, 0.2, 0))
     t0 = time.monotonic()

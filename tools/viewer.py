@@ -115,7 +115,7 @@ def make_handler(hub: FrameHub) -> type[http.server.BaseHTTPRequestHandler]:
             self.end_headers()
             self.wfile.write(body)
 
-        def do_GET(self) -> None:  # noqa: N802 (http.server's naming)
+        def do_GET(self) -> None:
             path = self.path.split("?")[0]
             if path in ("/", "/index.html"):
                 self._send(PAGE.encode(), "text/html; charset=utf-8")
@@ -317,6 +317,8 @@ class Viewer:
         if self.server:
             self.server.start()
             log.info("live page: %s", self.server.url)
+            if self.args.http[0] not in ("127.0.0.1", "localhost", "::1"):
+                log.warning("the live page is reachable from other machines (--http %s)", self.args.http[0])
         deadline = None if self.args.duration is None else time.monotonic() + self.args.duration
         while not self.stop.is_set():
             if deadline is not None and time.monotonic() >= deadline:

@@ -152,7 +152,7 @@ def test_malformed_messages_raise_client_error_and_the_subscriber_recovers(raw_p
                     break
             except ClientError:
                 pass
-        kind, (header, image) = wait_first(sock, sub, good(9))
+        kind, (header, _) = wait_first(sock, sub, good(9))
         assert kind == "frame" and header["seq"] == 9
 
 

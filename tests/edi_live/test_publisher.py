@@ -35,7 +35,7 @@ def sync(pub: Publisher, *subs: Subscriber) -> int:
         assert time.monotonic() < deadline, "subscribers never received a probe frame"
         pub.submit(make_rec(0, 4, 2))
         for k, sub in enumerate(subs):
-            while (item := sub.recv(0.02)) is not None:
+            while sub.recv(0.02) is not None:
                 got[k] = True
     time.sleep(0.05)
     for sub in subs:  # drain stragglers
@@ -185,7 +185,7 @@ def test_several_endpoints_are_bound(publisher, tmp_path):
     with Subscriber(pub.bound_endpoints[1], newest_only=False) as sub:
         sync(pub, sub)
         pub.submit(make_rec(5))
-        header, image = sub.recv(RECV_S)
+        header, _ = sub.recv(RECV_S)
         assert header["n_events"] == 5
 
 

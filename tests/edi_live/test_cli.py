@@ -144,3 +144,22 @@ def test_signals_stop_cleanly_and_finalise_out(real_recordings, tmp_path, sig, n
     assert "Traceback" not in err and "done in" in err
     rec = dv.io.MonoCameraRecording(str(out))
     assert rec.getNextFrame() is not None
+
+
+def test_truncated_recording_exit_1_one_line_and_out_reopens(real_recordings, tmp_path, needs_reconstructor):
+    dv = pytest.importorskip("dv_processing")
+    data = real_recordings[DEMO].read_bytes()
+    cut = tmp_path / "cut.aedat4"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    out = tmp_path / "sharp.aedat4"
+    proc = run_cli("--replay", str(cut), "--speed", "0", "--no-publish", "--every", "3000", "--out", str(out))
+    assert proc.returncode == 1, proc.stderr
+    lines = error_lines(proc.stderr)
+    assert len(lines) == 1 and "cut.aedat4" in lines[0] and "Traceback" not in proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == lines[0], "the error is the last line, after the summary"
+    written = int(re.search(r"--out frames written: (\d+)", proc.stderr).group(1))
+    rec = dv.io.MonoCameraRecording(str(out))
+    n = 0
+    while rec.getNextFrame() is not None:
+        n += 1
+    assert n == written > 0

@@ -139,7 +139,7 @@ class EmulatorBackend(usb.backend.IBackend):
             (P.DVS, P.DVS_SIZE_COLUMNS): dcols, (P.DVS, P.DVS_SIZE_ROWS): drows, (P.DVS, P.DVS_ORIENTATION): dvs_o & 4,
             (P.APS, P.APS_SIZE_COLUMNS): acols, (P.APS, P.APS_SIZE_ROWS): arows, (P.APS, P.APS_ORIENTATION): aps_o & 7,
             (P.APS, P.APS_HAS_GLOBAL_SHUTTER): 1, (P.IMU, P.IMU_TYPE): 1, (P.IMU, P.IMU_ORIENTATION): imu_o & 7,
-            (P.MUX, P.MUX_HAS_STATISTICS): 0,
+            (P.MUX, P.MUX_HAS_STATISTICS): 0, (P.DVS, P.DVS_HAS_BA_FILTER): 1, (P.DVS, P.DVS_HAS_ROI_FILTER): 1,
         }
         return regs
 

@@ -232,6 +232,9 @@ class DavisSource:
             "aps_columns": r(P.APS, P.APS_SIZE_COLUMNS), "aps_rows": r(P.APS, P.APS_SIZE_ROWS),
             "aps_orientation": r(P.APS, P.APS_ORIENTATION), "has_global_shutter": bool(r(P.APS, P.APS_HAS_GLOBAL_SHUTTER)),
             "imu_type": r(P.IMU, P.IMU_TYPE), "imu_orientation": r(P.IMU, P.IMU_ORIENTATION),
+            "dvs_features": {p: r(P.DVS, p) for p in (P.DVS_HAS_PIXEL_FILTER, P.DVS_HAS_BA_FILTER,
+                                                     P.DVS_HAS_ROI_FILTER, P.DVS_HAS_SKIP_FILTER,
+                                                     P.DVS_HAS_POLARITY_FILTER)},
         }
         for key in ("dvs_columns", "dvs_rows", "aps_columns", "aps_rows"):
             if not 0 < info[key] <= 4096:
@@ -246,7 +249,8 @@ class DavisSource:
             aps_rows=info["aps_rows"], clocks=info["clocks"],
             exposure_us=self.exposure_us if self.exposure_us is not None else P.DEFAULT_EXPOSURE_US,
             frame_interval_us=self.frame_interval_us if self.frame_interval_us is not None
-            else P.DEFAULT_FRAME_INTERVAL_US))
+            else P.DEFAULT_FRAME_INTERVAL_US, dvs_features=info["dvs_features"], dvs_columns=info["dvs_columns"],
+            dvs_rows=info["dvs_rows"]))
 
     def _start(self, t: UsbTransport, model: models.DavisModel, info: dict) -> None:
         sleep = (lambda s: None) if getattr(self.backend, "edi_live_emulator", False) else time.sleep

@@ -27,6 +27,7 @@ MUX_DROP_EXTINPUT_ON_STALL, MUX_DROP_DVS_ON_STALL = 4, 5
 MUX_HAS_STATISTICS, MUX_STAT_DVS_DROPPED = 80, 83
 # DVS
 DVS_SIZE_COLUMNS, DVS_SIZE_ROWS, DVS_ORIENTATION, DVS_RUN, DVS_WAIT_ON_STALL = 0, 1, 2, 3, 4
+DVS_HAS_PIXEL_FILTER, DVS_HAS_BA_FILTER, DVS_HAS_ROI_FILTER, DVS_HAS_SKIP_FILTER, DVS_HAS_POLARITY_FILTER = 10, 30, 40, 50, 60
 # APS
 APS_SIZE_COLUMNS, APS_SIZE_ROWS, APS_ORIENTATION, APS_COLOR_FILTER, APS_RUN, APS_WAIT_ON_STALL = 0, 1, 2, 3, 4, 5
 APS_HAS_GLOBAL_SHUTTER, APS_GLOBAL_SHUTTER = 6, 7
@@ -34,9 +35,9 @@ APS_START_COLUMN, APS_START_ROW, APS_END_COLUMN, APS_END_ROW = 8, 9, 10, 11
 APS_EXPOSURE, APS_FRAME_INTERVAL = 12, 13
 # IMU
 IMU_TYPE, IMU_ORIENTATION, IMU_RUN_ACCEL, IMU_RUN_GYRO, IMU_RUN_TEMP = 0, 1, 2, 3, 4
-IMU_SAMPLE_RATE_DIVIDER, IMU_ACCEL_DLPF, IMU_ACCEL_FULL_SCALE, IMU_GYRO_FULL_SCALE = 5, 6, 7, 10
+IMU_SAMPLE_RATE_DIVIDER, IMU_ACCEL_DLPF, IMU_ACCEL_FULL_SCALE, IMU_GYRO_DLPF, IMU_GYRO_FULL_SCALE = 5, 6, 7, 9, 10
 # EXTINPUT
-EXTINPUT_RUN_DETECTOR = 0
+EXTINPUT_RUN_DETECTOR, EXTINPUT_DETECT_PULSE_LENGTH = 0, 5
 # BIAS/CHIP
 CHIP_GLOBAL_SHUTTER = 142
 # SYSINFO
@@ -104,23 +105,47 @@ def check_exposure(exposure_us: int | None, frame_interval_us: int | None) -> No
         raise ValueError(f"frame interval must be 0..{FRAME_INTERVAL_MAX_US} µs (got {frame_interval_us})")
 
 
+def dvs_filter_defaults(features: dict[int, int], columns: int, rows: int) -> list[Write]:
+    """libcaer's DVS filter defaults for the filters the logic reports (`features`: HAS_* param -> value):
+    pixel filters parked off-array, background-activity filter on (8 x 250 µs = 2 ms), refractory off,
+    ROI = whole array, skip and polarity filters off."""
+    w: list[Write] = []
+    if features.get(DVS_HAS_PIXEL_FILTER):
+        for i in range(8):
+            w += [(DVS, 11 + 2 * i, rows), (DVS, 12 + 2 * i, columns)]
+    if features.get(DVS_HAS_BA_FILTER):
+        w += [(DVS, 31, 1), (DVS, 32, 8), (DVS, 33, 0), (DVS, 34, 1)]
+    if features.get(DVS_HAS_ROI_FILTER):
+        w += [(DVS, 41, 0), (DVS, 42, 0), (DVS, 43, columns - 1), (DVS, 44, rows - 1)]
+    if features.get(DVS_HAS_SKIP_FILTER):
+        w += [(DVS, 51, 0), (DVS, 52, 5)]
+    if features.get(DVS_HAS_POLARITY_FILTER):
+        w += [(DVS, 61, 0), (DVS, 62, 0), (DVS, 63, 0)]
+    return w
+
+
 def default_config(model: DavisModel, *, has_global_shutter: bool, aps_columns: int, aps_rows: int,
                    clocks: Clocks, exposure_us: int = DEFAULT_EXPOSURE_US,
-                   frame_interval_us: int = DEFAULT_FRAME_INTERVAL_US) -> list[Write]:
+                   frame_interval_us: int = DEFAULT_FRAME_INTERVAL_US, dvs_features: dict[int, int] | None = None,
+                   dvs_columns: int = 0, dvs_rows: int = 0) -> list[Write]:
     """libcaer's sendDefaultConfig: biases, chip options, FPGA defaults, then the USB early-packet delay."""
     gs = int(has_global_shutter)
     writes: list[Write] = [(BIAS, p, v) for p, v in model.biases]
     writes += [(BIAS, p, v) for p, v in model.chip_config] + [(BIAS, CHIP_GLOBAL_SHUTTER, gs)]
+    writes += [(MUX, MUX_TIMESTAMP_RESET, 0), (MUX, MUX_DROP_EXTINPUT_ON_STALL, 1), (MUX, MUX_DROP_DVS_ON_STALL, 1),
+               (DVS, DVS_WAIT_ON_STALL, 0)]
+    writes += dvs_filter_defaults(dvs_features or {}, dvs_columns, dvs_rows)
     writes += [
-        (MUX, MUX_TIMESTAMP_RESET, 0), (MUX, MUX_DROP_EXTINPUT_ON_STALL, 1), (MUX, MUX_DROP_DVS_ON_STALL, 1),
-        (DVS, DVS_WAIT_ON_STALL, 0),
         (APS, APS_WAIT_ON_STALL, 1), (APS, APS_GLOBAL_SHUTTER, gs),
         (APS, APS_START_COLUMN, 0), (APS, APS_START_ROW, 0),
         (APS, APS_END_COLUMN, aps_columns - 1), (APS, APS_END_ROW, aps_rows - 1),
         (APS, APS_EXPOSURE, us_to_cycles(exposure_us, clocks.adc_mhz)),
         (APS, APS_FRAME_INTERVAL, us_to_cycles(frame_interval_us, clocks.adc_mhz)),
         (IMU, IMU_SAMPLE_RATE_DIVIDER, 0), (IMU, IMU_ACCEL_DLPF, 1), (IMU, IMU_ACCEL_FULL_SCALE, 1),
-        (IMU, IMU_GYRO_FULL_SCALE, 1),
+        (IMU, IMU_GYRO_DLPF, 1), (IMU, IMU_GYRO_FULL_SCALE, 1),
+        # external input: detect 10 µs high pulses only
+        (EXTINPUT, 1, 0), (EXTINPUT, 2, 0), (EXTINPUT, 3, 1), (EXTINPUT, 4, 1),
+        (EXTINPUT, EXTINPUT_DETECT_PULSE_LENGTH, us_to_cycles(10, clocks.logic_mhz)),
         (USB, USB_EARLY_PACKET_DELAY, us_to_cycles(8 * 125, clocks.usb_mhz)),  # 1 ms
     ]
     return writes

@@ -98,6 +98,9 @@ def test_configuration_and_start_stop_sequence():
     assert biases == list(enumerate(NOTE_DAVIS240_BIASES))
     # exposure/interval in ADC cycles: the emulated DAVIS240 reports a 30 MHz ADC clock, deviation 1000
     assert (P.APS, 12, 150_000) in writes and (P.APS, 13, 1_500_000) in writes
+    # the emulated logic reports a background-activity and an ROI filter: BA on at 2 ms, ROI = whole array
+    assert {(P.DVS, 31, 1), (P.DVS, 32, 8), (P.DVS, 43, 239), (P.DVS, 44, 179)} <= set(writes)
+    assert not any(m == P.DVS and p in (11, 51, 61) for m, p, _ in writes)  # filters it lacks are left alone
     idx = {w: i for i, w in reversed(list(enumerate(writes)))}
     order = [(P.MUX, 3, 1), (P.USB, 0, 1), (P.MUX, 1, 1), (P.MUX, 0, 1), (P.DVS, 3, 1), (P.APS, 4, 1)]
     assert [idx[w] for w in order] == sorted(idx[w] for w in order)

@@ -209,3 +209,10 @@ def test_bad_stats_are_rejected(parts, message):
 def test_decoded_numbers_stay_finite(rng):
     header, _ = wire.decode_frame(as_bytes(wire.encode_frame(make_rec(rng, 4, 4, 0.01, 2.0), 0, "cam")))
     assert all(math.isfinite(header[k]) for k in ("c_on", "c_off"))
+
+
+def test_the_published_name_map_matches_the_header(rng):
+    rec = make_rec(rng, 5, 3, c_on=0.2, c_off=0.4)
+    header = header_of(wire.encode_frame(rec, 0, "cam"))
+    for code_name, wire_key in wire.FRAME_KEYS.items():
+        assert header[wire_key] == getattr(rec, code_name)

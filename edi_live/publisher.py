@@ -173,9 +173,9 @@ class Publisher:
         return len(self._inbox)
 
     def stats(self) -> dict[str, Any]:
-        """Counters in code names: sent, dropped (= dropped_inbox + dropped_socket, the latter also counting
-        frames the wire cannot carry), latency_p50_us and
-        latency_p99_us of the last stats interval (None before any frame), sent_per_s, last_seq."""
+        """Counters in code names: sent; dropped = dropped_inbox + dropped_socket (the latter also counts
+        frames the wire cannot carry); latency_p50_us and latency_p99_us of the last stats interval (None
+        when no frame was sent in it); sent_per_s; last_seq."""
         return {"sent": self._sent, "dropped": self._dropped_inbox + self._dropped_socket,
                 "dropped_inbox": self._dropped_inbox, "dropped_socket": self._dropped_socket,
                 "last_seq": self._seq - 1, **self._stats}

@@ -139,8 +139,8 @@ class DavisSource:
     def __iter__(self) -> Iterator[Packet | None]:
         expected_seq = 0
         while True:
-            if self._queue is None:
-                return
+            if self._queue is None or self._user_stop.is_set():
+                return  # stop() ends the iteration soon, without decoding the backlog
             item = self._queue.get(0.1)
             if item is None:
                 if self._user_stop.is_set():

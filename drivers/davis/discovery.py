@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from drivers.davis import models, transport
-from edi_live.errors import DeviceNotFoundError, SourceError
+from edi_live.errors import DeviceNotFoundError, DevicePermissionError, SourceError
 
 
 @dataclass(frozen=True)
@@ -31,8 +31,10 @@ def _describe(dev: Any) -> DeviceDescription:
     serial, error = None, None
     try:
         serial = transport.read_serial(dev)
+    except DevicePermissionError:
+        error = "permission denied: install the udev rule with python -m drivers.udev --install"
     except SourceError as exc:
-        error = str(exc).split(":")[0]
+        error = str(exc)
     return DeviceDescription(model.name, int(dev.idProduct), serial, dev.bus, dev.address,
                              int(dev.bcdDevice) & 0xFF, error)
 

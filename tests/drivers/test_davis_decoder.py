@@ -234,3 +234,31 @@ def test_numba_and_numpy_kernels_agree_on_noise(rng):
         results.append((ev.copy(), ci.copy(), ct.copy(), st.copy()))
     for a, b in zip(*results):
         assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("use_numba", BACKENDS)
+def test_dvs_words_interleaved_inside_a_readout(rng, use_numba):
+    # the device's multiplexer may put DVS row/column words between any two APS words
+    frame = _frame_words(reset=[[1000, 300], [900, 500]], signal=[[400, 100], [700, 700]])
+    words = list(frame)
+    for pos in sorted(rng.integers(3, len(frame), 6).tolist(), reverse=True):
+        words[pos:pos] = [Y | 3, XON | 4]
+    _, out = _decode(words, use_numba, cols=346, rows=260, frame_bits=16)
+    ev, (f,) = flatten(out)[0], flatten(out)[1]
+    assert len(ev) == 6 and set(zip(ev["x"].tolist(), ev["y"].tolist())) == {(4, 3)}
+    assert (f.image >> 6).tolist() == [[600, 200], [1023, 0]]  # the 2x2 ROI the frame announced
+
+
+@pytest.mark.parametrize("use_numba", BACKENDS)
+def test_rolling_shutter_interleaved_reset_and_signal_columns(use_numba):
+    roi = []
+    for v in (0, 0, 1, 1):
+        roi += [0x5100 | (v >> 8), 0x5200 | (v & 0xFF)]
+    reset, signal = [[1000, 300], [900, 500]], [[400, 100], [700, 700]]
+    words = [TS | 5, 9] + roi
+    for c in range(2):  # rolling shutter: each column's reset read is followed by its signal read
+        words += [11] + [SAMPLE | reset[c][r] for r in range(2)] + [13]
+        words += [12] + [SAMPLE | signal[c][r] for r in range(2)] + [13]
+    words += [10]
+    _, out = _decode(words, use_numba, cols=2, rows=2, frame_bits=16)
+    assert (flatten(out)[1][0].image >> 6).tolist() == [[600, 200], [1023, 0]]

@@ -90,12 +90,15 @@ PAGE = """<!doctype html>
 <html><head><meta charset="utf-8"><title>edi-live viewer</title>
 <style>body{margin:0;background:#000;color:#ccc;font:13px monospace}img{display:block}</style></head>
 <body><img id="live" src="/stream.mjpg" alt="edi-live stream">
-<pre id="status">waiting for stats...</pre>
+<pre id="line">waiting for stats...</pre>
+<details><summary>all counters</summary><pre id="status"></pre></details>
 <script>
-setInterval(async () => {
-  try { const r = await fetch('/status.json'); document.getElementById('status').textContent =
-        JSON.stringify(await r.json(), null, 1); } catch (e) {}
-}, 1000);
+async function update() {
+  try { const s = await (await fetch('/status.json')).json();
+        document.getElementById('line').textContent = s.line.split(' | ').join('\n');
+        document.getElementById('status').textContent = JSON.stringify(s.node, null, 1); } catch (e) {}
+}
+update(); setInterval(update, 1000);
 </script></body></html>
 """
 
@@ -342,10 +345,10 @@ class Viewer:
             self.hub.put(image)
             self.recorder.write(header, image)
         if self.rates.tick():
+            line = status_line(self.rates, self.sub.skipped, self.sub.last_stats)
             self.hub.status = {"viewer_fps": round(self.rates.fps, 1), "lost": self.rates.lost,
-                               "skipped": self.sub.skipped, "node": self.sub.last_stats}
+                               "skipped": self.sub.skipped, "line": line, "node": self.sub.last_stats}
             if not self.args.quiet:
-                line = status_line(self.rates, self.sub.skipped, self.sub.last_stats)
                 sys.stderr.write(f"\r{line}\x1b[K" if self._tty else line + "\n")
                 sys.stderr.flush()
 

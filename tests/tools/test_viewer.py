@@ -156,6 +156,7 @@ def test_http_endpoints_serve_the_frame_and_stats(feeder):
         with urllib.request.urlopen(v.url + "status.json", timeout=10) as resp:
             status = json.load(resp)
         assert status["node"]["events_per_s"] == 2.0e6 and status["viewer_fps"] >= 0
+        assert "2.00 Mev/s" in status["line"]
         with urllib.request.urlopen(v.url + "stream.mjpg", timeout=10) as resp:
             assert resp.headers["Content-Type"].startswith("multipart/x-mixed-replace")
             chunk = resp.read(2000)

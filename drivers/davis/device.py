@@ -194,7 +194,7 @@ class DavisSource:
         self.device_info = info
         dvs_swap = bool(info["dvs_orientation"] & 4)
         w, h = (info["dvs_rows"], info["dvs_columns"]) if dvs_swap else (info["dvs_columns"], info["dvs_rows"])
-        self.info = SourceInfo(w, h, name=models.CHIP_NAMES[info["chip_id"]], serial=serial or "", kind=self._kind())
+        self.info = SourceInfo(w, h, name=models.camera_name(info["chip_id"]), serial=serial or "", kind=self._kind())
         self._configure(t, model, info)
         self._start(t, model, info)
 

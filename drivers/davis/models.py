@@ -111,6 +111,12 @@ MODELS = {"davis240": DAVIS240, "davis346": DAVIS346}
 MODEL_BY_PID = {DAVIS240.product_id: DAVIS240, DAVIS346.product_id: DAVIS346}
 
 
+def camera_name(chip_id: int) -> str:
+    """The camera name users and DV see: "DAVIS346" for every DAVIS346 variant, "DAVIS240A/B/C" as is."""
+    name = CHIP_NAMES.get(chip_id, f"chip{chip_id}")
+    return "DAVIS346" if chip_id in DAVIS346_CHIPS else name
+
+
 def model_for_chip(chip_id: int) -> DavisModel | None:
     """The model profile (biases, quirks) for a chip ID read from SYSINFO, or None if unsupported."""
     if chip_id in DAVIS240_CHIPS:

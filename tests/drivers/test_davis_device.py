@@ -146,7 +146,7 @@ def test_any_ibackend_works_without_emulator_extras():
     assert not hasattr(foreign, "edi_live_epoch_us")
     before_us = time.time_ns() // 1000
     with DavisSource("auto", backend=foreign) as src:
-        assert (src.info.kind, src.info.name, src.info.width) == ("usb", "DAVIS346B", 346)
+        assert (src.info.kind, src.info.name, src.info.width) == ("usb", "DAVIS346", 346)
         got, deadline = [], time.monotonic() + 10
         for p in src:
             if p is not None and len(p.events):
@@ -180,4 +180,4 @@ def test_listing_and_serial_selection():
     (d,) = list_devices(be)
     assert (d.model, d.serial, d.product_id, d.firmware_version) == ("davis346", "SN42", 0x841A, 6)
     with DavisSource(serial="SN42", backend=be) as src:
-        assert src.info.serial == "SN42" and src.info.label == "DAVIS346B_SN42"
+        assert src.info.serial == "SN42" and src.info.label == "DAVIS346_SN42"

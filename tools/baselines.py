@@ -107,5 +107,5 @@ class ComplementaryFilter:
         if self._u is None:
             raise ValueError("ComplementaryFilter: no frame yet")
         k = math.exp(-self.alpha * max(t_us - self._t_us, 0) * 1e-6)
-        img = np.exp(self._log_f + k * self._u) - self.eps
+        img = np.exp(np.minimum(self._log_f + k * self._u, 30.0)) - self.eps  # hot pixels can run away
         return img.reshape(self.height, self.width).astype(np.float32)

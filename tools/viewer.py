@@ -8,6 +8,7 @@ skipping to the newest frame when it falls behind (use --all to receive every fr
 from __future__ import annotations
 
 import argparse
+import html
 import http.server
 import json
 import logging
@@ -90,7 +91,7 @@ PAGE = """<!doctype html>
 <html><head><meta charset="utf-8"><title>edi-live viewer</title>
 <style>body{margin:0;background:#000;color:#ccc;font:13px monospace}img{display:block}</style></head>
 <body><img id="live" src="/stream.mjpg" alt="edi-live stream">
-<pre id="line">waiting for stats...</pre>
+<pre id="line">@LINE@</pre>
 <details><summary>all counters</summary><pre id="status"></pre></details>
 <script>
 async function update() {
@@ -121,7 +122,8 @@ def make_handler(hub: FrameHub) -> type[http.server.BaseHTTPRequestHandler]:
         def do_GET(self) -> None:
             path = self.path.split("?")[0]
             if path in ("/", "/index.html"):
-                self._send(PAGE.encode(), "text/html; charset=utf-8")
+                line = str(hub.status.get("line", "waiting for stats...")).replace(" | ", "\n")
+                self._send(PAGE.replace("@LINE@", html.escape(line)).encode(), "text/html; charset=utf-8")
             elif path == "/status.json":
                 self._send(json.dumps(hub.status).encode(), "application/json")
             elif path == "/frame.jpg":

@@ -69,7 +69,9 @@ class Aedat4Writer:
             self._file = open(self.path, "wb")
         except OSError as exc:
             raise RecordingError(f"cannot create the recording ({exc.strerror or exc})", self.path) from exc
-        header, positions = self._header(-2)
+        # -1 ("no table") is stored explicitly, not omitted as a FlatBuffers default, so close() can patch it in
+        # place; a recording cut off before close() then reads as an interrupted recording in every DV tool
+        header, positions = self._header(-1)
         self._dtp_pos = len(S.MAGIC) + positions[S.IOH_DATA_TABLE_POSITION]
         self._write(S.MAGIC + header)
 

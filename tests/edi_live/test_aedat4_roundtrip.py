@@ -231,3 +231,20 @@ def test_writer_rejects_bad_input_without_damaging_the_file(tmp_path, rng):
     assert np.array_equal(dv_read(path)["events"]["timestamp"], ev["t"][1000:2000])
     with pytest.raises(RecordingError, match="compression"):
         Aedat4Writer(tmp_path / "x.aedat4", 10, 10, compression="gzip")
+
+
+def test_recording_cut_off_before_close_still_opens_everywhere(tmp_path, rng):
+    # a crash (SIGKILL, power loss) leaves no FileDataTable: the header must then say "no table" (-1), which DV
+    # tools treat as an interrupted recording and index by walking the packets
+    ev = _scene(rng, 346, 260)[0]
+    path, cut = tmp_path / "live.aedat4", tmp_path / "cut.aedat4"
+    writer = Aedat4Writer(path, 346, 260)
+    writer.write_events(ev[:3000])
+    writer.write_events(ev[3000:6000])
+    writer._file.flush()
+    cut.write_bytes(path.read_bytes())  # the file as it stands on disk before close()
+    writer.close()
+    assert np.array_equal(dv_read(cut)["events"]["timestamp"], ev["t"][:6000])
+    assert len(aedat_read(cut)["events"]) == 6000
+    with Aedat4Reader(cut) as reader:
+        assert reader.data_table_position == -1 and sum(len(e) for e in reader.events()) == 6000

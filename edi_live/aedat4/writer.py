@@ -199,6 +199,14 @@ class Aedat4Writer:
         self._packet("triggers", payload, len(triggers), int(triggers["t"][0]), int(triggers["t"][-1]))
 
     # ------------------------------------------------------------------------------------------- close
+    def flush(self) -> None:
+        """Push written packets to the OS, so the file up to here survives a crash of this process."""
+        if not self._closed:
+            try:
+                self._file.flush()
+            except OSError as exc:
+                raise RecordingError(f"cannot write the recording ({exc.strerror or exc})", self.path) from exc
+
     def close(self) -> None:
         """Write the FileDataTable and patch dataTablePosition. Idempotent."""
         if self._closed:

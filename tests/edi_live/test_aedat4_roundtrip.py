@@ -241,7 +241,7 @@ def test_recording_cut_off_before_close_still_opens_everywhere(tmp_path, rng):
     writer = Aedat4Writer(path, 346, 260)
     writer.write_events(ev[:3000])
     writer.write_events(ev[3000:6000])
-    writer._file.flush()
+    writer.flush()
     cut.write_bytes(path.read_bytes())  # the file as it stands on disk before close()
     writer.close()
     assert np.array_equal(dv_read(cut)["events"]["timestamp"], ev["t"][:6000])

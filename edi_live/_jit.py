@@ -14,22 +14,36 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True)
-def build_table(idx, t, p, ts, te, f, npix, want_segments):
-    n = idx.size
+def build_table(t, x, y, p, width, height, mask, use_mask, ts, te, f, want_segments, count_all, use_count_all):
+    """Events come as (strided) field views of one time-ordered slice; out-of-range and masked pixels are
+    skipped here, so no temporary index arrays are needed. count_all (if used) gets every in-range event."""
+    npix = width * height
     count = np.zeros(npix + 1, dtype=np.int64)
-    for i in range(n):
-        count[idx[i] + 1] += 1
+    for i in range(t.size):
+        if x[i] >= width or y[i] >= height:
+            continue
+        q = np.int64(y[i]) * width + x[i]
+        if use_count_all:
+            count_all[q] += 1
+        if use_mask and mask[q]:
+            continue
+        count[q + 1] += 1
     n_act = 0
     for k in range(1, npix + 1):
         if count[k] > 0:
             n_act += 1
         count[k] += count[k - 1]
+    n = count[npix]
     # counting sort: events grouped by pixel, time order kept inside each group (sequential reads)
     fill = count[:-1].copy()
     st = np.empty(n, dtype=np.int64)
     sp = np.empty(n, dtype=np.uint8)
-    for i in range(n):
-        q = idx[i]
+    for i in range(t.size):
+        if x[i] >= width or y[i] >= height:
+            continue
+        q = np.int64(y[i]) * width + x[i]
+        if use_mask and mask[q]:
+            continue
         k = fill[q]
         st[k] = t[i]
         sp[k] = p[i]
@@ -99,7 +113,7 @@ def build_table(idx, t, p, ts, te, f, npix, want_segments):
         g += 1
     seg_start[n_act] = s
     lvl_start[n_act] = base
-    return pixels, seg_start, seg_on, seg_off, seg_frac, lvl_start, lvl_min, lvl_frac[:base]
+    return pixels, seg_start, seg_on, seg_off, seg_frac, lvl_start, lvl_min, lvl_frac[:base], n
 
 
 @njit(cache=True, nogil=True)
@@ -159,20 +173,108 @@ def log_divisor_segments(seg_start, seg_on, seg_off, seg_frac, c_on, c_off):
 
 
 @njit(cache=True, nogil=True)
-def propagate(flat, idx, p, d_on, d_off, lo, hi, disp, use_disp, gain, acc_on, acc_off, use_acc):
-    for i in range(idx.size):
-        q = idx[i]
-        v = flat[q] + (d_on if p[i] else d_off)
+def propagate(x, y, p, width, height, mask, use_mask, flat, d_on, d_off, lo, hi, disp, use_disp, gain,
+              acc_on, acc_off, use_acc):
+    applied = 0
+    for i in range(x.size):
+        if x[i] >= width or y[i] >= height:
+            continue
+        q = np.int64(y[i]) * width + x[i]
+        if use_mask and mask[q]:
+            continue
+        on = p[i]
+        v = flat[q] + (d_on if on else d_off)
         if v < lo:
             v = lo
         elif v > hi:
             v = hi
         flat[q] = v
         if use_disp:
-            x = gain * math.exp(min(v, 6.0)) + 0.5
-            if x > 255.0:
-                x = 255.0
-            disp[q] = np.uint8(x)
+            z = gain * math.exp(min(v, 6.0)) + 0.5
+            if z > 255.0:
+                z = 255.0
+            disp[q] = np.uint8(z)
         if use_acc:
-            acc_on[q] += p[i]
-            acc_off[q] += 1 - p[i]
+            if on:
+                acc_on[q] += 1
+            else:
+                acc_off[q] += 1
+        applied += 1
+    return applied
+
+
+@njit(cache=True, nogil=True)
+def count_events(x, y, p, width, height, mask, use_mask, out_on, out_off, sign):
+    for i in range(x.size):
+        if x[i] >= width or y[i] >= height:
+            continue
+        q = np.int64(y[i]) * width + x[i]
+        if use_mask and mask[q]:
+            continue
+        if p[i]:
+            out_on[q] += sign
+        else:
+            out_off[q] += sign
+
+
+@njit(cache=True, nogil=True)
+def divisor_stream(t, x, y, p, width, height, mask, use_mask, ts, te, f, c, count_all, use_count_all):
+    """log D(c) per active pixel for c_on == c_off in ONE time-ordered pass, no sort and no exp per event.
+
+    Per pixel: the net level n counted from ts, and a running sum of dwell * exp(c * (n - base)) read from a
+    small table; the base moves up when n climbs more than the table above it (levels far below the base
+    underflow harmlessly), so any event count stays finite.
+    Events must lie in [ts, te]. Returns (pixels in first-event order, log D)."""
+    npix = width * height
+    k = 64
+    ztab = np.empty(2 * k + 1, dtype=np.float64)
+    for j in range(2 * k + 1):
+        ztab[j] = math.exp(c * (j - k))
+    state = np.empty((npix, 4), dtype=np.int64)  # last event time, level, base level, level at f
+    s = np.empty(npix, dtype=np.float64)
+    seen = np.zeros(npix, dtype=np.uint8)  # 1: active, 2: active and f passed
+    active = np.empty(npix, dtype=np.int64)
+    n_act = 0
+    for i in range(t.size):
+        if x[i] >= width or y[i] >= height:
+            continue
+        q = np.int64(y[i]) * width + x[i]
+        if use_count_all:
+            count_all[q] += 1
+        if use_mask and mask[q]:
+            continue
+        ti = t[i]
+        if seen[q] == 0:
+            seen[q] = 1
+            state[q, 0] = ts
+            state[q, 1] = 0
+            state[q, 2] = 0
+            s[q] = 0.0
+            active[n_act] = q
+            n_act += 1
+        if ti > f and seen[q] == 1:
+            state[q, 3] = state[q, 1]
+            seen[q] = 2
+        d = state[q, 1] - state[q, 2]
+        if d > k:  # climbed far above the base: rebase upwards (log-sum-exp), older terms shrink
+            s[q] *= math.exp(-c * d)
+            state[q, 2] = state[q, 1]
+            d = 0
+        s[q] += (ti - state[q, 0]) * (ztab[d + k] if d >= -k else math.exp(c * d))
+        state[q, 0] = ti
+        state[q, 1] += 1 if p[i] else -1
+    pixels = np.empty(n_act, dtype=np.int64)
+    log_d = np.empty(n_act, dtype=np.float64)
+    inv_t = 1.0 / float(te - ts)
+    for r in range(n_act):
+        q = active[r]
+        d = state[q, 1] - state[q, 2]
+        if d > k:
+            s[q] *= math.exp(-c * d)
+            state[q, 2] = state[q, 1]
+            d = 0
+        total = s[q] + (te - state[q, 0]) * (ztab[d + k] if d >= -k else math.exp(c * d))
+        n_f = state[q, 3] if seen[q] == 2 else state[q, 1]
+        pixels[r] = q
+        log_d[r] = c * (state[q, 2] - n_f) + math.log(total * inv_t)
+    return pixels, log_d

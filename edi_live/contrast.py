@@ -153,6 +153,7 @@ class EnergyContrast:
     name: str = "energy"
     needs_pair: bool = False
     separate: bool = False
+    needs_full_image: bool = True
 
     def _energy_fn(self, cur: FrameData) -> Callable[[float], float] | None:
         if cur.event_map is None or cur.table.n_active == 0:

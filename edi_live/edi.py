@@ -118,6 +118,26 @@ def _has_event_fields(events: np.ndarray) -> bool:
     return all(n in names for n in ("t", "x", "y", "p"))
 
 
+def _window(events: np.ndarray, t0: int | None, t1: int | None) -> np.ndarray:
+    """The time-ordered events with t0 <= t <= t1, as a view (binary search, no copy)."""
+    if events.dtype != EVENT_DTYPE and not _has_event_fields(events):
+        raise TypeError(f"events must be a structured array of EVENT_DTYPE (got {events.dtype})")
+    t = events["t"]
+    lo = 0 if t0 is None else int(np.searchsorted(t, t0, side="left"))
+    hi = t.size if t1 is None else int(np.searchsorted(t, t1, side="right"))
+    return events[lo:hi]
+
+
+_NO_MASK = np.zeros(0, dtype=np.uint8)
+_NO_COUNTS = np.zeros(0, dtype=np.int64)
+
+
+def _mask_arg(mask: np.ndarray | None) -> tuple[np.ndarray, bool]:
+    if mask is None:
+        return _NO_MASK, False
+    return np.ascontiguousarray(mask, dtype=bool).reshape(-1).view(np.uint8), True
+
+
 def _select(events: np.ndarray, width: int, height: int, t0: int | None, t1: int | None,
             mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Events with t0 <= t <= t1 (time-ordered input), in bounds and not masked: (flat idx, t, p)."""
@@ -147,12 +167,13 @@ def empty_table(width: int, height: int, ts: int, te: int, f: int) -> LevelTable
 
 def build_level_table(events: np.ndarray, width: int, height: int, exposure_start_us: int, exposure_end_us: int,
                       ref_t_us: int | None = None, *, mask: np.ndarray | None = None,
-                      segments: bool = True) -> LevelTable:
+                      segments: bool = True, event_counts: np.ndarray | None = None) -> LevelTable:
     """Dwell-time table of one exposure, O(events + pixels). `events` time-ordered; those outside the
     exposure are ignored; `mask` (H, W) bool marks pixels whose events are ignored (hot pixels).
 
     ref_t_us defaults to mid-exposure and is clamped into the exposure. `segments=False` skips the ON/OFF
-    segment arrays (faster; the table then serves only c_on == c_off).
+    segment arrays (faster; the table then serves only c_on == c_off). `event_counts` (flat int64, H*W), if
+    given, gets every in-range event of the exposure added, masked or not (for hot-pixel statistics).
     """
     ts, te = int(exposure_start_us), int(exposure_end_us)
     if te < ts:
@@ -160,14 +181,49 @@ def build_level_table(events: np.ndarray, width: int, height: int, exposure_star
     f = (ts + te) // 2 if ref_t_us is None else min(max(int(ref_t_us), ts), te)
     if te == ts:
         return empty_table(width, height, ts, te, f)
+    if _jit is not None:
+        ev = _window(events, ts, te)
+        m, use_m = _mask_arg(mask)
+        cnt = _NO_COUNTS if event_counts is None else event_counts
+        parts = _jit.build_table(ev["t"], ev["x"], ev["y"], ev["p"], width, height, m, use_m, ts, te, f, segments,
+                                 cnt, event_counts is not None)
+        *arrays, n_events = parts
+        if n_events == 0:
+            return empty_table(width, height, ts, te, f)
+        return LevelTable(width, height, ts, te, f, *arrays, int(n_events))
+    if event_counts is not None:
+        idx_all, _, _ = _select(events, width, height, ts, te, None)
+        event_counts += np.bincount(idx_all, minlength=width * height)
     idx, t, p = _select(events, width, height, ts, te, mask)
     if idx.size == 0:
         return empty_table(width, height, ts, te, f)
-    if _jit is not None:
-        parts = _jit.build_table(idx, t, p.view(np.uint8), ts, te, f, width * height, segments)
-    else:
-        parts = _build_numpy(idx, t, p, ts, te, f, width * height)
+    parts = _build_numpy(idx, t, p, ts, te, f, width * height)
     return LevelTable(width, height, ts, te, f, *parts, int(idx.size))
+
+
+def log_divisor_events(events: np.ndarray, width: int, height: int, exposure_start_us: int, exposure_end_us: int,
+                       ref_t_us: int | None, c_on: float, c_off: float | None = None, *,
+                       mask: np.ndarray | None = None,
+                       event_counts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(active pixels, log D) for ONE c straight from the events: the fast path when c is known.
+
+    Same value as log_divisor(build_level_table(...)) but, for c_on == c_off with numba, a single pass without
+    sorting. Pixel order is unspecified. `mask`/`event_counts` as in build_level_table.
+    """
+    c_off = c_on if c_off is None else c_off
+    ts, te = int(exposure_start_us), int(exposure_end_us)
+    if te < ts:
+        raise ValueError(f"exposure ends before it starts (got {ts}..{te} µs)")
+    f = (ts + te) // 2 if ref_t_us is None else min(max(int(ref_t_us), ts), te)
+    if _jit is not None and c_on == c_off and te > ts:
+        ev = _window(events, ts, te)
+        m, use_m = _mask_arg(mask)
+        cnt = _NO_COUNTS if event_counts is None else event_counts
+        return _jit.divisor_stream(ev["t"], ev["x"], ev["y"], ev["p"], width, height, m, use_m, ts, te, f,
+                                   float(c_on), cnt, event_counts is not None)
+    table = build_level_table(events, width, height, ts, te, f, mask=mask, segments=c_on != c_off,
+                              event_counts=event_counts)
+    return table.pixels, log_divisor(table, c_on, c_off)
 
 
 def _stable_argsort_pixels(idx: np.ndarray, npix: int) -> np.ndarray:
@@ -312,27 +368,30 @@ def blurry_to_float(image: np.ndarray, *, saturation: float | None = None) -> tu
     return b, informative
 
 
-def deblur_log(blurry: np.ndarray, table: LevelTable, c_on: float, c_off: float | None = None, *,
-               informative: np.ndarray | None = None, log_div: np.ndarray | None = None) -> np.ndarray:
+def deblur_log(blurry: np.ndarray, table: LevelTable | None, c_on: float, c_off: float | None = None, *,
+               informative: np.ndarray | None = None,
+               divisor: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """log L(f) on the 8-bit scale, (H, W) float32: log B - log D at active informative pixels, log B elsewhere.
 
     `blurry` is B as float (8-bit scale, see blurry_to_float); `informative` defaults to 0 < B < 255.
+    log D comes from `table` at (c_on, c_off), or precomputed as `divisor` = (pixels, log D).
     """
     b = np.asarray(blurry, dtype=np.float32)
-    if b.shape != (table.height, table.width):
+    if table is not None and b.shape != (table.height, table.width):
         raise ValueError(f"blurry image shape {b.shape} does not match the table ({table.height}, {table.width})")
     out = np.log(np.maximum(b, DARK_FLOOR)).reshape(-1)
-    if table.n_active:
-        ld = log_divisor(table, c_on, c_off) if log_div is None else log_div
-        pix = table.pixels
+    if divisor is None and table is not None and table.n_active:
+        divisor = (table.pixels, log_divisor(table, c_on, c_off))
+    if divisor is not None and divisor[0].size:
+        pix, ld = divisor
         if informative is None:
             bp = b.reshape(-1)[pix]
             use = (bp > 0) & (bp < 255.0)
         else:
             use = informative.reshape(-1)[pix]
-        out[pix[use]] = out[pix[use]] - ld[use].astype(np.float32)
+        out[pix[use]] -= ld[use].astype(np.float32)
     np.clip(out, LOG_MIN, LOG_MAX, out=out)
-    return out.reshape(table.height, table.width)
+    return out.reshape(b.shape)
 
 
 def deblur(blurry: np.ndarray, table: LevelTable, c_on: float, c_off: float | None = None, *,
@@ -354,12 +413,25 @@ def event_delta(events: np.ndarray, width: int, height: int, c_on: float, c_off:
 
 def signed_counts(events: np.ndarray, width: int, height: int, *, t0: int | None = None, t1: int | None = None,
                   mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(n_on, n_off) per pixel as flat int64 arrays for events with t0 <= t <= t1."""
-    idx, _, p = _select(events, width, height, t0, t1, mask)
+    """(n_on, n_off) per pixel as flat int64 arrays for events with t0 <= t <= t1 (time-ordered input)."""
     npix = width * height
-    n_on = np.bincount(idx[p], minlength=npix)
-    n_off = np.bincount(idx[~p], minlength=npix)
+    n_on = np.zeros(npix, np.int64)
+    n_off = np.zeros(npix, np.int64)
+    add_counts(events, width, height, n_on, n_off, t0=t0, t1=t1, mask=mask)
     return n_on, n_off
+
+
+def add_counts(events: np.ndarray, width: int, height: int, n_on: np.ndarray, n_off: np.ndarray, *,
+               t0: int | None = None, t1: int | None = None, mask: np.ndarray | None = None, sign: int = 1) -> None:
+    """In place: n_on/n_off (flat int64) += sign * ON/OFF counts of the events with t0 <= t <= t1."""
+    if _jit is not None:
+        ev = _window(events, t0, t1)
+        m, use_m = _mask_arg(mask)
+        _jit.count_events(ev["x"], ev["y"], ev["p"], width, height, m, use_m, n_on, n_off, int(sign))
+        return
+    idx, _, p = _select(events, width, height, t0, t1, mask)
+    n_on += sign * np.bincount(idx[p], minlength=n_on.size)
+    n_off += sign * np.bincount(idx[~p], minlength=n_off.size)
 
 
 def propagate_log(log_image: np.ndarray, events: np.ndarray, c_on: float, c_off: float | None = None, *,
@@ -374,18 +446,20 @@ def propagate_log(log_image: np.ndarray, events: np.ndarray, c_on: float, c_off:
     """
     c_off = c_on if c_off is None else c_off
     h, w = log_image.shape
-    idx, _, p = _select(events, w, h, None, None, mask)
-    if idx.size == 0:
-        return 0
     flat = log_image.reshape(-1)
     d_on = float(sign) * float(c_on)
     d_off = -float(sign) * float(c_off)
-    if _jit is not None and flat.dtype == np.float32 and flat.flags.c_contiguous:
-        disp = display.reshape(-1) if display is not None else np.zeros(0, dtype=np.uint8)
-        acc_on, acc_off = counts if counts is not None else (np.zeros(0, np.int64), np.zeros(0, np.int64))
-        _jit.propagate(flat, idx, p.view(np.uint8), d_on, d_off, LOG_MIN, LOG_MAX, disp, display is not None,
-                       float(gain), acc_on, acc_off, counts is not None)
-        return int(idx.size)
+    if _jit is not None and flat.dtype == np.float32 and log_image.flags.c_contiguous and (
+            display is None or display.flags.c_contiguous):
+        ev = _window(events, None, None)
+        m, use_m = _mask_arg(mask)
+        disp = display.reshape(-1) if display is not None else _NO_MASK
+        acc_on, acc_off = counts if counts is not None else (_NO_COUNTS, _NO_COUNTS)
+        return int(_jit.propagate(ev["x"], ev["y"], ev["p"], w, h, m, use_m, flat, d_on, d_off, LOG_MIN, LOG_MAX,
+                                  disp, display is not None, float(gain), acc_on, acc_off, counts is not None))
+    idx, _, p = _select(events, w, h, None, None, mask)
+    if idx.size == 0:
+        return 0
     if idx.size * 8 < flat.size:
         # small batch: unbuffered add at the touched pixels only
         np.add.at(flat, idx, np.where(p, np.float32(d_on), np.float32(d_off)))
@@ -440,7 +514,7 @@ def isolated_event_mask(events: np.ndarray, width: int, height: int) -> np.ndarr
 
 
 __all__ = [
-    "LevelTable", "build_level_table", "log_divisor", "deblur", "deblur_log", "blurry_to_float", "event_delta",
-    "signed_counts", "propagate_log", "to_uint8", "hot_pixel_mask", "isolated_event_mask", "flat_index",
+    "LevelTable", "build_level_table", "log_divisor", "log_divisor_events", "deblur", "deblur_log", "blurry_to_float", "event_delta",
+    "signed_counts", "add_counts", "propagate_log", "to_uint8", "hot_pixel_mask", "isolated_event_mask", "flat_index",
     "have_numba", "LEVEL_CAP", "LOG_MIN", "LOG_MAX", "empty_table",
 ]

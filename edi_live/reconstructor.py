@@ -42,7 +42,8 @@ class EdiReconstructor:
                  c_off: float | None = None, estimator: str = contrast.DEFAULT_ESTIMATOR, reestimate_every: int = 0,
                  c_init: float = 0.2, history_pairs: int = 2, mask_hot_pixels: bool = True,
                  hot_min_rate_hz: float = 300.0, hot_rel_factor: float = 10.0, hot_decay: float = 0.8,
-                 saturation: float | None = None, estimator_options: dict | None = None) -> None:
+                 saturation: float | None = None, sample_pixels: int = 8000,
+                 estimator_options: dict | None = None) -> None:
         if width <= 0 or height <= 0:
             raise ConfigError(f"sensor size must be positive (got {width}x{height})")
         if reestimate_every < 0:
@@ -74,6 +75,11 @@ class EdiReconstructor:
         self._hot_counts = np.zeros(npix, np.float64)
         self._hot_duration_us = 0.0
         self._hot = np.zeros((self.height, self.width), bool)
+        # c is estimated on a fixed random pixel sample: every c evaluation and the tables it needs stay small
+        self._not_sample = np.ones(npix, bool)
+        keep = np.random.default_rng(20190616).choice(npix, min(npix, int(sample_pixels)), replace=False)
+        self._not_sample[keep] = False
+        self._not_sample = self._not_sample.reshape(self.height, self.width)
         self._log_ref = np.zeros((self.height, self.width), np.float32)
         self._log_lat = np.zeros((self.height, self.width), np.float32)
         self._display = np.zeros((self.height, self.width), np.uint8)
@@ -116,30 +122,26 @@ class EdiReconstructor:
         f = frame.mid_exposure_us
         if self.has_reference and f <= self._ref_t:
             self.mark_gap()  # time went backwards (new recording, loop without offset): start over
-        self._update_hot(events, ts, te)
         mask = self._hot if self._mask_hot else None
         b, informative = edi.blurry_to_float(img, saturation=self._saturation)
-        segments = self._fixed and self.c_on != self.c_off or self._estimator.separate
-        table = edi.build_level_table(events, self.width, self.height, ts, te, f, mask=mask, segments=segments)
-        em = None
-        if self._estimator.name == "energy":
-            em = contrast.event_map(events, self.width, self.height, f, ts, te, 0.25 * max(te - ts, 1))
-        cur = contrast.FrameData(b, informative, table, em)
-        if self._prev is not None and self.has_reference:
-            n_on, n_off = self._counts_between(events, f)
-            self._pairs.append(contrast.FramePair(self._prev, cur, n_on, n_off, self._hot.reshape(-1)))
-        self._choose_c(cur)
-        self._log_ref = edi.deblur_log(b, table, self.c_on, self.c_off, informative=informative)
+        if not self._fixed:
+            self._estimation_step(events, b, informative, ts, te, f, mask)
+        frame_counts = np.zeros(self.width * self.height, np.int64) if self._mask_hot else None
+        divisor = edi.log_divisor_events(events, self.width, self.height, ts, te, f, self.c_on, self.c_off,
+                                         mask=mask, event_counts=frame_counts)
+        self._log_ref = edi.deblur_log(b, None, self.c_on, self.c_off, informative=informative, divisor=divisor)
         deblurred = edi.to_uint8(self._log_ref)
         # latent state: from L(f) through the events after f that are already here
         np.copyto(self._log_lat, self._log_ref)
         for a in self._acc:
             a.fill(0)
-        after = events[events["t"] > f] if events.size else events
-        n_new = int(np.count_nonzero(events["t"] > self._t_last)) if events.size else 0
+        t = events["t"]
+        after = events[int(np.searchsorted(t, f, side="right")):]
+        n_new = t.size - int(np.searchsorted(t, self._t_last, side="right"))
         edi.propagate_log(self._log_lat, after, self.c_on, self.c_off, mask=mask, counts=self._acc)
         np.copyto(self._display, edi.to_uint8(self._log_lat))
-        self._prev = cur
+        if frame_counts is not None:
+            self._update_hot(frame_counts, te - ts)
         self.has_reference = True
         self._ref_t = f
         self._exposure = (ts, te)
@@ -216,16 +218,30 @@ class EdiReconstructor:
         mask = self._hot if self._mask_hot else None
         t_last = self._t_last
         if f < t_last:  # applied events after this f do not belong to the interval
-            on2, off2 = edi.signed_counts(events, self.width, self.height, t0=f + 1, t1=t_last, mask=mask)
-            n_on -= on2
-            n_off -= off2
+            edi.add_counts(events, self.width, self.height, n_on, n_off, t0=f + 1, t1=t_last, mask=mask, sign=-1)
         elif f > t_last:  # events up to this f that were not applied yet
-            on2, off2 = edi.signed_counts(events, self.width, self.height, t0=t_last + 1, t1=f, mask=mask)
-            n_on += on2
-            n_off += off2
+            edi.add_counts(events, self.width, self.height, n_on, n_off, t0=t_last + 1, t1=f, mask=mask)
         np.maximum(n_on, 0, out=n_on)
         np.maximum(n_off, 0, out=n_off)
         return n_on, n_off
+
+    def _estimation_step(self, events: np.ndarray, b: np.ndarray, informative: np.ndarray, ts: int, te: int,
+                         f: int, hot: np.ndarray | None) -> None:
+        """Level table of this frame (on the pixel sample unless the estimator needs the whole image), the pair
+        with the previous frame, then c: kept if it still fits, re-estimated otherwise (or when due)."""
+        full = getattr(self._estimator, "needs_full_image", False)
+        excluded = self._not_sample if hot is None else (self._not_sample | hot)
+        table = edi.build_level_table(events, self.width, self.height, ts, te, f, mask=hot if full else excluded,
+                                      segments=self._estimator.separate)
+        em = None
+        if full:
+            em = contrast.event_map(events, self.width, self.height, f, ts, te, 0.25 * max(te - ts, 1))
+        cur = contrast.FrameData(b, informative, table, em)
+        if self._prev is not None and self.has_reference:
+            n_on, n_off = self._counts_between(events, f)
+            self._pairs.append(contrast.FramePair(self._prev, cur, n_on, n_off, excluded.reshape(-1)))
+        self._choose_c(cur)
+        self._prev = cur
 
     def _choose_c(self, cur: contrast.FrameData) -> None:
         if self._fixed:
@@ -248,14 +264,10 @@ class EdiReconstructor:
                 self._frames_since_estimate = 0
         self.last_estimate_ms = (time.perf_counter() - t0) * 1e3
 
-    def _update_hot(self, events: np.ndarray, ts: int, te: int) -> None:
-        if not self._mask_hot or te <= ts:
-            return
-        sel = events[(events["t"] >= ts) & (events["t"] <= te)] if events.size else events
-        counts = np.bincount(edi.flat_index(sel, self.width)[(sel["x"] < self.width) & (sel["y"] < self.height)],
-                             minlength=self.width * self.height) if sel.size else 0
+    def _update_hot(self, frame_counts: np.ndarray, exposure_us: int) -> None:
+        """Decaying per-pixel event counts over past exposures -> hot-pixel mask used from the next frame on."""
         self._hot_counts *= self._hot_decay
-        self._hot_counts += counts
-        self._hot_duration_us = self._hot_duration_us * self._hot_decay + (te - ts)
+        self._hot_counts += frame_counts
+        self._hot_duration_us = self._hot_duration_us * self._hot_decay + exposure_us
         self._hot = edi.hot_pixel_mask(self._hot_counts, self._hot_duration_us, min_rate_hz=self._hot_min_rate_hz,
                                        rel_factor=self._hot_rel).reshape(self.height, self.width)

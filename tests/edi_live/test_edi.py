@@ -57,17 +57,43 @@ def test_divisor_matches_brute_force_integral(backend, seed):
         got = np.ones(w * h)
         got[table.pixels] = np.exp(edi.log_divisor(table, c_on, c_off))
         np.testing.assert_allclose(got, want, rtol=1e-6)
+        # the one-pass path for a known c gives the same numbers
+        pix, ld = edi.log_divisor_events(ev, w, h, ts, te, f, c_on, c_off)
+        fast = np.ones(w * h)
+        fast[pix] = np.exp(ld)
+        np.testing.assert_allclose(fast, want, rtol=1e-6)
 
 
-def test_numba_and_numpy_tables_agree(rng):
+def test_numba_and_numpy_tables_agree(rng, monkeypatch):
     if not edi.have_numba():
         pytest.skip("numba not installed")
     ev = random_events(rng, 5000, 30, 20, 0, 10_000)
-    idx, t, p = edi._select(ev, 30, 20, 0, 10_000, None)
-    a = edi._jit.build_table(idx, t, p.view(np.uint8), 0, 10_000, 4321, 600, True)
-    b = edi._build_numpy(idx, t, p, 0, 10_000, 4321, 600)
-    for x, y in zip(a, b):
-        np.testing.assert_allclose(x, y, rtol=0, atol=1e-12)
+    mask = rng.random((20, 30)) < 0.1
+    a = edi.build_level_table(ev, 30, 20, 0, 10_000, 4321, mask=mask)
+    monkeypatch.setattr(edi, "_jit", None)
+    b = edi.build_level_table(ev, 30, 20, 0, 10_000, 4321, mask=mask)
+    for name in a.__slots__:
+        np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=0, atol=1e-12, err_msg=name)
+
+
+def test_masked_and_out_of_range_events_are_skipped_but_counted(backend):
+    ev = np.zeros(4, EVENT_DTYPE)
+    ev["t"] = [10, 20, 30, 40]
+    ev["x"] = [0, 1, 7, 1]  # x = 7 is outside a 4-wide sensor
+    ev["y"] = [0, 0, 0, 0]
+    ev["p"] = True
+    mask = np.zeros((2, 4), bool)
+    mask[0, 1] = True
+    counts = np.zeros(8, np.int64)
+    table = edi.build_level_table(ev, 4, 2, 0, 100, mask=mask, event_counts=counts)
+    np.testing.assert_array_equal(table.pixels, [0])
+    assert table.n_events == 1
+    np.testing.assert_array_equal(counts, [1, 2, 0, 0, 0, 0, 0, 0])  # masked pixel still counted (hot stats)
+    n_on, n_off = edi.signed_counts(ev, 4, 2, mask=mask)
+    np.testing.assert_array_equal(n_on, [1, 0, 0, 0, 0, 0, 0, 0])
+    log_l = np.zeros((2, 4), np.float32)
+    assert edi.propagate_log(log_l, ev, 0.5, mask=mask) == 1
+    assert log_l[0, 0] == pytest.approx(0.5) and log_l[0, 1] == 0
 
 
 def test_normalised_by_exposure_not_event_span(backend):
@@ -122,6 +148,28 @@ def test_latent_propagation_forward_back_and_against_formula(backend, rng):
     assert (display[~touched] == 0).all()  # untouched pixels were not rewritten
     edi.propagate_log(log_l, ev, 0.3, 0.2, sign=-1)
     np.testing.assert_allclose(log_l, start, atol=1e-4)
+
+
+@pytest.mark.parametrize("polarity", [True, False])
+@pytest.mark.parametrize("c", [0.01, 0.3, 2.0])
+def test_ten_thousand_events_at_one_pixel(backend, polarity, c):
+    ev = np.zeros(10_000, EVENT_DTYPE)
+    ev["t"] = np.linspace(0, 20_000, 10_000).astype(np.int64)
+    ev["p"] = polarity
+    table = edi.build_level_table(ev, 1, 1, 0, 20_000)
+    ld = edi.log_divisor(table, c)
+    pix, ld_fast = edi.log_divisor_events(ev, 1, 1, 0, 20_000, None, c)
+    # analytic: levels k - 5000 for ~2 µs each -> log D = log mean_k exp(c (k - n_f)); n_f = events <= f
+    n_f = int(np.count_nonzero(ev["t"] <= 10_000))
+    seg = np.diff(np.r_[0, ev["t"], 20_000]).astype(float)
+    levels = np.arange(10_001) - n_f if polarity else n_f - np.arange(10_001)
+    a = c * levels
+    want = a.max() + np.log(np.sum(seg * np.exp(a - a.max())) / 20_000)
+    assert np.isfinite(ld).all() and ld[0] == pytest.approx(want, rel=1e-9)
+    assert ld_fast[0] == pytest.approx(want, rel=1e-9)
+    b, informative = edi.blurry_to_float(np.array([[128]], np.uint8))
+    out = edi.deblur(b, table, c, informative=informative)
+    assert np.isfinite(out).all() and (out >= 0).all()
 
 
 def test_take_restricts_rows(rng):
@@ -199,6 +247,10 @@ def test_deblur_and_latent_are_finite_and_non_negative(case):
     table = edi.build_level_table(ev, w, h, ts, te)
     ld = edi.log_divisor(table, c_on, c_off)
     assert np.isfinite(ld).all()
+    pix, ld_fast = edi.log_divisor_events(ev, w, h, ts, te, None, c_on, c_off)
+    order = np.argsort(pix)
+    np.testing.assert_array_equal(pix[order], table.pixels)
+    np.testing.assert_allclose(ld_fast[order], ld, rtol=1e-9, atol=1e-9)
     out = edi.deblur(b, table, c_on, c_off, informative=informative)
     assert out.shape == (h, w) and np.isfinite(out).all() and (out >= 0).all()
     # saturated / black pixels carry no information and are left as B

@@ -1,0 +1,135 @@
+"""Speed of the EDI core on one core: deblur per APS frame (fixed c, with c estimation, cached c) and latent
+update throughput. Synthetic data: 240x180, ~200k events in a 20 ms exposure, frames every 40 ms.
+
+    python tools/bench_edi_speed.py [--events 200000] [--repeats 15] [--no-numba]
+
+Prints medians. --no-numba runs the numpy fallback (sets EDI_LIVE_NO_NUMBA before importing edi_live).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+
+def synthetic(rng, np, event_dtype, width, height, n_events, t0, t1):
+    ev = np.zeros(n_events, event_dtype)
+    ev["t"] = np.sort(rng.integers(t0, t1, n_events))
+    # moving-texture-like: events on ~60% of the pixels, a few per pixel, mixed polarity per region
+    ev["x"] = rng.integers(0, width, n_events)
+    ev["y"] = rng.integers(0, int(height * 0.6), n_events)
+    ev["p"] = (ev["x"] // 8 + ev["y"] // 8) % 2 == 0
+    return ev
+
+
+def median_ms(fn, repeats):
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    times.sort()
+    return 1e3 * times[len(times) // 2]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--events", type=int, default=200_000, help="events per 20 ms exposure")
+    ap.add_argument("--repeats", type=int, default=15)
+    ap.add_argument("--width", type=int, default=240)
+    ap.add_argument("--height", type=int, default=180)
+    ap.add_argument("--no-numba", action="store_true", help="measure the numpy fallback")
+    args = ap.parse_args()
+    if args.no_numba:
+        os.environ["EDI_LIVE_NO_NUMBA"] = "1"
+    import numpy as np
+
+    import edi_live.edi as edi
+    from edi_live.datatypes import EVENT_DTYPE, Frame
+    from edi_live.reconstructor import EdiReconstructor
+
+    w, h, n = args.width, args.height, args.events
+    rng = np.random.default_rng(0)
+    period, exposure, c_true = 40_000, 20_000, 0.25
+    # one consistent synthetic stream: per-frame B follows the EDI model from a random latent image, so the
+    # c estimator has a true answer (c_true) and the cached-c fit test can pass
+    log_l0 = np.log(rng.uniform(30, 120, (h, w)))
+    frames, batches, stream_parts = [], [], []
+    for k in range(4):
+        ts = k * period
+        inside = synthetic(rng, np, EVENT_DTYPE, w, h, n, ts, ts + exposure)
+        between = synthetic(rng, np, EVENT_DTYPE, w, h, n // 4, ts + exposure + 1, ts + period)
+        batches.append((inside, between))
+        stream_parts += [inside, between]
+    everything = np.concatenate(stream_parts)
+    for k in range(4):
+        ts = k * period
+        f = ts + exposure // 2
+        table = edi.build_level_table(everything, w, h, ts, ts + exposure, f)
+        log_b = log_l0 + edi.event_delta(everything, w, h, c_true, t1=f)
+        log_b.reshape(-1)[table.pixels] += edi.log_divisor(table, c_true)
+        image = np.clip(np.exp(log_b), 0, 255).round().astype(np.uint8)
+        frames.append(Frame(image, ts, ts + exposure, seq=k))
+
+    def run(rec, k):
+        inside, between = batches[k % 4]
+        shift = (k // 4) * 4 * period  # keep time moving forward
+        fr = frames[k % 4]
+        fr = Frame(fr.image, fr.exposure_start_us + shift, fr.exposure_end_us + shift, seq=k)
+        ev_in = inside.copy()
+        ev_in["t"] += shift
+        ev_bt = between.copy()
+        ev_bt["t"] += shift
+        t = time.perf_counter()
+        rec.on_frame(fr, ev_in)
+        dt = time.perf_counter() - t
+        rec.on_events(ev_bt)
+        return dt
+
+    def frame_cost(**kw):
+        rec = EdiReconstructor(w, h, **kw)
+        for k in range(3):  # warm-up (numba compile, first estimate)
+            run(rec, k)
+        times = sorted(run(rec, k) for k in range(3, 3 + args.repeats))
+        return 1e3 * times[len(times) // 2], rec
+
+    table = edi.build_level_table(batches[0][0], w, h, 0, exposure)
+    b, informative = edi.blurry_to_float(frames[0].image)
+    print(f"edi-live EDI speed, {w}x{h}, {n:,} events in a {exposure / 1000:.0f} ms exposure "
+          f"({table.n_active:,} active pixels, {table.n_levels:,} levels), numba={'on' if edi.have_numba() else 'off'}")
+    build_ms = median_ms(lambda: edi.build_level_table(batches[0][0], w, h, 0, exposure, segments=False),
+                         args.repeats)
+    eval_ms = median_ms(lambda: edi.log_divisor(table, 0.25), args.repeats)
+    deblur_ms = median_ms(lambda: edi.deblur_log(b, table, 0.25, informative=informative), args.repeats)
+    print(f"  level table build                     {build_ms:8.2f} ms")
+    print(f"  one c evaluation (all active pixels)  {eval_ms:8.2f} ms")
+    print(f"  deblur_log (one c, incl. evaluation)  {deblur_ms:8.2f} ms")
+    fixed_ms, _ = frame_cost(c=0.25)
+    print(f"  on_frame, fixed c                     {fixed_ms:8.2f} ms   (target <= 1.5 ms)")
+    est_ms, rec = frame_cost(reestimate_every=1)
+    print(f"  on_frame, c estimated every frame     {est_ms:8.2f} ms   (target <= 5 ms; "
+          f"{rec.reestimations} estimations)")
+    cached_ms, rec = frame_cost()
+    print(f"  on_frame, cached c + fit test         {cached_ms:8.2f} ms   ({rec.reestimations} estimations)")
+    rec = EdiReconstructor(w, h, c=0.25)
+    run(rec, 0)
+    stream = synthetic(rng, np, EVENT_DTYPE, w, h, 1_000_000, 30_000, 39_000)
+    for batch in (1_000, 10_000, 100_000):
+        chunks = [stream[i:i + batch] for i in range(0, stream.size, batch)]
+        t = time.perf_counter()
+        for c in chunks:
+            rec.on_events(c)
+        dt = time.perf_counter() - t
+        print(f"  latent update, batches of {batch:>7,}   {stream.size / dt / 1e6:8.1f} M events/s   "
+              f"(target >= 20)")
+    render_ms = median_ms(rec.render, args.repeats * 10)
+    print(f"  render() (uint8 copy)                 {render_ms * 1e3:8.1f} µs")
+
+
+if __name__ == "__main__":
+    main()

@@ -6,7 +6,8 @@ streaming the 16-bit word stream synthesised by `drivers.davis.encoder` from a r
 through `drivers.replay.merged_packets`, or any iterable of `Packet`s) or, with no recording, from a generated
 scene. Pacing maps device time to host time (`speed`, 0 = as fast as read). Faults are injected by keyword:
 no_device, permission_denied, busy, logic_version/logic_patch/firmware, unplug_after_bytes (+ replug_after_s),
-garbage_words, reset_at_us (timestamp reset mid-stream). Options: serial, width/height, dvs_orientation,
+garbage_words (random words inserted), drop_words (words removed: truncated columns, lost rows), reset_at_us
+(timestamp reset mid-stream). Options: serial, width/height, dvs_orientation,
 aps_orientation, imu_orientation, chip_id, seed, holdback_us (how far events are held back so that a frame,
 which arrives after the events of its exposure, can still be sent at its exposure start; default 200 ms).
 Data is released in ~1 ms parts of device time, like a camera's 1 ms early-packet delay. On unplug the part in
@@ -35,8 +36,8 @@ from drivers.davis.wordstream import WordStream
 from edi_live.datatypes import Packet
 
 _FAULTS = {"no_device", "permission_denied", "busy", "logic_version", "logic_patch", "firmware",
-           "unplug_after_bytes", "replug_after_s", "garbage_words", "reset_at_us", "serial", "width", "height",
-           "dvs_orientation", "aps_orientation", "imu_orientation", "chip_id", "seed", "holdback_us"}
+           "unplug_after_bytes", "replug_after_s", "garbage_words", "drop_words", "reset_at_us", "serial", "width",
+           "height", "dvs_orientation", "aps_orientation", "imu_orientation", "chip_id", "seed", "holdback_us"}
 
 
 class _Desc:
@@ -90,6 +91,7 @@ class EmulatorBackend(usb.backend.IBackend):
             raise ValueError(f"speed must be >= 0 (got {speed})")
         self.faults = faults
         self.speed = float(speed)
+        self.aps_timing = {"exposure_us": 4000, "interval_us": 40000}  # the generated scene follows APS/12, 13
         if recording is not None and not (isinstance(recording, (str, bytes)) or hasattr(recording, "__fspath__")):
             recording = list(recording)  # in-memory packets: read twice (size, then stream)
         size = _recording_size(recording) if recording is not None else None
@@ -106,7 +108,7 @@ class EmulatorBackend(usb.backend.IBackend):
         if recording is None:
             epoch = time.time_ns() // 1000
             seed = int(faults.get("seed", 7))
-            factory = lambda: generated_scene(w, h, epoch_us=epoch, seed=seed)  # noqa: E731
+            factory = lambda: generated_scene(w, h, epoch_us=epoch, seed=seed, timing=self.aps_timing)  # noqa: E731
         else:
             factory = _recording_factory(recording)
         self.stream = WordStream(factory, self.encoder, loop, int(faults.get("holdback_us", 200_000)),
@@ -122,6 +124,7 @@ class EmulatorBackend(usb.backend.IBackend):
         self._claimed = False
         self._t0_mono: float | None = None
         self._garbage = int(faults.get("garbage_words", 0))
+        self._drop_words = int(faults.get("drop_words", 0))
         self._rng = np.random.default_rng(int(faults.get("seed", 7)))
         self._stream_epoch: int | None = None
 
@@ -134,7 +137,8 @@ class EmulatorBackend(usb.backend.IBackend):
             (P.SYSINFO, P.SYS_LOGIC_PATCH): int(self.faults.get("logic_patch", models.LOGIC_MIN_PATCH)),
             (P.SYSINFO, P.SYS_CHIP_ID): int(self.faults.get("chip_id", mdl.chip_id)),
             (P.SYSINFO, P.SYS_IS_MASTER): 1, (P.SYSINFO, P.SYS_LOGIC_CLOCK): 104 if mdl.adc_x2 else 100,
-            (P.SYSINFO, P.SYS_ADC_CLOCK): 30 if mdl.adc_x2 else 100, (P.SYSINFO, P.SYS_USB_CLOCK): 30 if mdl.adc_x2 else 80,
+            (P.SYSINFO, P.SYS_ADC_CLOCK): 30 if mdl.adc_x2 else 100,
+            (P.SYSINFO, P.SYS_USB_CLOCK): 30 if mdl.adc_x2 else 80,
             (P.SYSINFO, P.SYS_CLOCK_DEVIATION): 1000,
             (P.DVS, P.DVS_SIZE_COLUMNS): dcols, (P.DVS, P.DVS_SIZE_ROWS): drows, (P.DVS, P.DVS_ORIENTATION): dvs_o & 4,
             (P.APS, P.APS_SIZE_COLUMNS): acols, (P.APS, P.APS_SIZE_ROWS): arows, (P.APS, P.APS_ORIENTATION): aps_o & 7,
@@ -264,6 +268,10 @@ class EmulatorBackend(usb.backend.IBackend):
             return  # read-only
         was = self.streaming
         self.regs[(module, param)] = value
+        if module == P.APS and param in (P.APS_EXPOSURE, P.APS_FRAME_INTERVAL):
+            adc_mhz = self.regs[(P.SYSINFO, P.SYS_ADC_CLOCK)] * self.regs[(P.SYSINFO, P.SYS_CLOCK_DEVIATION)] / 1000
+            key = "exposure_us" if param == P.APS_EXPOSURE else "interval_us"
+            self.aps_timing[key] = P.cycles_to_us(value, adc_mhz)
         if module == P.MUX and param == P.MUX_TIMESTAMP_RESET and value == 1:
             with self._lock:
                 if self.stream.shift is not None and self.encoder.started:
@@ -288,6 +296,10 @@ class EmulatorBackend(usb.backend.IBackend):
                     pos = self._rng.integers(0, len(words) + 1, k)
                     words = np.insert(words, np.sort(pos), self._rng.integers(0, 0x10000, k).astype(np.uint16))
                     self._garbage -= k
+                if self._drop_words and len(words) > 64:  # truncation: words lost inside the device/cable
+                    k = min(self._drop_words, 3)
+                    words = np.delete(words, self._rng.choice(len(words), k, replace=False))
+                    self._drop_words -= k
                 self._pending.append((words.tobytes(), dev_t))
             need_one = False
 

@@ -64,5 +64,6 @@ def select_device(model: str = "auto", serial: str | None = None, backend: Any =
         what = "DAVIS camera" if model == "auto" else f"{model} camera"
         other = f" (found only: {', '.join(str(_describe(d)) for d in devices)})" if devices else ""
         raise DeviceNotFoundError(f"no {what} found on USB{other}: check the cable and power, run "
-                                  "edi-live --list-devices, or use --usb-backend drivers.emulator:backend to emulate one")
+                                  "edi-live --list-devices, or use --usb-backend drivers.emulator:backend to "
+                                  "emulate one")
     return candidates[0]

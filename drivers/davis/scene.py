@@ -11,46 +11,48 @@ import numpy as np
 from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, Frame, Packet
 
 
-def generated_scene(width: int = 240, height: int = 180, *, epoch_us: int | None = None,
-                    seed: int = 7) -> Iterator[Packet]:
+def generated_scene(width: int = 240, height: int = 180, *, epoch_us: int | None = None, seed: int = 7,
+                    timing: dict[str, int] | None = None) -> Iterator[Packet]:
     """An endless synthetic scene: a bright bar sweeping right over a dark background, 10 ms packets, APS
-    frames every 40 ms (4 ms exposure), 1 kHz IMU. Deterministic for a given seed and epoch."""
+    frames, 1 kHz IMU. `timing` ({"exposure_us", "interval_us"}, read before each frame, so an emulator can
+    follow its APS registers) defaults to libcaer's 4 ms every 40 ms. Deterministic for a seed and epoch."""
     rng = np.random.default_rng(seed)
     t0 = time.time_ns() // 1000 if epoch_us is None else epoch_us
+    timing = timing if timing is not None else {"exposure_us": 4000, "interval_us": 40000}
     bar_w, speed_px_per_ms = max(4, width // 12), 0.25
-    step_ms = 10
-    k = 0
+    step_us = 10_000
+    next_frame_us, seq, k = 0, 0, 0
+    pending: list[Frame] = []
+    rows = np.arange(height // 4, 3 * height // 4)
     while True:
-        t_start = t0 + k * step_ms * 1000
+        lo = k * step_us
         evs = []
-        for ms in range(step_ms):
-            now = k * step_ms + ms
-            for edge, pol in ((now * speed_px_per_ms, True), (now * speed_px_per_ms - bar_w, False)):
+        for ms in range(lo // 1000, (lo + step_us) // 1000):
+            for edge, pol in ((ms * speed_px_per_ms, True), (ms * speed_px_per_ms - bar_w, False)):
                 c0, c1 = int(edge) % width, int(edge + speed_px_per_ms) % width
                 if c0 == c1:
                     continue
-                ys = np.arange(height // 4, 3 * height // 4)
-                ev = np.zeros(len(ys), dtype=[("t", "<i8"), ("x", "<u2"), ("y", "<u2"), ("p", "?")])
-                ev["t"] = t0 + now * 1000 + rng.integers(0, 1000, len(ys))
-                ev["x"], ev["y"], ev["p"] = c1, ys, pol
+                ev = np.zeros(len(rows), EVENT_DTYPE)
+                ev["t"] = t0 + ms * 1000 + rng.integers(0, 1000, len(rows))
+                ev["x"], ev["y"], ev["p"] = c1, rows, pol
                 evs.append(ev)
-        events = np.zeros(sum(len(e) for e in evs), EVENT_DTYPE)
-        if evs:
-            allev = np.concatenate(evs)
-            allev = allev[np.argsort(allev["t"], kind="stable")]
-            for name in ("t", "x", "y", "p"):
-                events[name] = allev[name]
-        frames = []
-        if (k * step_ms) % 40 == 0:
+        events = np.concatenate(evs) if evs else np.zeros(0, EVENT_DTYPE)
+        events = events[np.argsort(events["t"], kind="stable")]
+        while next_frame_us < lo + step_us:  # frames starting in this step
+            exposure = max(1, int(timing["exposure_us"]))
             img = np.full((height, width), 40, np.uint8)
-            pos = int(k * step_ms * speed_px_per_ms)
-            cols = (np.arange(pos - bar_w, pos) % width)
-            img[height // 4: 3 * height // 4, cols] = 200
-            frames.append(Frame(img, t_start, t_start + 4000, t_start, t_start + 4000, k // 4))
-        imu = np.zeros(step_ms, IMU_DTYPE)
-        imu["t"] = t_start + np.arange(step_ms) * 1000 + 500
+            pos = int((next_frame_us + exposure // 2) / 1000 * speed_px_per_ms)
+            img[height // 4: 3 * height // 4, np.arange(pos - bar_w, pos) % width] = 200
+            start = t0 + next_frame_us
+            pending.append(Frame(img, start, start + exposure, start, start + exposure, seq))
+            seq += 1
+            next_frame_us += max(int(timing["interval_us"]), exposure + 1000)
+        # a frame goes out with the packet that holds the end of its exposure (after the events up to it)
+        frames = [f for f in pending if f.exposure_end_us < t0 + lo + step_us]
+        pending = [f for f in pending if f.exposure_end_us >= t0 + lo + step_us]
+        imu = np.zeros(step_us // 1000, IMU_DTYPE)
+        imu["t"] = t0 + lo + np.arange(step_us // 1000) * 1000 + 500
         imu["temperature_c"] = 30.0
         imu["accel_g"] = (0.0, -1.0, 0.0)
         k += 1
-        # frames after the events up to their exposure end: exposure ends within this 10 ms packet
-        yield Packet(events=events, frames=frames, imu=imu, watermark_us=t_start + step_ms * 1000)
+        yield Packet(events=events, frames=frames, imu=imu, watermark_us=t0 + lo + step_us)

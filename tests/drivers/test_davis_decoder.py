@@ -147,7 +147,8 @@ def test_encoder_decoder_round_trip(rng, model, orientation):
     enc = WordEncoder(w, h, dvs_orientation=orientation & 4, aps_orientation=orientation, adc_x2=x2)
     t0 = packets[0].events["t"][0]
     ev, frames, imu = flatten(packets)
-    blocks = sorted([(f.exposure_start_us, 0, "fs", f) for f in frames] + [(f.exposure_end_us, 1, "fe", f) for f in frames]
+    blocks = sorted([(f.exposure_start_us, 0, "fs", f) for f in frames]
+                    + [(f.exposure_end_us, 1, "fe", f) for f in frames]
                     + [(int(s["t"]), 1, "imu", s) for s in imu], key=lambda b: (b[0], b[1]))
     words, pos = [], 0
     for t, _, kind, obj in blocks:
@@ -155,8 +156,12 @@ def test_encoder_decoder_round_trip(rng, model, orientation):
         words.append(enc.encode_events(ev["t"][pos:k] - t0, ev["x"][pos:k], ev["y"][pos:k], ev["p"][pos:k]))
         pos = k
         d = t - t0
-        words.append(enc.encode_frame_start(d, obj) if kind == "fs" else enc.encode_frame_end(d, obj)
-                     if kind == "fe" else enc.encode_imu(d, obj["accel_g"], obj["gyro_dps"], float(obj["temperature_c"])))
+        if kind == "fs":
+            words.append(enc.encode_frame_start(d, obj))
+        elif kind == "fe":
+            words.append(enc.encode_frame_end(d, obj))
+        else:
+            words.append(enc.encode_imu(d, obj["accel_g"], obj["gyro_dps"], float(obj["temperature_c"])))
     words.append(enc.encode_events(ev["t"][pos:] - t0, ev["x"][pos:], ev["y"][pos:], ev["p"][pos:]))
     data = np.concatenate(words).tobytes()
     cuts = np.sort(rng.integers(0, len(data), 40))
@@ -165,7 +170,8 @@ def test_encoder_decoder_round_trip(rng, model, orientation):
     outs = {}
     for use_numba in BACKENDS:
         d, out = _decode(np.frombuffer(data, "<u2"), use_numba, chunks=chunks, cols=cols, rows=rows,
-                         dvs_orientation=orientation & 4, aps_orientation=orientation, adc_x2=x2, time_offset_us=int(t0))
+                         dvs_orientation=orientation & 4, aps_orientation=orientation, adc_x2=x2,
+                         time_offset_us=int(t0))
         outs[use_numba] = flatten(out)
         dev, dframes, dimu = outs[use_numba]
         assert np.array_equal(dev, ev)

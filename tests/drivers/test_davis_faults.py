@@ -139,3 +139,17 @@ def test_wait_policy_is_lossless_with_a_slow_consumer(rng):
         out = [p for p in src if p is not None]
         assert src.status().dropped_bytes == 0
     assert np.array_equal(flatten(out)[0], flatten(packets)[0])
+
+
+def test_truncated_word_stream_drops_broken_frames_and_keeps_order(rng):
+    packets = random_recording(rng, 240, 180, n_events=20000, n_frames=6, n_imu=10, duration_us=400_000)
+    want_ev, want_frames, _ = flatten(packets)
+    with DavisSource(backend=backend(packets, speed=0, drop_words=300, seed=5), policy="wait") as src:
+        out = [p for p in src if p is not None]
+        counters = src._decoder.counters
+    ev, frames, _ = flatten(out)
+    assert len(ev) > 0.9 * len(want_ev) and np.all(np.diff(ev["t"]) >= 0)
+    assert len(frames) + counters["frames_dropped"] >= 1 and len(frames) <= len(want_frames)
+    for f in frames:  # a frame that survives is whole and lies inside the recording
+        assert f.image.shape == (180, 240)
+        assert want_ev["t"][0] <= f.exposure_start_us <= f.exposure_end_us <= want_ev["t"][-1]

@@ -67,3 +67,16 @@ def test_udev_rule_printed_and_installable(tmp_path, capsys):
     dest = udev.install(tmp_path, reload=False)
     assert dest.read_text() == udev.RULES_FILE.read_text()
     assert 'ATTR{idVendor}=="152a"' in udev.RULE_TEXT
+
+
+def test_generated_scene_follows_exposure_and_interval_registers():
+    # the driver converts µs to ADC cycles (30 MHz on the emulated DAVIS240); the emulator converts back
+    frames, deadline = [], time.monotonic() + 20
+    with DavisSource("davis240", backend=backend(speed=0), exposure_us=8000, frame_interval_us=20000) as src:
+        for p in src:
+            if p is not None:
+                frames += p.frames
+            if len(frames) >= 4 or time.monotonic() > deadline:
+                src.stop()
+    assert [f.exposure_us for f in frames[:4]] == [8000] * 4
+    assert np.diff([f.exposure_start_us for f in frames[:4]]).tolist() == [20000] * 3

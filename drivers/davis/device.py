@@ -245,13 +245,19 @@ class DavisSource:
         return info
 
     def _configure(self, t: UsbTransport, model: models.DavisModel, info: dict) -> None:
-        self._write(t, P.default_config(
-            model, has_global_shutter=info["has_global_shutter"], aps_columns=info["aps_columns"],
-            aps_rows=info["aps_rows"], clocks=info["clocks"],
-            exposure_us=self.exposure_us if self.exposure_us is not None else P.DEFAULT_EXPOSURE_US,
-            frame_interval_us=self.frame_interval_us if self.frame_interval_us is not None
-            else P.DEFAULT_FRAME_INTERVAL_US, dvs_features=info["dvs_features"], dvs_columns=info["dvs_columns"],
-            dvs_rows=info["dvs_rows"]))
+        # like libcaer, the ROI and filter limits use the sizes as reported to the user (after any X/Y swap)
+        aps_w, aps_h = info["aps_columns"], info["aps_rows"]
+        if info["aps_orientation"] & 4:
+            aps_w, aps_h = aps_h, aps_w
+        dvs_w, dvs_h = info["dvs_columns"], info["dvs_rows"]
+        if info["dvs_orientation"] & 4:
+            dvs_w, dvs_h = dvs_h, dvs_w
+        exposure_us = self.exposure_us if self.exposure_us is not None else P.DEFAULT_EXPOSURE_US
+        interval_us = self.frame_interval_us if self.frame_interval_us is not None else P.DEFAULT_FRAME_INTERVAL_US
+        self._write(t, P.default_config(model, has_global_shutter=info["has_global_shutter"], aps_columns=aps_w,
+                                        aps_rows=aps_h, clocks=info["clocks"], exposure_us=exposure_us,
+                                        frame_interval_us=interval_us, dvs_features=info["dvs_features"],
+                                        dvs_columns=dvs_w, dvs_rows=dvs_h))
 
     def _start(self, t: UsbTransport, model: models.DavisModel, info: dict) -> None:
         sleep = (lambda s: None) if getattr(self.backend, "edi_live_emulator", False) else time.sleep

@@ -24,6 +24,7 @@ Policy:
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import logging
 import threading
@@ -69,6 +70,7 @@ class EdiWorker:
         self._interval_us: int | None = None
         self._deferred: list[tuple[int, int]] = []  # nearest mode: (t_us, arrival_ns) waiting for the next frame
         self._added_latency_ms: list[float] = []
+        self._deblur_ms: collections.deque[float] = collections.deque(maxlen=256)  # on_frame wall time
         self.events_in = 0
         self.frames_in = 0
         self.sent = {"deblurred": 0, "latent": 0}
@@ -196,7 +198,9 @@ class EdiWorker:
         early = self._take_deferred_before((self._ref_f_us + f_us) // 2 if self._ref_f_us is not None else None)
         out = [self._render_at(t, a) for t, a in early]  # still from the previous reference
         first = not self.rec.has_reference
+        t_deblur = time.perf_counter()
         deblurred = self.rec.on_frame(frame, events, arrival)
+        self._deblur_ms.append((time.perf_counter() - t_deblur) * 1e3)
         if self._ref_f_us is not None and f_us > self._ref_f_us:
             self._interval_us = f_us - self._ref_f_us
         self._ref_f_us = f_us
@@ -259,6 +263,7 @@ class EdiWorker:
         c_on = float(getattr(rec, "c_on", float("nan")))
         c_off = float(getattr(rec, "c_off", float("nan")))
         lat = list(self._added_latency_ms)
+        deblur = list(self._deblur_ms)
         return {
             "events_processed": self.events_in,
             "aps_frames_in": self.frames_in,
@@ -274,5 +279,7 @@ class EdiWorker:
             "reestimations": int(getattr(rec, "reestimations", 0)),
             "hot_pixels": int(getattr(rec, "hot_pixels", 0)),
             "worker_busy_s": round(self.busy_s, 3),
+            "deblur_ms_p50": round(float(np.median(deblur)), 3) if deblur else None,
+            "deblur_ms_max": round(float(np.max(deblur)), 3) if deblur else None,
             "nearest_added_latency_ms_p50": round(float(np.median(lat)), 3) if lat else None,
         }

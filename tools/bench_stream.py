@@ -98,10 +98,10 @@ class GatedSource:
             yield packet
 
 
-def _replay(path: Path, speed: float, loop: bool = False):
+def _replay(path: Path, speed: float, loop: bool = False, **options):
     import drivers
 
-    return drivers.open_source("replay", path=str(path), speed=speed, loop=loop)
+    return drivers.open_source("replay", path=str(path), speed=speed, loop=loop, **options)
 
 
 # ------------------------------------------------------------------------------------------------ subscriber
@@ -160,12 +160,13 @@ def _lossless_publisher(**kwargs):
 
 
 def run_with_subscriber(path: Path, options: dict, speed: float, publisher_factory=_lossless_publisher,
-                        passes: int | None = None):
+                        passes: int | None = None, packet_us: int | None = None):
     cfg = NodeConfig.from_options({"replay": str(path), "speed": speed, "publish": ["tcp://127.0.0.1:*"],
                                    "stats_interval_s": 0.2, **options})
     gate = threading.Event()
     loop = passes is not None or bool(options.get("loop"))
-    source = GatedSource(_replay(path, speed, loop=loop), gate, max_loops=passes)
+    extra = {} if packet_us is None else {"max_packet_us": packet_us}
+    source = GatedSource(_replay(path, speed, loop=loop, **extra), gate, max_loops=passes)
     node = Node(cfg, source, publisher_factory=publisher_factory)
     result: dict = {}
 
@@ -227,23 +228,28 @@ def bench_throughput(path: Path, every: int, repeat: int, passes: int) -> None:
     print(f"load average now: {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
 
 
-def bench_latency(path: Path, every: int, rate_ev_s: float, seconds: float) -> None:
+def bench_latency(path: Path, every: int, rate_ev_s: float, seconds: float, packet_us: int = 1000,
+                  extra: dict | None = None) -> None:
     n_events, t0, t1 = recording_stats(path)
     file_rate = n_events / max((t1 - t0) / 1e6, 1e-9)
     speed = rate_ev_s / file_rate
     print(f"\n## latency: paced replay at {rate_ev_s / 1e6:.2f} M events/s (file rate {file_rate / 1e6:.2f} M/s, "
           f"--speed {speed:.3f}), --every {every}, last-event arrival -> frame sent")
-    stats, sub, wall_s, pub = run_with_subscriber(path, {"every": every, "loop": seconds > (t1 - t0) / 1e6 / speed,
-                                                         "duration": seconds}, speed=speed)
+    options = {"every": every, "loop": seconds > (t1 - t0) / 1e6 / speed, "duration": seconds, **(extra or {})}
+    print(f"node options: {options}")
+    stats, sub, wall_s, pub = run_with_subscriber(path, options, speed=speed, packet_us=packet_us)
     lat = np.array(pub.latencies_us)
     if not len(lat):
         print("no frames")
         return
     p50, p90, p99, pmax = np.percentile(lat, [50, 90, 99, 100])
+    print(f"APS deblur (on_frame, incl. c estimation) per frame: p50 {stats.get('deblur_ms_p50')} ms, max "
+          f"{stats.get('deblur_ms_max')} ms; c re-estimations {stats.get('reestimations')}")
     print(f"frames {len(lat)}, received {sub.get('frames')}: latency p50 {p50 / 1000:.3f} ms, p90 {p90 / 1000:.3f} ms, "
           f"p99 {p99 / 1000:.3f} ms, max {pmax / 1000:.3f} ms (target p99 <= 1 ms)")
-    print(f"achieved event rate {stats['events_processed'] / wall_s / 1e6:.2f} M/s over {wall_s:.1f} s; "
-          f"replay packets span up to 10 ms of events, so a packet's frames share one arrival stamp")
+    print(f"achieved event rate {stats['events_processed'] / wall_s / 1e6:.2f} M/s over {wall_s:.1f} s; replay "
+          f"packets span up to {packet_us} µs of events (a USB-transfer-like cadence), so a packet's frames share "
+          f"one arrival stamp; load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
 
 
 def _rss_mib() -> float:
@@ -378,6 +384,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=1e6, help="latency mode: paced event rate, events/s (default 1e6)")
     ap.add_argument("--seconds", type=float, default=None,
                     help="memory: run length (default 60; use 600 for the 10-minute run); latency/static: 10")
+    ap.add_argument("--c", type=float, help="fixed contrast threshold for the node runs (default: estimated)")
     ap.add_argument("--speed", type=float, default=1.0, help="memory mode: replay speed (default 1 = real time)")
     args = ap.parse_args(argv)
     path = args.input
@@ -387,7 +394,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.mode in ("throughput", "all"):
         bench_throughput(path, args.every, args.repeat, args.passes)
     if args.mode in ("latency", "all"):
-        bench_latency(path, args.every, args.rate, args.seconds or 10.0)
+        bench_latency(path, args.every, args.rate, args.seconds or 10.0,
+                      extra={"c": args.c} if args.c is not None else None)
     if args.mode in ("static", "all"):
         bench_static(args.seconds or 10.0)
     if args.mode in ("scaling", "all"):

@@ -661,7 +661,8 @@ def node_end_to_end(cfg: SceneConfig, workdir: Path, *, every: int = 2000, log=p
             if k >= 0:
                 aps = sim.frames[k].image
                 rows["newest APS frame at the latent times"].append((psnr(aps, gt), ssim(aps, gt)))
-    lines = [f"`{' '.join(['edi-live'] + cmd[3:])}` on a `{cfg.width}x{cfg.height}` simulated recording "
+    shown = ["edi-live"] + [Path(c).name if c.startswith(str(workdir)) else c for c in cmd[3:]]
+    lines = [f"`{' '.join(shown)}` on a {cfg.width}x{cfg.height} simulated recording "
              f"({sim.events.size} events, {len(sim.frames)} APS frames): {len(frames)} frames out in {wall:.1f} s wall",
              "", "| node output | frames | mean PSNR (dB) | mean SSIM |", "|---|---:|---:|---:|"]
     for kind, vals in rows.items():

@@ -215,3 +215,10 @@ def test_cli_writes_aedat4_that_dv_processing_reads_back(tmp_path):
     assert len(frames) == len(s.frames)
     np.testing.assert_array_equal(np.asarray(frames[1].image).reshape(180, 240), s.frames[1].image)
     assert frames[1].exposure.total_seconds() * 1e6 == pytest.approx(s.config.exposure_us, abs=1)
+
+
+def test_cli_rejects_bad_options_with_exit_code_2(tmp_path, capsys):
+    assert sim_mod.main([str(tmp_path / "x.aedat4"), "--texture", "nope"]) == 2
+    assert "unknown texture" in capsys.readouterr().err
+    assert sim_mod.main([str(tmp_path / "x.aedat4"), "--exposure-us", "90000", "--frame-interval-us", "50000"]) == 2
+    assert not (tmp_path / "x.aedat4").exists()

@@ -14,7 +14,7 @@ Policy:
 - Frames follow events: a deblurred frame is sent when at least `every` events arrived since its exposure
   start or since the last sent frame (or none was sent yet); otherwise the scene is static: the frame still
   becomes the reference, and only the keyframe heartbeat (the current latent image, every `heartbeat_s`)
-  goes out. Between wake-ups the thread blocks on the ring's condition.
+  goes out. With (almost) no events at all, APS frames are not even deblurred, except one per `heartbeat_s`. Between wake-ups the thread blocks on the ring's condition.
 - mode "causal": each latent frame is rendered from the latest deblurred frame, immediately.
   mode "nearest": a latent time past the midpoint to the next APS frame (predicted from the last interval) is
   held back until that frame is deblurred and rendered from it instead; the extra wait is measured
@@ -44,6 +44,7 @@ _T_MAX = np.iinfo(np.int64).max
 _CHUNK_EVENTS = 1 << 16  # events taken from the ring per lock (then split into every-N slices locally)
 _MAX_DEFERRED = 4096
 _IDLE_WAIT_S = 0.25
+_STATIC_EVENTS = 16  # fewer events than this in an exposure (and since the last frame) = a static scene
 
 
 class EdiWorker:
@@ -76,6 +77,8 @@ class EdiWorker:
         self.sent = {"deblurred": 0, "latent": 0}
         self.heartbeats = 0
         self.skipped_static = 0
+        self.skipped_static_deblur = 0  # APS frames not deblurred at all (static scene)
+        self._last_deblur_s = 0.0
         self.skipped_max_fps = 0
         self.gaps = 0
         self.wakeups = 0  # idle waits: bounded by ~4/s plus data arrivals (no busy loop)
@@ -193,6 +196,10 @@ class EdiWorker:
         self.frames_in += 1
         t0 = time.perf_counter()
         events = self.ring.window(frame.exposure_start_us, _T_MAX)  # exposure start .. read cursor
+        if self._static_frame(len(events)):
+            self.skipped_static_deblur += 1
+            return
+        self._last_deblur_s = time.monotonic()
         f_us = frame.mid_exposure_us
         arrival = max(entry.arrival_ns, self._last_arrival_ns)
         early = self._take_deferred_before((self._ref_f_us + f_us) // 2 if self._ref_f_us is not None else None)
@@ -215,6 +222,16 @@ class EdiWorker:
         self.busy_s += time.perf_counter() - t0
         for rec in sorted(out, key=lambda r: r.t_us):
             self._emit(rec)
+
+    def _static_frame(self, n_events: int) -> bool:
+        """A static scene: (almost) no events since this exposure began, so L(f) would be the current reference
+        up to sensor noise. The events keep the latent image right; a real deblur is still forced every
+        heartbeat_s to bound drift. This is what keeps a still camera near zero CPU."""
+        if not self.rec.has_reference or self._await_reference:
+            return False
+        if n_events >= _STATIC_EVENTS or self._since >= _STATIC_EVENTS:
+            return False
+        return time.monotonic() - self._last_deblur_s < self.config.heartbeat_s
 
     def _take_deferred_before(self, mid_us: int | None) -> list[tuple[int, int]]:
         if mid_us is None or not self._deferred:
@@ -271,6 +288,7 @@ class EdiWorker:
             "frames_latent": self.sent.get("latent", 0),
             "heartbeats": self.heartbeats,
             "skipped_static": self.skipped_static,
+            "skipped_static_deblur": self.skipped_static_deblur,
             "skipped_max_fps": self.skipped_max_fps,
             "worker_gaps": self.gaps,
             "c": round((c_on + c_off) / 2, 4),

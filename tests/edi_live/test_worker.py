@@ -216,3 +216,12 @@ def test_stats_map_has_the_published_keys(mode):
     s = worker.stats()
     for key in ("c", "c_on", "c_off", "reestimations", "frames_latent", "frames_deblurred", "events_processed"):
         assert key in s
+
+
+def test_frames_without_events_are_not_deblurred_again_on_a_static_scene():
+    ev = events_at(np.arange(0, 50))
+    packets = [Packet(events=ev, frames=[aps(0, 49)])]
+    packets += [Packet(frames=[aps(1000 * k, 1000 * k + 500)]) for k in range(1, 6)]  # no events at all
+    worker, rec, out, errors = run_worker(packets, EdiConfig(every=1000, heartbeat_s=60))
+    assert len(rec.frames_given) == 1 and worker.skipped_static_deblur == 5
+    assert [r.kind for r in out] == ["deblurred"]

@@ -74,6 +74,9 @@ class SceneConfig:
     exposure_us: int = 30_000
     first_exposure_us: int = 10_000  # start of the first exposure, relative to t0
     aps_noise_dn: float = 0.0  # Gaussian read noise before 8-bit rounding (DN)
+    aps_offset_dn: float = 0.0  # dark offset added to the APS value (a real APS is not offset-free)
+    aps_gamma: float = 1.0  # APS response 255*(I/255)**(1/gamma); 1 = linear, as EDI assumes
+    event_offset_us: int = 0  # added to every event timestamp (DVS/APS clock misalignment)
     latent_per_interval: int = 4  # ground-truth latent frames between consecutive mid-exposures
     gt_extra_us: tuple[int, ...] = ()  # more ground-truth times (µs after t0), e.g. the times a node emits
     ground_truth: bool = True  # False: no sharp frames (long recordings: they cost H*W*4 bytes each)
@@ -426,12 +429,15 @@ def simulate(cfg: SceneConfig) -> Simulation:
     pol = np.concatenate([sig_pol, nz_pol])
     is_noise = np.concatenate([np.zeros(sig_pix.size, bool), np.ones(nz_pix.size, bool)])
     order = np.argsort(t_us, kind="stable")
-    events = _to_events(pix[order], t_us[order] + cfg.t0_us, pol[order], w)
+    events = _to_events(pix[order], t_us[order] + cfg.t0_us + cfg.event_offset_us, pol[order], w)
     is_noise = is_noise[order]
 
     frames = []
     for i in range(starts.size):
         img = aps_linear[i].astype(np.float64)
+        if cfg.aps_gamma != 1.0:
+            img = 255.0 * (img / 255.0) ** (1.0 / cfg.aps_gamma)
+        img = img + cfg.aps_offset_dn
         if cfg.aps_noise_dn > 0:
             img = img + cfg.aps_noise_dn * rng.standard_normal(img.shape)
         img8 = np.clip(np.rint(img), 0, 255).astype(np.uint8)
@@ -547,7 +553,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--noise-rate-hz", type=float, help="background events per pixel per second")
     ap.add_argument("--hot-pixels", type=int)
     ap.add_argument("--hot-rate-hz", type=float)
-    ap.add_argument("--aps-noise-dn", type=float)
+    ap.add_argument("--aps-noise-dn", type=float, help="Gaussian read noise of the APS (DN)")
+    ap.add_argument("--aps-offset-dn", type=float, help="dark offset of the APS (DN)")
+    ap.add_argument("--aps-gamma", type=float, help="APS response gamma (1 = linear)")
+    ap.add_argument("--event-offset-us", type=int, help="shift every event timestamp (DVS/APS misalignment)")
     ap.add_argument("--latent-per-interval", type=int)
     ap.add_argument("--gt-times-us", type=lambda v: tuple(int(x) for x in v.split(",")), metavar="T1,T2,...",
                     help="extra ground-truth times, µs after the start")
@@ -564,6 +573,8 @@ def main(argv: list[str] | None = None) -> int:
               "frame_interval_us": args.frame_interval_us, "refractory_us": args.refractory_us,
               "noise_rate_hz": args.noise_rate_hz, "hot_pixels": args.hot_pixels, "hot_rate_hz": args.hot_rate_hz,
               "aps_noise_dn": args.aps_noise_dn, "latent_per_interval": args.latent_per_interval,
+              "aps_offset_dn": args.aps_offset_dn, "aps_gamma": args.aps_gamma,
+              "event_offset_us": args.event_offset_us,
               "velocity_px_s": args.velocity, "gt_extra_us": args.gt_times_us}
     over.update({k: v for k, v in simple.items() if v is not None})
     if args.c is not None:

@@ -222,3 +222,12 @@ def test_cli_rejects_bad_options_with_exit_code_2(tmp_path, capsys):
     assert "unknown texture" in capsys.readouterr().err
     assert sim_mod.main([str(tmp_path / "x.aedat4"), "--exposure-us", "90000", "--frame-interval-us", "50000"]) == 2
     assert not (tmp_path / "x.aedat4").exists()
+
+
+def test_aps_offset_gamma_and_event_offset_are_applied():
+    base = simulate(small(velocity_px_s=(120.0, 0.0)))
+    odd = simulate(small(velocity_px_s=(120.0, 0.0), aps_offset_dn=10.0, aps_gamma=2.0, event_offset_us=-7))
+    np.testing.assert_array_equal(odd.aps_linear, base.aps_linear)  # the truth stays linear
+    expected = np.clip(np.rint(255.0 * (base.aps_linear[1] / 255.0) ** 0.5 + 10.0), 0, 255)
+    assert np.abs(odd.frames[1].image.astype(float) - expected).max() <= 1
+    np.testing.assert_array_equal(odd.events["t"], base.events["t"] - 7)

@@ -23,7 +23,7 @@ import numpy as np
 import zstandard
 
 from edi_live.aedat4 import schema as S
-from edi_live.aedat4._check import check_events
+from edi_live.aedat4._check import check_events, parse_check_evts
 from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, Frame, SourceInfo
 from edi_live.errors import RecordingError
 
@@ -317,6 +317,14 @@ class Aedat4Reader:
             yield ev
 
     def _events(self, payload: bytes, stream: StreamInfo, pos: int) -> np.ndarray:
+        if self.validate and parse_check_evts is not None:  # numba: parse and check in one compiled call
+            start, count, first, why = parse_check_evts(np.frombuffer(payload, np.uint8), stream.width,
+                                                        stream.height)
+            if start >= 0:
+                if why:
+                    raise self._error(f"corrupt event packet of stream {stream.id}: event {first} of {count} "
+                                      f"{_WHY[why].format(w=stream.width, h=stream.height)}", pos)
+                return np.frombuffer(payload, dtype=EVENT_DTYPE, count=count, offset=start) if count else _NO_EVENTS
         # the vtable walk of schema.Table, inlined for the common layout (this runs once per event packet)
         n = len(payload)
         start = count = -1

@@ -1,0 +1,77 @@
+"""Event-packet validation: the numba kernels and the numpy fallback must agree, and with numba absent the reader
+must give the same events and the same errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from edi_live.aedat4 import Aedat4Reader, reader as reader_mod
+from edi_live.aedat4 import _check
+from edi_live.aedat4 import schema as S
+from edi_live.datatypes import EVENT_DTYPE
+from edi_live.errors import RecordingError
+
+pytestmark = pytest.mark.skipif(not _check.HAVE_NUMBA, reason="numba not installed: only the fallback exists")
+
+
+def _records(t, x, y, p) -> np.ndarray:
+    ev = np.zeros(len(t), dtype=EVENT_DTYPE)
+    ev["t"], ev["x"], ev["y"] = t, x, y
+    raw = ev.view(np.uint8).reshape(-1, 16).copy()
+    raw[:, 12] = p
+    return raw.reshape(-1)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(st.integers(-5, 40), st.integers(0, 70), st.integers(0, 50), st.integers(0, 2)),
+                max_size=40))
+def test_numba_and_numpy_checks_agree(rows):
+    t, x, y, p = (np.array(c, dtype=np.int64) for c in zip(*rows)) if rows else ([], [], [], [])
+    raw = _records(t, x, y, p)
+    for floor in (-(2**62), 0):
+        assert _check.check_events_numpy(raw, 64, 48, floor) == _check.check_events(raw, 64, 48, floor)
+
+
+def test_combined_parse_matches_the_general_parser(real_recordings):
+    with Aedat4Reader(real_recordings["emlb_demo-01_davis346.aedat4"]) as reader:
+        for _, _, payload in reader.packets(("EVTS",)):
+            start, count, first, why = _check.parse_check_evts(np.frombuffer(payload, np.uint8), 346, 260)
+            assert (start, count) == S.root_table(payload, b"EVTS").vector(0, 16) and (first, why) == (-1, 0)
+
+
+def test_reader_without_numba_gives_the_same(real_recordings, monkeypatch, tmp_path):
+    path = real_recordings["aestream_davis346.aedat4"]
+    with Aedat4Reader(path) as reader:
+        fast = [e.copy() for e in reader.events()]
+    monkeypatch.setattr(reader_mod, "parse_check_evts", None)
+    monkeypatch.setattr(reader_mod, "check_events", _check.check_events_numpy)
+    with Aedat4Reader(path) as reader:
+        slow = list(reader.events())
+    assert len(fast) == len(slow) and all(np.array_equal(a, b) for a, b in zip(fast, slow))
+    # and the same error on a bad polarity byte
+    bad = tmp_path / "bad.aedat4"
+    from edi_live.aedat4 import Aedat4Writer
+
+    ev = np.zeros(10, dtype=EVENT_DTYPE)
+    ev["t"] = np.arange(10)
+    with Aedat4Writer(bad, 8, 8, compression="none") as w:
+        w.write_events(ev)
+    data = bytearray(bad.read_bytes())
+    first = 18 + int.from_bytes(data[14:18], "little") + 8  # the first packet's payload, after the header
+    start, _ = S.root_table(bytes(data[first:]), b"EVTS").vector(0, 16)
+    data[first + start + 16 * 3 + 12] = 7
+    bad.write_bytes(bytes(data))
+    messages = []
+    for patched in (False, True):
+        if not patched:
+            monkeypatch.undo()
+        else:
+            monkeypatch.setattr(reader_mod, "parse_check_evts", None)
+            monkeypatch.setattr(reader_mod, "check_events", _check.check_events_numpy)
+        with pytest.raises(RecordingError, match="polarity") as info, Aedat4Reader(bad) as reader:
+            list(reader)
+        messages.append(str(info.value))
+    assert messages[0] == messages[1] and "event 3 of 10" in messages[0]

@@ -241,7 +241,10 @@ class ReplaySource:
         self.max_packet_us, self.poll_s = max_packet_us, poll_s
         with Aedat4Reader(self.path) as reader:
             info = reader.source_info
-            self._time_range = reader.time_range() if reader.data_table_position >= 0 else None
+            try:
+                self._time_range = reader.time_range()
+            except RecordingError:  # a damaged table does not stop the replay, which never needs it
+                self._time_range = None
         if info.width <= 0 or info.height <= 0:
             raise RecordingError("the header gives no sensor resolution (sizeX/sizeY of the event or frame stream)",
                                  self.path, 0)

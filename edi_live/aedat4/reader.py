@@ -409,6 +409,8 @@ class Aedat4Reader:
             out["stream_id"], out["size"] = (info & 0xFFFFFFFF).astype("<u4").view("<i4"), (info >> 32)
         except S.FlatBufferError as exc:
             raise self._error(f"corrupt FileDataTable: {exc}", dtp) from None
+        except Exception as exc:  # whatever else a damaged table provokes is the same fault
+            raise self._error(f"corrupt FileDataTable ({type(exc).__name__}: {exc})", dtp) from exc
         return out
 
     def time_range(self) -> tuple[int, int] | None:

@@ -116,6 +116,16 @@ def scene_suite(quick: bool = False) -> list[tuple[str, SceneConfig]]:
     return scenes
 
 
+def pitfall_suite() -> list[tuple[str, SceneConfig]]:
+    """Opt-in scenes with the real-sensor pitfalls of the notes: EDI's model assumes none of them."""
+    base = dict(texture=_texture("camera"), velocity_px_s=(250.0, 60.0), duration_s=0.5, noise_rate_hz=0.1, seed=11)
+    return [
+        ("pitfall: APS dark offset 8 DN", preset("translate", aps_offset_dn=8.0, **base)),
+        ("pitfall: APS gamma 1.5", preset("translate", aps_gamma=1.5, **base)),
+        ("pitfall: events 2 ms late", preset("translate", event_offset_us=2_000, **base)),
+    ]
+
+
 # --------------------------------------------------------------------------------------------- harness
 
 @dataclass
@@ -676,6 +686,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python tools/bench_accuracy.py", description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="4 short scenes instead of 8, no sweep")
     ap.add_argument("--no-sweep", action="store_true", help="skip the c-search resolution sweep")
+    ap.add_argument("--pitfalls", action="store_true",
+                    help="also run scenes with APS offset/gamma and late events (not in the means or targets)")
     ap.add_argument("--plot", default=str(REPO / "docs" / "bench_accuracy.png"), help="PNG path ('' = none)")
     ap.add_argument("--no-node", action="store_true", help="skip the end-to-end run of edi-live on the demo recording")
     args = ap.parse_args(argv)
@@ -702,6 +714,10 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"end-to-end run failed: {type(exc).__name__}: {exc}")
     print("\n## Per scene\n")
     print(per_scene_tables(results, methods))
+    if args.pitfalls:
+        print("\n## Pitfall scenes (not in the means above)\n")
+        pit, _ = run_suite(pitfall_suite(), methods)
+        print(per_scene_tables(pit, methods))
     if args.plot:
         save_plot(args.plot, results, methods, sweep_results,
                   title=f"python tools/bench_accuracy.py{' --quick' if args.quick else ''}: {len(scenes)} scenes")

@@ -292,3 +292,23 @@ def test_fuzz_uncompressed_flatbuffers(tmp_path, uncompressed_real, mutation):
                 pass
         except RecordingError:
             pass
+
+
+def test_damaged_data_table_is_reported_but_does_not_stop_replay(tmp_path):
+    from drivers.replay import ReplaySource
+
+    path = tmp_path / "f.aedat4"
+    data = bytearray(_simple_file(path, "lz4"))
+    with Aedat4Reader(path) as reader:
+        dtp = reader.data_table_position
+    data[dtp + 8:] = b"\x00" * (len(data) - dtp - 8)  # wipe the table body after its frame header
+    path.write_bytes(bytes(data))
+    with Aedat4Reader(path) as reader:
+        assert sum(len(e) for e in reader.events()) == 500
+        with pytest.raises(RecordingError, match="FileDataTable") as info:
+            reader.data_table()
+        assert info.value.offset == dtp
+    src = ReplaySource(path, speed=0)
+    assert src.time_range() is None
+    with src:
+        assert sum(len(p.events) for p in src if p is not None) == 500

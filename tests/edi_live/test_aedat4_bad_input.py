@@ -233,7 +233,7 @@ def small_real(real_recordings):
     return real_recordings["evlib_sample_davis346.aedat4"].read_bytes()
 
 
-@settings(max_examples=120, deadline=5000, suppress_health_check=[HealthCheck.function_scoped_fixture,
+@settings(max_examples=400, deadline=5000, suppress_health_check=[HealthCheck.function_scoped_fixture,
                                                                  HealthCheck.too_slow])
 @given(mutation=_mutations())
 def test_fuzz_reader_and_replay_raise_only_recording_errors(tmp_path, small_real, mutation):
@@ -278,7 +278,7 @@ def uncompressed_real(real_recordings, tmp_path_factory):
     return path.read_bytes()
 
 
-@settings(max_examples=150, deadline=5000, suppress_health_check=[HealthCheck.function_scoped_fixture,
+@settings(max_examples=300, deadline=5000, suppress_health_check=[HealthCheck.function_scoped_fixture,
                                                                  HealthCheck.too_slow])
 @given(mutation=_mutations())
 def test_fuzz_uncompressed_flatbuffers(tmp_path, uncompressed_real, mutation):

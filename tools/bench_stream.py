@@ -159,6 +159,53 @@ def _lossless_publisher(**kwargs):
     return _RecordingPublisher(**kwargs, inbox_size=1 << 20, sndhwm=0)
 
 
+class ThreadCpu:
+    """Samples each named thread's CPU time from /proc (Linux), keeping the last value seen per thread."""
+
+    def __init__(self, period_s: float = 0.1) -> None:
+        self.cpu_s: dict[str, float] = {}
+        self._base: dict[str, float] = {t.name: self._now(t) for t in threading.enumerate()}
+        self._stop = threading.Event()
+        self._period_s = period_s
+        self._thread = threading.Thread(target=self._run, name="cpu-sampler", daemon=True)
+
+    def __enter__(self) -> "ThreadCpu":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join(2)
+
+    @staticmethod
+    def _now(t: threading.Thread) -> float:
+        try:
+            with open(f"/proc/self/task/{t.native_id}/stat") as fh:
+                fields = fh.read().rsplit(")", 1)[1].split()
+        except (OSError, TypeError):
+            return 0.0
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+    def _run(self) -> None:
+        tick = os.sysconf("SC_CLK_TCK")
+        while not self._stop.wait(self._period_s):
+            for t in threading.enumerate():
+                try:
+                    with open(f"/proc/self/task/{t.native_id}/stat") as fh:
+                        fields = fh.read().rsplit(")", 1)[1].split()
+                except (OSError, TypeError):
+                    continue
+                total_s = (int(fields[11]) + int(fields[12])) / tick
+                self._base.setdefault(t.name, total_s)  # threads already running count from now
+                self.cpu_s[t.name] = total_s - self._base[t.name]
+
+    def split(self) -> str:
+        keep = {k: v for k, v in self.cpu_s.items() if k in ("pump", "edi-worker", "publisher", "MainThread")}
+        total = sum(keep.values()) or 1.0
+        return ", ".join(f"{k} {v:.2f} s ({100 * v / total:.0f}%)" for k, v in sorted(keep.items(),
+                                                                                      key=lambda kv: -kv[1]))
+
+
 def run_with_subscriber(path: Path, options: dict, speed: float, publisher_factory=_lossless_publisher,
                         passes: int | None = None, packet_us: int | None = None):
     cfg = NodeConfig.from_options({"replay": str(path), "speed": speed, "publish": ["tcp://127.0.0.1:*"],
@@ -188,8 +235,9 @@ def run_with_subscriber(path: Path, options: dict, speed: float, publisher_facto
         raise SystemExit("subscriber did not connect")
     parent.recv()
     cpu0 = time.process_time()
-    gate.set()
-    thread.join(600)
+    with ThreadCpu() as threads_cpu:
+        gate.set()
+        thread.join(600)
     end_s = time.perf_counter()
     cpu_s = time.process_time() - cpu0
     parent.send("stop")
@@ -198,6 +246,7 @@ def run_with_subscriber(path: Path, options: dict, speed: float, publisher_facto
     if "error" in result:
         raise SystemExit(f"node failed: {result['error']!r}")
     result["stats"]["node_cpu_s"] = cpu_s
+    result["stats"]["thread_cpu"] = threads_cpu.split()
     return result["stats"], sub, (end_s - source.first_packet_s), node.publisher
 
 
@@ -225,6 +274,7 @@ def bench_throughput(path: Path, every: int, repeat: int, passes: int) -> None:
     print(f"median: {ev_s / 1e6:.2f} M events/s, {fr_s:.0f} frames/s wall-clock (target >= 12 M events/s, "
           f">= 12,000 frames/s); {per_cpu / 1e6:.2f} M events per CPU-second of the node process "
           f"(all its threads; the subscriber is another process)")
+    print(f"CPU by thread (last run, while data flowed): {stats['thread_cpu']}")
     print(f"load average now: {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
 
 

@@ -3,6 +3,7 @@ files in the same run, plus the replay merge (merged_packets) and the writer.
 
     python -m tools.bench_aedat4                 # the real recordings + a generated 10 M-event file
     python -m tools.bench_aedat4 --events 20000000 --repeat 7
+    python -m tools.bench_aedat4 --memory 100000000   # peak memory while replaying 10^8 events
 
 Readers take turns: in each round every reader (order rotated per round) makes a few consecutive passes (8 on
 the small real files, 1 on the generated one), so each runs warm while the shared machine's slow phases hit all of
@@ -88,6 +89,33 @@ def generate(path: Path, n_events: int, per_packet: int = 10_000, seed: int = 0)
     return n_events / write_s / 1e6
 
 
+def memory_run(n_events: int, tmp: str) -> None:
+    """Stream a generated file of n_events through merged_packets and report the peak memory it took."""
+    import resource
+    import tracemalloc
+
+    path = Path(tmp) / "memory.aedat4"
+    start = time.perf_counter()
+    generate(path, n_events, per_packet=50_000)
+    print(f"generated {n_events:,} events ({path.stat().st_size / 1e6:,.0f} MB on disk, "
+          f"{n_events * EVENT_DTYPE.itemsize / 1e6:,.0f} MB decoded) in {time.perf_counter() - start:.1f} s")
+    for _ in merged_packets(path):  # warm up imports and the numba compile outside the measurement
+        break
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    tracemalloc.start()
+    start, count, packets = time.perf_counter(), 0, 0
+    for packet in merged_packets(path):
+        count += len(packet.events)
+        packets += 1
+    seconds = time.perf_counter() - start
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    rss1 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    print(f"merged_packets: {count:,} events in {packets:,} packets, {count / seconds / 1e6:.1f} M events/s "
+          f"(under tracemalloc); peak traced memory {peak / 1e6:.1f} MB; peak RSS grew by "
+          f"{max(0, rss1 - rss0) / 1e3:.1f} MB")
+
+
 def bench(path: Path, readers: dict, repeat: int, inner: int) -> dict[str, float]:
     """`repeat` rounds; in each, every reader (order rotated per round) makes `inner` consecutive passes, so it
     runs warm (as in real use) while slow phases of the shared machine are spread over all readers."""
@@ -118,7 +146,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--repeat", type=int, default=5, help="rounds per file (default 5)")
     ap.add_argument("--cores", type=int, default=1, help="pin to this many cores (0 = no pinning)")
     ap.add_argument("--no-aedat", action="store_true", help="skip the aedat package")
+    ap.add_argument("--memory", type=int, metavar="N", default=0,
+                    help="instead: stream a generated N-event file through the replay merge and report peak memory")
     args = ap.parse_args(argv)
+    if args.memory:
+        with tempfile.TemporaryDirectory() as tmp:
+            memory_run(args.memory, tmp)
+        return
     if args.cores and hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[: args.cores])
     readers = {"ours": ours, "ours (no validation)": lambda p: ours(p, validate=False),

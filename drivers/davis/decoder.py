@@ -54,6 +54,7 @@ class DavisDecoder:
         self._carry = b""
         self._reanchor = False
         self._last_arrival_ns = 0
+        self._host_minus_dev_us: int | None = None  # smallest recent (arrival - device time): latency floor
         self._seq = 0
         self._wm = -(2**62)  # highest watermark promised so far; later events are clamped to it
         self.counters = {"words": 0, "events": 0, "frames": 0, "frames_dropped": 0, "imu": 0,
@@ -101,6 +102,7 @@ class DavisDecoder:
         """Host time (monotonic ns) at which the device's current time was reached, e.g. when streaming
         started at device time 0; lets a gap before the first chunk still be re-anchored."""
         self._last_arrival_ns = int(arrival_ns)
+        self._host_minus_dev_us = int(arrival_ns) // 1000 - int(self._state[_kernel.S_CURRENT])
 
     def mark_gap(self) -> None:
         """Raw bytes were lost before the next chunk: drop partial frame/IMU/row state, re-anchor the wrap
@@ -144,13 +146,24 @@ class DavisDecoder:
         if ctrl_idx.size:
             gap |= self._control(words[ctrl_idx], ctrl_t, out)
         if arrival_ns:
-            self._last_arrival_ns = arrival_ns
+            self._track_latency(arrival_ns)
         imu = np.array(out.imu, dtype=IMU_DTYPE) if out.imu else np.zeros(0, IMU_DTYPE)
         trig = np.array(out.triggers, dtype=TRIGGER_DTYPE) if out.triggers else np.zeros(0, TRIGGER_DTYPE)
         return Packet(events=events, frames=out.frames, imu=imu, triggers=trig, watermark_us=self.watermark_us,
                       arrival_ns=arrival_ns, gap=gap)
 
     # ---- gap re-anchoring ----------------------------------------------------------------------------
+    def _track_latency(self, arrival_ns: int) -> None:
+        """Keep the smallest host-minus-device offset seen (data never arrives before its timestamp). It may
+        rise by 1 ms per s so that a device clock running slower than the host (ppm drift) is followed."""
+        off = arrival_ns // 1000 - int(self._state[_kernel.S_CURRENT])
+        if self._host_minus_dev_us is None:
+            self._host_minus_dev_us = off
+        else:
+            rise = max(0, arrival_ns - self._last_arrival_ns) // 1_000_000
+            self._host_minus_dev_us = min(off, self._host_minus_dev_us + rise)
+        self._last_arrival_ns = arrival_ns
+
     def _apply_reanchor(self, words: np.ndarray, arrival_ns: int) -> np.ndarray:
         """Drop words before the first timestamp word, then pick the wrap count that puts this chunk's last
         timestamp just before the host arrival time says it was sent."""
@@ -169,11 +182,12 @@ class DavisDecoder:
         _kernel.scan(words, probe, self.dvs_cols, self.dvs_rows, False, self.use_numba)
         rel_end = int(probe[_kernel.S_CURRENT])
         first_low = int(words[0]) & 0x7FFF
-        if arrival_ns and self._last_arrival_ns:
-            # data reaches the host after its timestamp (USB latency, a reader running behind): host time is an
-            # upper bound, so take the latest wrap that does not put the chunk's end after it (2 ms slack for
-            # clock granularity). Correct while the latency stays below one wrap period minus the slack.
-            target_end = last_dev + (arrival_ns - self._last_arrival_ns) // 1000 + 2000
+        if arrival_ns and self._host_minus_dev_us is not None:
+            # data reaches the host after its timestamp (USB latency, a reader running behind), so arrival time
+            # minus the smallest latency seen is an upper bound of the chunk's end: take the latest wrap that
+            # does not put the end after it (2 ms slack for clock granularity). Exact while this chunk's latency
+            # exceeds the smallest one by less than one wrap period (32.8 ms) minus the slack.
+            target_end = arrival_ns // 1000 - self._host_minus_dev_us + 2000
             base = ((target_end - rel_end) // _kernel.WRAP_STEP) * _kernel.WRAP_STEP
         else:
             base = (last_dev >> 15) << 15

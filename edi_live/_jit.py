@@ -223,15 +223,16 @@ def divisor_stream(t, x, y, p, width, height, mask, use_mask, ts, te, f, c, coun
 
     Per pixel: the net level n counted from ts, and a running sum of dwell * exp(c * (n - base)) read from a
     small table; the base moves up when n climbs more than the table above it (levels far below the base
-    underflow harmlessly), so any event count stays finite.
-    Events must lie in [ts, te]. Returns (pixels in first-event order, log D)."""
+    underflow harmlessly), so any event count stays finite. Events must lie in [ts, te].
+    Returns (pixels in first-event order, log D, c * (n(te) - n(f)))."""
     npix = width * height
     k = 64
     ztab = np.empty(2 * k + 1, dtype=np.float64)
     for j in range(2 * k + 1):
         ztab[j] = math.exp(c * (j - k))
-    state = np.empty((npix, 4), dtype=np.int64)  # last event time, level, base level, level at f
-    s = np.empty(npix, dtype=np.float64)
+    # one 32-byte row per pixel (last event time - ts, level, base level, running sum): one cache line per event
+    state = np.empty((npix, 4), dtype=np.float64)
+    level_f = np.empty(npix, dtype=np.float64)
     seen = np.zeros(npix, dtype=np.uint8)  # 1: active, 2: active and f passed
     active = np.empty(npix, dtype=np.int64)
     n_act = 0
@@ -243,38 +244,42 @@ def divisor_stream(t, x, y, p, width, height, mask, use_mask, ts, te, f, c, coun
             count_all[q] += 1
         if use_mask and mask[q]:
             continue
-        ti = t[i]
+        ti = float(t[i] - ts)
+        row = state[q]
         if seen[q] == 0:
             seen[q] = 1
-            state[q, 0] = ts
-            state[q, 1] = 0
-            state[q, 2] = 0
-            s[q] = 0.0
+            row[0] = 0.0
+            row[1] = 0.0
+            row[2] = 0.0
+            row[3] = 0.0
             active[n_act] = q
             n_act += 1
-        if ti > f and seen[q] == 1:
-            state[q, 3] = state[q, 1]
+        if t[i] > f and seen[q] == 1:
+            level_f[q] = row[1]
             seen[q] = 2
-        d = state[q, 1] - state[q, 2]
+        d = int(row[1] - row[2])
         if d > k:  # climbed far above the base: rebase upwards (log-sum-exp), older terms shrink
-            s[q] *= math.exp(-c * d)
-            state[q, 2] = state[q, 1]
+            row[3] *= math.exp(-c * d)
+            row[2] = row[1]
             d = 0
-        s[q] += (ti - state[q, 0]) * (ztab[d + k] if d >= -k else math.exp(c * d))
-        state[q, 0] = ti
-        state[q, 1] += 1 if p[i] else -1
+        row[3] += (ti - row[0]) * (ztab[d + k] if d >= -k else math.exp(c * d))
+        row[0] = ti
+        row[1] += 1.0 if p[i] else -1.0
     pixels = np.empty(n_act, dtype=np.int64)
     log_d = np.empty(n_act, dtype=np.float64)
-    inv_t = 1.0 / float(te - ts)
+    delta_end = np.empty(n_act, dtype=np.float64)
+    span = float(te - ts)
     for r in range(n_act):
         q = active[r]
-        d = state[q, 1] - state[q, 2]
+        row = state[q]
+        d = int(row[1] - row[2])
         if d > k:
-            s[q] *= math.exp(-c * d)
-            state[q, 2] = state[q, 1]
+            row[3] *= math.exp(-c * d)
+            row[2] = row[1]
             d = 0
-        total = s[q] + (te - state[q, 0]) * (ztab[d + k] if d >= -k else math.exp(c * d))
-        n_f = state[q, 3] if seen[q] == 2 else state[q, 1]
+        total = row[3] + (span - row[0]) * (ztab[d + k] if d >= -k else math.exp(c * d))
+        n_f = level_f[q] if seen[q] == 2 else row[1]
         pixels[r] = q
-        log_d[r] = c * (state[q, 2] - n_f) + math.log(total * inv_t)
-    return pixels, log_d
+        log_d[r] = c * (row[2] - n_f) + math.log(total / span)
+        delta_end[r] = c * (row[1] - n_f)
+    return pixels, log_d, delta_end

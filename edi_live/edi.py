@@ -23,6 +23,7 @@ Window convention (half-open in the usual sense, closed at the exposure ends):
 
 from __future__ import annotations
 
+import bisect
 import os
 from dataclasses import dataclass
 
@@ -123,9 +124,15 @@ def _window(events: np.ndarray, t0: int | None, t1: int | None) -> np.ndarray:
     if events.dtype != EVENT_DTYPE and not _has_event_fields(events):
         raise TypeError(f"events must be a structured array of EVENT_DTYPE (got {events.dtype})")
     t = events["t"]
-    lo = 0 if t0 is None else int(np.searchsorted(t, t0, side="left"))
-    hi = t.size if t1 is None else int(np.searchsorted(t, t1, side="right"))
+    lo = 0 if t0 is None else time_index(t, t0, "left")
+    hi = t.size if t1 is None else time_index(t, t1, "right")
     return events[lo:hi]
+
+
+def time_index(t: np.ndarray, value: int, side: str = "left") -> int:
+    """np.searchsorted for the strided `events["t"]` view without the contiguous copy numpy makes of it."""
+    find = bisect.bisect_left if side == "left" else bisect.bisect_right
+    return find(t, value)
 
 
 _NO_MASK = np.zeros(0, dtype=np.uint8)
@@ -144,8 +151,8 @@ def _select(events: np.ndarray, width: int, height: int, t0: int | None, t1: int
     if events.dtype != EVENT_DTYPE and not _has_event_fields(events):
         raise TypeError(f"events must be a structured array of EVENT_DTYPE (got {events.dtype})")
     t = events["t"]
-    lo = 0 if t0 is None else int(np.searchsorted(t, t0, side="left"))
-    hi = t.size if t1 is None else int(np.searchsorted(t, t1, side="right"))
+    lo = 0 if t0 is None else time_index(t, t0, "left")
+    hi = t.size if t1 is None else time_index(t, t1, "right")
     ev = events[lo:hi]
     x = ev["x"]
     y = ev["y"]
@@ -204,11 +211,13 @@ def build_level_table(events: np.ndarray, width: int, height: int, exposure_star
 def log_divisor_events(events: np.ndarray, width: int, height: int, exposure_start_us: int, exposure_end_us: int,
                        ref_t_us: int | None, c_on: float, c_off: float | None = None, *,
                        mask: np.ndarray | None = None,
-                       event_counts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(active pixels, log D) for ONE c straight from the events: the fast path when c is known.
+                       event_counts: np.ndarray | None = None) \
+        -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(active pixels, log D, exponent change f->te or None) for ONE c straight from the events.
 
-    Same value as log_divisor(build_level_table(...)) but, for c_on == c_off with numba, a single pass without
-    sorting. Pixel order is unspecified. `mask`/`event_counts` as in build_level_table.
+    Same log D as log_divisor(build_level_table(...)) but, for c_on == c_off with numba, a single pass without
+    sorting, which also yields c * E(f -> te) per active pixel (so the latent image at te costs O(pixels)).
+    Pixel order is unspecified. `mask`/`event_counts` as in build_level_table.
     """
     c_off = c_on if c_off is None else c_off
     ts, te = int(exposure_start_us), int(exposure_end_us)
@@ -223,7 +232,7 @@ def log_divisor_events(events: np.ndarray, width: int, height: int, exposure_sta
                                    float(c_on), cnt, event_counts is not None)
     table = build_level_table(events, width, height, ts, te, f, mask=mask, segments=c_on != c_off,
                               event_counts=event_counts)
-    return table.pixels, log_divisor(table, c_on, c_off)
+    return table.pixels, log_divisor(table, c_on, c_off), None
 
 
 def _stable_argsort_pixels(idx: np.ndarray, npix: int) -> np.ndarray:
@@ -374,7 +383,7 @@ def deblur_log(blurry: np.ndarray, table: LevelTable | None, c_on: float, c_off:
     """log L(f) on the 8-bit scale, (H, W) float32: log B - log D at active informative pixels, log B elsewhere.
 
     `blurry` is B as float (8-bit scale, see blurry_to_float); `informative` defaults to 0 < B < 255.
-    log D comes from `table` at (c_on, c_off), or precomputed as `divisor` = (pixels, log D).
+    log D comes from `table` at (c_on, c_off), or precomputed as `divisor` = (pixels, log D, ...).
     """
     b = np.asarray(blurry, dtype=np.float32)
     if table is not None and b.shape != (table.height, table.width):
@@ -383,7 +392,7 @@ def deblur_log(blurry: np.ndarray, table: LevelTable | None, c_on: float, c_off:
     if divisor is None and table is not None and table.n_active:
         divisor = (table.pixels, log_divisor(table, c_on, c_off))
     if divisor is not None and divisor[0].size:
-        pix, ld = divisor
+        pix, ld = divisor[0], divisor[1]
         if informative is None:
             bp = b.reshape(-1)[pix]
             use = (bp > 0) & (bp < 255.0)

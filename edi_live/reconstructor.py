@@ -136,9 +136,19 @@ class EdiReconstructor:
         for a in self._acc:
             a.fill(0)
         t = events["t"]
-        after = events[int(np.searchsorted(t, f, side="right")):]
-        n_new = t.size - int(np.searchsorted(t, self._t_last, side="right"))
-        edi.propagate_log(self._log_lat, after, self.c_on, self.c_off, mask=mask, counts=self._acc)
+        n_new = t.size - edi.time_index(t, self._t_last, "right")
+        pixels, _, delta_end = divisor
+        if delta_end is not None:  # the divisor pass already knows E(f -> te): jump there in O(pixels)
+            lat = self._log_lat.reshape(-1)
+            lat[pixels] += delta_end.astype(np.float32)
+            np.clip(lat, edi.LOG_MIN, edi.LOG_MAX, out=lat)
+            if not self._fixed:  # the consistency pairs need the counts after f
+                edi.add_counts(events, self.width, self.height, *self._acc, t0=f + 1, t1=te, mask=mask)
+            after = events[edi.time_index(t, te, "right"):]
+        else:
+            after = events[edi.time_index(t, f, "right"):]
+        edi.propagate_log(self._log_lat, after, self.c_on, self.c_off, mask=mask,
+                          counts=None if self._fixed else self._acc)
         np.copyto(self._display, edi.to_uint8(self._log_lat))
         if frame_counts is not None:
             self._update_hot(frame_counts, te - ts)
@@ -163,7 +173,7 @@ class EdiReconstructor:
             return  # nothing to advance yet; the first APS frame rebuilds everything
         mask = self._hot if self._mask_hot else None
         edi.propagate_log(self._log_lat, events, self.c_on, self.c_off, mask=mask, display=self._display,
-                          counts=self._acc)
+                          counts=None if self._fixed else self._acc)
         self._t_last = max(self._t_last, int(events["t"][-1]))
         self._pending_events += int(events.size)
         self.events_applied += int(events.size)

@@ -58,10 +58,13 @@ def test_divisor_matches_brute_force_integral(backend, seed):
         got[table.pixels] = np.exp(edi.log_divisor(table, c_on, c_off))
         np.testing.assert_allclose(got, want, rtol=1e-6)
         # the one-pass path for a known c gives the same numbers
-        pix, ld = edi.log_divisor_events(ev, w, h, ts, te, f, c_on, c_off)
+        pix, ld, delta_end = edi.log_divisor_events(ev, w, h, ts, te, f, c_on, c_off)
         fast = np.ones(w * h)
         fast[pix] = np.exp(ld)
         np.testing.assert_allclose(fast, want, rtol=1e-6)
+        if delta_end is not None:  # c * E(f -> te), when the fast path provides it
+            dense = edi.event_delta(ev, w, h, c_on, c_off, t0=f + 1, t1=te).reshape(-1)
+            np.testing.assert_allclose(delta_end, dense[pix], atol=1e-5)
 
 
 def test_numba_and_numpy_tables_agree(rng, monkeypatch):
@@ -158,7 +161,7 @@ def test_ten_thousand_events_at_one_pixel(backend, polarity, c):
     ev["p"] = polarity
     table = edi.build_level_table(ev, 1, 1, 0, 20_000)
     ld = edi.log_divisor(table, c)
-    pix, ld_fast = edi.log_divisor_events(ev, 1, 1, 0, 20_000, None, c)
+    pix, ld_fast, _ = edi.log_divisor_events(ev, 1, 1, 0, 20_000, None, c)
     # analytic: levels k - 5000 for ~2 µs each -> log D = log mean_k exp(c (k - n_f)); n_f = events <= f
     n_f = int(np.count_nonzero(ev["t"] <= 10_000))
     seg = np.diff(np.r_[0, ev["t"], 20_000]).astype(float)
@@ -247,7 +250,7 @@ def test_deblur_and_latent_are_finite_and_non_negative(case):
     table = edi.build_level_table(ev, w, h, ts, te)
     ld = edi.log_divisor(table, c_on, c_off)
     assert np.isfinite(ld).all()
-    pix, ld_fast = edi.log_divisor_events(ev, w, h, ts, te, None, c_on, c_off)
+    pix, ld_fast, delta = edi.log_divisor_events(ev, w, h, ts, te, None, c_on, c_off)
     order = np.argsort(pix)
     np.testing.assert_array_equal(pix[order], table.pixels)
     np.testing.assert_allclose(ld_fast[order], ld, rtol=1e-9, atol=1e-9)

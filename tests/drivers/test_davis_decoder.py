@@ -185,8 +185,9 @@ def test_encoder_decoder_round_trip(rng, model, orientation):
         assert all(np.all(np.diff(p.events["t"]) >= 0) for p in out)
 
 
+@pytest.mark.parametrize("latency_us", [0, 25_000])  # USB/host latency on top of up to 3 ms jitter
 @pytest.mark.parametrize("use_numba", BACKENDS)
-def test_gap_reanchors_wraps_from_arrival_times(rng, use_numba):
+def test_gap_reanchors_wraps_from_arrival_times(rng, use_numba, latency_us):
     # 2 s of events at ~1 event/100 us; chunks of 5 ms; drop 120 ms worth of chunks (3+ wraps lost)
     n = 20000
     t = np.sort(rng.integers(0, 2_000_000, n))
@@ -198,7 +199,7 @@ def test_gap_reanchors_wraps_from_arrival_times(rng, use_numba):
     for lo, hi in zip(bounds[:-1], bounds[1:]):
         k0, k1 = np.searchsorted(t, [lo, hi])
         words = enc.encode_events(t[k0:k1], x[k0:k1], y[k0:k1], p[k0:k1])
-        arrival_ns = (hi + int(rng.integers(0, 3000))) * 1000  # device time + up to 3 ms jitter
+        arrival_ns = (hi + latency_us + int(rng.integers(0, 3000))) * 1000
         if 1_000_000 <= lo < 1_120_000:
             continue  # lost upstream
         if lo == 1_120_000:

@@ -181,3 +181,17 @@ def test_listing_and_serial_selection():
     assert (d.model, d.serial, d.product_id, d.firmware_version) == ("davis346", "SN42", 0x841A, 6)
     with DavisSource(serial="SN42", backend=be) as src:
         assert src.info.serial == "SN42" and src.info.label == "DAVIS346_SN42"
+
+
+def test_external_input_triggers_round_trip():
+    from edi_live.datatypes import EVENT_DTYPE, TRIGGER_DTYPE, Packet
+
+    ev = np.zeros(3, EVENT_DTYPE)
+    ev["t"], ev["x"], ev["y"] = [1000, 2000, 90000], [1, 2, 3], [4, 5, 6]
+    tr = np.zeros(3, TRIGGER_DTYPE)
+    tr["t"], tr["type"] = [1500, 50000, 60000], [1, 2, 3]  # AEDAT4: rising edge, falling edge, pulse
+    rec = [Packet(events=ev, triggers=tr)]
+    with DavisSource(backend=backend(rec, speed=0, width=240, height=180), policy="wait") as src:
+        out = _read_all(src)
+    got = np.concatenate([p.triggers for p in out])
+    assert got.tolist() == tr.tolist() and np.array_equal(flatten(out)[0], ev)

@@ -257,12 +257,16 @@ def divisor_stream(t, x, y, p, width, height, mask, use_mask, ts, te, f, c, coun
         if t[i] > f and seen[q] == 1:
             level_f[q] = row[1]
             seen[q] = 2
-        d = int(row[1] - row[2])
-        if d > k:  # climbed far above the base: rebase upwards (log-sum-exp), older terms shrink
-            row[3] *= math.exp(-c * d)
-            row[2] = row[1]
-            d = 0
-        row[3] += (ti - row[0]) * (ztab[d + k] if d >= -k else math.exp(c * d))
+        dwell = ti - row[0]
+        if dwell > 0.0:
+            if row[3] == 0.0:  # first time with dwell: the base is this level, so the sum stays >= 1 µs
+                row[2] = row[1]
+            d = int(row[1] - row[2])
+            if d > k:  # far above the base: rebase upwards (log-sum-exp); only levels with dwell count
+                row[3] *= math.exp(-c * d)
+                row[2] = row[1]
+                d = 0
+            row[3] += dwell * (ztab[d + k] if d >= -k else math.exp(c * d))
         row[0] = ti
         row[1] += 1.0 if p[i] else -1.0
     pixels = np.empty(n_act, dtype=np.int64)
@@ -272,12 +276,16 @@ def divisor_stream(t, x, y, p, width, height, mask, use_mask, ts, te, f, c, coun
     for r in range(n_act):
         q = active[r]
         row = state[q]
-        d = int(row[1] - row[2])
-        if d > k:
-            row[3] *= math.exp(-c * d)
-            row[2] = row[1]
-            d = 0
-        total = row[3] + (span - row[0]) * (ztab[d + k] if d >= -k else math.exp(c * d))
+        total = row[3]
+        if span - row[0] > 0.0:
+            if total == 0.0:
+                row[2] = row[1]
+            d = int(row[1] - row[2])
+            if d > k:
+                total *= math.exp(-c * d)
+                row[2] = row[1]
+                d = 0
+            total += (span - row[0]) * (ztab[d + k] if d >= -k else math.exp(c * d))
         n_f = level_f[q] if seen[q] == 2 else row[1]
         pixels[r] = q
         log_d[r] = c * (row[2] - n_f) + math.log(total / span)

@@ -175,6 +175,20 @@ def test_ten_thousand_events_at_one_pixel(backend, polarity, c):
     assert np.isfinite(out).all() and (out >= 0).all()
 
 
+@pytest.mark.parametrize("polarity", [True, False])
+def test_bursts_with_zero_dwell_at_the_exposure_edges(polarity):
+    # 5000 events at ts and 5000 at te: the pixel sits at one level for the whole exposure (D = 1 at f)
+    ev = np.zeros(10_000, EVENT_DTYPE)
+    ev["t"][5000:] = 7
+    ev["p"] = polarity
+    table = edi.build_level_table(ev, 1, 1, 0, 7, 3)
+    _, ld_fast, delta = edi.log_divisor_events(ev, 1, 1, 0, 7, 3, 2.0)
+    assert edi.log_divisor(table, 2.0)[0] == pytest.approx(0.0, abs=1e-12)
+    assert ld_fast[0] == pytest.approx(0.0, abs=1e-12)
+    if delta is not None:
+        assert delta[0] == pytest.approx(2.0 * 5000 * (1 if polarity else -1))
+
+
 def test_take_restricts_rows(rng):
     ev = random_events(rng, 2000, 20, 10, 0, 5000)
     table = edi.build_level_table(ev, 20, 10, 0, 5000)

@@ -454,6 +454,13 @@ def lz4_decompress(body) -> bytes:
     if magic != 0x184D2204 or flg & 0xD5 != 0x40:  # need version 01; no block/content checksum, no dict id
         return lz4.frame.decompress(body)
     max_block = 1 << (8 + 2 * ((bd >> 4) & 7))
+    if not flg & 0x08 and n >= 15:  # one block then the end mark: most DV packets (<= 64 KB raw)
+        bs = _U32.unpack_from(body, 7)[0]
+        size = bs & 0x7FFFFFFF
+        if 15 + size == n and size <= max_block and _U32.unpack_from(body, 11 + size)[0] == 0:
+            if bs & 0x80000000:
+                return bytes(body[11:11 + size])
+            return lz4.block.decompress(body[11:11 + size], uncompressed_size=max_block)
     p = 15 if flg & 0x08 else 7
     independent = flg & 0x20
     parts: list[bytes] = []
@@ -503,7 +510,9 @@ def _to_gray(img: np.ndarray) -> np.ndarray:
     return np.rint(0.114 * b + 0.587 * g + 0.299 * r).astype(img.dtype)
 
 
-_IMU_FIELDS = struct.Struct("<q10f")
+_IMU_ROW = struct.Struct("<q10f")  # IMU_DTYPE's memory layout: t, temperature, accel xyz, gyro xyz, mag xyz
+_TRIG_ROW = struct.Struct("<qb")  # TRIGGER_DTYPE's memory layout
+assert _IMU_ROW.size == IMU_DTYPE.itemsize and _TRIG_ROW.size == TRIGGER_DTYPE.itemsize
 
 
 def _imu(payload: bytes) -> np.ndarray:
@@ -513,15 +522,11 @@ def _imu(payload: bytes) -> np.ndarray:
         rows = zip(*(cols[s].tolist() for s in range(11)))
     else:  # DV writes 1-20 samples per packet: per-table reads are cheaper than numpy set-up
         rows = (S.table_scalars(payload, start + 4 * i, "q" + "f" * 10) for i in range(count))
-    out = np.zeros(count, dtype=IMU_DTYPE)
-    for i, v in enumerate(rows):
-        out[i] = (v[0], v[1], v[2:5], v[5:8], v[8:11])
-    return out
+    # the slots are in IMU_DTYPE's field order, so the packed rows are the array's bytes
+    return np.frombuffer(bytearray(b"".join(_IMU_ROW.pack(*v) for v in rows)), dtype=IMU_DTYPE)
 
 
 def _triggers(payload: bytes) -> np.ndarray:
     start, count = S.root_table(payload, b"TRIG").vector(0, 4)
-    out = np.zeros(count, dtype=TRIGGER_DTYPE)
-    for i in range(count):
-        out[i] = S.table_scalars(payload, start + 4 * i, "qb")
-    return out
+    rows = (S.table_scalars(payload, start + 4 * i, "qb") for i in range(count))
+    return np.frombuffer(bytearray(b"".join(_TRIG_ROW.pack(*v) for v in rows)), dtype=TRIGGER_DTYPE)

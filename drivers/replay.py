@@ -208,7 +208,11 @@ def merged_packets(path: str | os.PathLike, *, time_offset_us: int = 0, max_pack
                 if kind is None:
                     continue
                 m.feed(kind, pos, data)
-                yield from m.emit(m.bound())
+                w = m.bound()
+                # emit once per max_packet_us of progress (or when a frame is due), not once per file packet:
+                # DV files hold ~1 kHz of tiny IMU packets, and each emission has a fixed cost
+                if w - m.emitted_to >= max_packet_us or (m.frames and m.frames[0][0] < w):
+                    yield from m.emit(w)
         except RecordingError as exc:
             error = exc
         # everything read before the end (or the defect) is final: deliver it, then report the defect

@@ -291,3 +291,22 @@ def divisor_stream(t, x, y, p, width, height, mask, use_mask, ts, te, f, c, coun
         log_d[r] = c * (row[2] - n_f) + math.log(total / span)
         delta_end[r] = c * (row[1] - n_f)
     return pixels, log_d, delta_end
+
+
+@njit(cache=True, nogil=True)
+def consistency_cost(c, dlog_b, net, weight, delta2, start_p, min_p, frac_p, row_p, start_c, min_c, frac_c, row_c,
+                     cap):
+    """sum_i weight_i * sqrt(delta2 + r_i^2), r = dlog_b - (c*net + log D_cur - log D_prev), for c_on == c_off.
+    row_* maps each sub-table row to its residual index."""
+    pred = c * net
+    ld_p = log_divisor_levels(start_p, min_p, frac_p, c, cap)
+    for r in range(ld_p.size):
+        pred[row_p[r]] -= ld_p[r]
+    ld_c = log_divisor_levels(start_c, min_c, frac_c, c, cap)
+    for r in range(ld_c.size):
+        pred[row_c[r]] += ld_c[r]
+    total = 0.0
+    for i in range(pred.size):
+        res = dlog_b[i] - pred[i]
+        total += weight[i] * math.sqrt(delta2 + res * res)
+    return total

@@ -248,3 +248,22 @@ def test_recording_cut_off_before_close_still_opens_everywhere(tmp_path, rng):
     assert len(aedat_read(cut)["events"]) == 6000
     with Aedat4Reader(cut) as reader:
         assert reader.data_table_position == -1 and sum(len(e) for e in reader.events()) == 6000
+
+
+def test_colour_and_roi_frames_from_dv_processing(tmp_path, rng):
+    import dv_processing as dv
+
+    path = tmp_path / "colour.aedat4"
+    bgr = rng.integers(0, 256, (260, 346, 3), dtype=np.uint8)
+    patch = rng.integers(0, 256, (10, 12), dtype=np.uint8)
+    writer = dv.io.MonoCameraWriter(str(path), dv.io.MonoCameraWriter.FrameOnlyConfig("DAVIS346_1", (346, 260)))
+    writer.writeFrame(dv.Frame(T0, 1000, 0, 0, bgr, dv.FrameSource.SENSOR), "frames")
+    writer.writeFrame(dv.Frame(T0 + 5000, 1000, 5, 7, patch, dv.FrameSource.SENSOR), "frames")
+    del writer
+    with Aedat4Reader(path) as reader:
+        colour, roi = [data for _, data in reader]
+    # BT.601 luma, computed here independently of the reader
+    b, g, r = (bgr[..., i].astype(np.float64) for i in range(3))
+    assert np.abs(colour.image.astype(int) - np.rint(0.114 * b + 0.587 * g + 0.299 * r)).max() <= 1
+    assert roi.image.shape == (260, 346)  # an ROI frame is placed on the full sensor
+    assert np.array_equal(roi.image[7:17, 5:17], patch) and roi.image.sum() == patch.sum()

@@ -232,8 +232,9 @@ class ReplaySource:
 
     speed 1 = real time (default), 4 = four times faster, 0 = as fast as possible. With `loop=True` the file restarts
     at its end and every timestamp of the next pass is shifted so time keeps increasing. Iteration yields `Packet`s,
-    or None when nothing is due within `poll_s`; it ends at the end of the file, or soon after `stop()`. A defect in
-    the file raises `RecordingError` after every packet before it has been yielded.
+    or None when nothing is due within `poll_s`; it ends at the end of the file, or soon after `stop()` (a stopped
+    source stays stopped). A defect in the file raises `RecordingError` after every packet before it has been
+    yielded.
     """
 
     def __init__(self, path: str | os.PathLike, *, speed: float = 1.0, loop: bool = False,
@@ -259,7 +260,7 @@ class ReplaySource:
         self.loops = 0
 
     def __enter__(self) -> "ReplaySource":
-        self._stop.clear()
+        # (the stop flag is not cleared: a stop() that races ahead of __enter__ must still end the replay)
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -478,8 +478,9 @@ def propagate_log(log_image: np.ndarray, events: np.ndarray, c_on: float, c_off:
     else:
         flat += np.bincount(idx, weights=np.where(p, d_on, d_off), minlength=flat.size).astype(flat.dtype)
         if counts is not None:
-            counts[0] += np.bincount(idx[p], minlength=flat.size)
-            counts[1] += np.bincount(idx[~p], minlength=flat.size)
+            on_counts, off_counts = counts
+            on_counts += np.bincount(idx[p], minlength=flat.size)
+            off_counts += np.bincount(idx[~p], minlength=flat.size)
     flat[idx] = np.clip(flat[idx], LOG_MIN, LOG_MAX)
     if display is not None:
         display.reshape(-1)[idx] = to_uint8(flat[idx], gain)

@@ -173,3 +173,15 @@ def test_energy_estimator_runs_from_the_first_frame(brick):
     outs = stream(brick, rec)
     assert rec.reestimations >= 1 and 0.01 <= rec.c_on <= 2.0
     assert all(np.isfinite(o.image).all() for o in outs)
+
+
+def test_numpy_fallback_gives_the_same_frames(brick, monkeypatch):
+    if not edi.have_numba():
+        pytest.skip("numba not installed: only one backend to compare")
+    fast = stream(brick, EdiReconstructor(brick.width, brick.height))
+    monkeypatch.setattr(edi, "_jit", None)
+    rec = EdiReconstructor(brick.width, brick.height)
+    slow = stream(brick, rec)
+    for a, b in zip(fast, slow):
+        assert a.c_on == pytest.approx(b.c_on, abs=1e-6)
+        assert np.abs(a.image.astype(int) - b.image).max() <= 1

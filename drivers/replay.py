@@ -26,8 +26,7 @@ from typing import Iterator
 import numpy as np
 
 from edi_live.aedat4 import Aedat4Reader
-from edi_live.datatypes import (EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, Frame, Packet, SourceInfo, SourceStatus,
-                                empty_events, empty_imu, empty_triggers)
+from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, Frame, Packet, SourceInfo, SourceStatus
 from edi_live.errors import ConfigError, RecordingError
 
 from drivers.pacing import Pacer
@@ -135,7 +134,7 @@ def _take(chunks: list[tuple[int, int, np.ndarray]], w: int, dtype: np.dtype) ->
     while chunks and chunks[0][1] < w:
         taken.append(chunks.pop(0)[2])
     if chunks and chunks[0][0] < w:
-        t0, t1, head = chunks[0]
+        _, t1, head = chunks[0]
         i = int(np.searchsorted(head["t"], w, side="left"))
         taken.append(head[:i])
         chunks[0] = (int(head["t"][i]), t1, head[i:])

@@ -194,7 +194,7 @@ def test_events_off_the_sensor_are_a_corrupt_packet_in_replay(tmp_path):
     pos = _packet_offsets(bytes(data))[2][0]
     payload_start = pos + 8
     # first event record of the third packet, found through the general vtable walker
-    first, count = S.root_table(bytes(data[payload_start:]), b"EVTS").vector(0, 16)
+    first, _ = S.root_table(bytes(data[payload_start:]), b"EVTS").vector(0, 16)
     x_at = payload_start + first + 8
     data[x_at:x_at + 2] = struct.pack("<H", 5000)
     path.write_bytes(bytes(data))

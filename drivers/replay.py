@@ -237,12 +237,14 @@ class ReplaySource:
     """
 
     def __init__(self, path: str | os.PathLike, *, speed: float = 1.0, loop: bool = False,
-                 max_packet_us: int = 10_000, poll_s: float = 0.1) -> None:
+                 max_packet_us: int | None = None, poll_s: float = 0.1) -> None:
         if not speed >= 0:
             raise ConfigError(f"--speed must be 0 (as fast as possible) or positive (got {speed})")
         self.path = os.fspath(path)
         self.speed, self.loop = float(speed), bool(loop)
-        self.max_packet_us, self.poll_s = max_packet_us, poll_s
+        # paced: 1 ms packets, like a camera's USB transfers (low latency); unpaced: 10 ms packets (throughput)
+        self.max_packet_us = max_packet_us if max_packet_us is not None else (1_000 if speed > 0 else 10_000)
+        self.poll_s = poll_s
         with Aedat4Reader(self.path) as reader:
             info = reader.source_info
             try:

@@ -321,3 +321,13 @@ def test_event_cap_bounds_the_merge_when_another_stream_lags(tmp_path):
     assert n == n_all == 500_000
     # without the cap every event waits for the last IMU packet: all 8 MB are held at once
     assert uncapped > 8e6 and capped < 4e6, (capped, uncapped)
+
+
+def test_paced_replay_uses_camera_sized_packets(real_recordings):
+    # paced replay hands out 1 ms packets, like a camera's USB transfers; unpaced replay 10 ms ones
+    path = real_recordings["aestream_davis346.aedat4"]
+    for speed, span_us in ((1000.0, 1_000), (0, 10_000)):
+        src = ReplaySource(path, speed=speed)
+        packets = _run_in_thread(lambda s=src: [p for p in s if p is not None])
+        spans = [int(p.events["t"][-1] - p.events["t"][0]) for p in packets if len(p.events)]
+        assert max(spans) < span_us and sum(len(p.events) for p in packets) == 117_667

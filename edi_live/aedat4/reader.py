@@ -86,6 +86,7 @@ class Aedat4Reader:
             raise
         self._warned: set[int] = set()
         self._buffer: memoryview | None = None
+        self._buffer_busy = False
 
     # ------------------------------------------------------------------------------------------- header
     def _error(self, message: str, offset: int | None) -> RecordingError:
@@ -180,17 +181,30 @@ class Aedat4Reader:
         decompressed, are packets whose type is not in `types` (when given, e.g. ("EVTS",)).
         """
         end, pos = self._end, self.data_start
+        # The file is read in chunks of READ_CHUNK bytes (or one packet, if larger) into one reused buffer, and
+        # packets are decompressed straight from memoryviews of it: one read per many packets, no allocation per
+        # read, and never more than one chunk in memory. A payload never points into the buffer (decompression and
+        # the NONE path both produce new bytes), so overwriting it on the next read is safe. The buffer is kept for
+        # the next pass; a second pass running interleaved with this one gets its own (every read seeks first).
+        shared = not self._buffer_busy
+        view = self._buffer if shared and self._buffer is not None else \
+            memoryview(bytearray(max(8, min(READ_CHUNK, end - pos))))
+        if shared:
+            self._buffer, self._buffer_busy = view, True
+        try:
+            yield from self._walk(view, pos, end, types, shared)
+        finally:
+            if shared:
+                self._buffer_busy = False
+        if self._dtp_error:
+            raise self._error(self._dtp_error, self.file_size)
+
+    def _walk(self, view: memoryview, pos: int, end: int, types: Iterable[str] | None,
+              shared: bool) -> Iterator[tuple[StreamInfo, int, bytes]]:
         unpack_from = _PH.unpack_from
         decompress = self._decompressor()
         by_id = self._by_id
         wanted = None if types is None else {s.id for s in self.streams if s.type in set(types)}
-        # The file is read in chunks of READ_CHUNK bytes (or one packet, if larger) into one reused buffer, and
-        # packets are decompressed straight from memoryviews of it: one read per many packets, no allocation per
-        # read, and never more than one chunk in memory. A payload never points into the buffer (decompression and
-        # the NONE path both produce new bytes), so overwriting it on the next read is safe.
-        if self._buffer is None:  # kept for the next pass; no larger than the packet area needs
-            self._buffer = memoryview(bytearray(max(8, min(READ_CHUNK, end - pos))))
-        view = self._buffer
         buf = view.obj
         base, filled = pos, 0
         while pos < end:
@@ -213,6 +227,8 @@ class Aedat4Reader:
             if rel + 8 + size > filled:
                 view, filled = self._fill(view, pos, 8 + size)
                 buf, base, rel = view.obj, pos, 0
+                if shared:
+                    self._buffer = view  # grown for a large packet: keep the larger one
             stream = by_id.get(sid)
             if stream is None or not stream.supported:
                 if sid not in self._warned:
@@ -229,8 +245,6 @@ class Aedat4Reader:
                                   f"({exc})", pos) from None
             yield stream, pos, payload
             pos += 8 + size
-        if self._dtp_error:
-            raise self._error(self._dtp_error, self.file_size)
 
     def _read_at(self, pos: int, size: int) -> bytes:
         """Up to `size` bytes from `pos` (fewer only at the end of the file)."""
@@ -248,7 +262,7 @@ class Aedat4Reader:
         """Read from `pos` into the buffer behind `view` (a larger one when `need` exceeds it): at least `need` bytes
         (the caller checked they exist), at most the buffer size. Returns (view of the buffer, bytes filled)."""
         if need > len(view):
-            view = self._buffer = memoryview(bytearray(need))
+            view = memoryview(bytearray(need))
         want = min(len(view), self._end - pos)
         self._file.seek(pos)
         got = 0

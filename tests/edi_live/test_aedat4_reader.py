@@ -184,3 +184,19 @@ def test_data_table_position_is_found_through_the_vtable(real_recordings):
         assert 14 + root.field_pos(S.IOH_DATA_TABLE_POSITION, 8) == where
         with Aedat4Reader(real_recordings[name]) as reader:
             assert reader.data_table_position == struct.unpack_from("<q", data, where)[0] > 0
+
+
+def test_interleaved_passes_over_one_reader_do_not_disturb_each_other(real_recordings):
+    # the two passes are at different file positions (one skips non-event packets), sharing one file handle
+    with Aedat4Reader(real_recordings["emlb_demo-01_davis346.aedat4"]) as reader:
+        alone = [e.copy() for e in reader.events()]
+        fast, full = reader.events(), reader.records()
+        from_fast, from_full = [], []
+        for stream, _, data in full:
+            if stream.type == "EVTS":
+                from_full.append(data)
+            nxt = next(fast, None)
+            if nxt is not None:
+                from_fast.append(nxt)
+    for got in (from_fast, from_full):
+        assert len(got) == len(alone) and all(np.array_equal(a, b) for a, b in zip(got, alone))

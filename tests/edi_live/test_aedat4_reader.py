@@ -200,3 +200,37 @@ def test_interleaved_passes_over_one_reader_do_not_disturb_each_other(real_recor
                 from_fast.append(nxt)
     for got in (from_fast, from_full):
         assert len(got) == len(alone) and all(np.array_equal(a, b) for a, b in zip(got, alone))
+
+
+def test_stream_ids_need_not_be_contiguous(tmp_path):
+    # like tonic's sample (streams 0, 2, 3): rename our triggers stream 1 -> 3 in the XML and in its packets
+    import struct
+
+    from edi_live.aedat4 import Aedat4Writer
+    from edi_live.datatypes import TRIGGER_DTYPE as TD
+
+    path = tmp_path / "ids.aedat4"
+    ev = np.zeros(50, dtype=EVENT_DTYPE)
+    ev["t"] = 1_700_000_000_000_000 + np.arange(50)
+    trig = np.zeros(2, dtype=TD)
+    trig["t"], trig["type"] = ev["t"][[10, 20]], [8, 9]
+    with Aedat4Writer(path, 32, 24, frames=False, triggers=True, compression="lz4") as w:
+        w.write_events(ev)
+        w.write_triggers(trig)
+        w.write_events(ev[-1:])
+    data = bytearray(path.read_bytes())
+    head_end = 18 + struct.unpack_from("<I", data, 14)[0]
+    old, new = b'name="1" path="/outInfo/1/"', b'name="3" path="/outInfo/3/"'
+    at = data.index(old, 0, head_end)
+    data[at:at + len(old)] = new
+    pos = head_end
+    for _ in range(3):
+        sid, size = struct.unpack_from("<ii", data, pos)
+        if sid == 1:
+            struct.pack_into("<i", data, pos, 3)
+        pos += 8 + size
+    path.write_bytes(bytes(data))
+    with Aedat4Reader(path) as reader:
+        assert [(s.id, s.type) for s in reader.streams] == [(0, "EVTS"), (3, "TRIG")]
+        got = [(s.id, len(d)) for s, d in reader]
+    assert got == [(0, 50), (3, 2), (0, 1)]

@@ -25,11 +25,10 @@ from typing import Iterator
 
 import numpy as np
 
+from drivers.pacing import Pacer
 from edi_live.aedat4 import Aedat4Reader
 from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, Frame, Packet, SourceInfo, SourceStatus
 from edi_live.errors import ConfigError, RecordingError
-
-from drivers.pacing import Pacer
 
 _NEG_INF = -(2**62)
 _POS_INF = 2**62

@@ -1,9 +1,9 @@
 """Streaming AEDAT 4.0 reader: one packet in memory at a time.
 
 Owns: the IOHeader (FlatBuffer parsed through its vtable, never fixed offsets), the infoNode XML (streams, resolution,
-camera), packet walking and decompression (none, LZ4, LZ4_HIGH, ZSTD, ZSTD_HIGH), decoding of EVTS (a zero-copy
-view in EVENT_DTYPE), FRME (exposure window from SOE/EOE, both DV layouts), IMUS and TRIG, and the optional
-FileDataTable. Packets come out in file order (arrival order, not time order; `drivers.replay` merges them).
+camera), packet walking (decompression in `compression`), decoding of EVTS (a zero-copy view in EVENT_DTYPE, checked
+by `_check`), FRME (exposure window from SOE/EOE, both DV layouts), IMUS and TRIG (via `payloads`), and the
+optional FileDataTable. Packets come out in file order (arrival order, not time order; `drivers.replay` merges them).
 Every defect in the file is a `RecordingError` naming the file and byte offset, raised after every packet
 before the defect has been yielded. Unknown stream types are skipped with a warning.
 """
@@ -17,26 +17,24 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from typing import Iterable, Iterator
 
-import lz4.block
-import lz4.frame
 import numpy as np
-import zstandard
 
 from edi_live.aedat4 import schema as S
 from edi_live.aedat4._check import check_events, parse_check_evts
-from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, Frame, SourceInfo
+from edi_live.aedat4.compression import decompressor
+from edi_live.aedat4.payloads import decode_imu, decode_triggers, to_gray
+from edi_live.datatypes import EVENT_DTYPE, Frame, SourceInfo
 from edi_live.errors import RecordingError
 
 SUPPORTED_TYPES = ("EVTS", "FRME", "IMUS", "TRIG")
 READ_CHUNK = 1 << 20
-MAX_PACKET_BYTES = 1 << 30  # decompressed; a larger packet is treated as corrupt (bounded memory)
 
 DATA_TABLE_DTYPE = np.dtype([("byte_offset", "<i8"), ("stream_id", "<i4"), ("size", "<i4"),
                              ("num_elements", "<i8"), ("t_start", "<i8"), ("t_end", "<i8")])
 """One FileDataTable entry: `byte_offset` addresses the packet body (its header is 8 bytes before)."""
 
 _PH = struct.Struct("<ii")
-_I8, _I16, _I32, _I64, _F32 = (struct.Struct(f) for f in ("<b", "<h", "<i", "<q", "<f"))
+_I8, _I16, _I32, _I64 = (struct.Struct(f) for f in ("<b", "<h", "<i", "<q"))
 
 
 @dataclass(frozen=True)
@@ -202,7 +200,7 @@ class Aedat4Reader:
     def _walk(self, view: memoryview, pos: int, end: int, types: Iterable[str] | None,
               shared: bool) -> Iterator[tuple[StreamInfo, int, bytes]]:
         unpack_from = _PH.unpack_from
-        decompress = self._decompressor()
+        decompress = decompressor(self.compression)
         by_id = self._by_id
         wanted = None if types is None else {s.id for s in self.streams if s.type in set(types)}
         buf = view.obj
@@ -275,22 +273,6 @@ class Aedat4Reader:
             raise self._error("the file is shorter than its size on disk (read failed)", pos)
         return view, got
 
-    def _decompressor(self):
-        if self.compression == "none":
-            return bytes  # a copy: the read buffer is reused
-        if self.compression.startswith("lz4"):
-            return lz4_decompress
-        dctx = zstandard.ZstdDecompressor()
-
-        def unzstd(body: bytes) -> bytes:
-            with dctx.stream_reader(body) as reader:
-                out = reader.read(MAX_PACKET_BYTES + 1)
-            if len(out) > MAX_PACKET_BYTES:
-                raise ValueError("decompressed packet larger than 1 GiB")
-            return out
-
-        return unzstd
-
     # ---------------------------------------------------------------------------------------- decoding
     def __iter__(self) -> Iterator[tuple[StreamInfo, object]]:
         for stream, _, data in self.records():
@@ -309,9 +291,9 @@ class Aedat4Reader:
                     seqs[stream.id] = seq + 1
                     data = self._frame(payload, stream, pos, seq)
                 elif t == "IMUS":
-                    data = _imu(payload)
+                    data = decode_imu(payload)
                 else:
-                    data = _triggers(payload)
+                    data = decode_triggers(payload)
             except RecordingError:
                 raise
             except S.FlatBufferError as exc:
@@ -388,7 +370,7 @@ class Aedat4Reader:
             raise self._error(f"frame holds {count} pixel bytes, {w}x{h}x{channels}x{depth} expected", pos)
         dtype = np.uint8 if depth == 1 else np.dtype("<u2")
         img = np.frombuffer(payload, dtype=dtype, count=w * h * channels, offset=start)
-        img = img.reshape(h, w) if channels == 1 else _to_gray(img.reshape(h, w, channels))
+        img = img.reshape(h, w) if channels == 1 else to_gray(img.reshape(h, w, channels))
         if (stream.width and stream.height and (w, h) != (stream.width, stream.height)
                 and px + w <= stream.width and py + h <= stream.height):
             full = np.zeros((stream.height, stream.width), dtype=img.dtype)  # an ROI frame: place it on the sensor
@@ -411,7 +393,7 @@ class Aedat4Reader:
             return None
         body = self._read_at(dtp, self.file_size - dtp)
         try:
-            payload = self._decompressor()(body)
+            payload = decompressor(self.compression)(body)
         except Exception as exc:
             raise self._error(f"the FileDataTable does not decompress ({exc})", dtp) from None
         try:
@@ -446,63 +428,9 @@ class Aedat4Reader:
         self.close()
 
 
-_LZ4_HEAD = struct.Struct("<IBB")  # frame magic, FLG, BD
 _U32 = struct.Struct("<I")
 _EVTS_HEAD = struct.Struct("<II4s")
 _VT3 = struct.Struct("<HHH")
-
-
-def lz4_decompress(body) -> bytes:
-    """Decompress one LZ4 frame.
-
-    DV's frames (FLG 0x40: linked 64 KB blocks, no checksums, no content size) are decoded block by block with
-    lz4.block, each linked block getting the previous 64 KB of output as its dictionary. That is 2-5x faster than
-    lz4.frame.decompress, which grows its output buffer by reallocation when the content size is unknown
-    (measured in tools/bench_aedat4.py). Frames with checksums or anything unusual go to lz4.frame, which also
-    verifies the checksums.
-    """
-    n = len(body)
-    if n < 11:
-        return lz4.frame.decompress(body)
-    magic, flg, bd = _LZ4_HEAD.unpack_from(body, 0)
-    if magic != 0x184D2204 or flg & 0xD5 != 0x40:  # need version 01; no block/content checksum, no dict id
-        return lz4.frame.decompress(body)
-    max_block = 1 << (8 + 2 * ((bd >> 4) & 7))
-    if not flg & 0x08 and n >= 15:  # one block then the end mark: most DV packets (<= 64 KB raw)
-        bs = _U32.unpack_from(body, 7)[0]
-        size = bs & 0x7FFFFFFF
-        if 15 + size == n and size <= max_block and _U32.unpack_from(body, 11 + size)[0] == 0:
-            if bs & 0x80000000:
-                return bytes(body[11:11 + size])
-            return lz4.block.decompress(body[11:11 + size], uncompressed_size=max_block)
-    p = 15 if flg & 0x08 else 7
-    independent = flg & 0x20
-    parts: list[bytes] = []
-    window = b""
-    decompress = lz4.block.decompress
-    while True:
-        if p + 4 > n:
-            return lz4.frame.decompress(body)  # malformed: let lz4.frame produce the error
-        bs = _U32.unpack_from(body, p)[0]
-        p += 4
-        if bs == 0:
-            break
-        raw, bs = bs & 0x80000000, bs & 0x7FFFFFFF
-        if p + bs > n or bs > max_block:
-            return lz4.frame.decompress(body)
-        if raw:
-            out = bytes(body[p:p + bs])
-        elif independent or not parts:
-            out = decompress(body[p:p + bs], uncompressed_size=max_block)
-        else:
-            out = decompress(body[p:p + bs], uncompressed_size=max_block, dict=window)
-        parts.append(out)
-        if not independent:  # the last 64 KB of output is the next block's dictionary
-            window = out if len(out) >= 65536 else (window + out)[-65536:]
-        p += bs
-    if p != n:
-        return lz4.frame.decompress(body)
-    return parts[0] if len(parts) == 1 else b"".join(parts)
 
 
 _T_MIN = -(2**62)  # "no floor" (a smaller Python int makes numba dispatch 20x slower)
@@ -516,31 +444,3 @@ def _int(text: str | None) -> int:
         return max(0, int((text or "0").strip()))
     except ValueError:
         return 0
-
-
-def _to_gray(img: np.ndarray) -> np.ndarray:
-    """BGR(A) -> gray with the ITU-R BT.601 weights, keeping the bit depth."""
-    b, g, r = (img[..., i].astype(np.float32) for i in range(3))
-    return np.rint(0.114 * b + 0.587 * g + 0.299 * r).astype(img.dtype)
-
-
-_IMU_ROW = struct.Struct("<q10f")  # IMU_DTYPE's memory layout: t, temperature, accel xyz, gyro xyz, mag xyz
-_TRIG_ROW = struct.Struct("<qb")  # TRIGGER_DTYPE's memory layout
-assert _IMU_ROW.size == IMU_DTYPE.itemsize and _TRIG_ROW.size == TRIGGER_DTYPE.itemsize
-
-
-def _imu(payload: bytes) -> np.ndarray:
-    start, count = S.root_table(payload, b"IMUS").vector(0, 4)
-    if count > 16:  # many samples: vectorised gather
-        cols = S.table_vector_fields(payload, start, count, {0: "<i8", **{s: "<f4" for s in range(1, 11)}})
-        rows = zip(*(cols[s].tolist() for s in range(11)))
-    else:  # DV writes 1-20 samples per packet: per-table reads are cheaper than numpy set-up
-        rows = (S.table_scalars(payload, start + 4 * i, "q" + "f" * 10) for i in range(count))
-    # the slots are in IMU_DTYPE's field order, so the packed rows are the array's bytes
-    return np.frombuffer(bytearray(b"".join(_IMU_ROW.pack(*v) for v in rows)), dtype=IMU_DTYPE)
-
-
-def _triggers(payload: bytes) -> np.ndarray:
-    start, count = S.root_table(payload, b"TRIG").vector(0, 4)
-    rows = (S.table_scalars(payload, start + 4 * i, "qb") for i in range(count))
-    return np.frombuffer(bytearray(b"".join(_TRIG_ROW.pack(*v) for v in rows)), dtype=TRIGGER_DTYPE)

@@ -12,11 +12,10 @@ import os
 import struct
 from xml.sax.saxutils import escape
 
-import lz4.frame
 import numpy as np
-import zstandard
 
 from edi_live.aedat4 import schema as S
+from edi_live.aedat4.compression import compressor
 from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, Frame
 from edi_live.errors import RecordingError
 
@@ -62,7 +61,7 @@ class Aedat4Writer:
             if wanted[name]:
                 self._ids[name] = len(self._ids)
         self._last_t = {name: -(2**63) for name in self._ids}
-        self._compress = _compressor(compression)
+        self._compress = compressor(compression)
         self._table: list[tuple[int, int, int, int, int, int]] = []
         self._closed = False
         try:
@@ -231,14 +230,3 @@ class Aedat4Writer:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def _compressor(name: str):
-    if name == "none":
-        return bytes
-    if name in ("lz4", "lz4_high"):
-        level = 9 if name == "lz4_high" else 0
-        return lambda data: lz4.frame.compress(data, compression_level=level, store_size=False)
-    level = 19 if name == "zstd_high" else 3
-    cctx = zstandard.ZstdCompressor(level=level, write_content_size=True)
-    return cctx.compress

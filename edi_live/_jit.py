@@ -310,3 +310,23 @@ def consistency_cost(c, dlog_b, net, weight, delta2, start_p, min_p, frac_p, row
         res = dlog_b[i] - pred[i]
         total += weight[i] * math.sqrt(delta2 + res * res)
     return total
+
+
+@njit(cache=True, nogil=True)
+def background_activity(t, x, y, width, height, last_t, dt_us, keep):
+    """Background-activity filter: keep[i] when one of the 8 neighbours fired within dt_us before event i.
+    last_t is a (height + 2, width + 2) int64 map of each pixel's latest event time (border never written)."""
+    for i in range(t.size):
+        xi = np.int64(x[i])
+        yi = np.int64(y[i])
+        if xi >= width or yi >= height:
+            keep[i] = False
+            continue
+        ti = t[i]
+        ok = False
+        for dy in range(3):
+            for dx in range(3):
+                if (dy != 1 or dx != 1) and ti - last_t[yi + dy, xi + dx] <= dt_us:
+                    ok = True
+        keep[i] = ok
+        last_t[yi + 1, xi + 1] = ti

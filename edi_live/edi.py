@@ -510,6 +510,39 @@ def hot_pixel_mask(counts: np.ndarray, duration_us: float, *, min_rate_hz: float
     return (rate_hz > min_rate_hz) & (counts > rel_factor * mean_active)
 
 
+def new_activity_map(width: int, height: int) -> np.ndarray:
+    """State for background_activity_keep: latest event time per pixel, padded by one pixel, 'long ago'."""
+    return np.full((height + 2, width + 2), -(2**62), dtype=np.int64)
+
+
+def background_activity_keep(events: np.ndarray, width: int, height: int, last_t: np.ndarray,
+                             dt_us: int) -> np.ndarray:
+    """Per event: True when one of its 8 neighbours fired within dt_us before it (time-ordered input).
+    `last_t` (from new_activity_map) is updated in place, so successive batches form one stream."""
+    keep = np.empty(len(events), dtype=bool)
+    if _jit is not None:
+        _jit.background_activity(events["t"], events["x"], events["y"], width, height, last_t, int(dt_us), keep)
+        return keep
+    for i, (t, x, y) in enumerate(zip(events["t"].tolist(), events["x"].tolist(), events["y"].tolist())):
+        if x >= width or y >= height:
+            keep[i] = False
+            continue
+        block = last_t[y:y + 3, x:x + 3]
+        keep[i] = bool(((t - block) <= dt_us).sum() - ((t - block[1, 1]) <= dt_us) > 0)
+        last_t[y + 1, x + 1] = t
+    return keep
+
+
+def supported_events_keep(events: np.ndarray, width: int, height: int, dt_us: int) -> np.ndarray:
+    """Per event of one batch: True when one of its 8 neighbours fired within dt_us before OR after it.
+    The two-sided, stateless form of the background-activity filter, for a whole exposure at once."""
+    fwd = background_activity_keep(events, width, height, new_activity_map(width, height), dt_us)
+    rev = events[::-1].copy()
+    rev["t"] = -rev["t"]
+    bwd = background_activity_keep(rev, width, height, new_activity_map(width, height), dt_us)[::-1]
+    return fwd | bwd
+
+
 def isolated_event_mask(events: np.ndarray, width: int, height: int) -> np.ndarray:
     """(H, W) bool: pixels with exactly one event in `events` and no event in their 8 neighbours.
 
@@ -525,6 +558,7 @@ def isolated_event_mask(events: np.ndarray, width: int, height: int) -> np.ndarr
 
 __all__ = [
     "LevelTable", "build_level_table", "log_divisor", "log_divisor_events", "deblur", "deblur_log", "blurry_to_float", "event_delta",
-    "signed_counts", "add_counts", "propagate_log", "to_uint8", "hot_pixel_mask", "isolated_event_mask", "flat_index",
+    "signed_counts", "add_counts", "propagate_log", "to_uint8", "hot_pixel_mask", "isolated_event_mask", "new_activity_map", "background_activity_keep",
+    "supported_events_keep", "flat_index",
     "have_numba", "LEVEL_CAP", "LOG_MIN", "LOG_MAX", "empty_table",
 ]

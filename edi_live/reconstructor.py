@@ -42,7 +42,7 @@ class EdiReconstructor:
                  c_off: float | None = None, estimator: str = contrast.DEFAULT_ESTIMATOR, reestimate_every: int = 0,
                  c_init: float = 0.2, history_pairs: int = 2, mask_hot_pixels: bool = True,
                  hot_min_rate_hz: float = 300.0, hot_rel_factor: float = 10.0, hot_decay: float = 0.8,
-                 saturation: float | None = None, sample_pixels: int = 6000,
+                 saturation: float | None = None, sample_pixels: int = 6000, denoise_us: int = 0,
                  estimator_options: dict | None = None) -> None:
         if width <= 0 or height <= 0:
             raise ConfigError(f"sensor size must be positive (got {width}x{height})")
@@ -71,6 +71,9 @@ class EdiReconstructor:
         self._hot_rel = hot_rel_factor
         self._hot_decay = hot_decay
         self._saturation = saturation
+        # background-activity filter: an event counts only if a neighbour fired within denoise_us before it
+        self._denoise_us = int(denoise_us)
+        self._activity = edi.new_activity_map(self.width, self.height) if self._denoise_us > 0 else None
         npix = self.width * self.height
         self._hot_counts = np.zeros(npix, np.float64)
         self._hot_duration_us = 0.0
@@ -87,6 +90,7 @@ class EdiReconstructor:
         self._prev: contrast.FrameData | None = None
         self._pairs: collections.deque = collections.deque(maxlen=max(1, history_pairs))
         self.has_reference = False
+        self.events_ignored = False  # set when the c estimator finds that the events carry no signal
         self._ref_t = 0
         self._exposure = (0, 0)
         self._t_last = -(2**63)
@@ -123,12 +127,23 @@ class EdiReconstructor:
         if self.has_reference and f <= self._ref_t:
             self.mark_gap()  # time went backwards (new recording, loop without offset): start over
         mask = self._hot if self._mask_hot else None
+        t_all = events["t"]
+        n_new = t_all.size - edi.time_index(t_all, self._t_last, "right")
+        t_batch_end = int(t_all[-1]) if t_all.size else self._t_last
+        if self._activity is not None:
+            # the filter state sees the events it has not seen yet; this frame uses only the events that have a
+            # neighbour event within denoise_us before or after them (isolated ones are most likely noise)
+            fresh = events[edi.time_index(events["t"], self._t_last, "right"):]
+            edi.background_activity_keep(fresh, self.width, self.height, self._activity, self._denoise_us)
+            events = events[edi.supported_events_keep(events, self.width, self.height, self._denoise_us)]
         b, informative = edi.blurry_to_float(img, saturation=self._saturation)
         if not self._fixed:
             self._estimation_step(events, b, informative, ts, te, f, mask)
         frame_counts = np.zeros(self.width * self.height, np.int64) if self._mask_hot else None
         divisor = edi.log_divisor_events(events, self.width, self.height, ts, te, f, self.c_on, self.c_off,
                                          mask=mask, event_counts=frame_counts)
+        if self.events_ignored:  # still scene: L(f) = B and the latent image stays there
+            divisor = (divisor[0][:0], divisor[1][:0], divisor[2][:0] if divisor[2] is not None else None)
         self._log_ref = edi.deblur_log(b, None, self.c_on, self.c_off, informative=informative, divisor=divisor)
         deblurred = edi.to_uint8(self._log_ref)
         # latent state: from L(f) through the events after f that are already here
@@ -136,7 +151,6 @@ class EdiReconstructor:
         for a in self._acc:
             a.fill(0)
         t = events["t"]
-        n_new = t.size - edi.time_index(t, self._t_last, "right")
         pixels, _, delta_end = divisor
         if delta_end is not None:  # the divisor pass already knows E(f -> te): jump there in O(pixels)
             lat = self._log_lat.reshape(-1)
@@ -147,17 +161,18 @@ class EdiReconstructor:
             after = events[edi.time_index(t, te, "right"):]
         else:
             after = events[edi.time_index(t, f, "right"):]
-        edi.propagate_log(self._log_lat, after, self.c_on, self.c_off, mask=mask,
-                          counts=None if self._fixed else self._acc)
+        if self.events_ignored:
+            edi.add_counts(after, self.width, self.height, *self._acc, mask=mask)
+        else:
+            edi.propagate_log(self._log_lat, after, self.c_on, self.c_off, mask=mask,
+                              counts=None if self._fixed else self._acc)
         np.copyto(self._display, edi.to_uint8(self._log_lat))
         if frame_counts is not None:
             self._update_hot(frame_counts, te - ts)
         self.has_reference = True
         self._ref_t = f
         self._exposure = (ts, te)
-        if events.size:
-            self._t_last = max(self._t_last, int(events["t"][-1]))
-        self._t_last = max(self._t_last, f)
+        self._t_last = max(self._t_last, t_batch_end, f)
         self.frames += 1
         self.events_applied += n_new
         n_events = self._pending_events + n_new
@@ -172,11 +187,19 @@ class EdiReconstructor:
         if not self.has_reference:
             return  # nothing to advance yet; the first APS frame rebuilds everything
         mask = self._hot if self._mask_hot else None
-        edi.propagate_log(self._log_lat, events, self.c_on, self.c_off, mask=mask, display=self._display,
-                          counts=None if self._fixed else self._acc)
-        self._t_last = max(self._t_last, int(events["t"][-1]))
-        self._pending_events += int(events.size)
-        self.events_applied += int(events.size)
+        n = int(events.size)
+        t_end = int(events["t"][-1])
+        if self._activity is not None:
+            events = events[edi.background_activity_keep(events, self.width, self.height, self._activity,
+                                                          self._denoise_us)]
+        if self.events_ignored:  # keep counting for the next consistency check, but leave the image alone
+            edi.add_counts(events, self.width, self.height, *self._acc, mask=mask)
+        else:
+            edi.propagate_log(self._log_lat, events, self.c_on, self.c_off, mask=mask, display=self._display,
+                              counts=None if self._fixed else self._acc)
+        self._t_last = max(self._t_last, t_end)
+        self._pending_events += n
+        self.events_applied += n
         if arrival_ns:
             self._arrival_ns = arrival_ns
 
@@ -198,6 +221,8 @@ class EdiReconstructor:
         else:
             delta = -edi.event_delta(events, self.width, self.height, self.c_on, self.c_off, t0=t_us + 1, t1=f,
                                      mask=mask)
+        if self.events_ignored:
+            delta = 0.0
         log_l = np.clip(self._log_ref + delta, edi.LOG_MIN, edi.LOG_MAX)
         return self._reconstruction(edi.to_uint8(log_l), t_us, "latent", int(events.size))
 
@@ -205,6 +230,7 @@ class EdiReconstructor:
         return {
             "c_on": self.c_on, "c_off": self.c_off, "c_fixed": self._fixed, "estimator": self._estimator.name,
             "reestimations": self.reestimations, "hot_pixels": self.hot_pixels, "frames": self.frames,
+            "events_ignored": self.events_ignored,
             "events_applied": self.events_applied, "has_reference": self.has_reference,
             "last_deblur_ms": round(self.last_deblur_ms, 3), "last_estimate_ms": round(self.last_estimate_ms, 3),
         }
@@ -263,12 +289,18 @@ class EdiReconstructor:
         t0 = time.perf_counter()
         due = not self._estimated or (self.reestimate_every and
                                       self._frames_since_estimate >= self.reestimate_every)
+        floor = getattr(self._estimator, "c_min", 0.0)
         if not due:
-            due = not self._estimator.fits(cur, pairs[-1:], (self.c_on, self.c_off))
+            probe = (floor, floor) if self.events_ignored else (self.c_on, self.c_off)
+            due = not self._estimator.fits(cur, pairs[-1:], probe)
         if due:
             found = self._estimator.estimate(cur, pairs, (self.c_on, self.c_off))
             if found is not None:
-                self.c_on, self.c_off = (min(max(v, C_RANGE[0]), C_RANGE[1]) for v in found)
+                # a fit at the bottom of the search range means the events do not explain the brightness
+                # changes between frames (noise on a still scene): then no event is applied at all
+                self.events_ignored = floor > 0 and max(found) <= 1.25 * floor
+                if not self.events_ignored:
+                    self.c_on, self.c_off = (min(max(v, C_RANGE[0]), C_RANGE[1]) for v in found)
                 self._estimated = True
                 self.reestimations += 1
                 self._frames_since_estimate = 0

@@ -210,6 +210,20 @@ def test_hot_pixel_found_among_moving_edges(rng):
     assert mask.sum() == 1
 
 
+def test_background_activity_filter(backend):
+    ev = np.zeros(5, EVENT_DTYPE)
+    ev["t"] = [0, 100, 5000, 5100, 90_000]
+    ev["x"] = [10, 11, 30, 10, 10]
+    ev["y"] = [10, 10, 5, 11, 10]
+    # one-sided, as a stream: each event needs a neighbour event within 1 ms BEFORE it
+    state = edi.new_activity_map(40, 20)
+    keep = np.r_[edi.background_activity_keep(ev[:2], 40, 20, state, 1000),
+                 edi.background_activity_keep(ev[2:], 40, 20, state, 1000)]
+    np.testing.assert_array_equal(keep, [False, True, False, False, False])
+    # two-sided over a whole batch: the first event is supported by the one right after it
+    np.testing.assert_array_equal(edi.supported_events_keep(ev, 40, 20, 1000), [True, True, False, False, False])
+
+
 def test_isolated_events_found():
     ev = np.zeros(4, EVENT_DTYPE)
     ev["x"] = [5, 10, 11, 20]

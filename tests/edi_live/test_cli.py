@@ -171,3 +171,12 @@ def test_emulated_camera_runs_the_whole_node(real_recordings, needs_reconstructo
                    str(real_recordings[DEMO]), "--speed", "0", "--no-publish", "--every", "5000", timeout_s=60)
     assert proc.returncode == 0, proc.stderr
     assert "319512 events" in proc.stderr and "13 APS frames in" in proc.stderr and "drops 0" in proc.stderr
+
+
+def test_importing_the_packages_loads_no_usb_zmq_or_cv2():
+    code = ("import sys, drivers, edi_live, edi_live.cli, edi_live.node; "
+            "print(sorted(m for m in ('usb', 'zmq', 'cv2') if m in sys.modules))")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60,
+                          env=_env())
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "[]"

@@ -10,8 +10,8 @@ Threads ([name]):
 - [edi-worker] (worker.py), [publisher] (publisher.py), [out-writer] / [record-writer] (writers.py).
 
 Start order is reverse flow order: the source is opened first only because its resolution sizes everything
-downstream, then writers and publisher (a failed bind is fatal here, before any data flows), the worker, and the
-pump last. Stop is in flow order: source, pump (closes the ring), worker (drains what was received), publisher
+downstream, then the publisher (a failed bind is fatal here, before any data flows or any file is created), the
+writers, the worker, and the pump last. Stop is in flow order: source, pump (closes the ring), worker (drains what was received), publisher
 (sends what it holds, linger 0), writers (finalise their files), then the source is released.
 
 Failures: every thread hands its exception to `fail()`; the first one is kept. A source fault (truncated file,
@@ -178,6 +178,14 @@ class Node:
         self.ring = EventRing(cfg.ring.capacity_events, cfg.ring.capacity_frames, cfg.ring_policy)
         reconstructor = self._make_reconstructor(info.width, info.height, cfg.edi)
         sinks = []
+        if cfg.publisher.enabled:
+            self.publisher = self._make_publisher(
+                endpoints=list(cfg.publisher.endpoints), source=info.label,
+                curve_secret_key=cfg.publisher.curve_secret_key, stats_provider=self.stats_map,
+                stats_interval_s=cfg.publisher.stats_interval_s, on_error=lambda e: self.fail(e, "publisher"))
+            self.publisher.start()
+            sinks.append(self.publisher.submit)
+            log.info("publishing on %s", ", ".join(self.bound_endpoints))
         if cfg.output.out is not None:
             self.out_writer = OutWriter(cfg.output.out, info.width, info.height, camera_name=info.label,
                                         queue_items=cfg.output.queue_items,
@@ -188,14 +196,6 @@ class Node:
                                               queue_items=cfg.output.queue_items,
                                               on_error=lambda e: self.fail(e, "record-writer"))
             self.record_writer.start()
-        if cfg.publisher.enabled:
-            self.publisher = self._make_publisher(
-                endpoints=list(cfg.publisher.endpoints), source=info.label,
-                curve_secret_key=cfg.publisher.curve_secret_key, stats_provider=self.stats_map,
-                stats_interval_s=cfg.publisher.stats_interval_s, on_error=lambda e: self.fail(e, "publisher"))
-            self.publisher.start()
-            sinks.append(self.publisher.submit)
-            log.info("publishing on %s", ", ".join(self.bound_endpoints))
         if self.out_writer is not None:
             sinks.append(self.out_writer.submit)
         self.worker = EdiWorker(self.ring, reconstructor, cfg.edi, sinks,

@@ -177,13 +177,16 @@ def test_worker_failure_is_reraised_naming_the_thread(real_recordings, tmp_path)
     assert out.stat().st_size > 0  # finalised (header + table) even though nothing was emitted
 
 
-def test_bind_failure_is_raised_before_data_flows(real_recordings):
+def test_bind_failure_is_raised_before_data_flows(real_recordings, tmp_path):
     path = real_recordings[DEMO]
-    cfg = NodeConfig.from_options({"replay": str(path), "speed": 0, "publish": ["tcp://192.0.2.1:5555"]})
+    out = tmp_path / "sharp.aedat4"
+    cfg = NodeConfig.from_options({"replay": str(path), "speed": 0, "publish": ["tcp://192.0.2.1:5555"],
+                                   "out": str(out)})
     node = Node(cfg, replay(path, speed=0), reconstructor_factory=lambda w, h, e: StandIn())
     with pytest.raises(BindError, match="192.0.2.1"):
         node.run()
     assert node.final_stats.get("events_processed", 0) == 0
+    assert not out.exists(), "no file is created when the node cannot start"
 
 
 def test_record_writes_the_input_as_received(real_recordings, tmp_path):

@@ -204,3 +204,61 @@ def test_record_writes_the_input_as_received(real_recordings, tmp_path):
     t_a = np.concatenate([p.events["t"] for p in original])
     t_b = np.concatenate([p.events["t"] for p in again])
     np.testing.assert_array_equal(t_a, t_b)
+
+
+class BurstSource:
+    """A live-like source: packets as fast as the pump takes them (it must never be blocked), then the end."""
+
+    def __init__(self, packets, width=8, height=8):
+        from edi_live.datatypes import SourceInfo, SourceStatus
+
+        self.packets, self.info, self._status = packets, SourceInfo(width, height, "burst", kind="usb"), SourceStatus()
+        self.blocked_s = 0.0
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        pass
+
+    def stop(self):
+        pass
+
+    def status(self):
+        return self._status
+
+    def __iter__(self):
+        import time
+
+        for p in self.packets:
+            t = time.monotonic()
+            yield p
+            self.blocked_s = max(self.blocked_s, time.monotonic() - t)
+
+
+class SlowStandIn(StandIn):
+    def on_events(self, events, arrival_ns=0):
+        import time
+
+        time.sleep(0.002)
+        super().on_events(events, arrival_ns)
+
+
+def test_live_overflow_drops_oldest_counts_every_event_and_never_blocks_the_source():
+    from edi_live.datatypes import EVENT_DTYPE, Frame, Packet
+
+    n_packets, per = 200, 500
+    ev = np.zeros(n_packets * per, EVENT_DTYPE)
+    ev["t"] = np.arange(len(ev))
+    ev["x"] = np.arange(len(ev)) % 8
+    frame = Frame(np.zeros((8, 8), np.uint8), exposure_start_us=0, exposure_end_us=100)
+    packets = [Packet(events=ev[k * per:(k + 1) * per], frames=[frame] if k == 0 else []) for k in range(n_packets)]
+    cfg = NodeConfig.from_options({"device": "auto", "no_publish": True, "every": 100, "ring_events": 4096})
+    assert cfg.ring_policy == "drop_oldest"
+    source = BurstSource(packets)
+    node = Node(cfg, source, reconstructor_factory=lambda w, h, e: SlowStandIn())
+    stats = node.run()
+    assert stats["ring_dropped_events"] > 0, "the slow worker must have lost data"
+    assert stats["events_processed"] + stats["ring_dropped_events"] == len(ev), "every event processed or counted"
+    assert stats["drops"] >= stats["ring_dropped_events"] and stats["worker_gaps"] >= 1
+    assert stats["ring_producer_wait_s"] == 0, "the pump never waited for the worker"

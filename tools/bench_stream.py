@@ -252,14 +252,15 @@ def run_with_subscriber(path: Path, options: dict, speed: float, publisher_facto
 
 # ------------------------------------------------------------------------------------------------ modes
 
-def bench_throughput(path: Path, every: int, repeat: int, passes: int) -> None:
+def bench_throughput(path: Path, every: int, repeat: int, passes: int, extra: dict | None = None) -> None:
     n_events, t0, t1 = recording_stats(path)
     print(f"\n## throughput: replay --speed 0 -> worker -> publish -> 1 subscriber, --every {every}")
     print(f"input {path.name}: {n_events} events over {(t1 - t0) / 1e6:.2f} s of sensor time, replayed "
           f"{passes} times back to back (--loop)")
     rows = []
     for _ in range(repeat):
-        stats, sub, wall_s, pub = run_with_subscriber(path, {"every": every}, speed=0, passes=passes)
+        stats, sub, wall_s, pub = run_with_subscriber(path, {"every": every, **(extra or {})}, speed=0,
+                                                      passes=passes)
         rows.append((stats["events_processed"] / wall_s, sub.get("frames", 0) / wall_s, sub.get("frames", 0),
                      stats["frames_out"], stats["node_cpu_s"], wall_s, sub.get("seq_gaps"),
                      stats["events_processed"] / stats["node_cpu_s"]))
@@ -446,7 +447,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=1e6, help="latency mode: paced event rate, events/s (default 1e6)")
     ap.add_argument("--seconds", type=float, default=None,
                     help="memory: run length (default 60; use 600 for the 10-minute run); latency/static: 10")
-    ap.add_argument("--c", type=float, help="fixed contrast threshold for the node runs (default: estimated)")
+    ap.add_argument("--c", type=float, help="throughput/latency: fixed contrast threshold (default: estimated)")
     ap.add_argument("--speed", type=float, default=1.0, help="memory mode: replay speed (default 1 = real time)")
     args = ap.parse_args(argv)
     path = args.input
@@ -454,7 +455,8 @@ def main(argv: list[str] | None = None) -> int:
         path = default_recording()
     print(f"machine: {os.cpu_count()} CPUs, Python {sys.version.split()[0]}, numpy {np.__version__}")
     if args.mode in ("throughput", "all"):
-        bench_throughput(path, args.every, args.repeat, args.passes)
+        bench_throughput(path, args.every, args.repeat, args.passes,
+                         extra={"c": args.c} if args.c is not None else None)
     if args.mode in ("latency", "all"):
         bench_latency(path, args.every, args.rate, args.seconds or 10.0,
                       extra={"c": args.c} if args.c is not None else None)

@@ -3,8 +3,9 @@
 Accepts: an `EventRing` (events in time order; each APS frame queued at the index just past its exposure end)
 and a reconstructor with the `EdiReconstructor` interface (on_frame, on_events, render,
 render_from_reference, has_reference, c_on, c_off, reestimations). Yields: `Reconstruction`s handed to each
-sink in time order (publisher.submit, the --out writer). Times are µs on the sensor clock; host times
-(latency, pacing of --max-fps and the heartbeat) are time.monotonic.
+sink (publisher.submit, the --out writer) as they are made: t increases, except that in causal mode a deblurred
+frame (t = mid-exposure f) follows the latent frames up to its exposure end. Times are µs on the sensor clock;
+host times (latency, pacing of --max-fps and the heartbeat) are time.monotonic.
 
 Policy:
 - An APS frame is deblurred (L(f), kind "deblurred") as soon as the read cursor reaches its end index, i.e.
@@ -14,7 +15,8 @@ Policy:
 - Frames follow events: a deblurred frame is sent when at least `every` events arrived since its exposure
   start or since the last sent frame (or none was sent yet); otherwise the scene is static: the frame still
   becomes the reference, and only the keyframe heartbeat (the current latent image, every `heartbeat_s`)
-  goes out. With (almost) no events at all, APS frames are not even deblurred, except one per `heartbeat_s`. Between wake-ups the thread blocks on the ring's condition.
+  goes out. With (almost) no events at all, APS frames are not even deblurred, except one per `heartbeat_s`.
+  Between wake-ups the thread blocks on the ring's condition (no polling loop).
 - mode "causal": each latent frame is rendered from the latest deblurred frame, immediately.
   mode "nearest": a latent time past the midpoint to the next APS frame (predicted from the last interval) is
   held back until that frame is deblurred and rendered from it instead; the extra wait is measured

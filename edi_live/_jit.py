@@ -230,7 +230,7 @@ def divisor_stream(t, x, y, p, width, height, mask, use_mask, ts, te, f, c, coun
     ztab = np.empty(2 * k + 1, dtype=np.float64)
     for j in range(2 * k + 1):
         ztab[j] = math.exp(c * (j - k))
-    # one 32-byte row per pixel (last event time - ts, level, base level, running sum): one cache line per event
+    # one 32-byte row per pixel: last event time - ts, level, base level, running sum
     state = np.empty((npix, 4), dtype=np.float64)
     level_f = np.empty(npix, dtype=np.float64)
     seen = np.zeros(npix, dtype=np.uint8)  # 1: active, 2: active and f passed
@@ -245,51 +245,49 @@ def divisor_stream(t, x, y, p, width, height, mask, use_mask, ts, te, f, c, coun
         if use_mask and mask[q]:
             continue
         ti = float(t[i] - ts)
-        row = state[q]
         if seen[q] == 0:
             seen[q] = 1
-            row[0] = 0.0
-            row[1] = 0.0
-            row[2] = 0.0
-            row[3] = 0.0
+            state[q, 0] = 0.0
+            state[q, 1] = 0.0
+            state[q, 2] = 0.0
+            state[q, 3] = 0.0
             active[n_act] = q
             n_act += 1
         if t[i] > f and seen[q] == 1:
-            level_f[q] = row[1]
+            level_f[q] = state[q, 1]
             seen[q] = 2
-        dwell = ti - row[0]
+        dwell = ti - state[q, 0]
         if dwell > 0.0:
-            if row[3] == 0.0:  # first time with dwell: the base is this level, so the sum stays >= 1 µs
-                row[2] = row[1]
-            d = int(row[1] - row[2])
+            if state[q, 3] == 0.0:  # first time with dwell: the base is this level, so the sum stays >= 1 µs
+                state[q, 2] = state[q, 1]
+            d = int(state[q, 1] - state[q, 2])
             if d > k:  # far above the base: rebase upwards (log-sum-exp); only levels with dwell count
-                row[3] *= math.exp(-c * d)
-                row[2] = row[1]
+                state[q, 3] *= math.exp(-c * d)
+                state[q, 2] = state[q, 1]
                 d = 0
-            row[3] += dwell * (ztab[d + k] if d >= -k else math.exp(c * d))
-        row[0] = ti
-        row[1] += 1.0 if p[i] else -1.0
+            state[q, 3] += dwell * (ztab[d + k] if d >= -k else math.exp(c * d))
+        state[q, 0] = ti
+        state[q, 1] += 1.0 if p[i] else -1.0
     pixels = np.empty(n_act, dtype=np.int64)
     log_d = np.empty(n_act, dtype=np.float64)
     delta_end = np.empty(n_act, dtype=np.float64)
     span = float(te - ts)
     for r in range(n_act):
         q = active[r]
-        row = state[q]
-        total = row[3]
-        if span - row[0] > 0.0:
+        total = state[q, 3]
+        if span - state[q, 0] > 0.0:
             if total == 0.0:
-                row[2] = row[1]
-            d = int(row[1] - row[2])
+                state[q, 2] = state[q, 1]
+            d = int(state[q, 1] - state[q, 2])
             if d > k:
                 total *= math.exp(-c * d)
-                row[2] = row[1]
+                state[q, 2] = state[q, 1]
                 d = 0
-            total += (span - row[0]) * (ztab[d + k] if d >= -k else math.exp(c * d))
-        n_f = level_f[q] if seen[q] == 2 else row[1]
+            total += (span - state[q, 0]) * (ztab[d + k] if d >= -k else math.exp(c * d))
+        n_f = level_f[q] if seen[q] == 2 else state[q, 1]
         pixels[r] = q
-        log_d[r] = c * (row[2] - n_f) + math.log(total / span)
-        delta_end[r] = c * (row[1] - n_f)
+        log_d[r] = c * (state[q, 2] - n_f) + math.log(total / span)
+        delta_end[r] = c * (state[q, 1] - n_f)
     return pixels, log_d, delta_end
 
 

@@ -188,9 +188,9 @@ class ConsistencyContrast:
 
     c_min: float = 0.02
     c_max: float = 2.0
-    tol: float = 2e-3
-    n_grid: int = 7
-    max_pixels: int = 3000
+    tol: float = 4e-3
+    n_grid: int = 6
+    max_pixels: int = 2000
     min_pixels: int = 30
     b_low: float = 6.0  # 8-bit scale: darker pixels are dominated by read noise and quantisation
     b_high: float = 250.0

@@ -42,7 +42,7 @@ class EdiReconstructor:
                  c_off: float | None = None, estimator: str = contrast.DEFAULT_ESTIMATOR, reestimate_every: int = 0,
                  c_init: float = 0.2, history_pairs: int = 2, mask_hot_pixels: bool = True,
                  hot_min_rate_hz: float = 300.0, hot_rel_factor: float = 10.0, hot_decay: float = 0.8,
-                 saturation: float | None = None, sample_pixels: int = 6000, denoise_us: int = 0,
+                 saturation: float | None = None, sample_pixels: int = 4000, denoise_us: int = 0,
                  estimator_options: dict | None = None) -> None:
         if width <= 0 or height <= 0:
             raise ConfigError(f"sensor size must be positive (got {width}x{height})")

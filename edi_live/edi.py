@@ -557,8 +557,8 @@ def isolated_event_mask(events: np.ndarray, width: int, height: int) -> np.ndarr
 
 
 __all__ = [
-    "LevelTable", "build_level_table", "log_divisor", "log_divisor_events", "deblur", "deblur_log", "blurry_to_float", "event_delta",
-    "signed_counts", "add_counts", "propagate_log", "to_uint8", "hot_pixel_mask", "isolated_event_mask", "new_activity_map", "background_activity_keep",
-    "supported_events_keep", "flat_index",
-    "have_numba", "LEVEL_CAP", "LOG_MIN", "LOG_MAX", "empty_table",
+    "LevelTable", "build_level_table", "log_divisor", "log_divisor_events", "deblur", "deblur_log",
+    "blurry_to_float", "event_delta", "signed_counts", "add_counts", "propagate_log", "to_uint8", "time_index",
+    "hot_pixel_mask", "isolated_event_mask", "new_activity_map", "background_activity_keep",
+    "supported_events_keep", "flat_index", "have_numba", "empty_table", "LEVEL_CAP", "LOG_MIN", "LOG_MAX",
 ]

@@ -130,7 +130,8 @@ def _window(events: np.ndarray, t0: int | None, t1: int | None) -> np.ndarray:
 
 
 def time_index(t: np.ndarray, value: int, side: str = "left") -> int:
-    """np.searchsorted for the strided `events["t"]` view without the contiguous copy numpy makes of it."""
+    """Binary search on the (strided) `events["t"]` view. Unlike np.searchsorted, a key of another dtype (float,
+    Python int beyond int64) never makes numpy cast the whole array first."""
     find = bisect.bisect_left if side == "left" else bisect.bisect_right
     return find(t, value)
 

@@ -83,6 +83,9 @@ def build_parser() -> argparse.ArgumentParser:
     edi.add_argument("--max-fps", type=float, metavar="FPS", help="cap on latent frames per second (default: none)")
     edi.add_argument("--heartbeat-s", type=float, metavar="S",
                      help="keyframe interval on a static scene, seconds (default: 1.0)")
+    edi.add_argument("--deblur-thread", action=argparse.BooleanOptionalAction,
+                     help="causal mode: deblur APS frames on a helper thread so latent frames are not held up "
+                          "(default: on, except for --speed 0 replays where throughput matters)")
     edi.add_argument("--reestimate-every", type=int, metavar="K",
                      help="also re-estimate c every K APS frames (default: 0 = only when it stops fitting)")
     out = p.add_argument_group("output")

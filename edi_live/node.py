@@ -198,7 +198,7 @@ class Node:
             self.record_writer.start()
         if self.out_writer is not None:
             sinks.append(self.out_writer.submit)
-        self.worker = EdiWorker(self.ring, reconstructor, cfg.edi, sinks,
+        self.worker = EdiWorker(self.ring, reconstructor, cfg.effective_edi, sinks,
                                 on_error=lambda e: self.fail(e, "edi-worker"))
         self.worker.start()
         self._pump = threading.Thread(target=self._pump_loop, name="pump", daemon=True)

@@ -257,6 +257,12 @@ class EventRing:
             self._version += 1
             self._cond.notify_all()
 
+    def poke(self) -> None:
+        """Wake a consumer blocked in wait() (e.g. a helper thread finished work for it). Any thread."""
+        with self._cond:
+            self._version += 1
+            self._cond.notify_all()
+
     # ---------------------------------------------------------------- consumer side (worker thread)
 
     @property

@@ -22,11 +22,17 @@ Policy:
   held back until that frame is deblurred and rendered from it instead; the extra wait is measured
   (`nearest_added_latency_ms_p50`) and included in the frames' latency stamps.
 - A gap (data lost upstream) suspends latent frames until the next APS frame re-anchors the state.
+- deblur_thread (causal mode; the node turns it on except for --speed 0 replays): once a reference exists, each APS frame is deblurred on a helper
+  thread ("edi-deblur") by the reconstructor itself, while latent frames keep coming from a copy that holds the
+  previous reference; when the deblur is done, the events the copy applied meanwhile are replayed into the
+  reconstructor, which takes over again, and the deblurred frame is sent. The deblur (milliseconds) then no
+  longer delays the latent frames behind it. Only the reconstructor's public API is used (plus copy.deepcopy).
 """
 
 from __future__ import annotations
 
 import collections
+import copy
 import dataclasses
 import logging
 import threading
@@ -47,6 +53,42 @@ _CHUNK_EVENTS = 1 << 16  # events taken from the ring per lock (then split into 
 _MAX_DEFERRED = 4096
 _IDLE_WAIT_S = 0.25
 _STATIC_EVENTS = 16  # fewer events than this in an exposure (and since the last frame) = a static scene
+
+
+class _PendingDeblur:
+    """One APS frame being deblurred on the "edi-deblur" helper thread by the master reconstructor, while the
+    worker streams latent frames from a copy that still holds the previous reference. The events the copy
+    applies meanwhile are kept (`catchup`) and replayed into the master when it is adopted."""
+
+    def __init__(self, master: Any, entry: FrameEntry, events: np.ndarray, arrival_ns: int, send: bool,
+                 wake: Callable[[], None]) -> None:
+        self.master, self.entry, self.send = master, entry, send
+        self.catchup: list[np.ndarray] = []
+        self.gap = False
+        self.result: Reconstruction | None = None
+        self.error: BaseException | None = None
+        self.deblur_ms = 0.0
+        self.done = threading.Event()
+        self._wake = wake
+        self._thread = threading.Thread(target=self._run, args=(events, arrival_ns), name="edi-deblur",
+                                        daemon=True)
+        self._thread.start()
+
+    def _run(self, events: np.ndarray, arrival_ns: int) -> None:
+        t0 = time.perf_counter()
+        try:
+            self.result = self.master.on_frame(self.entry.frame, events, arrival_ns)
+        except BaseException as exc:  # re-raised on the worker thread when adopted
+            self.error = exc
+        finally:
+            self.deblur_ms = (time.perf_counter() - t0) * 1e3
+            self.done.set()
+            self._wake()
+
+
+def _concat_events(parts: list[np.ndarray]) -> np.ndarray:
+    # through raw bytes: np.concatenate of the padded event dtype would return a packed dtype
+    return np.concatenate([p.view(np.uint8) for p in parts]).view(parts[0].dtype)
 
 
 class EdiWorker:
@@ -74,6 +116,8 @@ class EdiWorker:
         self._deferred: list[tuple[int, int]] = []  # nearest mode: (t_us, arrival_ns) waiting for the next frame
         self._added_latency_ms: list[float] = []
         self._deblur_ms: collections.deque[float] = collections.deque(maxlen=256)  # on_frame wall time
+        self._pending: _PendingDeblur | None = None  # causal mode with deblur_thread
+        self._copy_failed = False
         self.events_in = 0
         self.frames_in = 0
         self.sent = {"deblurred": 0, "latent": 0}
@@ -114,12 +158,14 @@ class EdiWorker:
                 version = self.ring.version
                 if self._step():
                     continue
-                if self.ring.exhausted:
+                if self.ring.exhausted and self._pending is None:
                     break
                 self._heartbeat()
                 self.wakeups += 1
                 self.ring.wait(version, self._idle_wait_s())
             if not self._abort.is_set():
+                if self._pending is not None:
+                    self._adopt(wait=True)
                 self._flush_deferred(final=True)
         except BaseException as exc:
             self.error = exc
@@ -136,6 +182,9 @@ class EdiWorker:
 
     def _step(self) -> bool:
         """Handle one APS frame or one chunk of events. False if there was nothing to do."""
+        if self._pending is not None and self._pending.done.is_set():
+            self._adopt(wait=False)
+            return True
         entry = self.ring.peek_frame()
         if entry is not None and self.ring.read_index >= entry.end_index:
             self.ring.pop_frame()
@@ -151,6 +200,11 @@ class EdiWorker:
         n = len(chunk.events)
         self.events_in += n
         self._last_arrival_ns = chunk.arrival_ns_at(n)
+        if self._pending is not None:
+            if chunk.gap:
+                self._pending.gap = True
+            elif not self._pending.gap:
+                self._pending.catchup.append(chunk.events)
         if chunk.gap:
             self.gaps += 1
             self._await_reference = True
@@ -204,6 +258,16 @@ class EdiWorker:
         self._last_deblur_s = time.monotonic()
         f_us = frame.mid_exposure_us
         arrival = max(entry.arrival_ns, self._last_arrival_ns)
+        if self._use_deblur_thread():
+            if self._pending is not None:
+                self._adopt(wait=True)  # one deblur at a time (APS frames are far apart compared to a deblur)
+            streamer = self._copy_reconstructor()
+            if streamer is not None:
+                send = len(events) >= self.config.every or self._since >= self.config.every
+                master, self.rec = self.rec, streamer  # the copy keeps streaming from the previous reference
+                self._pending = _PendingDeblur(master, entry, events, arrival, send, self.ring.poke)
+                self.busy_s += time.perf_counter() - t0
+                return
         early = self._take_deferred_before((self._ref_f_us + f_us) // 2 if self._ref_f_us is not None else None)
         out = [self._render_at(t, a) for t, a in early]  # still from the previous reference
         first = not self.rec.has_reference
@@ -224,6 +288,46 @@ class EdiWorker:
         self.busy_s += time.perf_counter() - t0
         for rec in sorted(out, key=lambda r: r.t_us):
             self._emit(rec)
+
+    def _use_deblur_thread(self) -> bool:
+        return bool(self.config.deblur_thread and self.config.mode == "causal" and self.rec.has_reference
+                    and not self._await_reference and not self._copy_failed)
+
+    def _copy_reconstructor(self) -> Any:
+        """A deep copy of the reconstructor, or None (then deblur inline) if it cannot be copied."""
+        try:
+            return copy.deepcopy(self.rec)
+        except Exception as exc:
+            log.warning("reconstructor cannot be copied (%s: %s); deblurring on the worker thread",
+                        type(exc).__name__, exc)
+            self._copy_failed = True
+            return None
+
+    def _adopt(self, wait: bool) -> None:
+        """Make the master (with the new reference) the streaming reconstructor again and send its frame."""
+        pending = self._pending
+        if pending is None or (not wait and not pending.done.is_set()):
+            return
+        while not pending.done.wait(0.1):
+            if self._abort.is_set():
+                return
+        self._pending = None
+        if pending.error is not None:
+            raise pending.error
+        t0 = time.perf_counter()
+        master = pending.master
+        if pending.catchup:
+            master.on_events(_concat_events(pending.catchup), self._last_arrival_ns)
+        self.rec = master
+        self._deblur_ms.append(pending.deblur_ms)
+        self._ref_f_us = pending.entry.frame.mid_exposure_us
+        if pending.gap:
+            self._await_reference = True  # the catch-up spans lost data: wait for the next APS frame
+        self.busy_s += time.perf_counter() - t0
+        if pending.send and pending.result is not None:
+            self._emit(pending.result)
+        else:
+            self.skipped_static += 1
 
     def _static_frame(self, n_events: int) -> bool:
         """A static scene: (almost) no events since this exposure began, so L(f) would be the current reference

@@ -144,12 +144,14 @@ class _RecordingPublisher:
             def __init__(self, **kw):
                 super().__init__(**kw)
                 self.latencies_us: list[float] = []
+                self.kinds: list[str] = []
 
             def _send_frame(self, sock, rec):
                 sent_before = self._sent
                 super()._send_frame(sock, rec)
                 if self._sent > sent_before and rec.arrival_ns > 0:
                     self.latencies_us.append((time.monotonic_ns() - rec.arrival_ns) / 1e3)
+                    self.kinds.append(rec.kind)
 
         return Recording(**kwargs)
 
@@ -298,6 +300,13 @@ def bench_latency(path: Path, every: int, rate_ev_s: float, seconds: float, pack
           f"{stats.get('deblur_ms_max')} ms; c re-estimations {stats.get('reestimations')}")
     print(f"frames {len(lat)}, received {sub.get('frames')}: latency p50 {p50 / 1000:.3f} ms, p90 {p90 / 1000:.3f} ms, "
           f"p99 {p99 / 1000:.3f} ms, max {pmax / 1000:.3f} ms (target p99 <= 1 ms)")
+    kinds = np.array(pub.kinds)
+    for kind in ("latent", "deblurred"):
+        sel = lat[kinds == kind]
+        if len(sel):
+            q = np.percentile(sel, [50, 90, 99, 100]) / 1000
+            print(f"  {kind:9s} frames {len(sel):6d}: p50 {q[0]:.3f} ms, p90 {q[1]:.3f} ms, p99 {q[2]:.3f} ms, "
+                  f"max {q[3]:.3f} ms")
     print(f"achieved event rate {stats['events_processed'] / wall_s / 1e6:.2f} M/s over {wall_s:.1f} s; replay "
           f"packets span up to {packet_us} µs of events (a USB-transfer-like cadence), so a packet's frames share "
           f"one arrival stamp; load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
@@ -436,6 +445,15 @@ def bench_scaling(every: int, repeat: int) -> None:
             print(f"| {w}x{h} | {k} | {1e6 * np.median(times):.1f} | {1e6 * np.median(render_times):.1f} |")
 
 
+def _extra(args: argparse.Namespace) -> dict:
+    extra: dict = {}
+    if args.c is not None:
+        extra["c"] = args.c
+    if args.no_deblur_thread:
+        extra["deblur_thread"] = False
+    return extra
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python tools/bench_stream.py", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -448,6 +466,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=None,
                     help="memory: run length (default 60; use 600 for the 10-minute run); latency/static: 10")
     ap.add_argument("--c", type=float, help="throughput/latency: fixed contrast threshold (default: estimated)")
+    ap.add_argument("--no-deblur-thread", action="store_true",
+                    help="throughput/latency: deblur APS frames on the worker thread (the node's deblur-thread = false)")
     ap.add_argument("--speed", type=float, default=1.0, help="memory mode: replay speed (default 1 = real time)")
     args = ap.parse_args(argv)
     path = args.input
@@ -455,11 +475,9 @@ def main(argv: list[str] | None = None) -> int:
         path = default_recording()
     print(f"machine: {os.cpu_count()} CPUs, Python {sys.version.split()[0]}, numpy {np.__version__}")
     if args.mode in ("throughput", "all"):
-        bench_throughput(path, args.every, args.repeat, args.passes,
-                         extra={"c": args.c} if args.c is not None else None)
+        bench_throughput(path, args.every, args.repeat, args.passes, extra=_extra(args))
     if args.mode in ("latency", "all"):
-        bench_latency(path, args.every, args.rate, args.seconds or 10.0,
-                      extra={"c": args.c} if args.c is not None else None)
+        bench_latency(path, args.every, args.rate, args.seconds or 10.0, extra=_extra(args))
     if args.mode in ("static", "all"):
         bench_static(args.seconds or 10.0)
     if args.mode in ("scaling", "all"):

@@ -96,3 +96,13 @@ def test_config_is_frozen():
     cfg = NodeConfig.from_options({"replay": "x"})
     with pytest.raises(Exception):
         cfg.edi.every = 3  # type: ignore[misc]
+
+
+def test_deblur_thread_is_automatic_but_can_be_forced():
+    assert NodeConfig.from_options({"replay": "x", "speed": 0}).effective_edi.deblur_thread is False
+    assert NodeConfig.from_options({"replay": "x"}).effective_edi.deblur_thread is True
+    assert NodeConfig.from_options({"device": "auto"}).effective_edi.deblur_thread is True
+    forced = NodeConfig.from_options({"replay": "x", "speed": 0, "deblur_thread": True})
+    assert forced.effective_edi.deblur_thread is True
+    with pytest.raises(ConfigError, match="deblur-thread must be true or false"):
+        NodeConfig.from_options({"replay": "x", "deblur_thread": "yes"})

@@ -30,7 +30,6 @@ class StandIn:
         self.frames_given = []  # (frame, events) passed to on_frame
         self.events_applied = 0
         self.fail_on_frame = fail_on_frame
-        self.lock = threading.Lock()
 
     def _rec(self, t, kind):
         return Reconstruction(np.zeros((2, 2), np.uint8), int(t), kind, int(self.ref_f), 0, 0, self.c_on,
@@ -225,3 +224,69 @@ def test_frames_without_events_are_not_deblurred_again_on_a_static_scene():
     worker, rec, out, errors = run_worker(packets, EdiConfig(every=1000, heartbeat_s=60))
     assert len(rec.frames_given) == 1 and worker.skipped_static_deblur == 5
     assert [r.kind for r in out] == ["deblurred"]
+
+
+class SlowDeblur(StandIn):
+    def on_frame(self, frame, events, arrival_ns=0):
+        if self.has_reference:
+            threading.Event().wait(0.05)  # a long deblur: latent frames must not wait for it
+        return super().on_frame(frame, events, arrival_ns)
+
+
+def two_frame_packets():
+    ev = events_at(np.arange(0, 60_000, 5))
+    frames = [aps(0, 2_000), aps(20_000, 22_000)]
+    packets, cut = [], 0
+    for f in frames:
+        end = int(np.searchsorted(ev["t"], f.exposure_end_us, side="right"))
+        packets.append(Packet(events=ev[cut:end], frames=[f]))
+        cut = end
+    # the rest in small packets, so the worker streams while the second frame is being deblurred
+    packets += [Packet(events=ev[k:k + 200]) for k in range(cut, len(ev), 200)]
+    return ev, frames, packets
+
+
+def test_deblur_thread_keeps_latent_frames_flowing_and_hands_every_event_to_the_new_reference():
+    ev, frames, packets = two_frame_packets()
+    ring = EventRing(capacity_events=1 << 16, policy="wait")
+    rec, out = SlowDeblur(), []
+    worker = EdiWorker(ring, rec, EdiConfig(every=400, deblur_thread=True), [out.append])
+    worker.start()
+    for p in packets:
+        assert ring.push(p, timeout_s=5)
+    ring.close()
+    assert worker.done.wait(10) and worker.error is None
+    assert worker.rec is rec, "the reconstructor itself takes over again after the deblur"
+    assert len(rec.frames_given) == 2
+    after_first = int(np.sum(ev["t"] > frames[0].exposure_end_us))
+    assert rec.events_applied == after_first, "every event reaches the reconstructor exactly once"
+    f1, f2 = frames[0].mid_exposure_us, frames[1].mid_exposure_us
+    deblurred_at = [i for i, r in enumerate(out) if r.kind == "deblurred" and r.t_us == f2][0]
+    meanwhile = [r for r in out[:deblurred_at] if r.kind == "latent" and r.t_us > frames[1].exposure_end_us]
+    assert meanwhile and all(r.ref_t_us == f1 for r in meanwhile), "old reference while the new one is made"
+    assert all(r.ref_t_us == f2 for r in out[deblurred_at + 1:])
+
+
+class Uncopyable(StandIn):
+    def __init__(self):
+        super().__init__()
+        self.lock = threading.Lock()  # deepcopy fails on locks
+
+
+def test_deblur_inline_when_the_reconstructor_cannot_be_copied():
+    ev, frames, packets = two_frame_packets()
+    worker, rec, out, errors = run_worker(packets, EdiConfig(every=400, deblur_thread=True), rec=Uncopyable())
+    assert not errors and len(rec.frames_given) == 2
+    assert sum(r.kind == "deblurred" for r in out) == 2
+
+
+def test_deblur_thread_failure_reaches_on_error():
+    class FailSecond(StandIn):
+        def on_frame(self, frame, events, arrival_ns=0):
+            if self.has_reference:
+                raise RuntimeError("second frame failed")
+            return super().on_frame(frame, events, arrival_ns)
+
+    ev, frames, packets = two_frame_packets()
+    worker, rec, out, errors = run_worker(packets, EdiConfig(every=400, deblur_thread=True), rec=FailSecond())
+    assert len(errors) == 1 and "second frame failed" in str(errors[0])

@@ -22,11 +22,10 @@ Policy:
   held back until that frame is deblurred and rendered from it instead; the extra wait is measured
   (`nearest_added_latency_ms_p50`) and included in the frames' latency stamps.
 - A gap (data lost upstream) suspends latent frames until the next APS frame re-anchors the state.
-- deblur_thread (causal mode; the node turns it on except for --speed 0 replays): once a reference exists, each APS frame is deblurred on a helper
-  thread ("edi-deblur") by the reconstructor itself, while latent frames keep coming from a copy that holds the
-  previous reference; when the deblur is done, the events the copy applied meanwhile are replayed into the
-  reconstructor, which takes over again, and the deblurred frame is sent. The deblur (milliseconds) then no
-  longer delays the latent frames behind it. Only the reconstructor's public API is used (plus copy.deepcopy).
+- deblur_thread (causal mode; the node turns it on except for --speed 0 replays): each APS frame after the first
+  is deblurred on a helper thread ("edi-deblur") while latent frames keep coming from a copy holding the
+  previous reference; then the events the copy applied meanwhile are replayed into the reconstructor, which
+  takes over again, and the deblurred frame is sent. Uses only the public API plus copy.deepcopy.
 """
 
 from __future__ import annotations

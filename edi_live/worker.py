@@ -12,7 +12,7 @@ Policy:
   every event up to its exposure end is in; the events from its exposure start come from the ring's history.
 - Then a latent frame (kind "latent") every `every` events, updated incrementally (`on_events`), at most
   `max_fps` per second (frames over the cap are skipped and counted, their events roll into the next frame).
-- Frames follow events: a deblurred frame is sent when at least `every` events arrived since its exposure
+- Frames follow events: a deblurred frame is sent when at least every/10 events arrived since its exposure
   start or since the last sent frame (or none was sent yet); otherwise the scene is static: the frame still
   becomes the reference, and only the keyframe heartbeat (the current latent image, every `heartbeat_s`)
   goes out. With (almost) no events at all, APS frames are not even deblurred, except one per `heartbeat_s`.
@@ -262,7 +262,7 @@ class EdiWorker:
                 self._adopt(wait=True)  # one deblur at a time (APS frames are far apart compared to a deblur)
             streamer = self._copy_reconstructor()
             if streamer is not None:
-                send = len(events) >= self.config.every or self._since >= self.config.every
+                send = self._moving(len(events))
                 master, self.rec = self.rec, streamer  # the copy keeps streaming from the previous reference
                 self._pending = _PendingDeblur(master, entry, events, arrival, send, self.ring.poke)
                 self.busy_s += time.perf_counter() - t0
@@ -280,13 +280,19 @@ class EdiWorker:
         late = self._deferred
         self._deferred = []
         out.extend(self._render_at(t, a) for t, a in late)  # from the new, nearer reference
-        if first or out or len(events) >= self.config.every or self._since >= self.config.every:
+        if first or out or self._moving(len(events)):
             out.append(deblurred)
         else:
             self.skipped_static += 1
         self.busy_s += time.perf_counter() - t0
         for rec in sorted(out, key=lambda r: r.t_us):
             self._emit(rec)
+
+    def _moving(self, n_exposure_events: int) -> bool:
+        """Whether a deblurred frame is worth sending: the scene moved, i.e. at least a tenth of a latent
+        frame's events arrived during its exposure or since the last frame sent (not just sensor noise)."""
+        threshold = max(_STATIC_EVENTS, self.config.every // 10)
+        return n_exposure_events >= threshold or self._since >= threshold
 
     def _use_deblur_thread(self) -> bool:
         return bool(self.config.deblur_thread and self.config.mode == "causal" and self.rec.has_reference

@@ -165,6 +165,8 @@ def make_source(config: NodeConfig, explicit: set[str] | frozenset = frozenset()
             if not Path(s.emulate_from).is_file():
                 raise RecordingError("no such file (check the --emulate-from path)", str(s.emulate_from))
             kwargs["recording"] = str(s.emulate_from)
+            if s.device != "auto":  # the emulated camera presents the model asked for, not the file's
+                kwargs["model"] = s.device
             if "speed" in explicit:
                 kwargs["speed"] = s.speed
             if s.loop:

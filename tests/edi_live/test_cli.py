@@ -170,9 +170,11 @@ def test_truncated_recording_exit_1_one_line_and_out_reopens(real_recordings, tm
     assert n == written > 0
 
 
-def test_emulated_camera_runs_the_whole_node(real_recordings, needs_reconstructor):
-    # the documented no-camera command: the recording goes through the USB driver's decode path
-    proc = run_cli("--device", "davis346", "--usb-backend", "drivers.emulator:backend", "--emulate-from",
+@pytest.mark.parametrize("device", ["davis346", "davis240"])
+def test_emulated_camera_runs_the_whole_node(real_recordings, needs_reconstructor, device):
+    # the documented no-camera command: the recording goes through the USB driver's decode path; the
+    # emulated camera presents the model asked for (a DAVIS346 file through a DAVIS240 profile too)
+    proc = run_cli("--device", device, "--usb-backend", "drivers.emulator:backend", "--emulate-from",
                    str(real_recordings[DEMO]), "--speed", "0", "--no-publish", "--every", "5000", timeout_s=60)
     assert proc.returncode == 0, proc.stderr
     assert "319512 events" in proc.stderr and "13 APS frames in" in proc.stderr and "drops 0" in proc.stderr

@@ -217,77 +217,89 @@ def count_events(x, y, p, width, height, mask, use_mask, out_on, out_off, sign):
             out_off[q] += sign
 
 
+DIVISOR_STATE = np.dtype([("s", np.float64), ("t", np.float64), ("lvl", np.float32), ("base", np.float32),
+                          ("lvl_f", np.float32), ("n", np.int32)], align=True)
+"""divisor_stream's per-pixel row, 32 bytes so that each event touches one cache line: running sum, last event
+time - ts, net level, base level, level at f, events. Levels are exact in float32 up to 2**24 events a pixel."""
+
+
 @njit(cache=True, nogil=True)
-def divisor_stream(t, x, y, p, width, height, mask, use_mask, ts, te, f, c, count_all, use_count_all):
+def divisor_stream(t, x, y, p, width, height, mask, use_mask, ts, te, f, c, count_all, use_count_all, state, seen):
     """log D(c) per active pixel for c_on == c_off in ONE time-ordered pass, no sort and no exp per event.
 
     Per pixel: the net level n counted from ts, and a running sum of dwell * exp(c * (n - base)) read from a
     small table; the base moves up when n climbs more than the table above it (levels far below the base
-    underflow harmlessly), so any event count stays finite. Events must lie in [ts, te].
-    Returns (pixels in first-event order, log D, c * (n(te) - n(f)))."""
+    underflow harmlessly), so any event count stays finite. Events must lie in [ts, te]. `state` is scratch
+    (npix rows of DIVISOR_STATE), `seen` (npix uint8) must come zeroed.
+    Returns (pixels in ascending order, log D, c * (n(te) - n(f)))."""
     npix = width * height
     k = 64
     ztab = np.empty(2 * k + 1, dtype=np.float64)
     for j in range(2 * k + 1):
         ztab[j] = math.exp(c * (j - k))
-    # one 32-byte row per pixel: last event time - ts, level, base level, running sum
-    state = np.empty((npix, 4), dtype=np.float64)
-    level_f = np.empty(npix, dtype=np.float64)
-    seen = np.zeros(npix, dtype=np.uint8)  # 1: active, 2: active and f passed
-    active = np.empty(npix, dtype=np.int64)
     n_act = 0
     for i in range(t.size):
         if x[i] >= width or y[i] >= height:
             continue
         q = np.int64(y[i]) * width + x[i]
-        if use_count_all:
-            count_all[q] += 1
         if use_mask and mask[q]:
+            if use_count_all:
+                count_all[q] += 1
             continue
+        row = state[q]
         ti = float(t[i] - ts)
-        if seen[q] == 0:
+        if seen[q] == 0:  # 1: active, 2: active and f passed
             seen[q] = 1
-            state[q, 0] = 0.0
-            state[q, 1] = 0.0
-            state[q, 2] = 0.0
-            state[q, 3] = 0.0
-            active[n_act] = q
+            row.s = 0.0
+            row.t = 0.0
+            row.lvl = 0.0
+            row.base = 0.0
+            row.n = 0
             n_act += 1
         if t[i] > f and seen[q] == 1:
-            level_f[q] = state[q, 1]
+            row.lvl_f = row.lvl
             seen[q] = 2
-        dwell = ti - state[q, 0]
+        dwell = ti - row.t
         if dwell > 0.0:
-            if state[q, 3] == 0.0:  # first time with dwell: the base is this level, so the sum stays >= 1 µs
-                state[q, 2] = state[q, 1]
-            d = int(state[q, 1] - state[q, 2])
+            total = row.s
+            if total == 0.0:  # first time with dwell: the base is this level, so the sum stays >= 1 µs
+                row.base = row.lvl
+            d = int(row.lvl - row.base)
             if d > k:  # far above the base: rebase upwards (log-sum-exp); only levels with dwell count
-                state[q, 3] *= math.exp(-c * d)
-                state[q, 2] = state[q, 1]
+                total *= math.exp(-c * d)
+                row.base = row.lvl
                 d = 0
-            state[q, 3] += dwell * (ztab[d + k] if d >= -k else math.exp(c * d))
-        state[q, 0] = ti
-        state[q, 1] += 1.0 if p[i] else -1.0
+            row.s = total + dwell * (ztab[d + k] if d >= -k else math.exp(c * d))
+        row.t = ti
+        row.lvl += np.float32(1.0) if p[i] else np.float32(-1.0)
+        row.n += 1
     pixels = np.empty(n_act, dtype=np.int64)
     log_d = np.empty(n_act, dtype=np.float64)
     delta_end = np.empty(n_act, dtype=np.float64)
     span = float(te - ts)
-    for r in range(n_act):
-        q = active[r]
-        total = state[q, 3]
-        if span - state[q, 0] > 0.0:
+    r = 0
+    for q in range(npix):  # ascending: sequential reads here and sequential writes for the caller
+        if seen[q] == 0:
+            continue
+        row = state[q]
+        total = row.s
+        base = row.base
+        if span - row.t > 0.0:
             if total == 0.0:
-                state[q, 2] = state[q, 1]
-            d = int(state[q, 1] - state[q, 2])
+                base = row.lvl
+            d = int(row.lvl - base)
             if d > k:
                 total *= math.exp(-c * d)
-                state[q, 2] = state[q, 1]
+                base = row.lvl
                 d = 0
-            total += (span - state[q, 0]) * (ztab[d + k] if d >= -k else math.exp(c * d))
-        n_f = level_f[q] if seen[q] == 2 else state[q, 1]
+            total += (span - row.t) * (ztab[d + k] if d >= -k else math.exp(c * d))
+        n_f = row.lvl_f if seen[q] == 2 else row.lvl
+        if use_count_all:
+            count_all[q] += row.n
         pixels[r] = q
-        log_d[r] = c * (state[q, 2] - n_f) + math.log(total / span)
-        delta_end[r] = c * (state[q, 1] - n_f)
+        log_d[r] = c * (base - n_f) + math.log(total / span)
+        delta_end[r] = c * (row.lvl - n_f)
+        r += 1
     return pixels, log_d, delta_end
 
 
@@ -328,3 +340,63 @@ def background_activity(t, x, y, width, height, last_t, dt_us, keep):
                     ok = True
         keep[i] = ok
         last_t[yi + 1, xi + 1] = ti
+
+
+@njit(cache=True, nogil=True)
+def _u8(v):
+    z = math.exp(min(v, np.float32(6.0))) + np.float32(0.5)
+    if z > 255.0:
+        z = 255.0
+    return np.uint8(z)
+
+
+@njit(cache=True, nogil=True)
+def finish_frame_u8(img, sat, lut_log, lut_u8, pixels, log_d, delta_end, lo, hi, log_ref, deblurred, log_lat,
+                    display):
+    """One pass for what follows the divisor of a uint8 APS frame: log L(f) (log B minus log D at the active
+    informative pixels, clipped), its uint8 image, the latent log image at te (plus the f->te exponent) and its
+    uint8 image. Inactive pixels come from 256-entry tables of log(max(B, floor)) and its uint8 rendering."""
+    for q in range(img.size):
+        i = img[q]
+        v = lut_log[i]
+        log_ref[q] = v
+        log_lat[q] = v
+        u = lut_u8[i]
+        deblurred[q] = u
+        display[q] = u
+    for r in range(pixels.size):
+        q = pixels[r]
+        i = img[q]
+        v = lut_log[i]
+        if i > 0 and i < sat:
+            v = v - np.float32(log_d[r])
+            v = min(max(v, lo), hi)
+            log_ref[q] = v
+            deblurred[q] = _u8(v)
+        w = v + np.float32(delta_end[r])
+        w = min(max(w, lo), hi)
+        log_lat[q] = w
+        display[q] = _u8(w)
+
+
+@njit(cache=True, nogil=True)
+def update_hot(hot_counts, frame_counts, decay, duration_us, min_rate_hz, rel_factor, hot):
+    """hot_counts = decay * hot_counts + frame_counts (frame_counts is reset to 0), then the hot-pixel rule of
+    edi.hot_pixel_mask on the result, written into `hot` (flat bool)."""
+    total = 0.0
+    n_active = 0
+    for q in range(hot_counts.size):
+        v = hot_counts[q] * decay + frame_counts[q]
+        frame_counts[q] = 0
+        hot_counts[q] = v
+        if v > 0:
+            total += v
+            n_active += 1
+    if n_active == 0 or duration_us <= 0:
+        hot[:] = False
+        return
+    limit = rel_factor * (total / n_active)
+    scale = 1e6 / duration_us
+    for q in range(hot_counts.size):
+        v = hot_counts[q]
+        hot[q] = v * scale > min_rate_hz and v > limit

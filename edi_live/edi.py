@@ -229,8 +229,10 @@ def log_divisor_events(events: np.ndarray, width: int, height: int, exposure_sta
         ev = _window(events, ts, te)
         m, use_m = _mask_arg(mask)
         cnt = _NO_COUNTS if event_counts is None else event_counts
+        npix = width * height
         return _jit.divisor_stream(ev["t"], ev["x"], ev["y"], ev["p"], width, height, m, use_m, ts, te, f,
-                                   float(c_on), cnt, event_counts is not None)
+                                   float(c_on), cnt, event_counts is not None, np.empty(npix, _jit.DIVISOR_STATE),
+                                   np.zeros(npix, np.uint8))
     table = build_level_table(events, width, height, ts, te, f, mask=mask, segments=c_on != c_off,
                               event_counts=event_counts)
     return table.pixels, log_divisor(table, c_on, c_off), None

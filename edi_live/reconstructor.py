@@ -13,6 +13,7 @@ order. Events before the first APS frame only feed the hot-pixel statistics (the
 from __future__ import annotations
 
 import collections
+import functools
 import math
 import time
 
@@ -24,6 +25,14 @@ from edi_live.datatypes import Frame, Reconstruction
 from edi_live.errors import ConfigError, NodeError
 
 C_RANGE = (0.01, 2.0)
+
+
+@functools.lru_cache(maxsize=1)
+def _u8_tables() -> tuple[np.ndarray, np.ndarray]:
+    """For every uint8 B: log L(f) where no event moved it (clipped log(max(B, floor))), and its uint8 image."""
+    b, _ = edi.blurry_to_float(np.arange(256, dtype=np.uint8))
+    log_b = np.clip(np.log(np.maximum(b, edi.DARK_FLOOR)), edi.LOG_MIN, edi.LOG_MAX).astype(np.float32)
+    return log_b, edi.to_uint8(log_b)
 
 
 def _check_c(name: str, value: float | None) -> float | None:
@@ -76,6 +85,7 @@ class EdiReconstructor:
         self._activity = edi.new_activity_map(self.width, self.height) if self._denoise_us > 0 else None
         npix = self.width * self.height
         self._hot_counts = np.zeros(npix, np.float64)
+        self._frame_counts = np.zeros(npix, np.int64)  # this exposure's events per pixel (numba path; kept zeroed)
         self._hot_duration_us = 0.0
         self._hot = np.zeros((self.height, self.width), bool)
         # c is estimated on a fixed random pixel sample: every c evaluation and the tables it needs stay small
@@ -136,26 +146,47 @@ class EdiReconstructor:
             fresh = events[edi.time_index(events["t"], self._t_last, "right"):]
             edi.background_activity_keep(fresh, self.width, self.height, self._activity, self._denoise_us)
             events = events[edi.supported_events_keep(events, self.width, self.height, self._denoise_us)]
-        b, informative = edi.blurry_to_float(img, saturation=self._saturation)
+        b = informative = None  # B as float: the estimators and the numpy path need it, the fused pass does not
         if not self._fixed:
+            b, informative = edi.blurry_to_float(img, saturation=self._saturation)
             self._estimation_step(events, b, informative, ts, te, f, mask)
-        frame_counts = np.zeros(self.width * self.height, np.int64) if self._mask_hot else None
+        frame_counts = None
+        if self._mask_hot:
+            frame_counts = self._frame_counts if edi._jit is not None else np.zeros(self.width * self.height,
+                                                                                  np.int64)
         divisor = edi.log_divisor_events(events, self.width, self.height, ts, te, f, self.c_on, self.c_off,
                                          mask=mask, event_counts=frame_counts)
         if self.events_ignored:  # still scene: L(f) = B and the latent image stays there
             divisor = (divisor[0][:0], divisor[1][:0], divisor[2][:0] if divisor[2] is not None else None)
-        self._log_ref = edi.deblur_log(b, None, self.c_on, self.c_off, informative=informative, divisor=divisor)
-        deblurred = edi.to_uint8(self._log_ref)
-        # latent state: from L(f) through the events after f that are already here
-        np.copyto(self._log_lat, self._log_ref)
-        for a in self._acc:
-            a.fill(0)
         t = events["t"]
         pixels, _, delta_end = divisor
+        fused = edi._jit is not None and img.dtype == np.uint8 and delta_end is not None
+        if fused:
+            # one numba pass: L(f), its uint8 image, the latent image at te and the display buffer
+            deblurred = np.empty((self.height, self.width), np.uint8)
+            self._log_ref = np.empty((self.height, self.width), np.float32)
+            lut_log, lut_u8 = _u8_tables()
+            sat = 255.0 if self._saturation is None else float(self._saturation)
+            edi._jit.finish_frame_u8(np.ascontiguousarray(img).reshape(-1), sat, lut_log, lut_u8, pixels,
+                                     divisor[1], delta_end, np.float32(edi.LOG_MIN), np.float32(edi.LOG_MAX),
+                                     self._log_ref.reshape(-1), deblurred.reshape(-1), self._log_lat.reshape(-1),
+                                     self._display.reshape(-1))
+        else:
+            if b is None:
+                b, informative = edi.blurry_to_float(img, saturation=self._saturation)
+            self._log_ref = edi.deblur_log(b, None, self.c_on, self.c_off, informative=informative,
+                                           divisor=divisor)
+            deblurred = edi.to_uint8(self._log_ref)
+            # latent state: from L(f) through the events after f that are already here
+            np.copyto(self._log_lat, self._log_ref)
+        if not self._fixed:  # the accumulators are used (and written) only when c is estimated
+            for a in self._acc:
+                a.fill(0)
         if delta_end is not None:  # the divisor pass already knows E(f -> te): jump there in O(pixels)
-            lat = self._log_lat.reshape(-1)
-            lat[pixels] += delta_end.astype(np.float32)
-            np.clip(lat, edi.LOG_MIN, edi.LOG_MAX, out=lat)
+            if not fused:
+                lat = self._log_lat.reshape(-1)
+                lat[pixels] += delta_end.astype(np.float32)
+                np.clip(lat, edi.LOG_MIN, edi.LOG_MAX, out=lat)
             if not self._fixed:  # the consistency pairs need the counts after f
                 edi.add_counts(events, self.width, self.height, *self._acc, t0=f + 1, t1=te, mask=mask)
             after = events[edi.time_index(t, te, "right"):]
@@ -163,10 +194,11 @@ class EdiReconstructor:
             after = events[edi.time_index(t, f, "right"):]
         if self.events_ignored:
             edi.add_counts(after, self.width, self.height, *self._acc, mask=mask)
-        else:
+        else:  # the fused pass filled the display buffer already: only the touched pixels change
             edi.propagate_log(self._log_lat, after, self.c_on, self.c_off, mask=mask,
-                              counts=None if self._fixed else self._acc)
-        np.copyto(self._display, edi.to_uint8(self._log_lat))
+                              display=self._display if fused else None, counts=None if self._fixed else self._acc)
+        if not fused:
+            np.copyto(self._display, edi.to_uint8(self._log_lat))
         if frame_counts is not None:
             self._update_hot(frame_counts, te - ts)
         self.has_reference = True
@@ -308,6 +340,12 @@ class EdiReconstructor:
 
     def _update_hot(self, frame_counts: np.ndarray, exposure_us: int) -> None:
         """Decaying per-pixel event counts over past exposures -> hot-pixel mask used from the next frame on."""
+        if edi._jit is not None and frame_counts is self._frame_counts:  # one pass, no temporaries; resets counts
+            self._hot_duration_us = self._hot_duration_us * self._hot_decay + exposure_us
+            self._hot = np.empty((self.height, self.width), bool)  # a new array: hot_pixel_mask hands out copies
+            edi._jit.update_hot(self._hot_counts, frame_counts, float(self._hot_decay), float(self._hot_duration_us),
+                                float(self._hot_min_rate_hz), float(self._hot_rel), self._hot.reshape(-1))
+            return
         self._hot_counts *= self._hot_decay
         self._hot_counts += frame_counts
         self._hot_duration_us = self._hot_duration_us * self._hot_decay + exposure_us

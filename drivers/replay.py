@@ -61,8 +61,7 @@ class _Merger:
             if not len(data):
                 return
             if off:
-                data = data.copy()
-                data["t"] += off
+                data = _shifted(data, off)
             t0, t1 = int(data["t"][0]), int(data["t"][-1])
             if t0 < self.last["EVTS"] or t0 < self.emitted_to:
                 raise RecordingError(f"event packet starts at {t0 - off} µs, before events already read "
@@ -124,6 +123,14 @@ class _Merger:
     def _late_pending(self, w: int) -> bool:
         return bool((self.frames and self.frames[0][0] < w) or (self.imu and self.imu[0][0] < w)
                     or (self.triggers and self.triggers[0][0] < w))
+
+
+def _shifted(events: np.ndarray, offset_us: int) -> np.ndarray:
+    """A copy of events (EVENT_DTYPE) with `offset_us` added to t, copied as raw int64 pairs (t is the first
+    8 bytes of the 16-byte record): ~4x cheaper than a structured copy plus a strided field add."""
+    raw = np.ascontiguousarray(events).view(np.int64).reshape(-1, 2).copy()
+    raw[:, 0] += offset_us
+    return raw.view(EVENT_DTYPE).reshape(-1)
 
 
 def _take(chunks: list[tuple[int, int, np.ndarray]], w: int, dtype: np.dtype) -> np.ndarray:

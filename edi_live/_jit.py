@@ -400,3 +400,17 @@ def update_hot(hot_counts, frame_counts, decay, duration_us, min_rate_hz, rel_fa
     for q in range(hot_counts.size):
         v = hot_counts[q]
         hot[q] = v * scale > min_rate_hz and v > limit
+
+
+@njit(cache=True, nogil=True)
+def select_pixels(x, y, width, height, keep):
+    """Indices of the events whose pixel is in range and marked in `keep` (flat uint8), in input order."""
+    out = np.empty(x.size, dtype=np.int64)
+    m = 0
+    for i in range(x.size):
+        if x[i] >= width or y[i] >= height:
+            continue
+        if keep[np.int64(y[i]) * width + x[i]]:
+            out[m] = i
+            m += 1
+    return out[:m]

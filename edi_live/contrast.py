@@ -46,6 +46,8 @@ class FramePair:
     n_on: np.ndarray
     n_off: np.ndarray
     mask: np.ndarray | None = None  # flat bool: pixels to ignore (hot)
+    # estimators may keep their per-pair setup here (a pair is immutable once built; it serves several frames)
+    cache: dict = field(default_factory=dict, repr=False, compare=False)
 
 
 class ContrastEstimator(Protocol):
@@ -204,12 +206,19 @@ class ConsistencyContrast:
 
     def _problem(self, pairs: Sequence[FramePair]):
         """Sum of the pairs' robust residual costs, or None when no pair has enough informative pixels."""
-        costs = [c for c in (self._pair_problem(p) for p in pairs) if c is not None]
+        costs = [c for c in (self._cached_pair_problem(p) for p in pairs) if c is not None]
         if not costs:
             return None
         if len(costs) == 1:
             return costs[0]
         return lambda c_on, c_off: sum(fn(c_on, c_off) for fn in costs)
+
+    def _cached_pair_problem(self, pair: FramePair):
+        key = ("consistency", self.max_pixels, self.min_pixels, self.b_low, self.b_high, self.delta,
+               self.spread_weight)
+        if key not in pair.cache:
+            pair.cache[key] = self._pair_problem(pair)
+        return pair.cache[key]
 
     def _pair_problem(self, pair: FramePair):
         """Residual setup on a deterministic subsample; returns cost(c_on, c_off) or None."""

@@ -166,6 +166,21 @@ def _select(events: np.ndarray, width: int, height: int, t0: int | None, t1: int
     return idx[keep], ev["t"][keep], ev["p"][keep]
 
 
+def events_at_pixels(events: np.ndarray, width: int, height: int, pixels: np.ndarray, t0: int | None = None,
+                     t1: int | None = None) -> np.ndarray:
+    """The events with t0 <= t <= t1 (time-ordered input) at the pixels marked in `pixels` ((H, W) bool), in
+    order: a small copy, so that a per-frame table of a pixel sample costs O(sample events), not O(events)."""
+    ev = _window(events, t0, t1)
+    keep = np.ascontiguousarray(pixels, dtype=bool).reshape(-1)
+    if _jit is not None:
+        return ev[_jit.select_pixels(ev["x"], ev["y"], width, height, keep.view(np.uint8))]
+    x = ev["x"]
+    y = ev["y"]
+    inside = (x < width) & (y < height)
+    idx = y.astype(np.int64) * width + x
+    return ev[inside & keep[np.where(inside, idx, 0)]]
+
+
 def empty_table(width: int, height: int, ts: int, te: int, f: int) -> LevelTable:
     z64 = np.zeros(1, dtype=np.int64)
     e = np.zeros(0, dtype=np.int64)
@@ -563,5 +578,6 @@ __all__ = [
     "LevelTable", "build_level_table", "log_divisor", "log_divisor_events", "deblur", "deblur_log",
     "blurry_to_float", "event_delta", "signed_counts", "add_counts", "propagate_log", "to_uint8", "time_index",
     "hot_pixel_mask", "isolated_event_mask", "new_activity_map", "background_activity_keep",
-    "supported_events_keep", "flat_index", "have_numba", "empty_table", "LEVEL_CAP", "LOG_MIN", "LOG_MAX",
+    "supported_events_keep", "flat_index", "events_at_pixels", "have_numba", "empty_table", "LEVEL_CAP",
+    "LOG_MIN", "LOG_MAX",
 ]

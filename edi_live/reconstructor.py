@@ -299,8 +299,13 @@ class EdiReconstructor:
         with the previous frame, then c: kept if it still fits, re-estimated otherwise (or when due)."""
         full = getattr(self._estimator, "needs_full_image", False)
         excluded = self._not_sample if hot is None else (self._not_sample | hot)
-        table = edi.build_level_table(events, self.width, self.height, ts, te, f, mask=hot if full else excluded,
-                                      segments=self._estimator.separate)
+        if full:
+            table = edi.build_level_table(events, self.width, self.height, ts, te, f, mask=hot,
+                                          segments=self._estimator.separate)
+        else:  # the sample's events first (one cheap pass), so the table build touches only them
+            sample = edi.events_at_pixels(events, self.width, self.height, ~excluded, ts, te)
+            table = edi.build_level_table(sample, self.width, self.height, ts, te, f,
+                                          segments=self._estimator.separate)
         em = None
         if full:
             em = contrast.event_map(events, self.width, self.height, f, ts, te, 0.25 * max(te - ts, 1))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import inspect
 import logging
 import signal
 import sys
@@ -132,7 +133,11 @@ def build_config(flags: dict[str, Any], config_path: Path | None) -> NodeConfig:
 
 
 def load_usb_backend(spec: str, **kwargs: Any) -> Any:
-    """Import MODULE, call CALLABLE(**kwargs): a pyusb IBackend (a public hook for emulators and others)."""
+    """Import MODULE, call CALLABLE(**kwargs): a pyusb IBackend (a public hook for emulators and others).
+
+    Keyword arguments the factory does not declare are left out, so any factory callable with no arguments
+    works; ours (drivers.emulator:backend) also takes `model`, `recording`, `speed` and `loop`.
+    """
     module_name, _, attr = spec.partition(":")
     try:
         module = importlib.import_module(module_name)
@@ -141,12 +146,37 @@ def load_usb_backend(spec: str, **kwargs: Any) -> Any:
     factory = getattr(module, attr, None)
     if not callable(factory):
         raise ConfigError(f"--usb-backend {spec}: module {module_name!r} has no callable {attr!r}")
+    kwargs = _accepted_kwargs(factory, kwargs)
     try:
-        return factory(**kwargs)
+        backend = factory(**kwargs)
     except EdiLiveError:
         raise
     except Exception as exc:
         raise SourceError(f"--usb-backend {spec} failed to create a backend: {type(exc).__name__}: {exc}") from exc
+    if not callable(getattr(backend, "enumerate_devices", None)):  # what usb.core.find calls first
+        raise ConfigError(f"--usb-backend {spec}: {attr}() returned a {type(backend).__name__}, not a pyusb "
+                          f"backend (usb.backend.IBackend)")
+    return backend
+
+
+def _accepted_kwargs(factory: Any, kwargs: dict[str, Any]) -> dict[str, Any]:
+    """The part of `kwargs` that `factory` declares (all of it if it takes **kwargs or has no signature)."""
+    try:
+        params = inspect.signature(factory).parameters.values()
+    except (TypeError, ValueError):
+        return kwargs
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
+        return kwargs
+    names = {p.name for p in params if p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD,
+                                                  inspect.Parameter.KEYWORD_ONLY)}
+    return {k: v for k, v in kwargs.items() if k in names}
+
+
+def _existing_file(path: Path, flag: str) -> None:
+    if path.is_dir():
+        raise RecordingError(f"is a directory, not a recording (give {flag} an .aedat4 file)", str(path))
+    if not path.is_file():
+        raise RecordingError(f"no such file (check the {flag} path)", str(path))
 
 
 def make_source(config: NodeConfig, explicit: set[str] | frozenset = frozenset()) -> Any:
@@ -155,18 +185,16 @@ def make_source(config: NodeConfig, explicit: set[str] | frozenset = frozenset()
 
     s = config.source
     if s.replay is not None:
-        if not Path(s.replay).is_file():
-            raise RecordingError("no such file (check the --replay path)", str(s.replay))
+        _existing_file(Path(s.replay), "--replay")
         return drivers.open_source("replay", path=str(s.replay), speed=s.speed, loop=s.loop)
     backend = None
     if s.usb_backend is not None:
         kwargs: dict[str, Any] = {}
+        if s.device != "auto":  # an emulated camera presents the model asked for (not the file's, not its default)
+            kwargs["model"] = s.device
         if s.emulate_from is not None:
-            if not Path(s.emulate_from).is_file():
-                raise RecordingError("no such file (check the --emulate-from path)", str(s.emulate_from))
+            _existing_file(Path(s.emulate_from), "--emulate-from")
             kwargs["recording"] = str(s.emulate_from)
-            if s.device != "auto":  # the emulated camera presents the model asked for, not the file's
-                kwargs["model"] = s.device
             if "speed" in explicit:
                 kwargs["speed"] = s.speed
             if s.loop:
@@ -189,8 +217,18 @@ def list_devices_command(flags: dict[str, Any]) -> int:
     return 0
 
 
-def _setup_logging(level: str) -> None:
-    handler = logging.StreamHandler(sys.stderr)
+class _LogHandler(logging.StreamHandler):
+    """stderr logging that first erases the live status line on a terminal (it is redrawn at the next tick);
+    without this a log message is glued to the end of the status line."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = super().format(record)
+        isatty = getattr(self.stream, "isatty", None)
+        return "\r\x1b[K" + text if isatty is not None and isatty() else text
+
+
+def _setup_logging(level: str, stream: Any = None) -> None:
+    handler = _LogHandler(sys.stderr if stream is None else stream)
     handler.setFormatter(logging.Formatter("edi-live: %(levelname)s: %(message)s"))
     root = logging.getLogger()
     root.handlers[:] = [handler]

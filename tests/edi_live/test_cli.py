@@ -61,6 +61,10 @@ def test_help_teaches_groups_units_defaults_and_examples():
     ((), 2, "choose an input"),
     (("--device", "davis240", "--replay", "x.aedat4"), 2, "choose one input"),
     (("--replay", "does-not-exist.aedat4"), 1, "does-not-exist.aedat4: no such file"),
+    (("--replay", "tests"), 1, "tests: is a directory, not a recording"),
+    (("--device", "davis240", "--usb-backend", "drivers.emulator:backend", "--emulate-from", "tests"), 1,
+     "tests: is a directory, not a recording"),
+    (("--device", "davis240", "--usb-backend", "os:getcwd"), 2, "returned a str, not a pyusb backend"),
     (("--device", "davis240", "--usb-backend", "no_such_module:backend"), 2, "cannot import module"),
     (("--config", "no-such.toml"), 2, "config file no-such.toml not found"),
 ])
@@ -187,3 +191,75 @@ def test_importing_the_packages_loads_no_usb_zmq_or_cv2():
                           env=_env())
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "[]"
+
+
+def _factory_module(tmp_path, monkeypatch, name: str, source: str):
+    (tmp_path / f"{name}.py").write_text(source)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import importlib
+
+    return importlib.import_module(name)
+
+
+def test_usb_backend_factory_gets_the_requested_model(tmp_path, monkeypatch):
+    # `--device davis346 --usb-backend drivers.emulator:backend` (no recording) must present a DAVIS346,
+    # not the emulator's default DAVIS240
+    from edi_live import cli
+
+    mod = _factory_module(tmp_path, monkeypatch, "edi_test_factory_model", (
+        "from drivers.emulator import backend as _emulator\n"
+        "calls = []\n"
+        "def factory(recording=None, *, model=None):\n"
+        "    calls.append({'recording': recording, 'model': model})\n"
+        "    return _emulator(model=model)\n"))
+    config = cli.build_config({"device": "davis346", "usb_backend": "edi_test_factory_model:factory"}, None)
+    cli.make_source(config)
+    assert mod.calls == [{"recording": None, "model": "davis346"}]
+    assert cli.load_usb_backend("drivers.emulator:backend", model="davis346").model.product_id == 0x841A
+
+
+def test_usb_backend_factory_without_parameters_still_works(tmp_path, monkeypatch):
+    # the public hook: CALLABLE() with no arguments; options it does not declare are not forced on it
+    from edi_live import cli
+
+    _factory_module(tmp_path, monkeypatch, "edi_test_factory_plain", (
+        "from drivers.emulator import backend as _emulator\n"
+        "def factory():\n"
+        "    return _emulator()\n"))
+    backend = cli.load_usb_backend("edi_test_factory_plain:factory", model="davis346", recording="x.aedat4")
+    assert callable(backend.enumerate_devices)
+
+
+class _FakeTerminal:
+    def __init__(self, tty: bool) -> None:
+        self.tty, self.text = tty, ""
+
+    def isatty(self) -> bool:
+        return self.tty
+
+    def write(self, s: str) -> int:
+        self.text += s
+        return len(s)
+
+    def flush(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize("tty", [True, False])
+def test_log_lines_erase_the_live_status_line_on_a_terminal(tty):
+    # the status line is drawn with '\r' and no newline; a log record must not be glued to its end
+    import logging
+
+    from edi_live import cli
+
+    stream = _FakeTerminal(tty)
+    root = logging.getLogger()
+    saved = root.handlers[:], root.level, logging.getLogger("edi_live").level
+    try:
+        cli._setup_logging("info", stream)
+        logging.getLogger("edi_live.node").info("--duration 3.0 s reached")
+    finally:
+        root.handlers[:], root.level = saved[0], saved[1]
+        logging.getLogger("edi_live").setLevel(saved[2])
+    expected = "edi-live: INFO: --duration 3.0 s reached\n"
+    assert stream.text == ("\r\x1b[K" + expected if tty else expected)

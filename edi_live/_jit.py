@@ -217,20 +217,23 @@ def count_events(x, y, p, width, height, mask, use_mask, out_on, out_off, sign):
             out_off[q] += sign
 
 
-DIVISOR_STATE = np.dtype([("s", np.float64), ("t", np.float64), ("lvl", np.float32), ("base", np.float32),
-                          ("lvl_f", np.float32), ("n", np.int32)], align=True)
+DIVISOR_STATE = np.dtype([("s", np.float64), ("t", np.float32), ("lvl", np.float32), ("base", np.float32),
+                          ("lvl_f", np.float32), ("n", np.int32), ("n_f", np.int32)], align=True)
 """divisor_stream's per-pixel row, 32 bytes so that each event touches one cache line: running sum, last event
-time - ts, net level, base level, level at f, events. Levels are exact in float32 up to 2**24 events a pixel."""
+time - ts, net level, base level, level and event count at f, events. float32 is exact for times below 2**24 µs
+(the caller checks the exposure) and for levels up to 2**24 events a pixel."""
 
 
 @njit(cache=True, nogil=True)
-def divisor_stream(t, x, y, p, width, height, mask, use_mask, ts, te, f, c, count_all, use_count_all, state, seen):
+def divisor_stream(t, x, y, p, width, height, mask, use_mask, ts, te, f, c, count_all, use_count_all, state, seen,
+                   acc_on, acc_off, use_acc):
     """log D(c) per active pixel for c_on == c_off in ONE time-ordered pass, no sort and no exp per event.
 
     Per pixel: the net level n counted from ts, and a running sum of dwell * exp(c * (n - base)) read from a
     small table; the base moves up when n climbs more than the table above it (levels far below the base
     underflow harmlessly), so any event count stays finite. Events must lie in [ts, te]. `state` is scratch
-    (npix rows of DIVISOR_STATE), `seen` (npix uint8) must come zeroed.
+    (npix rows of DIVISOR_STATE), `seen` (npix uint8) must come zeroed. With use_acc, the ON/OFF counts of the
+    events after f are added to acc_on/acc_off.
     Returns (pixels in ascending order, log D, c * (n(te) - n(f)))."""
     npix = width * height
     k = 64
@@ -247,7 +250,7 @@ def divisor_stream(t, x, y, p, width, height, mask, use_mask, ts, te, f, c, coun
                 count_all[q] += 1
             continue
         row = state[q]
-        ti = float(t[i] - ts)
+        ti = np.float32(t[i] - ts)
         if seen[q] == 0:  # 1: active, 2: active and f passed
             seen[q] = 1
             row.s = 0.0
@@ -258,6 +261,7 @@ def divisor_stream(t, x, y, p, width, height, mask, use_mask, ts, te, f, c, coun
             n_act += 1
         if t[i] > f and seen[q] == 1:
             row.lvl_f = row.lvl
+            row.n_f = row.n
             seen[q] = 2
         dwell = ti - row.t
         if dwell > 0.0:
@@ -296,6 +300,11 @@ def divisor_stream(t, x, y, p, width, height, mask, use_mask, ts, te, f, c, coun
         n_f = row.lvl_f if seen[q] == 2 else row.lvl
         if use_count_all:
             count_all[q] += row.n
+        if use_acc and seen[q] == 2:
+            n_after = row.n - row.n_f
+            net_after = np.int64(row.lvl - row.lvl_f)
+            acc_on[q] += (n_after + net_after) // 2
+            acc_off[q] += (n_after - net_after) // 2
         pixels[r] = q
         log_d[r] = c * (base - n_f) + math.log(total / span)
         delta_end[r] = c * (row.lvl - n_f)

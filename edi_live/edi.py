@@ -227,27 +227,31 @@ def build_level_table(events: np.ndarray, width: int, height: int, exposure_star
 def log_divisor_events(events: np.ndarray, width: int, height: int, exposure_start_us: int, exposure_end_us: int,
                        ref_t_us: int | None, c_on: float, c_off: float | None = None, *,
                        mask: np.ndarray | None = None,
-                       event_counts: np.ndarray | None = None) \
+                       event_counts: np.ndarray | None = None,
+                       counts_after_f: tuple[np.ndarray, np.ndarray] | None = None) \
         -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """(active pixels, log D, exponent change f->te or None) for ONE c straight from the events.
 
     Same log D as log_divisor(build_level_table(...)) but, for c_on == c_off with numba, a single pass without
     sorting, which also yields c * E(f -> te) per active pixel (so the latent image at te costs O(pixels)).
-    Pixel order is unspecified. `mask`/`event_counts` as in build_level_table.
+    Pixel order is unspecified. `mask`/`event_counts` as in build_level_table. `counts_after_f` (flat int64
+    n_on, n_off): when the single pass runs (the third result is not None), it adds the ON/OFF counts of the
+    unmasked events in (f, te] to them, which saves the caller a second pass; otherwise they are left alone.
     """
     c_off = c_on if c_off is None else c_off
     ts, te = int(exposure_start_us), int(exposure_end_us)
     if te < ts:
         raise ValueError(f"exposure ends before it starts (got {ts}..{te} µs)")
     f = (ts + te) // 2 if ref_t_us is None else min(max(int(ref_t_us), ts), te)
-    if _jit is not None and c_on == c_off and te > ts:
+    if _jit is not None and c_on == c_off and 0 < te - ts < 2**24:  # float32 times in the pass are exact
         ev = _window(events, ts, te)
         m, use_m = _mask_arg(mask)
         cnt = _NO_COUNTS if event_counts is None else event_counts
+        acc_on, acc_off = counts_after_f if counts_after_f is not None else (_NO_COUNTS, _NO_COUNTS)
         npix = width * height
         return _jit.divisor_stream(ev["t"], ev["x"], ev["y"], ev["p"], width, height, m, use_m, ts, te, f,
                                    float(c_on), cnt, event_counts is not None, np.empty(npix, _jit.DIVISOR_STATE),
-                                   np.zeros(npix, np.uint8))
+                                   np.zeros(npix, np.uint8), acc_on, acc_off, counts_after_f is not None)
     table = build_level_table(events, width, height, ts, te, f, mask=mask, segments=c_on != c_off,
                               event_counts=event_counts)
     return table.pixels, log_divisor(table, c_on, c_off), None

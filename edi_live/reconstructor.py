@@ -154,8 +154,12 @@ class EdiReconstructor:
         if self._mask_hot:
             frame_counts = self._frame_counts if edi._jit is not None else np.zeros(self.width * self.height,
                                                                                   np.int64)
+        if not self._fixed:  # the accumulators are used (and written) only when c is estimated
+            for a in self._acc:
+                a.fill(0)
         divisor = edi.log_divisor_events(events, self.width, self.height, ts, te, f, self.c_on, self.c_off,
-                                         mask=mask, event_counts=frame_counts)
+                                         mask=mask, event_counts=frame_counts,
+                                         counts_after_f=None if self._fixed else self._acc)
         if self.events_ignored:  # still scene: L(f) = B and the latent image stays there
             divisor = (divisor[0][:0], divisor[1][:0], divisor[2][:0] if divisor[2] is not None else None)
         t = events["t"]
@@ -179,16 +183,12 @@ class EdiReconstructor:
             deblurred = edi.to_uint8(self._log_ref)
             # latent state: from L(f) through the events after f that are already here
             np.copyto(self._log_lat, self._log_ref)
-        if not self._fixed:  # the accumulators are used (and written) only when c is estimated
-            for a in self._acc:
-                a.fill(0)
         if delta_end is not None:  # the divisor pass already knows E(f -> te): jump there in O(pixels)
             if not fused:
                 lat = self._log_lat.reshape(-1)
                 lat[pixels] += delta_end.astype(np.float32)
                 np.clip(lat, edi.LOG_MIN, edi.LOG_MAX, out=lat)
-            if not self._fixed:  # the consistency pairs need the counts after f
-                edi.add_counts(events, self.width, self.height, *self._acc, t0=f + 1, t1=te, mask=mask)
+            # (the consistency pairs need the counts after f: the divisor pass added them to the accumulators)
             after = events[edi.time_index(t, te, "right"):]
         else:
             after = events[edi.time_index(t, f, "right"):]

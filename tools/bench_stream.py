@@ -1,6 +1,7 @@
 """End-to-end streaming benchmarks of the edi-live node (numbers, not pass/fail).
 
     python tools/bench_stream.py throughput   # replay --speed 0 -> worker -> publish -> 1 subscriber, --every 1000
+    python tools/bench_stream.py stages       # CPU per stage, each alone on one thread (per frame / per event)
     python tools/bench_stream.py latency      # paced replay at ~1 M events/s: latency p50/p99, arrival -> sent
     python tools/bench_stream.py memory       # RSS over a looped replay (--seconds 60; 600 for the 10-minute run)
     python tools/bench_stream.py static       # CPU of the node on a static scene (APS frames, no events)
@@ -312,6 +313,116 @@ def bench_latency(path: Path, every: int, rate_ev_s: float, seconds: float, pack
           f"one arrival stamp; load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
 
 
+def bench_stages(path: Path, every: int, repeat: int, extra: dict | None = None) -> None:
+    """CPU per stage, each run alone on one thread (thread_time: robust against other jobs on the machine).
+
+    The sum is the CPU the pipeline needs per event; the GIL-held part of it bounds the end-to-end rate."""
+    import drivers
+    from edi_live.config import EdiConfig
+    from edi_live.ring import EventRing
+    from edi_live.worker import EdiWorker
+
+    print(f"\n## stages: CPU per stage, each alone on one thread, --every {every} ({path.name})")
+    rows: dict[str, list[float]] = {"pump: replay decode + merge (per 1000 events)": [],
+                                    "pump: ring push + worker's ring read (per 1000 events)": [],
+                                    "worker: latent frames, EDI + worker (per frame)": [],
+                                    "worker: APS deblur (per APS frame)": [],
+                                    "publisher: encode + send to 1 subscriber (per frame)": []}
+    n_frames = n_aps = n_events = 0
+    for _ in range(repeat):
+        # 1. replay decode + merge
+        src = drivers.open_source("replay", path=str(path), speed=0)
+        packets = []
+        c0 = time.thread_time()
+        with src:
+            for packet in src:
+                if packet is not None:
+                    packets.append(packet)
+        pump_s = time.thread_time() - c0
+        n_events = sum(len(p.events) for p in packets)
+        rows["pump: replay decode + merge (per 1000 events)"].append(pump_s / n_events * 1e9)
+        # 2. ring push + read (the read is the worker's part, done here on the same thread)
+        ring = EventRing(1 << 23, 1 << 10, "wait")
+        c0 = time.thread_time()
+        for packet in packets:
+            ring.push(packet)
+        ring.close()
+        push_s = time.thread_time() - c0
+        probe = EventRing(1 << 23, 1 << 10, "wait")
+        for packet in packets:
+            probe.push(packet)
+        c0 = time.thread_time()
+        while len(probe.read_events(1 << 16).events):
+            pass
+        read_s = time.thread_time() - c0
+        rows["pump: ring push + worker's ring read (per 1000 events)"].append((push_s + read_s) / n_events * 1e9)
+        # 3. worker on the filled ring, synchronously, sink collecting frames
+        out: list = []
+        cfg = EdiConfig(every=every, deblur_thread=False, **(extra or {}))
+        worker = EdiWorker(ring, default_reconstructor(src.info.width, src.info.height, cfg), cfg, [out.append])
+        c0 = time.thread_time()
+        worker._run()
+        work_s = time.thread_time() - c0
+        if worker.error is not None:
+            raise SystemExit(f"worker failed: {worker.error!r}")
+        deblur_s = sum(worker._deblur_ms) / 1e3
+        n_aps = len(worker._deblur_ms)
+        n_frames = len(out)
+        rows["worker: latent frames, EDI + worker (per frame)"].append((work_s - deblur_s) / max(1, n_frames - n_aps)
+                                                                       * 1e6)
+        rows["worker: APS deblur (per APS frame)"].append(deblur_s / max(1, n_aps) * 1e6)
+        # 4. publisher: submit every frame to a publisher with one subscriber process receiving all
+        rows["publisher: encode + send to 1 subscriber (per frame)"].append(_publish_cpu_per_frame(out) * 1e6)
+    print(f"{n_events} events, {n_frames} frames ({n_aps} APS deblurs); medians of {repeat}")
+    print("| stage | CPU µs | per 1000 events (µs) |\n|---|---|---|")
+    total = 0.0
+    for name, values in rows.items():
+        v = float(np.median(values))
+        if "per 1000 events" in name:
+            per_k = v
+        elif "APS" in name:
+            per_k = v * n_aps / n_events * 1000
+        elif "latent" in name:
+            per_k = v * (n_frames - n_aps) / n_events * 1000
+        else:
+            per_k = v * n_frames / n_events * 1000
+        total += per_k
+        print(f"| {name} | {v:.1f} | {per_k:.1f} |")
+    print(f"| total | | {total:.1f} |")
+    print(f"=> one core running everything: {1e3 / total:.2f} M events/s; 12 M events/s needs <= 83 µs per 1000 "
+          f"events across the node's threads (and the GIL-held part of it on one core)")
+
+
+def _publish_cpu_per_frame(recs: list) -> float:
+    from edi_live.publisher import Publisher
+
+    pub = Publisher(["tcp://127.0.0.1:*"], "bench", inbox_size=1 << 20, sndhwm=0)
+    pub.start()
+    try:
+        ctx = mp.get_context("spawn")
+        parent, child = ctx.Pipe()
+        proc = ctx.Process(target=_subscriber, args=(pub.bound_endpoints[0], child), daemon=True)
+        proc.start()
+        while not parent.poll(0.05):  # the subscriber reports ready once it receives a stats message
+            pub.submit(recs[0])
+        parent.recv()
+        sent0 = pub.stats()["sent"]
+        c0 = time.process_time()
+        for rec in recs:
+            pub.submit(rec)
+        deadline = time.monotonic() + 60
+        while pub.stats()["sent"] < sent0 + len(recs) and time.monotonic() < deadline:
+            time.sleep(0.0005)
+        cpu_s = time.process_time() - c0
+        time.sleep(0.2)
+        parent.send("stop")
+        parent.poll(30)
+        proc.join(10)
+    finally:
+        pub.close()
+    return cpu_s / len(recs)
+
+
 def _rss_mib() -> float:
     with open("/proc/self/statm") as fh:
         return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
@@ -457,7 +568,7 @@ def _extra(args: argparse.Namespace) -> dict:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python tools/bench_stream.py", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("mode", choices=("throughput", "latency", "memory", "static", "scaling", "all"))
+    ap.add_argument("mode", choices=("throughput", "stages", "latency", "memory", "static", "scaling", "all"))
     ap.add_argument("--input", type=Path, help="an .aedat4 recording (default: simulated 240x180, cached)")
     ap.add_argument("--every", type=int, default=1000, help="events per latent frame (default 1000)")
     ap.add_argument("--repeat", type=int, default=3, help="runs for medians (default 3)")
@@ -471,11 +582,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--speed", type=float, default=1.0, help="memory mode: replay speed (default 1 = real time)")
     args = ap.parse_args(argv)
     path = args.input
-    if args.mode in ("throughput", "latency", "memory", "all") and path is None:
+    if args.mode in ("throughput", "stages", "latency", "memory", "all") and path is None:
         path = default_recording()
     print(f"machine: {os.cpu_count()} CPUs, Python {sys.version.split()[0]}, numpy {np.__version__}")
     if args.mode in ("throughput", "all"):
         bench_throughput(path, args.every, args.repeat, args.passes, extra=_extra(args))
+    if args.mode in ("stages", "all"):
+        bench_stages(path, args.every, args.repeat, extra={"c": args.c} if args.c is not None else None)
     if args.mode in ("latency", "all"):
         bench_latency(path, args.every, args.rate, args.seconds or 10.0, extra=_extra(args))
     if args.mode in ("static", "all"):

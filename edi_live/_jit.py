@@ -211,10 +211,9 @@ def count_events(x, y, p, width, height, mask, use_mask, out_on, out_off, sign):
         q = np.int64(y[i]) * width + x[i]
         if use_mask and mask[q]:
             continue
-        if p[i]:
-            out_on[q] += sign
-        else:
-            out_off[q] += sign
+        on = np.int64(p[i])  # branch-free: polarities are unpredictable (two adds beat a mispredict)
+        out_on[q] += sign * on
+        out_off[q] += sign - sign * on
 
 
 DIVISOR_STATE = np.dtype([("s", np.float64), ("t", np.float32), ("lvl", np.float32), ("base", np.float32),

@@ -90,7 +90,10 @@ class LevelTable:
     def take(self, rows: np.ndarray) -> "LevelTable":
         """The table restricted to the active-pixel rows `rows` (ascending), e.g. a subsample for c search."""
         rows = np.asarray(rows, dtype=np.int64)
-        seg_idx, seg_start = _ragged_take(self.seg_start, rows)
+        if self.seg_frac.size == 0:  # built without segments: nothing to take there
+            seg_idx, seg_start = np.zeros(0, np.int64), np.zeros(rows.size + 1, np.int64)
+        else:
+            seg_idx, seg_start = _ragged_take(self.seg_start, rows)
         lvl_idx, lvl_start = _ragged_take(self.lvl_start, rows)
         return LevelTable(
             self.width, self.height, self.exposure_start_us, self.exposure_end_us, self.ref_t_us,

@@ -199,6 +199,16 @@ def test_take_restricts_rows(rng):
     np.testing.assert_allclose(edi.log_divisor(sub, 0.4, 0.1), edi.log_divisor(table, 0.4, 0.1)[rows])
 
 
+def test_subset_events_are_the_events_at_those_pixels(backend, rng):
+    ev = random_events(rng, 3000, 20, 10, 0, 5000)
+    ev["x"][::50] = 25  # out of range: never selected
+    only = rng.random((10, 20)) < 0.3
+    got = edi.events_at_pixels(ev, 20, 10, only, 1000, 4000)
+    inside = (ev["x"] < 20) & (ev["t"] >= 1000) & (ev["t"] <= 4000)
+    want = ev[inside & only.reshape(-1)[np.minimum(ev["y"].astype(int) * 20 + ev["x"], 199)]]
+    np.testing.assert_array_equal(got, want)
+
+
 def test_hot_pixel_found_among_moving_edges(rng):
     w, h = 60, 40
     counts = np.zeros(w * h, np.int64)

@@ -12,6 +12,7 @@ import html
 import http.server
 import json
 import logging
+import os
 import signal
 import sys
 import threading
@@ -191,7 +192,15 @@ class Recorder:
         self.written = 0
         self.skipped_size = 0
         if png_dir is not None:
-            png_dir.mkdir(parents=True, exist_ok=True)
+            try:
+                png_dir.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise EdiLiveError(f"cannot create the --png folder {png_dir}: {exc.strerror}") from exc
+        if mp4 is not None:  # cv2 opens the file only at the first frame: check the place now, not minutes later
+            folder = mp4.resolve().parent
+            if mp4.is_dir() or not folder.is_dir() or not os.access(folder, os.W_OK):
+                why = "is a directory" if mp4.is_dir() else f"folder {folder} is missing or not writable"
+                raise EdiLiveError(f"cannot write --mp4 {mp4}: {why}")
 
     def write(self, header: dict, image: np.ndarray) -> None:
         gray = to_u8(image)
@@ -269,9 +278,27 @@ def status_line(rates: Rates, skipped: int, stats: dict | None) -> str:
 
 def parse_host_port(text: str) -> tuple[str, int]:
     host, sep, port = text.rpartition(":")
-    if not sep or not port.isdigit() or not host:
-        raise argparse.ArgumentTypeError(f"expected HOST:PORT, e.g. 127.0.0.1:8080 (got {text!r})")
+    if not sep or not port.isdigit() or not host or int(port) > 65535:
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT with PORT 0-65535, e.g. 127.0.0.1:8080 (got {text!r})")
     return host, int(port)
+
+
+def _number(kind: type, low: float, high: float | None = None) -> Any:
+    """An argparse type: a number of `kind` in [low, high] (high None: no upper bound)."""
+
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            value = None
+        if value is None or value != value or value < low or (high is not None and value > high) \
+                or value == float("inf"):
+            bound = f"from {low} to {high}" if high is not None else f">= {low}"
+            what = "an integer" if kind is int else "a number"
+            raise argparse.ArgumentTypeError(f"expected {what} {bound} (got {text!r})")
+        return value
+
+    return parse
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -290,12 +317,15 @@ def build_parser() -> argparse.ArgumentParser:
                      help="serve the live MJPEG page here (default 127.0.0.1:8080; port 0 = any free port)")
     out.add_argument("--no-http", action="store_true", help="do not serve the live page")
     out.add_argument("--mp4", type=Path, metavar="FILE", help="also write an MP4 (mp4v codec)")
-    out.add_argument("--mp4-fps", type=float, default=30.0, help="frame rate stored in the MP4 (default 30)")
+    out.add_argument("--mp4-fps", type=_number(float, 0.1), default=30.0, metavar="FPS",
+                     help="frame rate stored in the MP4 (default 30)")
     out.add_argument("--png", type=Path, metavar="DIR", help="also write every shown frame as DIR/frame_SEQ.png")
-    out.add_argument("--jpeg-quality", type=int, default=85, help="MJPEG quality 1-100 (default 85)")
+    out.add_argument("--jpeg-quality", type=_number(int, 1, 100), default=85, metavar="Q",
+                     help="MJPEG quality 1-100 (default 85)")
     run = parser.add_argument_group("run")
-    run.add_argument("--duration", type=float, metavar="SECONDS", help="stop after this long (default: Ctrl-C)")
-    run.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
+    run.add_argument("--duration", type=_number(float, 0.001), metavar="SECONDS",
+                     help="stop after this long (default: Ctrl-C)")
+    run.add_argument("--max-frames", type=_number(int, 1), metavar="N", help="stop after N frames")
     run.add_argument("--quiet", action="store_true", help="no status line")
     return parser
 

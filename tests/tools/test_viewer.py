@@ -240,6 +240,43 @@ def test_cli_bad_usage_exits_2():
     assert proc.returncode == 2 and "HOST:PORT" in err
 
 
+def _finish(proc: subprocess.Popen, timeout_s: float = 20) -> str:
+    """stderr of a viewer process that should end by itself quickly; killed (and the test fails) if not."""
+    try:
+        return proc.communicate(timeout=timeout_s)[1]
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.communicate(timeout=10)
+        pytest.fail("the viewer did not exit by itself")
+
+
+@pytest.mark.parametrize("args,fragment", [
+    (["--http", "127.0.0.1:99999"], "PORT 0-65535"),
+    (["--jpeg-quality", "500"], "--jpeg-quality: expected an integer from 1 to 100"),
+    (["--duration", "-1"], "--duration: expected a number"),
+    (["--duration", "nan"], "--duration: expected a number"),
+    (["--max-frames", "0"], "--max-frames: expected an integer >= 1"),
+    (["--mp4-fps", "0", "--mp4", "x.mp4"], "--mp4-fps: expected a number"),
+])
+def test_cli_out_of_range_values_exit_2_without_a_traceback(args, fragment):
+    proc = run_cli([*args, "--no-http", "--endpoint", "tcp://127.0.0.1:1"])
+    err = _finish(proc)
+    assert proc.returncode == 2 and fragment in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("make_args,fragment", [
+    (lambda tmp: ["--png", str(tmp / "file.txt" / "frames")], "cannot create the --png folder"),
+    (lambda tmp: ["--mp4", str(tmp / "missing" / "x.mp4")], "cannot write --mp4"),
+    (lambda tmp: ["--mp4", str(tmp)], "is a directory"),
+])
+def test_cli_unwritable_outputs_fail_at_start_with_one_line(tmp_path, make_args, fragment):
+    (tmp_path / "file.txt").write_text("a file where a folder is expected")
+    proc = run_cli([*make_args(tmp_path), "--no-http", "--endpoint", "tcp://127.0.0.1:1", "--duration", "30"])
+    err = _finish(proc)  # fails at start: never waits out the 30 s
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert proc.returncode == 1 and len(lines) == 1 and fragment in lines[0], err
+
+
 def test_cli_timed_run_prints_rates(feeder):
     proc = run_cli(["--endpoint", feeder.endpoint, "--no-http", "--duration", "2.5"],
                    env={**os.environ, "PYTHONUNBUFFERED": "1"})

@@ -312,20 +312,57 @@ def divisor_stream(t, x, y, p, width, height, mask, use_mask, ts, te, f, c, coun
 
 
 @njit(cache=True, nogil=True)
+def _divisor_sums(start, lvl_min, frac, rows, c, ztab, cap, sign, ratio, offset):
+    """For each sub-table row: D = exp(c*lvl_min) * sum_j frac_j * ztab[j]; multiplies ratio[row] by the sum
+    (sign +1) or divides by it (sign -1) and adds sign * c * lvl_min to offset[row]. Rows wider than `cap` get
+    their log D (log-sum-exp) added to offset directly."""
+    for r in range(rows.size):
+        a = start[r]
+        b = start[r + 1]
+        i = rows[r]
+        if b - a <= cap:
+            acc = 0.0
+            for k in range(a, b):
+                acc += frac[k] * ztab[k - a]
+            if sign > 0:
+                ratio[i] *= acc
+            else:
+                ratio[i] /= acc
+            offset[i] += sign * c * lvl_min[r]
+        else:
+            m = -math.inf
+            for k in range(a, b):
+                if frac[k] > 0.0 and c * (k - a) > m:
+                    m = c * (k - a)
+            acc = 0.0
+            for k in range(a, b):
+                if frac[k] > 0.0:
+                    acc += frac[k] * math.exp(c * (k - a) - m)
+            offset[i] += sign * (c * lvl_min[r] + m + math.log(acc))
+
+
+@njit(cache=True, nogil=True)
 def consistency_cost(c, dlog_b, net, weight, delta2, start_p, min_p, frac_p, row_p, start_c, min_c, frac_c, row_c,
                      cap):
     """sum_i weight_i * sqrt(delta2 + r_i^2), r = dlog_b - (c*net + log D_cur - log D_prev), for c_on == c_off.
-    row_* maps each sub-table row to its residual index."""
-    pred = c * net
-    ld_p = log_divisor_levels(start_p, min_p, frac_p, c, cap)
-    for r in range(ld_p.size):
-        pred[row_p[r]] -= ld_p[r]
-    ld_c = log_divisor_levels(start_c, min_c, frac_c, c, cap)
-    for r in range(ld_c.size):
-        pred[row_c[r]] += ld_c[r]
+    row_* maps each sub-table row to its residual index. One log per residual: log(D_cur / D_prev)."""
+    wmax = 1
+    for r in range(row_p.size):
+        wmax = max(wmax, start_p[r + 1] - start_p[r])
+    for r in range(row_c.size):
+        wmax = max(wmax, start_c[r + 1] - start_c[r])
+    wmax = min(wmax, cap)
+    ztab = np.empty(wmax, dtype=np.float64)
+    for j in range(wmax):
+        ztab[j] = math.exp(c * j)
+    n = net.size
+    ratio = np.ones(n, dtype=np.float64)
+    offset = c * net
+    _divisor_sums(start_p, min_p, frac_p, row_p, c, ztab, cap, -1.0, ratio, offset)
+    _divisor_sums(start_c, min_c, frac_c, row_c, c, ztab, cap, 1.0, ratio, offset)
     total = 0.0
-    for i in range(pred.size):
-        res = dlog_b[i] - pred[i]
+    for i in range(n):
+        res = dlog_b[i] - (offset[i] + math.log(ratio[i]))
         total += weight[i] * math.sqrt(delta2 + res * res)
     return total
 

@@ -22,7 +22,7 @@ import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 from edi_live.errors import ConfigError
 
@@ -240,7 +240,18 @@ def _endpoints(v: Any) -> tuple[str, ...]:
 
 
 def _num(v: Any) -> Any:
-    return float(v) if isinstance(v, int) and not isinstance(v, bool) else v
+    _check(not isinstance(v, bool), f"expected a number, not {str(v).lower()} (got {v!r})")
+    return float(v) if isinstance(v, int) else v
+
+
+def _bool(name: str) -> Callable[[Any], bool]:
+    """A switch must be true or false: `loop = "false"` in a TOML file is a string, which Python finds true."""
+
+    def convert(v: Any) -> bool:
+        _check(isinstance(v, bool), f"{name} must be true or false (got {v!r})")
+        return v
+
+    return convert
 
 
 OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
@@ -249,11 +260,11 @@ OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
     "serial": ("source", "serial", lambda v: None if v is None else str(v)),
     "exposure_us": ("source", "exposure_us", None),
     "frame_interval_us": ("source", "frame_interval_us", None),
-    "reconnect": ("source", "reconnect", None),
+    "reconnect": ("source", "reconnect", _bool("reconnect")),
     "usb_backend": ("source", "usb_backend", None),
     "emulate_from": ("source", "emulate_from", _path),
     "speed": ("source", "speed", _num),
-    "loop": ("source", "loop", None),
+    "loop": ("source", "loop", _bool("loop")),
     "ring_events": ("ring", "capacity_events", None),
     "ring_frames": ("ring", "capacity_frames", None),
     "ring_policy": ("ring", "policy", None),
@@ -267,7 +278,7 @@ OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
     "reestimate_every": ("edi", "reestimate_every", None),
     "deblur_thread": ("edi", "deblur_thread", None),
     "publish": ("publisher", "endpoints", _endpoints),
-    "no_publish": ("publisher", "-", None),
+    "no_publish": ("publisher", "-", _bool("no-publish")),
     "curve_secret_key": ("publisher", "curve_secret_key", _path),
     "stats_interval_s": ("publisher", "stats_interval_s", _num),
     "out": ("output", "out", _path),
@@ -287,9 +298,9 @@ def _build(opts: dict[str, Any]) -> NodeConfig:
                                            "node": {}}
     for key, value in opts.items():
         section, name, convert = OPTION_KEYS[key]
-        if name == "-":
-            continue
-        sections[section][name] = convert(value) if convert is not None else value
+        value = convert(value) if convert is not None else value
+        if name != "-":
+            sections[section][name] = value
     if opts.get("no_publish"):
         sections["publisher"]["endpoints"] = ()
     return NodeConfig(

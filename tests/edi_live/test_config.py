@@ -39,6 +39,12 @@ def test_defaults_are_safe():
     ({"replay": "x", "duration": -2}, "duration must be a positive number (got -2"),
     ({"replay": "x", "frobnicate": 1}, "unknown option(s) frobnicate"),
     ({"replay": "x", "log_level": "loud"}, "log-level"),
+    # TOML switches written as strings or numbers would be "true" to Python: a usage error instead
+    ({"replay": "x", "loop": "false"}, "loop must be true or false (got 'false')"),
+    ({"device": "auto", "reconnect": 0}, "reconnect must be true or false (got 0)"),
+    ({"replay": "x", "no_publish": "no"}, "no-publish must be true or false (got 'no')"),
+    ({"replay": "x", "c": True}, "expected a number, not true"),
+    ({"replay": "x", "speed": False}, "expected a number, not false"),
 ])
 def test_invalid_values_name_the_key_and_the_value(options, fragment):
     with pytest.raises(ConfigError) as info:

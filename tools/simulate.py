@@ -29,6 +29,7 @@ import dataclasses
 import json
 import math
 import sys
+import textwrap
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,6 +41,7 @@ if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, Frame  # noqa: E402
+from edi_live.errors import EdiLiveError  # noqa: E402
 
 RESOLUTIONS = {"240x180": (240, 180), "346x260": (346, 260)}
 PROCEDURAL_TEXTURES = ("blocks", "noise", "stripes")
@@ -347,6 +349,11 @@ def simulate(cfg: SceneConfig) -> Simulation:
         raise ValueError("need 0 < exposure_us <= frame_interval_us")
     if min(cfg.c_on, cfg.c_off) <= 0:
         raise ValueError("contrast thresholds must be positive")
+    if not cfg.duration_s > 0:
+        raise ValueError(f"duration_s must be > 0 (got {cfg.duration_s})")
+    for name in ("noise_rate_hz", "hot_rate_hz", "hot_pixels", "c_sigma", "refractory_us", "aps_noise_dn"):
+        if not getattr(cfg, name) >= 0:  # also catches NaN
+            raise ValueError(f"{name} must be >= 0 (got {getattr(cfg, name)})")
     rng = np.random.default_rng(cfg.seed + 1)
     w, h = cfg.width, cfg.height
     renderer = _Renderer(cfg)
@@ -526,11 +533,32 @@ def _parse_pair(text: str, what: str) -> tuple[float, float]:
     return a, b
 
 
+def _help_epilog() -> str:
+    """Where the defaults come from: the preset's settings over SceneConfig's, both listed from the code."""
+    base = SceneConfig()
+    shown = ("width", "height", "duration_s", "texture", "seed", "c_on", "c_off", "c_sigma", "velocity_px_s",
+             "rotation_deg_s", "zoom_per_s", "oscillation_period_s", "exposure_us", "frame_interval_us",
+             "refractory_us", "noise_rate_hz", "hot_pixels", "hot_rate_hz", "aps_noise_dn", "aps_offset_dn",
+             "aps_gamma", "event_offset_us", "latent_per_interval")
+    lines = ["defaults: an option not given takes its value from --preset (default demo), else from these",
+             "(units in the names: _s seconds, _us microseconds, _hz per second, _px_s pixels per second, c in",
+             "log-intensity units):",
+             textwrap.fill(", ".join(f"{k}={getattr(base, k)}" for k in shown), 100, initial_indent="  ",
+                           subsequent_indent="  "), "", "presets:"]
+    for name in sorted(PRESETS):
+        lines.append(textwrap.fill(", ".join(f"{k}={v}" for k, v in PRESETS[name].items()), 100,
+                                   initial_indent=f"  {name}: ", subsequent_indent="      "))
+    lines += ["", "examples:", "  python tools/simulate.py /tmp/demo.aedat4",
+              "  python tools/simulate.py /tmp/cam.aedat4 --preset davis346 --c 0.3 --noise-rate-hz 0.5",
+              "  python tools/simulate.py /tmp/long.aedat4 --preset fast --duration-s 10 --no-ground-truth"]
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
-        prog="python tools/simulate.py",
+        prog="python tools/simulate.py", formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Simulate a DAVIS recording (events + blurry APS frames) of a moving texture; writes "
-                    "OUT.aedat4 and the ground truth OUT.npz beside it.")
+                    "OUT.aedat4 and the ground truth OUT.npz beside it.", epilog=_help_epilog())
     ap.add_argument("out", help="output .aedat4 path")
     ap.add_argument("--preset", default="demo", choices=sorted(PRESETS))
     ap.add_argument("--resolution", choices=sorted(RESOLUTIONS), help="240x180 (DAVIS240) or 346x260 (DAVIS346)")
@@ -587,17 +615,21 @@ def main(argv: list[str] | None = None) -> int:
         over["imu"] = True
     if args.no_ground_truth:
         over["ground_truth"] = False
+    out = Path(args.out)
+    if out.is_dir() or not out.resolve().parent.is_dir():  # say so now, not after the simulation
+        print(f"simulate.py: error: cannot write {out}: "
+              f"{'it is a directory' if out.is_dir() else 'its folder does not exist'}", file=sys.stderr)
+        return 2
     try:
         cfg = preset(args.preset, **over)
         sim = simulate(cfg)
     except ValueError as exc:
         print(f"simulate.py: error: {exc}", file=sys.stderr)
         return 2
-    out = Path(args.out)
     try:
         write_aedat4(sim, out)
-    except ImportError:
-        print("simulate.py: error: edi_live.aedat4.writer is not available yet; cannot write .aedat4", file=sys.stderr)
+    except EdiLiveError as exc:  # e.g. no write permission
+        print(f"simulate.py: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 1
     if not args.no_ground_truth:
         save_ground_truth(sim, out.with_suffix(".npz"))

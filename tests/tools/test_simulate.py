@@ -221,6 +221,34 @@ def test_cli_rejects_bad_options_with_exit_code_2(tmp_path, capsys):
     assert not (tmp_path / "x.aedat4").exists()
 
 
+def test_cli_bad_output_path_is_one_line_before_simulating(tmp_path, capsys):
+    assert sim_mod.main([str(tmp_path / "missing" / "x.aedat4"), "--duration-s", "0.05"]) == 2
+    assert sim_mod.main([str(tmp_path), "--duration-s", "0.05"]) == 2
+    err = capsys.readouterr().err
+    assert "its folder does not exist" in err and "it is a directory" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("args,fragment", [
+    (["--duration-s", "-1"], "duration_s must be > 0"),
+    (["--duration-s", "nan"], "duration_s must be > 0"),
+    (["--noise-rate-hz", "-2"], "noise_rate_hz must be >= 0"),
+    (["--hot-pixels", "-1"], "hot_pixels must be >= 0"),
+])
+def test_cli_negative_rates_and_durations_name_the_option(tmp_path, capsys, args, fragment):
+    assert sim_mod.main([str(tmp_path / "x.aedat4"), *args]) == 2
+    assert fragment in capsys.readouterr().err
+    assert not (tmp_path / "x.aedat4").exists()
+
+
+def test_cli_help_lists_the_defaults_and_presets(capsys):
+    with pytest.raises(SystemExit) as info:
+        sim_mod.main(["--help"])
+    assert info.value.code == 0
+    out = capsys.readouterr().out
+    assert f"c_on={sim_mod.SceneConfig().c_on}" in out and "exposure_us=" in out and "examples:" in out
+    assert all(f"  {name}: " in out for name in sim_mod.PRESETS)
+
+
 def test_aps_offset_gamma_and_event_offset_are_applied():
     base = simulate(small(velocity_px_s=(120.0, 0.0)))
     odd = simulate(small(velocity_px_s=(120.0, 0.0), aps_offset_dn=10.0, aps_gamma=2.0, event_offset_us=-7))

@@ -192,7 +192,7 @@ class ConsistencyContrast:
     c_max: float = 2.0
     tol: float = 4e-3
     n_grid: int = 6
-    max_pixels: int = 2000
+    max_pixels: int = 1000
     min_pixels: int = 30
     b_low: float = 6.0  # 8-bit scale: darker pixels are dominated by read noise and quantisation
     b_high: float = 250.0

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -187,6 +188,11 @@ class NodeConfig:
     status_interval_s: float | None = None  # None: 0.5 s live line on a TTY, 5 s plain lines otherwise
 
     def __post_init__(self) -> None:
+        for flag, written in (("out", self.output.out), ("record", self.output.record)):
+            for source_flag, read in (("replay", self.source.replay), ("emulate-from", self.source.emulate_from)):
+                _check(written is None or read is None or not _same_file(written, read),
+                       f"{flag} would overwrite the {source_flag} recording it reads (got {str(written)!r}); "
+                       f"choose another file name")
         _positive_or_none("duration", self.duration_s)
         _positive_or_none("status-interval-s", self.status_interval_s)
         _check(self.log_level in LOG_LEVELS,
@@ -225,6 +231,16 @@ class NodeConfig:
     def from_toml(cls, path: str | Path, overrides: Mapping[str, Any] | None = None) -> "NodeConfig":
         """Read `path`, then apply `overrides` (explicit flags) on top."""
         return cls.from_options(merge_options(read_toml(path), overrides or {}))
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether two paths name one file (also through links, or relative vs absolute spellings)."""
+    try:
+        if Path(a).exists() and Path(b).exists():
+            return os.path.samefile(a, b)
+        return Path(a).resolve() == Path(b).resolve()
+    except OSError:
+        return False
 
 
 # flat option key -> (section, field, converter)

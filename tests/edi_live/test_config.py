@@ -53,6 +53,23 @@ def test_invalid_values_name_the_key_and_the_value(options, fragment):
     assert info.value.exit_code == 2
 
 
+@pytest.mark.parametrize("flag", ["out", "record"])
+def test_outputs_never_overwrite_the_input_recording(tmp_path: Path, monkeypatch, flag):
+    # `--replay rec.aedat4 --out rec.aedat4` emptied the user's recording before reading it
+    rec = tmp_path / "rec.aedat4"
+    rec.write_bytes(b"a recording")
+    (tmp_path / "link.aedat4").symlink_to(rec)
+    monkeypatch.chdir(tmp_path)
+    for written in ("rec.aedat4", str(rec), "./rec.aedat4", "link.aedat4"):
+        with pytest.raises(ConfigError, match=f"{flag} would overwrite the replay recording"):
+            NodeConfig.from_options({"replay": str(rec), flag: written})
+    with pytest.raises(ConfigError, match="overwrite the emulate-from recording"):
+        NodeConfig.from_options({"device": "davis240", "usb_backend": "drivers.emulator:backend",
+                                 "emulate_from": "rec.aedat4", flag: str(rec)})
+    assert NodeConfig.from_options({"replay": str(rec), flag: "other.aedat4"}).output is not None
+    assert rec.read_bytes() == b"a recording"
+
+
 def test_no_publish_empties_the_endpoints():
     cfg = NodeConfig.from_options({"replay": "x", "no_publish": True})
     assert not cfg.publisher.enabled

@@ -227,6 +227,21 @@ class _LogHandler(logging.StreamHandler):
         return "\r\x1b[K" + text if isatty is not None and isatty() else text
 
 
+_LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "[::1]", "::1")
+
+
+def _warn_if_exposed(config: NodeConfig) -> None:
+    """Loopback is the default; a network endpoint without CURVE is allowed (an explicit choice) but said aloud."""
+    if config.publisher.curve_secret_key is not None:
+        return
+    for endpoint in config.publisher.endpoints:
+        scheme, _, rest = endpoint.partition("://")
+        host = rest.rsplit(":", 1)[0] if scheme == "tcp" else ""
+        if scheme in ("tcp", "udp", "pgm", "epgm") and host not in _LOOPBACK_HOSTS:
+            log.warning("publishing on %s without encryption: anyone who can reach this machine can subscribe "
+                        "(use --curve-secret-key FILE, or a 127.0.0.1 endpoint)", endpoint)
+
+
 def _setup_logging(level: str, stream: Any = None) -> None:
     handler = _LogHandler(sys.stderr if stream is None else stream)
     handler.setFormatter(logging.Formatter("edi-live: %(levelname)s: %(message)s"))
@@ -268,6 +283,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         config = build_config(flags, config_path)
         level = config.log_level
         _setup_logging(level)
+        _warn_if_exposed(config)
         source = make_source(config, explicit=set(flags))
         from edi_live.node import Node
 

@@ -264,3 +264,22 @@ def test_log_lines_erase_the_live_status_line_on_a_terminal(tty):
         logging.getLogger("edi_live").setLevel(saved[2])
     expected = "edi-live: INFO: --duration 3.0 s reached\n"
     assert stream.text == ("\r\x1b[K" + expected if tty else expected)
+
+
+@pytest.mark.parametrize("endpoints,curve,warned", [
+    (["tcp://0.0.0.0:5555"], False, True),
+    (["tcp://*:5555"], False, True),
+    (["tcp://127.0.0.1:5555", "tcp://192.168.1.4:5555"], False, True),
+    (["tcp://127.0.0.1:5555", "ipc:///tmp/edi"], False, False),
+    (["tcp://0.0.0.0:5555"], True, False),
+])
+def test_publishing_beyond_loopback_without_curve_is_said_aloud(caplog, tmp_path, endpoints, curve, warned):
+    from edi_live import cli
+
+    flags = {"replay": "x.aedat4", "publish": endpoints}
+    if curve:
+        flags["curve_secret_key"] = str(tmp_path / "server.key_secret")
+    config = cli.build_config(flags, None)
+    with caplog.at_level("WARNING", logger="edi_live"):
+        cli._warn_if_exposed(config)
+    assert any("without encryption" in r.getMessage() for r in caplog.records) == warned

@@ -3,8 +3,11 @@
 - `OutWriter` ("out-writer"): every reconstruction the worker emits, as an 8-bit gray AEDAT4 frame whose
   timestamp and exposure start/end all equal the latent time t, frame source "reconstruction". AEDAT4 streams
   must be in time order, but in causal mode a deblurred frame (t = mid-exposure f) is emitted after latent
-  frames up to the exposure end; a small reorder buffer (frames newer than `reorder_us` before the newest
-  are held back) restores time order. A frame older than one already written is counted (`out_late`).
+  frames that are newer than f; with the deblur thread, and more so in an unpaced run, those can reach far
+  beyond f (more than 100 ms of sensor time was seen). A reorder buffer restores time order: a frame is
+  written once it is `reorder_us` behind the newest frame AND not newer than the newest reference time seen
+  (`ref_t_us`): references only move forward, so no later deblurred frame can be older than that. A frame
+  older than one already written (possible only past the bound on held frames) is counted (`out_late`).
 - `RecordWriter` ("record-writer"): the raw input packets as received (events, APS frames, IMU, triggers),
   for later `--replay`. Items that would go back in time in their stream are skipped and counted.
 
@@ -133,6 +136,7 @@ class OutWriter(_SinkThread):
         self._held: list[tuple[int, int, Reconstruction]] = []  # heap by (t, arrival order)
         self._order = 0
         self._newest_t = -(2**63)
+        self._newest_ref_t = -(2**63)  # later deblurred frames (t = their f) are newer than this
         self._written_t = -(2**63)
         self.frames = 0
         self.late = 0
@@ -145,9 +149,11 @@ class OutWriter(_SinkThread):
         if rec.t_us < self._newest_t:  # out of order: widen the window to what was seen
             self.reorder_us = max(self.reorder_us, 2 * (self._newest_t - rec.t_us))
         self._newest_t = max(self._newest_t, rec.t_us)
+        self._newest_ref_t = max(self._newest_ref_t, rec.t_us if rec.kind == "deblurred" else rec.ref_t_us)
         heapq.heappush(self._held, (rec.t_us, self._order, rec))
         self._order += 1
-        while self._held and (self._held[0][0] < self._newest_t - self.reorder_us
+        while self._held and ((self._held[0][0] < self._newest_t - self.reorder_us
+                               and self._held[0][0] <= self._newest_ref_t)
                               or len(self._held) > _MAX_HELD_FRAMES):
             self._write_frame(heapq.heappop(self._held)[2])
 

@@ -46,6 +46,29 @@ def test_out_frames_reopen_in_dv_processing_in_time_order(tmp_path):
     assert w.stats()["out_frames"] == len(times) and w.stats()["out_late"] == 0
 
 
+def test_out_keeps_a_deblurred_frame_that_comes_long_after_newer_latent_frames(tmp_path):
+    # The worker's deblur thread: latent frames keep coming from the previous reference f0 while the next APS
+    # frame (f1) is deblurred; in an unpaced run they reach far past f1 (here 250 ms, beyond the default
+    # 100 ms reorder window), then the deblurred f1 arrives. It must be written, in time order, not dropped.
+    f0, f1 = 0, 50_000
+    sent = [Reconstruction(np.full((6, 8), 1, np.uint8), f0, "deblurred", f0, -5000, 5000, 0.2, 0.2, 10)]
+    sent += [Reconstruction(np.full((6, 8), 2, np.uint8), t, "latent", f0, -5000, 5000, 0.2, 0.2, 10)
+             for t in range(5_000, 300_001, 10_000)]
+    sent.append(Reconstruction(np.full((6, 8), 3, np.uint8), f1, "deblurred", f1, 45_000, 55_000, 0.2, 0.2, 10))
+    sent += [Reconstruction(np.full((6, 8), 4, np.uint8), t, "latent", f1, 45_000, 55_000, 0.2, 0.2, 10)
+             for t in (310_000, 320_000)]
+    path = tmp_path / "sharp.aedat4"
+    w = OutWriter(path, 8, 6)
+    w.start()
+    for rec in sent:
+        w.submit(rec)
+    w.close(timeout_s=10)
+    _, frames = read_frames(path)
+    assert [f.timestamp for f in frames] == sorted(r.t_us for r in sent)
+    assert w.stats()["out_late"] == 0 and w.stats()["out_frames"] == len(sent)
+    assert [int(f.image.squeeze()[0, 0]) for f in frames if f.timestamp == f1] == [3]
+
+
 def test_out_writer_fault_is_reported_and_the_file_still_finalised(tmp_path):
     path = tmp_path / "sharp.aedat4"
     errors = []

@@ -388,19 +388,25 @@ def background_activity(t, x, y, width, height, last_t, dt_us, keep):
 
 
 @njit(cache=True, nogil=True)
-def _u8(v):
-    z = math.exp(min(v, np.float32(6.0))) + np.float32(0.5)
-    if z > 255.0:
-        z = 255.0
-    return np.uint8(z)
+def _u8(v, v0, scale, bucket_u8, bucket_thr):
+    """uint8 rendering of a log intensity without exp: bucket of v, plus one if v reaches the bucket's
+    threshold (the tables hold every rounding threshold; a bucket holds at most one)."""
+    b = (v - v0) * scale
+    if b < 0.0:
+        return np.uint8(0)
+    if b >= bucket_u8.size:
+        return np.uint8(255)
+    i = int(b)
+    return bucket_u8[i] + np.uint8(v >= bucket_thr[i])
 
 
 @njit(cache=True, nogil=True)
 def finish_frame_u8(img, sat, lut_log, lut_u8, pixels, log_d, delta_end, lo, hi, log_ref, deblurred, log_lat,
-                    display):
+                    display, v0, scale, bucket_u8, bucket_thr):
     """One pass for what follows the divisor of a uint8 APS frame: log L(f) (log B minus log D at the active
     informative pixels, clipped), its uint8 image, the latent log image at te (plus the f->te exponent) and its
-    uint8 image. Inactive pixels come from 256-entry tables of log(max(B, floor)) and its uint8 rendering."""
+    uint8 image. Inactive pixels come from 256-entry tables of log(max(B, floor)) and its uint8 rendering;
+    active ones are rendered through the bucket tables (v0, scale, bucket_u8, bucket_thr) instead of exp."""
     for q in range(img.size):
         i = img[q]
         v = lut_log[i]
@@ -417,11 +423,11 @@ def finish_frame_u8(img, sat, lut_log, lut_u8, pixels, log_d, delta_end, lo, hi,
             v = v - np.float32(log_d[r])
             v = min(max(v, lo), hi)
             log_ref[q] = v
-            deblurred[q] = _u8(v)
+            deblurred[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)
         w = v + np.float32(delta_end[r])
         w = min(max(w, lo), hi)
         log_lat[q] = w
-        display[q] = _u8(w)
+        display[q] = _u8(w, v0, scale, bucket_u8, bucket_thr)
 
 
 @njit(cache=True, nogil=True)

@@ -35,6 +35,39 @@ def _u8_tables() -> tuple[np.ndarray, np.ndarray]:
     return log_b, edi.to_uint8(log_b)
 
 
+@functools.lru_cache(maxsize=1)
+def _render_buckets(n_buckets: int = 8192) -> tuple[float, float, np.ndarray, np.ndarray]:
+    """edi.to_uint8 as a step function of float32 log L, for rendering without exp: the smallest float32 at
+    which each value 1..255 starts (found by bisection on edi.to_uint8 itself, so the same rounding), and
+    buckets over [first, last threshold) narrower than any gap between thresholds (at most one per bucket).
+    Returns (v0, buckets per unit of log L, uint8 value at each bucket start, the bucket's threshold or inf)."""
+    lo = np.full(255, -8.0, np.float32)  # edi.to_uint8(-8) = 0 < k
+    hi = np.full(255, 6.0, np.float32)  # edi.to_uint8(6) = 255 >= k
+    k = np.arange(1, 256)
+    for _ in range(60):  # bisection down to adjacent float32 values
+        mid = _f32_midpoint(lo, hi)
+        up = edi.to_uint8(mid) >= k
+        hi = np.where(up, mid, hi)
+        lo = np.where(up, lo, mid)
+    thr = hi.astype(np.float64)  # thr[k-1]: the first float32 rendered as >= k
+    v0 = float(thr[0])
+    scale = n_buckets / (float(thr[-1]) - v0)
+    starts = v0 + np.arange(n_buckets) / scale
+    bucket_u8 = np.searchsorted(thr, starts, side="right").astype(np.uint8)
+    bucket_thr = np.full(n_buckets, np.inf)
+    owner = np.minimum(((thr - v0) * scale).astype(np.int64), n_buckets - 1)
+    inside = thr > starts[owner]
+    bucket_thr[owner[inside]] = thr[inside]
+    return v0, scale, bucket_u8, bucket_thr.astype(np.float32)
+
+
+def _f32_midpoint(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """A float32 strictly between a and b (a < b) when one exists, else a: bisection then stays put."""
+    m = ((a.astype(np.float64) + b.astype(np.float64)) / 2).astype(np.float32)
+    step = np.nextafter(a, b)
+    return np.where((m > a) & (m < b), m, np.where(step < b, step, a)).astype(np.float32)
+
+
 def _check_c(name: str, value: float | None) -> float | None:
     if value is None:
         return None
@@ -174,7 +207,7 @@ class EdiReconstructor:
             edi._jit.finish_frame_u8(np.ascontiguousarray(img).reshape(-1), sat, lut_log, lut_u8, pixels,
                                      divisor[1], delta_end, np.float32(edi.LOG_MIN), np.float32(edi.LOG_MAX),
                                      self._log_ref.reshape(-1), deblurred.reshape(-1), self._log_lat.reshape(-1),
-                                     self._display.reshape(-1))
+                                     self._display.reshape(-1), *_render_buckets())
         else:
             if b is None:
                 b, informative = edi.blurry_to_float(img, saturation=self._saturation)

@@ -212,3 +212,19 @@ def test_denoise_filter_keeps_moving_edges(brick):
     filtered = stream(brick, EdiReconstructor(brick.width, brick.height, c=0.25, denoise_us=10_000))
     for a, b, gt in zip(plain[1:], filtered[1:], brick.sharp_mid[1:]):
         assert psnr(b.image, gt) >= psnr(a.image, gt) - 0.3
+
+
+def test_exp_free_rendering_matches_to_uint8(rng):
+    if not edi.have_numba():
+        pytest.skip("numba not installed: the bucket rendering is a numba kernel")
+    from edi_live.reconstructor import _render_buckets
+
+    v0, scale, bucket_u8, bucket_thr = _render_buckets()
+    thr = bucket_thr[np.isfinite(bucket_thr)]
+    v = np.concatenate([rng.uniform(-31, 31, 20_000), rng.uniform(-1, 6, 50_000), thr,
+                        np.nextafter(thr, np.float32(-np.inf)), np.nextafter(thr, np.float32(np.inf))])
+    v = v.astype(np.float32)
+    got = np.array([edi._jit._u8(x, v0, scale, bucket_u8, bucket_thr) for x in v[:3000]] +
+                   [edi._jit._u8(x, v0, scale, bucket_u8, bucket_thr) for x in v[-3 * thr.size:]], np.uint8)
+    want = edi.to_uint8(np.concatenate([v[:3000], v[-3 * thr.size:]]))
+    np.testing.assert_array_equal(got, want)

@@ -217,8 +217,9 @@ class Aedat4Reader:
             if size <= 0:
                 raise self._error(f"corrupt packet header (size {size})", pos)
             if pos + 8 + size > end:
-                what = "the FileDataTable" if end == self.data_table_position else "the end of the file (truncated)"
-                raise self._error(f"packet of {size} bytes runs past {what} at byte {end}", pos)
+                what = "the FileDataTable" if end == self.data_table_position else "the end of the file"
+                why = "corrupt size or table position" if end == self.data_table_position else "truncated"
+                raise self._error(f"packet of {size} bytes runs past {what}, which is at byte {end} ({why})", pos)
             if wanted is not None and sid not in wanted and sid in by_id:
                 pos += 8 + size
                 continue

@@ -465,3 +465,23 @@ def select_pixels(x, y, width, height, keep):
             out[m] = i
             m += 1
     return out[:m]
+
+
+@njit(cache=True, nogil=True)
+def select_and_count(x, y, p, width, height, keep, s0, s1, mask, use_mask, out_on, out_off, c0, c1, sign):
+    """select_pixels on events [s0, s1) and count_events on events [c0, c1) (indices into the same arrays) in
+    one pass over their union, which must be contiguous (the ranges overlap or touch)."""
+    out = np.empty(max(s1 - s0, 0), dtype=np.int64)
+    m = 0
+    for i in range(min(s0, c0), max(s1, c1)):
+        if x[i] >= width or y[i] >= height:
+            continue
+        q = np.int64(y[i]) * width + x[i]
+        if s0 <= i < s1 and keep[q]:
+            out[m] = i
+            m += 1
+        if c0 <= i < c1 and not (use_mask and mask[q]):
+            on = np.int64(p[i])
+            out_on[q] += sign * on
+            out_off[q] += sign - sign * on
+    return out[:m]

@@ -317,14 +317,39 @@ class EdiReconstructor:
         accumulator holds what was applied after the previous f (up to t_last); this batch may overlap it."""
         n_on, n_off = self._acc[0].copy(), self._acc[1].copy()
         mask = self._hot if self._mask_hot else None
-        t_last = self._t_last
-        if f < t_last:  # applied events after this f do not belong to the interval
-            edi.add_counts(events, self.width, self.height, n_on, n_off, t0=f + 1, t1=t_last, mask=mask, sign=-1)
-        elif f > t_last:  # events up to this f that were not applied yet
-            edi.add_counts(events, self.width, self.height, n_on, n_off, t0=t_last + 1, t1=f, mask=mask)
+        t0, t1, sign = self._count_range(f)
+        if t1 >= t0:
+            edi.add_counts(events, self.width, self.height, n_on, n_off, t0=t0, t1=t1, mask=mask, sign=sign)
         np.maximum(n_on, 0, out=n_on)
         np.maximum(n_off, 0, out=n_off)
         return n_on, n_off
+
+    def _count_range(self, f: int) -> tuple[int, int, int]:
+        """(t0, t1, sign): the events with t0 <= t <= t1 to add (sign 1) to or take off (sign -1) the
+        accumulator to get the counts from the previous f to f; t1 < t0 when there are none."""
+        t_last = self._t_last
+        if f < t_last:  # applied events after this f do not belong to the interval
+            return f + 1, t_last, -1
+        if f > t_last:  # events up to this f that were not applied yet
+            return t_last + 1, f, 1
+        return 1, 0, 1
+
+    def _sample_and_counts(self, events: np.ndarray, excluded: np.ndarray, ts: int, te: int, f: int,
+                           hot: np.ndarray | None) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        """The sample's events in [ts, te] and the counts of _counts_between, in one numba pass."""
+        t = events["t"]
+        s0, s1 = edi.time_index(t, ts, "left"), edi.time_index(t, te, "right")
+        t0, t1, sign = self._count_range(f)
+        c0, c1 = (edi.time_index(t, t0, "left"), edi.time_index(t, t1, "right")) if t1 >= t0 else (s0, s0)
+        c1 = max(c0, c1)
+        n_on, n_off = self._acc[0].copy(), self._acc[1].copy()
+        keep = (~excluded).reshape(-1).view(np.uint8)
+        m, use_m = edi._mask_arg(hot)
+        idx = edi._jit.select_and_count(events["x"], events["y"], events["p"], self.width, self.height, keep, s0, s1,
+                                        m, use_m, n_on, n_off, c0, c1, sign)
+        np.maximum(n_on, 0, out=n_on)
+        np.maximum(n_off, 0, out=n_off)
+        return events[idx], (n_on, n_off)
 
     def _estimation_step(self, events: np.ndarray, b: np.ndarray, informative: np.ndarray, ts: int, te: int,
                          f: int, hot: np.ndarray | None) -> None:
@@ -332,19 +357,24 @@ class EdiReconstructor:
         with the previous frame, then c: kept if it still fits, re-estimated otherwise (or when due)."""
         full = getattr(self._estimator, "needs_full_image", False)
         excluded = self._not_sample if hot is None else (self._not_sample | hot)
+        pair_due = self._prev is not None and self.has_reference
+        counts = None
         if full:
             table = edi.build_level_table(events, self.width, self.height, ts, te, f, mask=hot,
                                           segments=self._estimator.separate)
         else:  # the sample's events first (one cheap pass), so the table build touches only them
-            sample = edi.events_at_pixels(events, self.width, self.height, ~excluded, ts, te)
+            if counts is None and pair_due and edi._jit is not None and ts < te:
+                sample, counts = self._sample_and_counts(events, excluded, ts, te, f, hot)  # one pass for both
+            else:
+                sample = edi.events_at_pixels(events, self.width, self.height, ~excluded, ts, te)
             table = edi.build_level_table(sample, self.width, self.height, ts, te, f,
                                           segments=self._estimator.separate)
         em = None
         if full:
             em = contrast.event_map(events, self.width, self.height, f, ts, te, 0.25 * max(te - ts, 1))
         cur = contrast.FrameData(b, informative, table, em)
-        if self._prev is not None and self.has_reference:
-            n_on, n_off = self._counts_between(events, f)
+        if pair_due:
+            n_on, n_off = counts if counts is not None else self._counts_between(events, f)
             self._pairs.append(contrast.FramePair(self._prev, cur, n_on, n_off, excluded.reshape(-1)))
         self._choose_c(cur)
         self._prev = cur

@@ -485,3 +485,28 @@ def select_and_count(x, y, p, width, height, keep, s0, s1, mask, use_mask, out_o
             out_on[q] += sign * on
             out_off[q] += sign - sign * on
     return out[:m]
+
+
+@njit(cache=True, nogil=True)
+def pair_candidates(inf_p, inf_c, bp, bc, b_low, b_high, mask, use_mask, n_on, n_off, pix_p, pix_c):
+    """Pixels (ascending) informative in both frames, with both B in [b_low, b_high], not masked, and with
+    events between the frames or in either exposure table (pix_p, pix_c): the consistency residual candidates."""
+    npix = bp.size
+    in_table = np.zeros(npix, dtype=np.uint8)
+    for r in range(pix_p.size):
+        in_table[pix_p[r]] = 1
+    for r in range(pix_c.size):
+        in_table[pix_c[r]] = 1
+    out = np.empty(npix, dtype=np.int64)
+    m = 0
+    for q in range(npix):
+        if not (inf_p[q] and inf_c[q]):
+            continue
+        if not (bp[q] >= b_low and bp[q] <= b_high and bc[q] >= b_low and bc[q] <= b_high):
+            continue
+        if use_mask and mask[q]:
+            continue
+        if n_on[q] + n_off[q] > 0 or in_table[q]:
+            out[m] = q
+            m += 1
+    return out[:m]

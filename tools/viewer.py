@@ -39,8 +39,9 @@ EPILOG = """examples:
   python tools/viewer.py --curve-server-key keys/server.key   # edi-live ran with --curve-secret-key
 
 status line: recv = frames/s this viewer got; node = frames/s, events/s and c from the node's stats message;
-latency = node-side p50/p99 from event arrival to frame sent; lost = gaps in seq (frames this viewer never
-received); skipped = frames drained unshown because the viewer fell behind (newest-only mode).
+latency = node-side p50/p99 from event arrival to frame sent; node drops = data the node dropped anywhere
+(source, ring, publisher); lost = gaps in seq (frames this viewer never received); skipped = frames drained
+unshown because the viewer fell behind (newest-only mode).
 """
 
 
@@ -269,7 +270,9 @@ def status_line(rates: Rates, skipped: int, stats: dict | None) -> str:
                      f"{_num(stats, 'events_per_s', 1e-6)} Mev/s, c {c}")
         parts.append(f"latency p50 {_num(stats, 'latency_p50_us', 1e-3)} ms p99 "
                      f"{_num(stats, 'latency_p99_us', 1e-3)} ms")
-        parts.append(f"node drops {_num(stats, 'publish_dropped', fmt='{:.0f}')}")
+        # all of the node's drops (source, ring, publisher), not only the publisher's
+        drops_key = "drops" if "drops" in stats else "publish_dropped"
+        parts.append(f"node drops {_num(stats, drops_key, fmt='{:.0f}')}")
     else:
         parts.append("no stats yet")
     parts.append(f"lost {rates.lost}, skipped {skipped}")

@@ -111,6 +111,9 @@ def test_rates_count_seq_gaps_and_status_line():
     line = viewer.status_line(rates, 3, {"frames_per_s": 100.0, "events_per_s": 1.5e6, "c": 0.2,
                                          "latency_p50_us": 350.0, "latency_p99_us": 900.0, "publish_dropped": 4})
     assert "1.50 Mev/s" in line and "p50 0.35 ms" in line and "p99 0.90 ms" in line and "lost 14" in line
+    assert "node drops 4" in line
+    # the node's stats message carries the total over all stages as "drops": that is what the viewer shows
+    assert "node drops 9 " in viewer.status_line(rates, 0, {"drops": 9, "publish_dropped": 4}) + " "
     assert "no stats yet" in viewer.status_line(rates, 0, None)
     assert "c 0.25/0.30" in viewer.status_line(rates, 0, {"c_on": 0.25, "c_off": 0.3, "latency_p50_us": None})
 

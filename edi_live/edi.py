@@ -388,8 +388,10 @@ def blurry_to_float(image: np.ndarray, *, saturation: float | None = None) -> tu
     """
     img = np.asarray(image)
     if img.dtype == np.uint8:
-        full = 255.0
-    elif img.dtype == np.uint16:
+        # the general path below gives exactly this: B = img (scale 1), always finite and >= 0
+        sat = 255.0 if saturation is None else float(saturation)
+        return img.astype(np.float32), (img > 0) & (img < sat)
+    if img.dtype == np.uint16:
         full = 65535.0
     else:
         full = 255.0

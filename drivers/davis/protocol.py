@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 from drivers.davis.models import DavisModel
+from edi_live.errors import ConfigError
 
 REQ_OUT = 0x40  # vendor, device, host-to-device
 REQ_IN = 0xC0   # vendor, device, device-to-host
@@ -100,10 +101,13 @@ def cycles_to_us(cycles: int, clock_mhz: float) -> int:
 
 
 def check_exposure(exposure_us: int | None, frame_interval_us: int | None) -> None:
+    """The APS timing registers' ranges; a value outside is a usage error (ConfigError, exit 2 in the CLI)."""
     if exposure_us is not None and not 0 <= exposure_us <= EXPOSURE_MAX_US:
-        raise ValueError(f"exposure must be 0..{EXPOSURE_MAX_US} µs (got {exposure_us})")
+        raise ConfigError(f"exposure-us must be 0..{EXPOSURE_MAX_US} µs, the APS exposure register's range "
+                          f"(got {exposure_us})")
     if frame_interval_us is not None and not 0 <= frame_interval_us <= FRAME_INTERVAL_MAX_US:
-        raise ValueError(f"frame interval must be 0..{FRAME_INTERVAL_MAX_US} µs (got {frame_interval_us})")
+        raise ConfigError(f"frame-interval-us must be 0..{FRAME_INTERVAL_MAX_US} µs, the APS frame interval "
+                          f"register's range (got {frame_interval_us})")
 
 
 def dvs_filter_defaults(features: dict[int, int], columns: int, rows: int) -> list[Write]:

@@ -66,6 +66,10 @@ def test_help_teaches_groups_units_defaults_and_examples():
     (("--device", "davis240", "--usb-backend", "drivers.emulator:backend", "--emulate-from", "tests"), 1,
      "tests: is a directory, not a recording"),
     (("--device", "davis240", "--usb-backend", "os:getcwd"), 2, "returned a str, not a pyusb backend"),
+    (("--device", "davis240", "--usb-backend", "drivers.emulator:backend", "--exposure-us", "999999999"), 2,
+     "exposure-us must be 0..4194303"),
+    (("--device", "davis240", "--usb-backend", "drivers.emulator:backend", "--frame-interval-us", "999999999"), 2,
+     "frame-interval-us must be 0..8388607"),
     (("--device", "davis240", "--usb-backend", "no_such_module:backend"), 2, "cannot import module"),
     (("--config", "no-such.toml"), 2, "config file no-such.toml not found"),
 ])

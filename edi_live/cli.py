@@ -227,6 +227,22 @@ class _LogHandler(logging.StreamHandler):
         return "\r\x1b[K" + text if isatty is not None and isatty() else text
 
 
+_DEVICE_ONLY = ("serial", "exposure_us", "frame_interval_us", "usb_backend")
+
+
+def _warn_ignored(config: NodeConfig, explicit: set[str]) -> None:
+    """Options that do nothing for the chosen input are said aloud rather than silently dropped."""
+    s = config.source
+    if s.replay is not None:
+        given = [name for name in _DEVICE_ONLY if getattr(s, name) is not None] + (["reconnect"] if s.reconnect
+                                                                                     else [])
+        if given:
+            log.warning("ignored with --replay (camera options): %s",
+                        ", ".join("--" + name.replace("_", "-") for name in given))
+    elif s.emulate_from is None and "speed" in explicit:
+        log.warning("ignored with a live camera: --speed (it paces --replay and --emulate-from only)")
+
+
 _LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "[::1]", "::1")
 
 
@@ -284,6 +300,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         level = config.log_level
         _setup_logging(level)
         _warn_if_exposed(config)
+        _warn_ignored(config, set(flags))
         source = make_source(config, explicit=set(flags))
         from edi_live.node import Node
 

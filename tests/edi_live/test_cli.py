@@ -287,3 +287,21 @@ def test_publishing_beyond_loopback_without_curve_is_said_aloud(caplog, tmp_path
     with caplog.at_level("WARNING", logger="edi_live"):
         cli._warn_if_exposed(config)
     assert any("without encryption" in r.getMessage() for r in caplog.records) == warned
+
+
+@pytest.mark.parametrize("flags,warning", [
+    ({"replay": "x.aedat4", "exposure_us": 5000, "serial": "123"}, "ignored with --replay (camera options): "
+                                                                    "--serial, --exposure-us"),
+    ({"replay": "x.aedat4", "reconnect": True}, "--reconnect"),
+    ({"device": "davis240", "speed": 4.0}, "ignored with a live camera: --speed"),
+    ({"replay": "x.aedat4", "speed": 4.0}, None),
+    ({"device": "davis240", "exposure_us": 5000}, None),
+])
+def test_options_that_do_nothing_for_the_input_are_said_aloud(caplog, flags, warning):
+    from edi_live import cli
+
+    config = cli.build_config(flags, None)
+    with caplog.at_level("WARNING", logger="edi_live"):
+        cli._warn_ignored(config, set(flags))
+    messages = [r.getMessage() for r in caplog.records]
+    assert (any(warning in m for m in messages) if warning else messages == []), messages

@@ -115,6 +115,7 @@ def _subscriber(endpoint: str, conn) -> None:
         while sub.recv_stats(timeout_s=0.5) is None:  # the subscription is live once stats arrive
             pass
         conn.send("ready")
+        cpu0 = time.process_time()
         n, first_s, last_s, seqs_ok, last_seq, gaps = 0, None, None, True, -1, 0
         while True:
             got = sub.recv(timeout_s=2.0)
@@ -132,7 +133,7 @@ def _subscriber(endpoint: str, conn) -> None:
             last_seq = header["seq"]
             n += 1
         conn.send({"frames": n, "seq_increasing": seqs_ok, "seq_gaps": gaps,
-                   "span_s": (last_s - first_s) if n > 1 else 0.0})
+                   "span_s": (last_s - first_s) if n > 1 else 0.0, "cpu_s": time.process_time() - cpu0})
 
 
 class _RecordingPublisher:
@@ -278,7 +279,11 @@ def bench_throughput(path: Path, every: int, repeat: int, passes: int, extra: di
     print(f"median: {ev_s / 1e6:.2f} M events/s, {fr_s:.0f} frames/s wall-clock (target >= 12 M events/s, "
           f">= 12,000 frames/s); {per_cpu / 1e6:.2f} M events per CPU-second of the node process "
           f"(all its threads; the subscriber is another process)")
-    print(f"CPU by thread (last run, while data flowed): {stats['thread_cpu']}")
+    print(f"CPU by thread (last run, while data flowed): {stats['thread_cpu']}; subscriber process "
+          f"{sub.get('cpu_s', float('nan')):.2f} s ({1e6 * sub.get('cpu_s', float('nan')) / max(1, sub.get('frames', 1)):.0f}"
+          f" µs per frame received)")
+    print(f"best run: {max(r[0] for r in rows) / 1e6:.2f} M events/s (the machine is shared: the best run is the "
+          f"one least disturbed by other jobs)")
     print(f"load average now: {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
 
 

@@ -473,17 +473,26 @@ def select_and_count(x, y, p, width, height, keep, s0, s1, mask, use_mask, out_o
     one pass over their union, which must be contiguous (the ranges overlap or touch)."""
     out = np.empty(max(s1 - s0, 0), dtype=np.int64)
     m = 0
-    for i in range(min(s0, c0), max(s1, c1)):
-        if x[i] >= width or y[i] >= height:
+    cuts = np.array([min(s0, c0), s0, s1, c0, c1, max(s1, c1)], dtype=np.int64)
+    cuts.sort()
+    for j in range(cuts.size - 1):  # pieces where both range tests are constant: a branch-light loop for each
+        a = cuts[j]
+        b = cuts[j + 1]
+        if a >= b:
             continue
-        q = np.int64(y[i]) * width + x[i]
-        if s0 <= i < s1 and keep[q]:
-            out[m] = i
-            m += 1
-        if c0 <= i < c1 and not (use_mask and mask[q]):
-            on = np.int64(p[i])
-            out_on[q] += sign * on
-            out_off[q] += sign - sign * on
+        do_sel = s0 <= a < s1
+        do_cnt = c0 <= a < c1
+        for i in range(a, b):
+            if x[i] >= width or y[i] >= height:
+                continue
+            q = np.int64(y[i]) * width + x[i]
+            if do_sel and keep[q]:
+                out[m] = i
+                m += 1
+            if do_cnt and not (use_mask and mask[q]):
+                on = np.int64(p[i])
+                out_on[q] += sign * on
+                out_off[q] += sign - sign * on
     return out[:m]
 
 

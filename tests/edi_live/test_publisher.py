@@ -80,6 +80,42 @@ def test_round_trip_headers_pixels_and_seq(publisher):
             np.testing.assert_array_equal(image, rec.image)
 
 
+
+def test_inline_and_queued_sends_keep_submit_order(publisher):
+    """submit() sends on the caller's thread when the socket is free and queues while the publisher thread uses
+    it; frames queued meanwhile must leave before any later frame, whichever thread sends it."""
+    pub = publisher([ANY], "cam", sndhwm=10_000, inbox_size=1000)
+    senders: list[str] = []
+    send_frame = pub._send_frame
+
+    def spy(sock, rec):
+        senders.append(threading.current_thread().name)
+        send_frame(sock, rec)
+
+    pub._send_frame = spy
+    with Subscriber(pub.bound_endpoints[0], newest_only=False, rcvhwm=0, stats=False) as sub:
+        sync(pub, sub)
+        senders.clear()
+        n = 40
+        for i in range(n):
+            pub.submit(make_rec(i, 16, 8))  # inline: the socket is free
+        with pub._sock_lock:  # as while the publisher thread sends a batch or the stats
+            for i in range(n, 2 * n):
+                pub.submit(make_rec(i, 16, 8))  # must queue
+            assert pub.pending() == n
+        for i in range(2 * n, 3 * n):
+            pub.submit(make_rec(i, 16, 8))  # the queue is not empty yet: these must not overtake it
+        got = []
+        while len(got) < 3 * n:
+            item = sub.recv(RECV_S)
+            assert item is not None, f"only {len(got)} of {3 * n} frames arrived"
+            got.append(item[0])
+    assert [h["n_events"] for h in got] == list(range(3 * n))
+    assert [h["seq"] for h in got] == list(range(got[0]["seq"], got[0]["seq"] + 3 * n))
+    me = threading.current_thread().name
+    assert senders[:n] == [me] * n and "publisher" in senders[n:]  # both paths were taken
+
+
 def test_stats_message_merges_provider_and_measures_latency(publisher):
     calls = []
 

@@ -176,7 +176,10 @@ class Publisher:
                 # the thread holds _sock_lock while it takes and sends a batch, so an empty inbox seen under the
                 # lock means nothing submitted earlier is still unsent: frame order is kept
                 if self._sock is not None and not self._inbox:
-                    self._send_frame(self._sock, rec)
+                    try:
+                        self._send_frame(self._sock, rec)
+                    except zmq.ZMQError as exc:  # a socket failure is the publisher's, as on its own thread
+                        self._fail(exc)
                     return
             finally:
                 self._sock_lock.release()
@@ -261,16 +264,20 @@ class Publisher:
                 self._ready.set()
             self._loop(sock)
         except BaseException as exc:  # anything after start is fatal to the node: hand it on
-            self.error = exc
-            log.error("publisher thread failed: %s", exc)
-            if self._on_error is not None:
-                self._on_error(exc)
+            self._fail(exc)
         finally:
             with self._sock_lock:
                 self._sock = None  # submit() queues from now on (nothing will send it: counted below)
             if sock is not None:
                 sock.close(linger=0)
             ctx.term()
+
+    def _fail(self, exc: BaseException) -> None:
+        if self.error is None:
+            self.error = exc
+        log.error("publisher failed: %s", exc)
+        if self._on_error is not None:
+            self._on_error(exc)
 
     def _loop(self, sock: zmq.Socket) -> None:
         interval_ns = int(self.stats_interval_s * 1e9)

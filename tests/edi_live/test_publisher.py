@@ -116,6 +116,25 @@ def test_inline_and_queued_sends_keep_submit_order(publisher):
     assert senders[:n] == [me] * n and "publisher" in senders[n:]  # both paths were taken
 
 
+
+def test_a_socket_failure_in_an_inline_send_is_reported_as_the_publishers(publisher):
+    """submit() runs sends on the caller's thread; a socket error there must not escape into the caller (the
+    EDI worker) but reach on_error, as it would from the publisher thread."""
+    failures: list[BaseException] = []
+    pub = publisher([ANY], "cam", on_error=failures.append)
+
+    def broken(sock, rec):
+        raise zmq.ZMQError(zmq.ETERM)
+
+    pub._send_frame = broken
+    pub.submit(make_rec(1))  # must not raise
+    deadline = time.monotonic() + 5  # (had the thread held the socket, the frame was queued: it fails there)
+    while not failures and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert len(failures) == 1 and isinstance(failures[0], zmq.ZMQError)
+    assert pub.error is failures[0]
+
+
 def test_stats_message_merges_provider_and_measures_latency(publisher):
     calls = []
 

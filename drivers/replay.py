@@ -157,6 +157,21 @@ def _concat(arrays: list[np.ndarray], dtype: np.dtype) -> np.ndarray:
     return np.concatenate([np.ascontiguousarray(a).view(void) for a in arrays]).view(dtype)
 
 
+def _slot_cuts(t: np.ndarray, max_packet_us: int) -> list[int]:
+    """Starts of the max_packet_us slots (multiples of it) that events enter, after the first event's slot.
+    Found by searching the few slot starts in the sorted times (O(slots log n)); per-event division cost ~5 µs
+    per 1000 events. Falls back to the per-event form when the batch spans more slots than it has events."""
+    q0, q1 = int(t[0]) // max_packet_us, int(t[-1]) // max_packet_us
+    if q1 - q0 > len(t):
+        q = t // max_packet_us
+        return (q[np.flatnonzero(q[1:] != q[:-1]) + 1] * max_packet_us).tolist()
+    starts = np.arange(q0 + 1, q1 + 1, dtype=np.int64) * max_packet_us
+    idx = np.searchsorted(t, starts, side="left")
+    # a slot is entered when the first event at or after its start lies inside it (idx < len: q1's slot is)
+    inside = t[np.minimum(idx, len(t) - 1)] < starts + max_packet_us
+    return starts[inside & (idx < len(t))].tolist()
+
+
 def _split(events: np.ndarray, frames: list[Frame], imu: np.ndarray, trig: np.ndarray, lo: int, w: int,
            max_packet_us: int) -> Iterator[Packet]:
     t = events["t"]
@@ -165,8 +180,7 @@ def _split(events: np.ndarray, frames: list[Frame], imu: np.ndarray, trig: np.nd
         lo = start
     cuts = {f.exposure_end_us + 1 for f in frames if lo < f.exposure_end_us + 1 < w}
     if len(t) and max_packet_us > 0 and int(t[-1]) - start >= max_packet_us:
-        q = t // max_packet_us  # cut where events enter a new max_packet_us slot: at most one cut per event
-        cuts.update((q[np.flatnonzero(q[1:] != q[:-1]) + 1] * max_packet_us).tolist())
+        cuts.update(_slot_cuts(t, max_packet_us))
     bounds = sorted(c for c in cuts if lo < c < w) + [w]
     ev_idx = np.searchsorted(t, bounds, side="left")
     imu_idx = np.searchsorted(imu["t"], bounds, side="left")

@@ -331,3 +331,20 @@ def test_paced_replay_uses_camera_sized_packets(real_recordings):
         packets = _run_in_thread(lambda s=src: [p for p in s if p is not None])
         spans = [int(p.events["t"][-1] - p.events["t"][0]) for p in packets if len(p.events)]
         assert max(spans) < span_us and sum(len(p.events) for p in packets) == 117_667
+
+
+@pytest.mark.parametrize("span_us", [50, 5_000, 10_000_000])
+def test_slot_cuts_match_a_per_event_scan(rng, span_us):
+    """Packets are cut where events enter a new max_packet_us slot; the fast search must find exactly the slots
+    a plain per-event scan finds (dense, sparse with long gaps, negative times, repeated timestamps)."""
+    from drivers.replay import _slot_cuts
+
+    for max_packet_us in (1, 7, 1_000, 10_000):
+        t = np.sort(rng.integers(-span_us, span_us, size=int(rng.integers(1, 400)))).astype(np.int64)
+        t = np.concatenate([t, t[: len(t) // 4]])
+        t.sort()
+        expected = []
+        for prev, cur in zip(t[:-1].tolist(), t[1:].tolist()):
+            if cur // max_packet_us != prev // max_packet_us:
+                expected.append(cur // max_packet_us * max_packet_us)
+        assert _slot_cuts(t, max_packet_us) == expected

@@ -296,16 +296,26 @@ class Publisher:
                     self._inbox.clear()
                 for rec in batch:
                     self._send_frame(sock, rec)
-                now_ns = time.monotonic_ns()
-                if now_ns >= next_stats_ns:
+            now_ns = time.monotonic_ns()
+            if now_ns >= next_stats_ns:
+                # the node's stats are gathered without the socket lock: frames keep going out inline meanwhile
+                provided = self._provided_stats()
+                with self._sock_lock:
                     elapsed_s = (now_ns - next_stats_ns + interval_ns) / 1e9
                     self._stats["sent_per_s"] = (self._sent - sent_at_last_stats) / elapsed_s
                     sent_at_last_stats = self._sent
-                    self._send_stats(sock)
-                    next_stats_ns = now_ns + interval_ns
-                if stopping:
+                    self._send_stats(sock, provided)
+                next_stats_ns = now_ns + interval_ns
+            if stopping:
+                with self._sock_lock:
+                    # frames submitted since the last drain were queued: send them before the socket goes
+                    with self._cond:
+                        batch = list(self._inbox)
+                        self._inbox.clear()
+                    for rec in batch:
+                        self._send_frame(sock, rec)
                     self._sock = None
-                    return
+                return
 
     def _send_frame(self, sock: zmq.Socket, rec: Reconstruction) -> None:
         try:
@@ -333,18 +343,22 @@ class Publisher:
         if rec.arrival_ns > 0:
             self._latency.add((time.monotonic_ns() - rec.arrival_ns) / 1e3)
 
-    def _send_stats(self, sock: zmq.Socket) -> None:
+    def _provided_stats(self) -> dict[str, Any]:
+        if self._stats_provider is None:
+            return {}
+        try:
+            return dict(self._stats_provider())
+        except Exception as exc:  # stats must not stop frames; say it once
+            if not self._provider_failed:
+                log.warning("stats provider failed (%s: %s); publishing own counters only",
+                            type(exc).__name__, exc)
+                self._provider_failed = True
+            return {}
+
+    def _send_stats(self, sock: zmq.Socket, provided: dict[str, Any]) -> None:
         p50, p99 = self._latency.take()
         self._stats["latency_p50_us"], self._stats["latency_p99_us"] = p50, p99
-        merged: dict[str, Any] = {}
-        if self._stats_provider is not None:
-            try:
-                merged.update(self._stats_provider())
-            except Exception as exc:  # stats must not stop frames; say it once
-                if not self._provider_failed:
-                    log.warning("stats provider failed (%s: %s); publishing own counters only",
-                                type(exc).__name__, exc)
-                    self._provider_failed = True
+        merged: dict[str, Any] = dict(provided)
         own = self.stats()
         if "frames_per_s" not in merged:
             merged["frames_per_s"] = own["sent_per_s"]

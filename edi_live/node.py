@@ -28,7 +28,10 @@ import threading
 import time
 from typing import Any, Callable, TextIO
 
+import numpy as np
+
 from edi_live.config import EdiConfig, NodeConfig
+from edi_live.datatypes import EVENT_DTYPE, Frame
 from edi_live.errors import EdiLiveError, NodeError, SourceError
 from edi_live.ring import EventRing, as_events
 from edi_live.source import Source
@@ -148,6 +151,7 @@ class Node:
         self.t_start = time.monotonic()
         entered = False
         try:
+            _warm_up(self._make_reconstructor, self.config.edi)
             self.source.__enter__()
             entered = True
             self._build_and_start()
@@ -289,3 +293,31 @@ class Node:
 def run_node(config: NodeConfig, source: Source, status_stream: TextIO | None = sys.stderr, **kwargs: Any) -> dict:
     """Convenience for scripts: build and run a node, returning its final stats."""
     return Node(config, source, status_stream=status_stream, **kwargs).run()
+
+
+def _warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
+    """Run a throwaway reconstructor over a tiny synthetic scene before the source starts.
+
+    The EDI kernels are numba functions: compiled on first use (seconds, with a cold cache) or loaded from the
+    on-disk cache (~0.4 s). Paying that here, before a camera streams or the replay clock starts, keeps the first
+    APS frames from stalling the worker while the ring fills (a live camera would drop data). A failure here is
+    not fatal: the real run reports it where it happens.
+    """
+    width, height = 16, 12
+    rng = np.random.default_rng(0)
+    image = np.full((height, width), 100, np.uint8)
+    try:
+        rec = make_reconstructor(width, height, edi_config)
+        t_us = 0
+        for _ in range(3):  # three frames: the c estimator needs frame pairs
+            events = np.zeros(200, EVENT_DTYPE)
+            events["t"] = np.sort(rng.integers(t_us, t_us + 20_000, events.size))
+            events["x"] = rng.integers(0, width, events.size)
+            events["y"] = rng.integers(0, height, events.size)
+            events["p"] = rng.integers(0, 2, events.size).astype(bool)
+            rec.on_frame(Frame(image, t_us, t_us + 10_000), events)
+            rec.on_events(events[events["t"] > t_us + 10_000])
+            rec.render()
+            t_us += 20_000
+    except Exception:  # noqa: BLE001 - warm-up only; see docstring
+        log.debug("kernel warm-up failed", exc_info=True)

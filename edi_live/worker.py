@@ -51,6 +51,7 @@ _T_MAX = np.iinfo(np.int64).max
 _CHUNK_EVENTS = 1 << 16  # events taken from the ring per lock (then split into every-N slices locally)
 _MAX_DEFERRED = 4096
 _IDLE_WAIT_S = 0.25
+_MOVING_EVENTS_CAP = 100  # the threshold at the default --every 1000; larger --every values do not raise it
 _STATIC_EVENTS = 16  # fewer events than this in an exposure (and since the last frame) = a static scene
 
 
@@ -290,8 +291,9 @@ class EdiWorker:
 
     def _moving(self, n_exposure_events: int) -> bool:
         """Whether a deblurred frame is worth sending: the scene moved, i.e. at least a tenth of a latent
-        frame's events arrived during its exposure or since the last frame sent (not just sensor noise)."""
-        threshold = max(_STATIC_EVENTS, self.config.every // 10)
+        frame's events (capped, so a huge --every cannot hide moving frames) arrived during its exposure or
+        since the last frame sent (not just sensor noise)."""
+        threshold = max(_STATIC_EVENTS, min(self.config.every // 10, _MOVING_EVENTS_CAP))
         return n_exposure_events >= threshold or self._since >= threshold
 
     def _use_deblur_thread(self) -> bool:

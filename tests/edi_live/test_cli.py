@@ -305,3 +305,12 @@ def test_options_that_do_nothing_for_the_input_are_said_aloud(caplog, flags, war
         cli._warn_ignored(config, set(flags))
     messages = [r.getMessage() for r in caplog.records]
     assert (any(warning in m for m in messages) if warning else messages == []), messages
+
+
+def test_a_huge_every_still_sends_every_moving_deblurred_frame(real_recordings, needs_reconstructor):
+    # --every sets the latent frame rate; it must not decide whether an APS frame's sharp L(f) is sent. The
+    # Newton's-cradle recording moves in all 13 exposures (the default --every sends all 13).
+    proc = run_cli("--replay", str(real_recordings[DEMO]), "--speed", "0", "--no-publish", "--every", "100000000",
+                   timeout_s=60)
+    assert proc.returncode == 0, proc.stderr
+    assert "(13 deblurred" in proc.stderr, proc.stderr

@@ -262,3 +262,40 @@ def test_live_overflow_drops_oldest_counts_every_event_and_never_blocks_the_sour
     assert stats["events_processed"] + stats["ring_dropped_events"] == len(ev), "every event processed or counted"
     assert stats["drops"] >= stats["ring_dropped_events"] and stats["worker_gaps"] >= 1
     assert stats["ring_producer_wait_s"] == 0, "the pump never waited for the worker"
+
+
+def test_edi_kernels_are_warmed_up_before_the_source_starts(real_recordings):
+    # Compiling/loading the numba kernels takes up to seconds; doing it after a camera started streaming would
+    # stall the worker while the ring fills. The node must exercise a reconstructor before entering the source.
+    order: list[str] = []
+
+    class Recording(StandIn):
+        def on_frame(self, frame, events, arrival_ns=0):
+            order.append("on_frame")
+            return super().on_frame(frame, events, arrival_ns)
+
+    class Watched:
+        def __init__(self, inner):
+            self.inner, self.info = inner, inner.info
+
+        def __enter__(self):
+            order.append("source-enter")
+            self.inner.__enter__()
+            return self
+
+        def __exit__(self, *exc):
+            return self.inner.__exit__(*exc)
+
+        def __iter__(self):
+            return iter(self.inner)
+
+        def stop(self):
+            self.inner.stop()
+
+        def status(self):
+            return self.inner.status()
+
+    path = real_recordings["evlib_sample_davis346.aedat4"]
+    cfg = NodeConfig.from_options({"replay": str(path), "speed": 0, "no_publish": True})
+    Node(cfg, Watched(replay(path, speed=0)), reconstructor_factory=lambda w, h, e: Recording()).run()
+    assert "source-enter" in order and "on_frame" in order[: order.index("source-enter")]

@@ -111,9 +111,12 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         lines.append(f"  published {s['frames_sent']} frames{latency}")
     if s.get("nearest_added_latency_ms_p50") is not None:
         lines.append(f"  mode nearest: held-back frames waited {s['nearest_added_latency_ms_p50']:.2f} ms (p50)")
-    for key, label in (("out_frames", "--out frames written"), ("record_events", "--record events written")):
-        if key in s:
-            lines.append(f"  {label}: {s[key]}")
+    if "out_frames" in s:
+        late = f" ({s['out_late']} arrived too late for time order and were skipped)" if s.get("out_late") else ""
+        lines.append(f"  --out frames written: {s['out_frames']}{late}")
+    if "record_events" in s:
+        skipped = f" ({s['record_skipped']} items skipped)" if s.get("record_skipped") else ""
+        lines.append(f"  --record events written: {s['record_events']}{skipped}")
     return "\n".join(lines)
 
 

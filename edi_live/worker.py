@@ -4,7 +4,8 @@ Accepts: an `EventRing` (events in time order; each APS frame queued at the inde
 and a reconstructor with the `EdiReconstructor` interface (on_frame, on_events, render,
 render_from_reference, has_reference, c_on, c_off, reestimations). Yields: `Reconstruction`s handed to each
 sink (publisher.submit, the --out writer) as they are made: t increases, except that in causal mode a deblurred
-frame (t = mid-exposure f) follows the latent frames up to its exposure end. Times are µs on the sensor clock;
+frame (t = mid-exposure f) follows the latent frames up to its exposure end (with the deblur thread: up to
+wherever the stream was when its deblur finished, at most the next APS frame's exposure end). Times are µs on the sensor clock;
 host times (latency, pacing of --max-fps and the heartbeat) are time.monotonic.
 
 Policy:
@@ -12,7 +13,7 @@ Policy:
   every event up to its exposure end is in; the events from its exposure start come from the ring's history.
 - Then a latent frame (kind "latent") every `every` events, updated incrementally (`on_events`), at most
   `max_fps` per second (frames over the cap are skipped and counted, their events roll into the next frame).
-- Frames follow events: a deblurred frame is sent when at least every/10 events arrived since its exposure
+- Frames follow events: a deblurred frame is sent when at least min(every/10, 100) events arrived since its exposure
   start or since the last sent frame (or none was sent yet); otherwise the scene is static: the frame still
   becomes the reference, and only the keyframe heartbeat (the current latent image, every `heartbeat_s`)
   goes out. With (almost) no events at all, APS frames are not even deblurred, except one per `heartbeat_s`.

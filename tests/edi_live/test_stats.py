@@ -50,6 +50,14 @@ def test_status_and_summary_text():
     assert "1000 events" in summary and "4 APS frames in" in summary and "10 frames out" in summary
 
 
+def test_summary_shows_frames_the_writers_had_to_skip():
+    # a lossy --out or --record must not look lossless in the end-of-run report
+    clean = format_summary({**STATS, "out_frames": 9, "out_late": 0, "record_events": 5, "record_skipped": 0}, 1.0)
+    assert "skipped" not in clean.split("skipped: static")[1].split("\n", 1)[1]
+    lossy = format_summary({**STATS, "out_frames": 9, "out_late": 2, "record_events": 5, "record_skipped": 3}, 1.0)
+    assert "2 arrived too late" in lossy and "3 items skipped" in lossy
+
+
 def test_collect_sums_drops_of_every_stage():
     class Ring:
         pushed_events = 5

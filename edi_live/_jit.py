@@ -343,8 +343,9 @@ def _divisor_sums(start, lvl_min, frac, rows, c, ztab, cap, sign, ratio, offset)
 
 @njit(cache=True, nogil=True)
 def consistency_cost(c, dlog_b, net, weight, delta2, start_p, min_p, frac_p, row_p, start_c, min_c, frac_c, row_c,
-                     cap):
+                     cap, terms):
     """sum_i weight_i * sqrt(delta2 + r_i^2), r = dlog_b - (c*net + log D_cur - log D_prev), for c_on == c_off.
+    `terms`: empty, or an array of dlog_b's size that receives every pixel's term (for the fit test's noise).
     row_* maps each sub-table row to its residual index. One log per residual: log(D_cur / D_prev)."""
     wmax = 1
     for r in range(row_p.size):
@@ -363,7 +364,10 @@ def consistency_cost(c, dlog_b, net, weight, delta2, start_p, min_p, frac_p, row
     total = 0.0
     for i in range(n):
         res = dlog_b[i] - (offset[i] + math.log(ratio[i]))
-        total += weight[i] * math.sqrt(delta2 + res * res)
+        term = weight[i] * math.sqrt(delta2 + res * res)
+        if terms.size:
+            terms[i] = term
+        total += term
     return total
 
 

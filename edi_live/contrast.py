@@ -106,6 +106,19 @@ def _three_point_fit(fn: Callable[[float], float], c: float, step: float) -> boo
     return mid <= min(fn(c * (1.0 - step)), fn(c * (1.0 + step)))
 
 
+class _Cost:
+    """cost(c_on, c_off) -> float, plus .terms(c_on, c_off) -> the per-pixel terms that sum to it."""
+
+    __slots__ = ("_fn", "terms")
+
+    def __init__(self, fn: Callable[[float, float], float], terms: Callable[[float, float], np.ndarray]):
+        self._fn = fn
+        self.terms = terms
+
+    def __call__(self, c_on: float, c_off: float) -> float:
+        return self._fn(c_on, c_off)
+
+
 @dataclass
 class FixedContrast:
     c_on: float
@@ -198,6 +211,9 @@ class ConsistencyContrast:
     b_high: float = 250.0
     delta: float = 0.1  # pseudo-Huber scale of the log residual
     fit_step: float = 0.1
+    fit_z: float = 3.0  # the fit test fails when a neighbour c is better by this many standard errors
+    info_step: float = 0.3
+    info_z: float = 2.0  # an estimate that beats c*(1 -+ info_step) by fewer standard errors carries no information
     spread_weight: float = 0.5
     separate: bool = False
     name: str = "consistency"
@@ -211,10 +227,11 @@ class ConsistencyContrast:
             return None
         if len(costs) == 1:
             return costs[0]
-        return lambda c_on, c_off: sum(fn(c_on, c_off) for fn in costs)
+        return _Cost(lambda c_on, c_off: sum(fn(c_on, c_off) for fn in costs),
+                     lambda c_on, c_off: np.concatenate([fn.terms(c_on, c_off) for fn in costs]))
 
     def _cached_pair_problem(self, pair: FramePair):
-        key = ("consistency", self.max_pixels, self.min_pixels, self.b_low, self.b_high, self.delta,
+        key = ("consistency-v2", self.max_pixels, self.min_pixels, self.b_low, self.b_high, self.delta,
                self.spread_weight)
         if key not in pair.cache:
             pair.cache[key] = self._pair_problem(pair)
@@ -266,28 +283,35 @@ class ConsistencyContrast:
             net = n_on - n_off
             row_p = np.flatnonzero(hit_p)
             row_c = np.flatnonzero(hit_c)
-            slow = None
+
+            no_terms = np.zeros(0)
+
+            def jit_cost(c: float, out: np.ndarray) -> float:
+                return jit.consistency_cost(float(c), dlog_b, net, weight, delta2, sub_p.lvl_start, sub_p.lvl_min,
+                                            sub_p.lvl_frac, row_p, sub_c.lvl_start, sub_c.lvl_min, sub_c.lvl_frac,
+                                            row_c, edi.LEVEL_CAP, out)
 
             def fast_cost(c_on: float, c_off: float) -> float:
                 if c_on != c_off:
-                    return slow(c_on, c_off)
-                return jit.consistency_cost(float(c_on), dlog_b, net, weight, delta2, sub_p.lvl_start, sub_p.lvl_min,
-                                            sub_p.lvl_frac, row_p, sub_c.lvl_start, sub_c.lvl_min, sub_c.lvl_frac,
-                                            row_c, edi.LEVEL_CAP)
+                    return float(np.sum(terms(c_on, c_off)))
+                return jit_cost(c_on, no_terms)
 
-        def cost(c_on: float, c_off: float) -> float:
+        def terms(c_on: float, c_off: float) -> np.ndarray:
+            """Every pixel's weighted robust residual (the cost is their sum)."""
+            if edi.have_numba() and c_on == c_off:
+                out = np.empty(dlog_b.size)
+                jit_cost(c_on, out)
+                return out
             pred = c_on * n_on - c_off * n_off
             if sub_c.n_active:
                 pred[hit_c] += edi.log_divisor(sub_c, c_on, c_off)
             if sub_p.n_active:
                 pred[hit_p] -= edi.log_divisor(sub_p, c_on, c_off)
             r = dlog_b - pred
-            return float(np.sum(weight * np.sqrt(delta2 + r * r)))
+            return weight * np.sqrt(delta2 + r * r)
 
-        if edi.have_numba():
-            slow = cost  # noqa: F841 - used by fast_cost for separate thresholds
-            return fast_cost
-        return cost
+        cost = fast_cost if edi.have_numba() else (lambda c_on, c_off: float(np.sum(terms(c_on, c_off))))
+        return _Cost(cost, terms)
 
     def estimate(self, cur, pairs, c_init):
         cost = self._problem(pairs)
@@ -303,12 +327,44 @@ class ConsistencyContrast:
         self.last_evaluations = n
         return c_on, c_off
 
-    def fits(self, cur, pairs, c):
+    def fit_score(self, pairs: Sequence[FramePair], c: tuple[float, float]) -> float | None:
+        """How clearly a neighbour c*(1 -+ fit_step) beats c, in standard errors of the cost difference (paired
+        over pixels: z = sum(d) / (sqrt(n) * std(d)), d the per-pixel cost differences). The cost's own noise sets
+        the scale, so a flat or noisy cost curve does not look like a misfit. None: the pairs say nothing."""
+        ratio = c[1] / c[0]
+        return self.compare(pairs, c, [(x, x * ratio) for x in (c[0] * (1 - self.fit_step),
+                                                                 c[0] * (1 + self.fit_step))], best=True)
+
+    def information(self, pairs: Sequence[FramePair], c: tuple[float, float]) -> float | None:
+        """How clearly c beats both c*(1 -+ info_step), in standard errors (the weaker side): a small value means
+        the cost curve is flat around c (few moving pixels, little contrast), so an estimate there carries no
+        information about the sensor's threshold."""
+        ratio = c[1] / c[0]
+        alts = [(x, x * ratio) for x in (c[0] * (1 - self.info_step), c[0] * (1 + self.info_step))]
+        z = self.compare(pairs, c, alts, best=False)
+        return None if z is None else -z
+
+    def compare(self, pairs: Sequence[FramePair], c: tuple[float, float], alternatives, *,
+                best: bool = True) -> float | None:
+        """z of each alternative against c: the cost decrease sum(d) over its standard error sqrt(n)*std(d)
+        (> 0: the alternative fits better). Returns the largest (best=True) or smallest z; None without data."""
         cost = self._problem(pairs)
         if cost is None:
-            return True
-        ratio = c[1] / c[0]
-        return _three_point_fit(lambda x: cost(x, x * ratio), c[0], self.fit_step)
+            return None
+        base = cost.terms(*c)
+        n = base.size
+        tiny = 1e-9 * (float(base.sum()) + 1e-9)  # terms are >= 0; guards an exactly constant difference
+        zs = []
+        for alt in alternatives:
+            d = base - cost.terms(*alt)
+            total = float(d.sum())
+            var = max(float(d.dot(d)) / n - (total / n) ** 2, 0.0)
+            zs.append(total / (math.sqrt(n * var) + tiny))
+        return max(zs) if best else min(zs)
+
+    def fits(self, cur, pairs, c):
+        z = self.fit_score(pairs, c)
+        return z is None or z < self.fit_z
 
 
 ESTIMATORS = {"consistency": ConsistencyContrast, "energy": EnergyContrast}

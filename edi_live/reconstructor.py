@@ -85,7 +85,8 @@ class EdiReconstructor:
                  c_init: float = 0.2, history_pairs: int = 2, mask_hot_pixels: bool = True,
                  hot_min_rate_hz: float = 300.0, hot_rel_factor: float = 10.0, hot_decay: float = 0.8,
                  saturation: float | None = None, sample_pixels: int = 4000, denoise_us: int = 0,
-                 estimator_options: dict | None = None) -> None:
+                 estimator_options: dict | None = None, fit_patience: int = 2, fit_strong: float = 3.0,
+                 c_history: int = 3) -> None:
         if width <= 0 or height <= 0:
             raise ConfigError(f"sensor size must be positive (got {width}x{height})")
         if reestimate_every < 0:
@@ -108,6 +109,14 @@ class EdiReconstructor:
         self.reestimations = 0
         self._estimated = False
         self._frames_since_estimate = 0
+        self._fit_fails = 0  # consecutive frames whose fit test failed
+        self._startup_left = max(1, history_pairs) - 1  # start-up estimates after the first one
+        self._still_votes = 0  # consecutive "events explain nothing" estimates not acted on yet
+        self._fit_patience = int(fit_patience)
+        self._fit_strong = float(fit_strong)
+        self._c_history: collections.deque = collections.deque(maxlen=max(1, int(c_history)))
+        self.ill_conditioned = 0  # estimates that were no information (flat cost curve): c kept
+        self.last_fit: dict = {}  # the last frame's fit-test z, estimate and decision (for tools and stats)
         self._mask_hot = mask_hot_pixels
         self._hot_min_rate_hz = hot_min_rate_hz
         self._hot_rel = hot_rel_factor
@@ -294,7 +303,7 @@ class EdiReconstructor:
     def stats(self) -> dict:
         return {
             "c_on": self.c_on, "c_off": self.c_off, "c_fixed": self._fixed, "estimator": self._estimator.name,
-            "reestimations": self.reestimations, "hot_pixels": self.hot_pixels, "frames": self.frames,
+            "reestimations": self.reestimations, "ill_conditioned": self.ill_conditioned, "hot_pixels": self.hot_pixels, "frames": self.frames,
             "events_ignored": self.events_ignored,
             "events_applied": self.events_applied, "has_reference": self.has_reference,
             "last_deblur_ms": round(self.last_deblur_ms, 3), "last_estimate_ms": round(self.last_estimate_ms, 3),
@@ -380,6 +389,10 @@ class EdiReconstructor:
         self._prev = cur
 
     def _choose_c(self, cur: contrast.FrameData) -> None:
+        """Cached c: re-estimate when due (start-up, every K frames) or when the fit test fails clearly (by
+        `fit_z` standard errors of the cost difference on `fit_patience` consecutive frames, or by
+        `fit_strong` x fit_z once). An estimate whose cost curve is flat is no information: c stays. An accepted
+        estimate enters a short history and c becomes its median, so one odd frame pair does not move c."""
         if self._fixed:
             return
         pairs = list(self._pairs)
@@ -387,23 +400,75 @@ class EdiReconstructor:
             return
         self._frames_since_estimate += 1
         t0 = time.perf_counter()
-        due = not self._estimated or (self.reestimate_every and
-                                      self._frames_since_estimate >= self.reestimate_every)
+        # start-up: estimate until the pair history is full (the first estimate sees a single pair)
+        startup = self._estimated and self._startup_left > 0 and len(pairs) >= 2
+        if startup:
+            self._startup_left -= 1
+        first = not self._estimated
         floor = getattr(self._estimator, "c_min", 0.0)
+        info: dict = {}
+        if self._still_votes:  # a still verdict after start-up waits for the next frame's pair (cheap check)
+            self._still_votes = 0
+            z = self._estimator.compare(pairs[-1:], (self.c_on, self.c_off), [(floor, floor)])
+            info["still_z"] = float("nan") if z is None else z
+            if z is not None and z >= self._estimator.fit_z:
+                self.events_ignored = True
+                info["decision"] = "still"
+            return self._done(info, t0)
+        due = first or startup or bool(self.reestimate_every and
+                                          self._frames_since_estimate >= self.reestimate_every)
         if not due:
             probe = (floor, floor) if self.events_ignored else (self.c_on, self.c_off)
-            due = not self._estimator.fits(cur, pairs[-1:], probe)
+            score = getattr(self._estimator, "fit_score", None)
+            if score is None:
+                due = not self._estimator.fits(cur, pairs[-1:], probe)
+            else:
+                if self.events_ignored:  # still scene: do the events now explain more at the cached c than at none?
+                    z = self._estimator.compare(pairs[-1:], probe, [(self.c_on, self.c_off)])
+                else:
+                    z = score(pairs[-1:], probe)
+                fit_z = self._estimator.fit_z
+                fail = z is not None and z >= fit_z
+                self._fit_fails = self._fit_fails + 1 if fail else 0
+                due = fail and (self._fit_fails >= self._fit_patience or z >= self._fit_strong * fit_z)
+                info["fit_z"] = float("nan") if z is None else z
         if due:
             found = self._estimator.estimate(cur, pairs, (self.c_on, self.c_off))
             if found is not None:
-                # a fit at the bottom of the search range means the events do not explain the brightness
-                # changes between frames (noise on a still scene): then no event is applied at all
-                self.events_ignored = floor > 0 and max(found) <= 1.25 * floor
-                if not self.events_ignored:
-                    self.c_on, self.c_off = (min(max(v, C_RANGE[0]), C_RANGE[1]) for v in found)
+                info["found"] = float(found[0])
                 self._estimated = True
                 self.reestimations += 1
                 self._frames_since_estimate = 0
+                self._fit_fails = 0
+                # a fit at the bottom of the search range means the events do not explain the brightness
+                # changes between frames (noise on a still scene): then no event is applied at all
+                if floor > 0 and max(found) <= 1.25 * floor:
+                    # believed at start-up; later the next frame's pair must agree (a pair across a cut in the
+                    # scene also looks as if the events explained nothing)
+                    if first or self.events_ignored or not hasattr(self._estimator, "compare"):
+                        self.events_ignored = True
+                        info["decision"] = "still"
+                    else:
+                        self._still_votes = 1
+                        info["decision"] = "still?"
+                    return self._done(info, t0)
+                inform = getattr(self._estimator, "information", None)
+                z_info = inform(pairs, found) if inform is not None else None
+                info["info_z"] = float("nan") if z_info is None else z_info
+                if z_info is not None and z_info < self._estimator.info_z:
+                    info["decision"] = "flat"  # keep the cached c (and whether events are applied)
+                    self.ill_conditioned += 1
+                else:
+                    self.events_ignored = False
+                    if startup:  # this estimate saw more pairs than the first one: it supersedes it
+                        self._c_history.clear()
+                    self._c_history.append(tuple(min(max(v, C_RANGE[0]), C_RANGE[1]) for v in found))
+                    self.c_on, self.c_off = (float(np.median(v)) for v in zip(*self._c_history))
+                    info["decision"] = "update"
+        self._done(info, t0)
+
+    def _done(self, info: dict, t0: float) -> None:
+        self.last_fit = info
         self.last_estimate_ms = (time.perf_counter() - t0) * 1e3
 
     def _update_hot(self, frame_counts: np.ndarray, exposure_us: int) -> None:

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from edi_scenes import make_scene, psnr
 
+import edi_live.contrast as contrast
 import edi_live.edi as edi
 from edi_live.datatypes import EVENT_DTYPE, Frame
 from edi_live.errors import ConfigError, NodeError
@@ -228,3 +231,60 @@ def test_exp_free_rendering_matches_to_uint8(rng):
                    [edi._jit._u8(x, v0, scale, bucket_u8, bucket_thr) for x in v[-3 * thr.size:]], np.uint8)
     want = edi.to_uint8(np.concatenate([v[:3000], v[-3 * thr.size:]]))
     np.testing.assert_array_equal(got, want)
+
+
+def _simulated(c: float, c_after: float | None = None, duration_s: float = 1.5):
+    """The simulator's 'demo' recording (240x180, moving and rotating blocks, background noise, hot pixels) with
+    threshold c; with c_after, the same recording follows once more with the threshold changed to c_after."""
+    import dataclasses
+
+    from tools.simulate import preset, simulate
+
+    cfg = preset("demo", c_on=c, c_off=c, duration_s=duration_s, ground_truth=False)
+    sims = [simulate(cfg)]
+    if c_after is not None:
+        sims.append(simulate(dataclasses.replace(cfg, c_on=c_after, c_off=c_after,
+                                                 t0_us=cfg.t0_us + int(duration_s * 1e6))))
+    return SimpleNamespace(events=np.concatenate([s.events for s in sims]), width=cfg.width, height=cfg.height,
+                           frames=[f for s in sims for f in s.frames], n_first=len(sims[0].frames))
+
+
+def _c_per_frame(scene):
+    rec = EdiReconstructor(scene.width, scene.height)
+    return rec, np.array([o.c_on for o in stream(scene, rec, chunk=5000)])
+
+
+def test_cached_c_holds_while_c_does_not_change():
+    scene = _simulated(0.2)
+    rec, cs = _c_per_frame(scene)
+    # start-up (two estimates), then the fit test keeps c: the old 3-point test re-estimated 7 times in 30 frames
+    # and moved c between 0.183 and 0.213
+    assert rec.reestimations <= 0.1 * len(scene.frames), rec.reestimations
+    settled = cs[3:]
+    assert np.all(np.abs(settled - 0.2) <= 0.03), settled
+    assert np.ptp(settled) <= 0.01, settled  # c (and so the output brightness) does not jitter
+
+
+def test_a_real_change_of_c_is_followed():
+    scene = _simulated(0.2, 0.35)
+    rec, cs = _c_per_frame(scene)
+    n1 = scene.n_first
+    assert np.all(np.abs(cs[3:n1] - 0.2) <= 0.03), cs[:n1]
+    assert abs(cs[-1] - 0.35) <= 0.03, cs[n1:]  # re-estimated after the change, within the c-recovery tolerance
+    assert np.ptp(cs[-5:]) <= 0.01, cs[n1:]  # and settled there
+
+
+def test_an_estimate_on_a_flat_cost_curve_is_no_information(brick, monkeypatch):
+    # the estimator finds some c, but the cost hardly changes around it: the cached c stays
+    class Flat(contrast.ConsistencyContrast):
+        def estimate(self, cur, pairs, c_init):
+            return 0.6, 0.6
+
+        def information(self, pairs, c):
+            return 0.5
+
+    monkeypatch.setitem(contrast.ESTIMATORS, "flat", Flat)
+    rec = EdiReconstructor(brick.width, brick.height, estimator="flat", c_init=0.25)
+    stream(brick, rec)
+    assert rec.c_on == rec.c_off == 0.25 and not rec.events_ignored
+    assert rec.ill_conditioned >= 1 and rec.stats()["ill_conditioned"] == rec.ill_conditioned

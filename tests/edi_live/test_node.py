@@ -16,6 +16,7 @@ import pytest
 from edi_live.config import NodeConfig
 from edi_live.errors import BindError, NodeError, RecordingError
 from edi_live.node import Node
+from tools.bench_stream import GatedSource  # holds the first packet until a subscriber joined
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_worker import StandIn  # noqa: E402
@@ -34,32 +35,6 @@ def real_reconstructor(width, height, edi):
 @pytest.fixture
 def needs_reconstructor():
     pytest.importorskip("edi_live.reconstructor")
-
-
-class GatedSource:
-    """Wraps a source and holds its first packet until `gate` is set, so a subscriber can join first."""
-
-    def __init__(self, inner, gate: threading.Event):
-        self.inner, self.gate, self.info = inner, gate, inner.info
-
-    def __enter__(self):
-        self.inner.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        self.inner.__exit__(*exc)
-
-    def stop(self):
-        self.gate.set()
-        self.inner.stop()
-
-    def status(self):
-        return self.inner.status()
-
-    def __iter__(self):
-        while not self.gate.wait(0.1):
-            yield None
-        yield from self.inner
 
 
 def replay(path, **options):
@@ -274,28 +249,14 @@ def test_edi_kernels_are_warmed_up_before_the_source_starts(real_recordings):
             order.append("on_frame")
             return super().on_frame(frame, events, arrival_ns)
 
-    class Watched:
-        def __init__(self, inner):
-            self.inner, self.info = inner, inner.info
-
+    class Watched(GatedSource):
         def __enter__(self):
             order.append("source-enter")
-            self.inner.__enter__()
-            return self
-
-        def __exit__(self, *exc):
-            return self.inner.__exit__(*exc)
-
-        def __iter__(self):
-            return iter(self.inner)
-
-        def stop(self):
-            self.inner.stop()
-
-        def status(self):
-            return self.inner.status()
+            return super().__enter__()
 
     path = real_recordings["evlib_sample_davis346.aedat4"]
     cfg = NodeConfig.from_options({"replay": str(path), "speed": 0, "no_publish": True})
-    Node(cfg, Watched(replay(path, speed=0)), reconstructor_factory=lambda w, h, e: Recording()).run()
+    gate = threading.Event()
+    gate.set()
+    Node(cfg, Watched(replay(path, speed=0), gate), reconstructor_factory=lambda w, h, e: Recording()).run()
     assert "source-enter" in order and "on_frame" in order[: order.index("source-enter")]

@@ -303,7 +303,8 @@ class EdiReconstructor:
     def stats(self) -> dict:
         return {
             "c_on": self.c_on, "c_off": self.c_off, "c_fixed": self._fixed, "estimator": self._estimator.name,
-            "reestimations": self.reestimations, "ill_conditioned": self.ill_conditioned, "hot_pixels": self.hot_pixels, "frames": self.frames,
+            "reestimations": self.reestimations, "ill_conditioned": self.ill_conditioned,
+            "hot_pixels": self.hot_pixels, "frames": self.frames,
             "events_ignored": self.events_ignored,
             "events_applied": self.events_applied, "has_reference": self.has_reference,
             "last_deblur_ms": round(self.last_deblur_ms, 3), "last_estimate_ms": round(self.last_estimate_ms, 3),
@@ -416,7 +417,7 @@ class EdiReconstructor:
                 info["decision"] = "still"
             return self._done(info, t0)
         due = first or startup or bool(self.reestimate_every and
-                                          self._frames_since_estimate >= self.reestimate_every)
+                                       self._frames_since_estimate >= self.reestimate_every)
         if not due:
             probe = (floor, floor) if self.events_ignored else (self.c_on, self.c_off)
             score = getattr(self._estimator, "fit_score", None)

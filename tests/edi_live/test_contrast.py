@@ -106,3 +106,29 @@ def test_fixed_and_unknown_estimators():
     assert fixed.estimate(None, [], (0.1, 0.1)) == (0.3, 0.2) and fixed.fits(None, [], (0.3, 0.2))
     with pytest.raises(ValueError, match="unknown c estimator"):
         contrast.make_estimator("psychic")
+
+
+def test_per_pixel_terms_sum_to_the_cost_and_match_the_numpy_formula():
+    scene = make_scene("brick", c_on=0.25, width=80, height=60, n_frames=3)
+    _, pairs = pairs_of(scene, segments=True)  # segments: the numpy path can evaluate c_on != c_off
+    cost = contrast.ConsistencyContrast()._problem(pairs[-1:])
+    for c in (0.1, 0.25, 0.6):
+        fast = cost.terms(c, c)  # the numba kernel when numba is there
+        ref = cost.terms(c, c * (1 + 1e-12))  # always the numpy formula
+        np.testing.assert_allclose(fast, ref, rtol=1e-6, atol=1e-9)
+        assert cost(c, c) == pytest.approx(fast.sum(), rel=1e-9)
+
+
+def test_fit_score_and_information_are_in_standard_errors():
+    est = contrast.ConsistencyContrast()
+    scene = make_scene("brick", c_on=0.25, width=80, height=60, n_frames=3)
+    _, pairs = pairs_of(scene)
+    assert est.fit_score(pairs, (0.25, 0.25)) < est.fit_z < est.fit_score(pairs, (0.35, 0.35))
+    assert est.information(pairs, (0.25, 0.25)) >= est.info_z
+    # the slower the motion, the fewer pixels pin c down: the information shrinks
+    info = []
+    for v in ((0.02, 0.0), (0.1, 0.05)):
+        slow = make_scene("camera", c_on=0.25, velocity_px_per_ms=v, width=80, height=60, n_frames=3, seed=1)
+        _, pr = pairs_of(slow)
+        info.append(est.information(pr, (0.25, 0.25)))
+    assert info[0] < info[1]

@@ -135,44 +135,37 @@ def test_file_without_data_table_reads_fully(tmp_path):
     assert [s.type for s, _ in got] == ["EVTS"] * 5 + ["FRME"]
 
 
-def test_packet_size_past_end_of_file(tmp_path):
-    path = tmp_path / "f.aedat4"
-    data = bytearray(_simple_file(path, "lz4"))
-    pos = _packet_offsets(bytes(data))[1][0]
+def _size_past_end(data, pos, size):
     data[pos + 4:pos + 8] = struct.pack("<i", 1 << 30)
-    path.write_bytes(bytes(data))
-    got, err = _read(path)
-    assert len(got) == 1 and err.offset == pos and "runs past" in str(err)
 
 
-def test_bad_compression_in_a_packet(tmp_path):
-    path = tmp_path / "f.aedat4"
-    data = bytearray(_simple_file(path, "lz4"))
-    pos, _, size = _packet_offsets(bytes(data))[2]
+def _garbage_payload(data, pos, size):
     data[pos + 8:pos + 8 + size] = b"\xff" * size
-    path.write_bytes(bytes(data))
-    got, err = _read(path)
-    assert len(got) == 2 and err.offset == pos and "decompress" in str(err)
 
 
-def test_bad_flatbuffer_in_a_packet(tmp_path):
-    path = tmp_path / "f.aedat4"
-    data = bytearray(_simple_file(path, "none"))
-    pos = _packet_offsets(bytes(data))[1][0]
+def _root_offset_outside(data, pos, size):
     data[pos + 8 + 4:pos + 8 + 8] = struct.pack("<I", 0x7FFFFFF0)  # root table offset far outside the packet
-    path.write_bytes(bytes(data))
-    got, err = _read(path)
-    assert len(got) == 1 and err.offset == pos and "corrupt EVTS packet" in str(err)
 
 
-def test_wrong_identifier_in_a_packet(tmp_path):
-    path = tmp_path / "f.aedat4"
-    data = bytearray(_simple_file(path, "none"))
-    pos = _packet_offsets(bytes(data))[0][0]
+def _frame_identifier(data, pos, size):
     data[pos + 16:pos + 20] = b"FRME"
+
+
+@pytest.mark.parametrize("compression, packet, damage, n_before, message", [
+    ("lz4", 1, _size_past_end, 1, "runs past"),
+    ("lz4", 2, _garbage_payload, 2, "decompress"),
+    ("none", 1, _root_offset_outside, 1, "corrupt EVTS packet"),
+    ("none", 0, _frame_identifier, 0, "identifier"),
+], ids=["size_past_end_of_file", "bad_compression", "bad_flatbuffer", "wrong_identifier"])
+def test_damaged_packet(tmp_path, compression, packet, damage, n_before, message):
+    """One damaged packet: the packets before it are yielded, then one error at its header offset."""
+    path = tmp_path / "f.aedat4"
+    data = bytearray(_simple_file(path, compression))
+    pos, _, size = _packet_offsets(bytes(data))[packet]
+    damage(data, pos, size)
     path.write_bytes(bytes(data))
     got, err = _read(path)
-    assert got == [] and err.offset == pos and "identifier" in str(err)
+    assert len(got) == n_before and err.offset == pos and message in str(err)
 
 
 def test_frame_with_negative_exposure(tmp_path):
@@ -228,6 +221,18 @@ def _mutate(data: bytes, mutation) -> bytes:
     return bytes(buf)
 
 
+def _read_and_replay(path) -> None:
+    """Read and replay a mutated file: each must finish or raise RecordingError; anything else fails the test."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _read(path)
+        try:
+            for _ in merged_packets(path):
+                pass
+        except RecordingError:
+            pass
+
+
 @pytest.fixture(scope="module")
 def small_real(real_recordings):
     return real_recordings["evlib_sample_davis346.aedat4"].read_bytes()
@@ -239,14 +244,7 @@ def small_real(real_recordings):
 def test_fuzz_reader_and_replay_raise_only_recording_errors(tmp_path, small_real, mutation):
     path = tmp_path / "fuzz.aedat4"
     path.write_bytes(_mutate(small_real, mutation))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        _read(path)  # returns or raises RecordingError; anything else fails the test
-        try:
-            for _ in merged_packets(path):
-                pass
-        except RecordingError:
-            pass
+    _read_and_replay(path)
 
 
 @settings(max_examples=25, deadline=10000, suppress_health_check=[HealthCheck.function_scoped_fixture,
@@ -255,14 +253,7 @@ def test_fuzz_reader_and_replay_raise_only_recording_errors(tmp_path, small_real
 def test_fuzz_aestream_recording(tmp_path, real_recordings, mutation):
     path = tmp_path / "fuzz.aedat4"
     path.write_bytes(_mutate(real_recordings["aestream_davis346.aedat4"].read_bytes(), mutation))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        _read(path)
-        try:
-            for _ in merged_packets(path):
-                pass
-        except RecordingError:
-            pass
+    _read_and_replay(path)
 
 
 @pytest.fixture(scope="module")
@@ -284,14 +275,7 @@ def uncompressed_real(real_recordings, tmp_path_factory):
 def test_fuzz_uncompressed_flatbuffers(tmp_path, uncompressed_real, mutation):
     path = tmp_path / "fuzz.aedat4"
     path.write_bytes(_mutate(uncompressed_real, mutation))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        _read(path)
-        try:
-            for _ in merged_packets(path):
-                pass
-        except RecordingError:
-            pass
+    _read_and_replay(path)
 
 
 def test_damaged_data_table_is_reported_but_does_not_stop_replay(tmp_path):

@@ -116,6 +116,39 @@ def build_table(t, x, y, p, width, height, mask, use_mask, ts, te, f, want_segme
     return pixels, seg_start, seg_on, seg_off, seg_frac, lvl_start, lvl_min, lvl_frac[:base], n
 
 
+@njit(cache=True, nogil=True, inline="always")  # numba IR inlining: a plain call costs speed here
+def _exp_table(c, n):
+    """exp(c * j) for j in range(n): the per-level weights, so the sums below need no exp per level."""
+    ztab = np.empty(n, dtype=np.float64)
+    for j in range(n):
+        ztab[j] = math.exp(c * j)
+    return ztab
+
+
+@njit(cache=True, nogil=True, inline="always")  # numba IR inlining: a plain call costs speed here
+def _level_sum(frac, a, b, ztab):
+    """sum_k frac[k] * exp(c * (k - a)) over one pixel's levels [a, b), the weights read from ztab."""
+    acc = 0.0
+    for k in range(a, b):
+        acc += frac[k] * ztab[k - a]
+    return acc
+
+
+@njit(cache=True, nogil=True, inline="always")  # numba IR inlining: a plain call costs speed here
+def _log_level_sum_wide(frac, a, b, c, lvl_min):
+    """c * lvl_min + log sum_k frac[k] * exp(c * (k - a)) by log-sum-exp over the occupied levels: for level
+    ranges too wide for the table (exp(c * (k - a)) would overflow)."""
+    m = -math.inf
+    for k in range(a, b):
+        if frac[k] > 0.0 and c * (k - a) > m:
+            m = c * (k - a)
+    acc = 0.0
+    for k in range(a, b):
+        if frac[k] > 0.0:
+            acc += frac[k] * math.exp(c * (k - a) - m)
+    return c * lvl_min + m + math.log(acc)
+
+
 @njit(cache=True, nogil=True)
 def log_divisor_levels(lvl_start, lvl_min, lvl_frac, c, cap):
     n_act = lvl_min.size
@@ -127,27 +160,14 @@ def log_divisor_levels(lvl_start, lvl_min, lvl_frac, c, cap):
             wmax = w
     if wmax > cap:
         wmax = cap
-    ztab = np.empty(wmax, dtype=np.float64)
-    for j in range(wmax):
-        ztab[j] = math.exp(c * j)
+    ztab = _exp_table(c, wmax)
     for r in range(n_act):
         a = lvl_start[r]
         b = lvl_start[r + 1]
         if b - a <= cap:
-            acc = 0.0
-            for k in range(a, b):
-                acc += lvl_frac[k] * ztab[k - a]
-            out[r] = c * lvl_min[r] + math.log(acc)
-        else:  # very wide level range: log-sum-exp over the occupied levels
-            m = -math.inf
-            for k in range(a, b):
-                if lvl_frac[k] > 0.0 and c * (k - a) > m:
-                    m = c * (k - a)
-            acc = 0.0
-            for k in range(a, b):
-                if lvl_frac[k] > 0.0:
-                    acc += lvl_frac[k] * math.exp(c * (k - a) - m)
-            out[r] = c * lvl_min[r] + m + math.log(acc)
+            out[r] = c * lvl_min[r] + math.log(_level_sum(lvl_frac, a, b, ztab))
+        else:  # very wide level range
+            out[r] = _log_level_sum_wide(lvl_frac, a, b, c, lvl_min[r])
     return out
 
 
@@ -321,24 +341,14 @@ def _divisor_sums(start, lvl_min, frac, rows, c, ztab, cap, sign, ratio, offset)
         b = start[r + 1]
         i = rows[r]
         if b - a <= cap:
-            acc = 0.0
-            for k in range(a, b):
-                acc += frac[k] * ztab[k - a]
+            acc = _level_sum(frac, a, b, ztab)
             if sign > 0:
                 ratio[i] *= acc
             else:
                 ratio[i] /= acc
             offset[i] += sign * c * lvl_min[r]
         else:
-            m = -math.inf
-            for k in range(a, b):
-                if frac[k] > 0.0 and c * (k - a) > m:
-                    m = c * (k - a)
-            acc = 0.0
-            for k in range(a, b):
-                if frac[k] > 0.0:
-                    acc += frac[k] * math.exp(c * (k - a) - m)
-            offset[i] += sign * (c * lvl_min[r] + m + math.log(acc))
+            offset[i] += sign * _log_level_sum_wide(frac, a, b, c, lvl_min[r])
 
 
 @njit(cache=True, nogil=True)
@@ -353,9 +363,7 @@ def consistency_cost(c, dlog_b, net, weight, delta2, start_p, min_p, frac_p, row
     for r in range(row_c.size):
         wmax = max(wmax, start_c[r + 1] - start_c[r])
     wmax = min(wmax, cap)
-    ztab = np.empty(wmax, dtype=np.float64)
-    for j in range(wmax):
-        ztab[j] = math.exp(c * j)
+    ztab = _exp_table(c, wmax)
     n = net.size
     ratio = np.ones(n, dtype=np.float64)
     offset = c * net

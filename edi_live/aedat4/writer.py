@@ -124,6 +124,15 @@ class Aedat4Writer:
             raise RecordingError(f"{name} passed to the writer are not sorted by time", self.path)
         self._check(name, int(t[0]), int(t[-1]))
 
+    def _accept(self, name: str, records: np.ndarray, dtype: np.dtype, dtype_name: str) -> bool:
+        """write_<name>'s input checks: RecordingError unless `dtype` and sorted by t; False when empty."""
+        if records.dtype != dtype:
+            raise RecordingError(f"write_{name} needs {dtype_name}, got {records.dtype}", self.path)
+        if not len(records):
+            return False
+        self._check_sorted(name, records["t"])
+        return True
+
     def _packet(self, name: str, payload: bytes, n: int, t0: int, t1: int) -> None:
         body = self._compress(payload)
         offset = self._file.tell()
@@ -173,11 +182,8 @@ class Aedat4Writer:
 
     def write_imu(self, imu: np.ndarray) -> None:
         """Append IMU samples (IMU_DTYPE, sorted by t) as one packet."""
-        if imu.dtype != IMU_DTYPE:
-            raise RecordingError(f"write_imu needs IMU_DTYPE, got {imu.dtype}", self.path)
-        if not len(imu):
+        if not self._accept("imu", imu, IMU_DTYPE, "IMU_DTYPE"):
             return
-        self._check_sorted("imu", imu["t"])
         rec = np.zeros(len(imu), dtype=_IMU_REC)
         rec["t"] = imu["t"]
         rec["f"][:, 0] = imu["temperature_c"]
@@ -187,11 +193,8 @@ class Aedat4Writer:
 
     def write_triggers(self, triggers: np.ndarray) -> None:
         """Append triggers (TRIGGER_DTYPE, sorted by t) as one packet."""
-        if triggers.dtype != TRIGGER_DTYPE:
-            raise RecordingError(f"write_triggers needs TRIGGER_DTYPE, got {triggers.dtype}", self.path)
-        if not len(triggers):
+        if not self._accept("triggers", triggers, TRIGGER_DTYPE, "TRIGGER_DTYPE"):
             return
-        self._check_sorted("triggers", triggers["t"])
         rec = np.zeros(len(triggers), dtype=_TRIG_REC)
         rec["t"], rec["type"] = triggers["t"], triggers["type"]
         payload = S.build_table_vector_root(b"TRIG", rec, _TRIG_SLOTS)

@@ -99,15 +99,20 @@ def test_newer_layout_has_no_readout_times(decoded):
     assert all(f.start_us is None and f.end_us is None for f in frames)
 
 
+def _assert_events_equal(packets, t, x, y, p) -> None:
+    """Our event packets, concatenated, equal an oracle's t/x/y/p columns exactly."""
+    ours = np.concatenate(packets)
+    assert np.array_equal(ours["t"], t)
+    assert np.array_equal(ours["x"], x) and np.array_equal(ours["y"], y)
+    assert np.array_equal(ours["p"], p)
+
+
 @pytest.mark.parametrize("name", list(README))
 def test_events_frames_imu_triggers_equal_dv_processing(decoded, real_recordings, name):
     _, data, _, _, _ = decoded[name]
     oracle = dv_read(real_recordings[name])
-    ours = np.concatenate(data["EVTS"])
     ref = oracle["events"]
-    assert np.array_equal(ours["t"], ref["timestamp"])
-    assert np.array_equal(ours["x"], ref["x"]) and np.array_equal(ours["y"], ref["y"])
-    assert np.array_equal(ours["p"], ref["polarity"].astype(bool))
+    _assert_events_equal(data["EVTS"], ref["timestamp"], ref["x"], ref["y"], ref["polarity"].astype(bool))
     # dv-processing reports Frame.timestamp = SOE and exposure = EOE - SOE for both layouts
     assert [(f.exposure_start_us, f.exposure_us) for f in data["FRME"]] == \
         [(f["t"], f["exposure_us"]) for f in oracle["frames"]]
@@ -129,11 +134,8 @@ def test_events_frames_imu_triggers_equal_dv_processing(decoded, real_recordings
 def test_everything_equals_the_aedat_package(decoded, real_recordings, name):
     _, data, _, _, _ = decoded[name]
     oracle = aedat_read(real_recordings[name])
-    ours = np.concatenate(data["EVTS"])
     ref = oracle["events"]
-    assert np.array_equal(ours["t"], ref["t"].astype(np.int64))
-    assert np.array_equal(ours["x"], ref["x"]) and np.array_equal(ours["y"], ref["y"])
-    assert np.array_equal(ours["p"], ref["on"])
+    _assert_events_equal(data["EVTS"], ref["t"].astype(np.int64), ref["x"], ref["y"], ref["on"])
     for ours_f, ref_f in zip(data["FRME"], oracle["frames"], strict=True):
         assert (ours_f.exposure_start_us, ours_f.exposure_end_us) == (ref_f["exposure_begin_t"],
                                                                       ref_f["exposure_end_t"])

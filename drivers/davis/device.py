@@ -16,6 +16,8 @@ import threading
 import time
 from typing import Any, Iterator
 
+import numpy as np
+
 from drivers.davis import discovery, models, protocol as P
 from drivers.davis.decoder import DavisDecoder
 from drivers.davis.transport import UsbTransport, read_serial
@@ -196,6 +198,7 @@ class DavisSource:
         w, h = (info["dvs_rows"], info["dvs_columns"]) if dvs_swap else (info["dvs_columns"], info["dvs_rows"])
         self.info = SourceInfo(w, h, name=models.camera_name(info["chip_id"]), serial=serial or "", kind=self._kind())
         self._configure(t, model, info)
+        _warm_up_decoder(info)
         self._start(t, model, info)
 
     def _reg(self, t: UsbTransport, module: int, param: int) -> int:
@@ -335,3 +338,20 @@ class DavisSource:
             if self._user_stop.wait(0.2):
                 return False
         return False
+
+
+def _warm_up_decoder(info: dict) -> None:
+    """Decode a few synthetic words before the camera streams.
+
+    The decoder's hot loop is a numba kernel: compiled on first use (about 2 s with a cold cache) or loaded from
+    the on-disk cache. Doing that now, rather than on the first USB chunk, keeps the raw queue from backing up
+    (and, live, from dropping data) at start-up.
+    """
+    from drivers.davis.encoder import WordEncoder
+
+    w, h = int(info["dvs_columns"]), int(info["dvs_rows"])
+    n = 64
+    t = np.arange(n, dtype=np.int64) * 10
+    x, y = np.arange(n, dtype=np.int64) % w, np.arange(n, dtype=np.int64) % h
+    words = WordEncoder(w, h).encode_events(t, x, y, (np.arange(n) % 2).astype(bool))
+    DavisDecoder(w, h, info["aps_columns"], info["aps_rows"]).decode_words(np.asarray(words, dtype=np.uint16))

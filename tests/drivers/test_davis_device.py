@@ -195,3 +195,24 @@ def test_external_input_triggers_round_trip():
         out = _read_all(src)
     got = np.concatenate([p.triggers for p in out])
     assert got.tolist() == tr.tolist() and np.array_equal(flatten(out)[0], ev)
+
+
+def test_decoder_kernel_is_warmed_up_before_the_camera_streams(monkeypatch):
+    # The decoder's numba kernel takes up to ~2 s to compile on a cold cache; that must happen before the MUX
+    # starts the stream, not on the first USB chunk (a live camera would back up the raw queue meanwhile).
+    import drivers.davis.device as device
+
+    be = backend(model="davis240", speed=0)
+    seen = {}
+    real = device._warm_up_decoder
+
+    def recorder(info):
+        seen["writes_before"] = list(be.writes)
+        real(info)
+
+    monkeypatch.setattr(device, "_warm_up_decoder", recorder)
+    with DavisSource("davis240", backend=be, policy="wait"):
+        pass
+    assert "writes_before" in seen
+    assert not any(w in seen["writes_before"] for w in P.START_MUX_ON)
+    assert all(w in be.writes for w in P.START_MUX_ON)

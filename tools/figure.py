@@ -35,20 +35,30 @@ def _label(img: np.ndarray, text: str) -> np.ndarray:
     return out
 
 
+def _deblur_through(frames: list, events: np.ndarray) -> tuple[EdiReconstructor, object]:
+    """Feed each frame with its exposure's events to one reconstructor (c is estimated from the frame pairs);
+    returns the reconstructor and the last frame's deblurred Reconstruction."""
+    rec = EdiReconstructor(frames[0].width, frames[0].height)
+    out = None
+    for frame in frames:
+        lo = np.searchsorted(events["t"], frame.exposure_start_us)
+        hi = np.searchsorted(events["t"], frame.exposure_end_us, side="right")
+        out = rec.on_frame(frame, events[lo:hi])
+    return rec, out
+
+
+def _fit(tiles: list[np.ndarray], height: int) -> list[np.ndarray]:
+    return [cv2.resize(t, (t.shape[1] * height // t.shape[0], height)) for t in tiles]
+
+
 def simulated_row(height: int) -> list[np.ndarray]:
     sim = simulate(preset("demo", duration_s=0.4))
-    rec = EdiReconstructor(sim.frames[0].width, sim.frames[0].height)
-    k = len(sim.frames) - 1
-    deblurred = None
-    for i, frame in enumerate(sim.frames[: k + 1]):
-        lo = np.searchsorted(sim.events["t"], frame.exposure_start_us)
-        hi = np.searchsorted(sim.events["t"], frame.exposure_end_us, side="right")
-        deblurred = rec.on_frame(frame, sim.events[lo:hi])
-    frame = sim.frames[k]
+    rec, deblurred = _deblur_through(sim.frames, sim.events)
+    frame = sim.frames[-1]
     gt = sim.gt_at(frame.mid_exposure_us)
     tiles = [_label(frame.image, "APS frame (blurry)"), _label(deblurred.image, f"EDI, auto c={rec.c_on:.2f}"),
              _label(gt, "ground truth")]
-    return [cv2.resize(t, (t.shape[1] * height // t.shape[0], height)) for t in tiles]
+    return _fit(tiles, height)
 
 
 def real_row(path: Path, height: int, frame_index: int = 3) -> list[np.ndarray]:
@@ -57,22 +67,16 @@ def real_row(path: Path, height: int, frame_index: int = 3) -> list[np.ndarray]:
         events.append(np.asarray(packet.events, dtype=EVENT_DTYPE))
         frames.extend(packet.frames)
     ev = np.concatenate(events).astype(EVENT_DTYPE) if events else np.zeros(0, EVENT_DTYPE)
-    rec = EdiReconstructor(frames[0].width, frames[0].height)
-    out = None
-    for frame in frames[: frame_index + 1]:
-        lo = np.searchsorted(ev["t"], frame.exposure_start_us)
-        hi = np.searchsorted(ev["t"], frame.exposure_end_us, side="right")
-        out = rec.on_frame(frame, ev[lo:hi])
+    rec, out = _deblur_through(frames[: frame_index + 1], ev)
     frame = frames[frame_index]
-    later = frame.exposure_end_us + 10_000
-    hi2 = np.searchsorted(ev["t"], later, side="right")
-    rec.on_events(ev[np.searchsorted(ev["t"], frame.exposure_end_us, side="right"):hi2])
+    after = np.searchsorted(ev["t"], [frame.exposure_end_us, frame.exposure_end_us + 10_000], side="right")
+    rec.on_events(ev[after[0]:after[1]])
     latent = rec.render()
     gain = 255.0 / max(1.0, float(np.percentile(frame.image, 99.5)))  # the recording is dark: same gain for all
     tiles = [_label(frame.image * gain, "real APS frame (blurry)"),
              _label(out.image * gain, f"EDI at mid-exposure, c={rec.c_on:.2f}"),
              _label(latent.image * gain, "EDI latent, +10 ms")]
-    return [cv2.resize(t, (t.shape[1] * height // t.shape[0], height)) for t in tiles]
+    return _fit(tiles, height)
 
 
 def main(argv: list[str] | None = None) -> int:

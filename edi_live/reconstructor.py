@@ -13,6 +13,7 @@ order. Events before the first APS frame only feed the hot-pixel statistics (the
 from __future__ import annotations
 
 import collections
+import copy
 import functools
 import math
 import time
@@ -148,6 +149,7 @@ class EdiReconstructor:
         self._t_last = -(2**63)
         self._pending_events = 0
         self._arrival_ns = 0
+        self._streamer = False  # a streaming_copy(): its applied events are replayed into the original later
         self.frames = 0
         self.events_applied = 0
         self.last_deblur_ms = 0.0
@@ -168,7 +170,22 @@ class EdiReconstructor:
         self._prev = None
         self._pairs.clear()
 
+    def streaming_copy(self) -> "EdiReconstructor":
+        """A copy that can stream latent frames (on_events, render) from the current reference while this one
+        deblurs the next APS frame on another thread. Only the latent state is copied (~30 µs at 346x260; a
+        deepcopy is ~0.8 ms): the rest is shared read-only. The copy keeps no c-estimation counts, since the
+        events it applies are handed to this reconstructor's on_events afterwards anyway."""
+        twin = copy.copy(self)
+        twin._log_lat = self._log_lat.copy()
+        twin._display = self._display.copy()
+        if self._activity is not None:
+            twin._activity = self._activity.copy()
+        twin._streamer = True
+        return twin
+
     def on_frame(self, frame: Frame, events: np.ndarray, arrival_ns: int = 0) -> Reconstruction:
+        if self._streamer:
+            raise NodeError("on_frame() on a streaming_copy(): deblur on the original reconstructor")
         t_start = time.perf_counter()
         img = frame.image
         if img.shape != (self.height, self.width):
@@ -266,11 +283,13 @@ class EdiReconstructor:
         if self._activity is not None:
             events = events[edi.background_activity_keep(events, self.width, self.height, self._activity,
                                                           self._denoise_us)]
+        count = not (self._fixed or self._streamer)
         if self.events_ignored:  # keep counting for the next consistency check, but leave the image alone
-            edi.add_counts(events, self.width, self.height, *self._acc, mask=mask)
+            if count:
+                edi.add_counts(events, self.width, self.height, *self._acc, mask=mask)
         else:
             edi.propagate_log(self._log_lat, events, self.c_on, self.c_off, mask=mask, display=self._display,
-                              counts=None if self._fixed else self._acc)
+                              counts=self._acc if count else None)
         self._t_last = max(self._t_last, t_end)
         self._pending_events += n
         self.events_applied += n

@@ -26,7 +26,8 @@ Policy:
 - deblur_thread (causal mode; the node turns it on except for --speed 0 replays): each APS frame after the first
   is deblurred on a helper thread ("edi-deblur") while latent frames keep coming from a copy holding the
   previous reference; then the events the copy applied meanwhile are replayed into the reconstructor, which
-  takes over again, and the deblurred frame is sent. Uses only the public API plus copy.deepcopy.
+  takes over again, and the deblurred frame is sent. Uses only the public API plus `streaming_copy()` (or
+  copy.deepcopy for reconstructors without it).
 """
 
 from __future__ import annotations
@@ -302,9 +303,11 @@ class EdiWorker:
                     and not self._await_reference and not self._copy_failed)
 
     def _copy_reconstructor(self) -> Any:
-        """A deep copy of the reconstructor, or None (then deblur inline) if it cannot be copied."""
+        """A streaming copy of the reconstructor (its `streaming_copy()` if it has one, else a deep copy), or None
+        (then deblur inline) if it cannot be copied."""
         try:
-            return copy.deepcopy(self.rec)
+            cheap = getattr(self.rec, "streaming_copy", None)
+            return cheap() if cheap is not None else copy.deepcopy(self.rec)
         except Exception as exc:
             log.warning("reconstructor cannot be copied (%s: %s); deblurring on the worker thread",
                         type(exc).__name__, exc)

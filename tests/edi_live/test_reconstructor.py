@@ -288,3 +288,53 @@ def test_an_estimate_on_a_flat_cost_curve_is_no_information(brick, monkeypatch):
     stream(brick, rec)
     assert rec.c_on == rec.c_off == 0.25 and not rec.events_ignored
     assert rec.ill_conditioned >= 1 and rec.stats()["ill_conditioned"] == rec.ill_conditioned
+
+
+def test_streaming_copy_then_replay_equals_inline_processing(brick):
+    """The worker's deblur hand-over: while the original deblurs frame k, a streaming copy renders latent frames
+    from the previous reference; the events it applied are then replayed into the original. The original must
+    end exactly where inline processing ends (same c, pairs and latent image), and the copy must render what the
+    original would have rendered from the old reference."""
+    ev, t = brick.events, brick.events["t"]
+    inline, handed = EdiReconstructor(brick.width, brick.height), EdiReconstructor(brick.width, brick.height)
+    fed = 0
+    for k, frame in enumerate(brick.frames):
+        end = int(np.searchsorted(t, frame.exposure_end_us, side="right"))
+        start = int(np.searchsorted(t, frame.exposure_start_us, side="left"))
+        for rec in (inline, handed):
+            rec.on_events(ev[fed:end])
+        fed = end
+        nxt = int(np.searchsorted(t, brick.frames[k + 1].exposure_start_us)) if k + 1 < len(brick.frames) else ev.size
+        catchup = ev[end:nxt]  # what arrives while frame k is being deblurred
+        out_inline = inline.on_frame(frame, ev[start:end])
+        inline.on_events(catchup)
+        if handed.has_reference:
+            twin = handed.streaming_copy()
+            twin.on_events(catchup)  # streams from the old reference ...
+            out_handed = handed.on_frame(frame, ev[start:end])  # ... while the original deblurs
+            assert twin.render().ref_t_us == brick.frames[k - 1].mid_exposure_us
+            handed.on_events(catchup)  # the hand-over replays what the copy applied
+        else:
+            out_handed = handed.on_frame(frame, ev[start:end])
+            handed.on_events(catchup)
+        fed = nxt
+        np.testing.assert_array_equal(out_handed.image, out_inline.image)
+        assert (handed.c_on, handed.c_off, handed.reestimations) == (inline.c_on, inline.c_off, inline.reestimations)
+        np.testing.assert_array_equal(handed._acc[0], inline._acc[0])
+        np.testing.assert_array_equal(handed.render().image, inline.render().image)
+    assert inline.reestimations >= 1
+
+
+def test_streaming_copy_streams_from_the_old_reference_and_cannot_deblur(brick):
+    rec = EdiReconstructor(brick.width, brick.height, c=0.25)
+    stream(brick, rec)
+    twin = rec.streaming_copy()
+    later = brick.events[-300:]
+    expected = rec._log_lat.copy()
+    edi.propagate_log(expected, later, 0.25)
+    twin.on_events(later)
+    np.testing.assert_array_equal(twin._log_lat, expected)
+    np.testing.assert_array_equal(twin.render().image, edi.to_uint8(expected))
+    assert not np.array_equal(rec._log_lat, expected), "the original's latent state is not touched by the copy"
+    with pytest.raises(NodeError, match="streaming_copy"):
+        twin.on_frame(brick.frames[-1], later)

@@ -253,11 +253,12 @@ class ReplaySource:
     at its end and every timestamp of the next pass is shifted so time keeps increasing. Iteration yields `Packet`s,
     or None when nothing is due within `poll_s`; it ends at the end of the file, or soon after `stop()` (a stopped
     source stays stopped). A defect in the file raises `RecordingError` after every packet before it has been
-    yielded.
+    yielded. `decode_process=True` (what the CLI uses) decodes in a child process (drivers.prefetch) and only
+    paces here: the same packets, without the decoder's bursts on this process's GIL.
     """
 
     def __init__(self, path: str | os.PathLike, *, speed: float = 1.0, loop: bool = False,
-                 max_packet_us: int | None = None, poll_s: float = 0.1) -> None:
+                 max_packet_us: int | None = None, poll_s: float = 0.1, decode_process: bool = False) -> None:
         if not speed >= 0:
             raise ConfigError(f"--speed must be 0 (as fast as possible) or positive (got {speed})")
         self.path = os.fspath(path)
@@ -265,6 +266,8 @@ class ReplaySource:
         # paced: 1 ms packets, like a camera's USB transfers (low latency); unpaced: 10 ms packets (throughput)
         self.max_packet_us = max_packet_us if max_packet_us is not None else (1_000 if speed > 0 else 10_000)
         self.poll_s = poll_s
+        # decode in a child process (drivers.prefetch): keeps the decoder's bursts off this process's GIL
+        self.decode_process = bool(decode_process)
         with Aedat4Reader(self.path) as reader:
             info = reader.source_info
             try:
@@ -300,34 +303,62 @@ class ReplaySource:
 
     def __iter__(self) -> Iterator[Packet | None]:
         pacer = Pacer(self.speed)
-        offset, seq = 0, 0
+        seq = 0
+        for packet in self._decoded() if self.decode_process else self._decode_here():
+            if packet is None:
+                yield None
+                continue
+            due = _last_time(packet)
+            while not pacer.wait(due, self.poll_s, self._stop):
+                if self._stop.is_set():
+                    return
+                yield None
+            if self._stop.is_set():
+                return
+            if packet.frames:
+                packet.frames = [dataclasses.replace(f, seq=seq + i) for i, f in enumerate(packet.frames)]
+                seq += len(packet.frames)
+            packet.arrival_ns = time.monotonic_ns()
+            with self._lock:
+                st = self._status
+                st.packets += 1
+                st.events += len(packet.events)
+                st.frames += len(packet.frames)
+            yield packet
+
+    def _decode_here(self) -> Iterator[Packet]:
+        """Every pass's packets, decoded on the calling thread."""
+        offset = 0
         while not self._stop.is_set():
             span: dict = {}
             produced = False
             for packet in merged_packets(self.path, time_offset_us=offset, max_packet_us=self.max_packet_us,
                                          span=span):
                 produced = True
-                due = _last_time(packet)
-                while not pacer.wait(due, self.poll_s, self._stop):
-                    if self._stop.is_set():
-                        return
-                    yield None
+                yield packet
                 if self._stop.is_set():
                     return
-                if packet.frames:
-                    packet.frames = [dataclasses.replace(f, seq=seq + i) for i, f in enumerate(packet.frames)]
-                    seq += len(packet.frames)
-                packet.arrival_ns = time.monotonic_ns()
-                with self._lock:
-                    st = self._status
-                    st.packets += 1
-                    st.events += len(packet.events)
-                    st.frames += len(packet.frames)
-                yield packet
             if not (self.loop and produced) or "t_first" not in span:
                 return
             offset += span["t_last"] - span["t_first"] + 1
             self.loops += 1
+
+    def _decoded(self) -> Iterator[Packet | None]:
+        """Every pass's packets, decoded by a child process (drivers.prefetch); None while none is ready."""
+        from drivers.prefetch import DecodeProcess
+
+        child = DecodeProcess(self.path, self.max_packet_us, self.loop)
+        try:
+            while not self._stop.is_set():
+                try:
+                    packet = child.next_packet(self.poll_s)
+                except StopIteration:
+                    return
+                if self.loop:
+                    self.loops = len(child.passes)
+                yield packet
+        finally:
+            child.close()
 
 
 def _last_time(packet: Packet) -> int:

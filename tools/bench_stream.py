@@ -102,7 +102,8 @@ class GatedSource:
 def _replay(path: Path, speed: float, loop: bool = False, **options):
     import drivers
 
-    return drivers.open_source("replay", path=str(path), speed=speed, loop=loop, **options)
+    # as the CLI opens it: decoded in a child process
+    return drivers.open_source("replay", path=str(path), speed=speed, loop=loop, decode_process=True, **options)
 
 
 # ------------------------------------------------------------------------------------------------ subscriber

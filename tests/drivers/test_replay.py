@@ -1,9 +1,10 @@
 """Replay: merged_packets' ordering contract on real DV files (dv-processing as the oracle), ReplaySource's Source
-behaviour (pacing, loop, stop, None on idle, faults), Pacer arithmetic, and the memory bound."""
+behaviour (pacing, loop, stop, None on idle, faults), Pacer arithmetic, the memory bound, and decoding in a child process."""
 
 from __future__ import annotations
 
 import threading
+import time
 import tracemalloc
 
 import numpy as np
@@ -13,7 +14,7 @@ from drivers.pacing import Pacer
 from drivers.replay import ReplaySource, merged_packets
 from edi_live.aedat4 import Aedat4Reader, Aedat4Writer
 from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, Frame, Packet
-from edi_live.errors import ConfigError, RecordingError
+from edi_live.errors import ConfigError, RecordingError, SourceError
 from edi_live.source import Source
 
 NAMES = ["emlb_demo-01_davis346.aedat4", "aestream_davis346.aedat4", "evlib_sample_davis346.aedat4"]
@@ -158,15 +159,18 @@ def _run_in_thread(fn, timeout_s=20.0):
     return result["value"]
 
 
-def test_idle_yields_none_and_stop_ends_iteration(real_recordings):
+@pytest.mark.parametrize("decode_process", [False, True])
+def test_idle_yields_none_and_stop_ends_iteration(real_recordings, decode_process):
     # speed 1e-4: the second packet is due hours later, so the source keeps yielding None until stopped
-    src = ReplaySource(real_recordings["aestream_davis346.aedat4"], speed=1e-4, poll_s=0.01)
+    src = ReplaySource(real_recordings["aestream_davis346.aedat4"], speed=1e-4, poll_s=0.01,
+                       decode_process=decode_process)
 
     def consume():
         seen = []
         with src:
             for p in src:
-                seen.append(p)
+                if p is not None or seen:  # (a decoding child may need a moment for the first packet)
+                    seen.append(p)
                 if sum(x is None for x in seen) == 3:
                     threading.Thread(target=src.stop).start()  # stop from another thread
         return seen
@@ -176,14 +180,17 @@ def test_idle_yields_none_and_stop_ends_iteration(real_recordings):
     assert seen.count(None) >= 3
 
 
-def test_loop_keeps_time_monotonic(real_recordings):
+@pytest.mark.parametrize("decode_process", [False, True])
+def test_loop_keeps_time_monotonic(real_recordings, decode_process):
     path = real_recordings["evlib_sample_davis346.aedat4"]
-    src = ReplaySource(path, speed=0, loop=True)
+    src = ReplaySource(path, speed=0, loop=True, decode_process=decode_process)
 
     def consume():
         packets = []
         with src:
             for p in src:
+                if p is None:  # nothing ready yet (allowed by the Source protocol at any speed)
+                    continue
                 packets.append(p)
                 if sum(len(q.events) for q in packets) >= 3 * 6_676:
                     src.stop()
@@ -199,7 +206,8 @@ def test_loop_keeps_time_monotonic(real_recordings):
     assert len(frames) >= 8
 
 
-def test_truncated_file_replays_up_to_the_fault_then_raises(tmp_path, real_recordings):
+@pytest.mark.parametrize("decode_process", [False, True])
+def test_truncated_file_replays_up_to_the_fault_then_raises(tmp_path, real_recordings, decode_process):
     data = real_recordings["aestream_davis346.aedat4"].read_bytes()
     path = tmp_path / "cut.aedat4"
     path.write_bytes(data[: len(data) // 2])
@@ -207,7 +215,7 @@ def test_truncated_file_replays_up_to_the_fault_then_raises(tmp_path, real_recor
     with pytest.raises(RecordingError), Aedat4Reader(path) as reader:
         for s, d in reader:
             expected += len(d) if s.type == "EVTS" else 0
-    src = ReplaySource(path, speed=0)
+    src = ReplaySource(path, speed=0, decode_process=decode_process)
 
     def consume():
         got = 0
@@ -221,6 +229,7 @@ def test_truncated_file_replays_up_to_the_fault_then_raises(tmp_path, real_recor
 
     got, err = _run_in_thread(consume)
     assert err is not None and str(path) in str(err) and "at byte" in str(err)
+    assert str(err).count(str(path)) == 1, "the child's message is not prefixed twice"
     assert got == expected > 0
 
 
@@ -348,3 +357,58 @@ def test_slot_cuts_match_a_per_event_scan(rng, span_us):
             if cur // max_packet_us != prev // max_packet_us:
                 expected.append(cur // max_packet_us * max_packet_us)
         assert _slot_cuts(t, max_packet_us) == expected
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_decoding_in_a_child_process_gives_the_same_packets(real_recordings, name):
+    def packets(decode_process):
+        src = ReplaySource(real_recordings[name], speed=0, decode_process=decode_process)
+        with src:
+            return [p for p in src if p is not None]
+
+    here, there = _run_in_thread(lambda: (packets(False), packets(True)), timeout_s=60)
+    assert len(here) == len(there) > 0
+    for a, b in zip(here, there):
+        assert a.events.dtype == b.events.dtype == EVENT_DTYPE
+        np.testing.assert_array_equal(a.events, b.events)
+        np.testing.assert_array_equal(a.imu, b.imu)
+        np.testing.assert_array_equal(a.triggers, b.triggers)
+        assert a.watermark_us == b.watermark_us and not b.gap
+        assert [(f.seq, f.exposure_start_us, f.exposure_end_us) for f in a.frames] == \
+               [(f.seq, f.exposure_start_us, f.exposure_end_us) for f in b.frames]
+        for fa, fb in zip(a.frames, b.frames):
+            np.testing.assert_array_equal(fa.image, fb.image)
+
+
+def test_a_killed_decoding_process_is_one_clear_error(real_recordings):
+    from drivers.prefetch import DecodeProcess
+
+    child = DecodeProcess(str(real_recordings["emlb_demo-01_davis346.aedat4"]), 1_000, loop=True)
+    try:
+        assert isinstance(child.next_packet(30.0), Packet)
+        child._proc.kill()
+        with pytest.raises(SourceError, match="decoding process ended unexpectedly"):
+            for _ in range(100_000):  # what was already in the pipe, then the error
+                child.next_packet(5.0)
+    finally:
+        child.close()
+    assert not child._proc.is_alive()
+
+
+def test_stopping_mid_file_ends_the_decoding_process(real_recordings):
+    src = ReplaySource(real_recordings["emlb_demo-01_davis346.aedat4"], speed=0, loop=True, decode_process=True)
+
+    def consume():
+        with src:
+            for i, p in enumerate(src):
+                if i == 5:
+                    src.stop()
+        return i
+
+    assert _run_in_thread(consume) >= 5
+    import multiprocessing
+
+    deadline = time.monotonic() + 5
+    while any(c.name == "edi-live-decode" for c in multiprocessing.active_children()):
+        assert time.monotonic() < deadline, "the decoding process outlived the replay"
+        time.sleep(0.05)

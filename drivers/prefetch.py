@@ -1,0 +1,149 @@
+"""Decoding a recording in a child process, so the node's own process only receives ready packets.
+
+Owns: the child process that runs `merged_packets` (decompression, FlatBuffers walk, merge and slicing) pass after
+pass, and the pipe that carries its packets back in order. Why: that work comes in bursts (one file packet of
+~20k events at a time, ~0.5 ms of CPU in a few long C calls that hold the GIL). In the node's process it made the
+worker wait for the GIL right when a packet had arrived: the slowest 1 % of latent frames at 1 M events/s paced
+replay took 2 ms instead of 0.75 ms. In a child the burst only costs CPU on another core, and receiving a packet
+costs a pipe read and an unpickle (a memcpy of its events).
+
+Protocol on the pipe (child -> parent), one pickled tuple per message:
+("packet", Packet) | ("pass", t_first, t_last) at the end of each pass over the file | ("error", message, path,
+offset) for a RecordingError (after every packet before the defect) or ("crash", text) for anything else |
+("end",). The parent closes its end to stop the child; the child also ignores SIGINT, so Ctrl-C in the terminal
+reaches only the node, which then stops it.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import signal
+from typing import Any, Iterator
+
+from edi_live.datatypes import Packet
+from edi_live.errors import RecordingError, SourceError
+
+_JOIN_S = 2.0
+_NICE = 5  # the child only reads ahead: when a core is contended, the node's threads go first
+
+
+def _context() -> Any:
+    # forkserver: a child forked from a clean server (no threads, no ZeroMQ context), ~20 ms once warm;
+    # the node's process itself must not fork (it runs threads)
+    methods = mp.get_all_start_methods()
+    ctx = mp.get_context("forkserver" if "forkserver" in methods else "spawn")
+    if ctx.get_start_method() == "forkserver":
+        ctx.set_forkserver_preload(["drivers.replay", "drivers.prefetch"])
+    return ctx
+
+
+def _child(conn: Any, path: str, max_packet_us: int, loop: bool) -> None:
+    """Child process: every pass's packets into `conn`, in order, until the parent goes away."""
+    from drivers.replay import merged_packets  # imported here: the forkserver has it preloaded anyway
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        os.nice(_NICE)
+    except OSError:
+        pass
+    offset = 0
+    try:
+        while True:
+            span: dict = {}
+            produced = False
+            for packet in merged_packets(path, time_offset_us=offset, max_packet_us=max_packet_us, span=span):
+                produced = True
+                conn.send(("packet", packet))
+            if "t_first" not in span:
+                break
+            conn.send(("pass", span["t_first"], span["t_last"]))
+            if not (loop and produced):
+                break
+            offset += span["t_last"] - span["t_first"] + 1
+        conn.send(("end",))
+    except RecordingError as exc:
+        _send_quietly(conn, ("error", _message(exc), exc.path, exc.offset))
+    except (BrokenPipeError, EOFError, OSError):
+        pass  # the parent stopped reading: nothing left to do
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it as one line
+        _send_quietly(conn, ("crash", f"{type(exc).__name__}: {exc}"))
+    finally:
+        conn.close()
+
+
+def _message(exc: RecordingError) -> str:
+    """The message without the "path at byte N: " prefix that RecordingError adds (it is added again)."""
+    text = str(exc)
+    if exc.path is not None:
+        where = f"{exc.path}" + (f" at byte {exc.offset}" if exc.offset is not None else "") + ": "
+        if text.startswith(where):
+            return text[len(where):]
+    return text
+
+
+def _send_quietly(conn: Any, message: tuple) -> None:
+    try:
+        conn.send(message)
+    except (BrokenPipeError, EOFError, OSError):
+        pass
+
+
+class DecodeProcess:
+    """Iterates the packets a child process decodes from `path` (see the module docstring).
+
+    `next_packet(timeout_s)` returns a Packet, None when nothing came within timeout_s, and raises StopIteration
+    at the end. `passes` holds (t_first, t_last) of each finished pass. `close()` stops the child (idempotent).
+    """
+
+    def __init__(self, path: str, max_packet_us: int, loop: bool) -> None:
+        ctx = _context()
+        self._conn, child_conn = ctx.Pipe(duplex=False)
+        self._proc = ctx.Process(target=_child, args=(child_conn, path, max_packet_us, loop),
+                                 name="edi-live-decode", daemon=True)
+        self._proc.start()
+        child_conn.close()  # ours is the read end only: EOF once the child exits
+        self.path = path
+        self.passes: list[tuple[int, int]] = []
+        self._ended = False
+
+    def next_packet(self, timeout_s: float) -> Packet | None:
+        while not self._ended:
+            try:
+                if not self._conn.poll(timeout_s):
+                    return None
+                message = self._conn.recv()
+            except EOFError:  # the child died without saying why (killed, out of memory)
+                self._ended = True
+                self._proc.join(_JOIN_S)
+                raise SourceError(f"{self.path}: the decoding process ended unexpectedly "
+                                  f"(exit code {self._proc.exitcode})") from None
+            kind = message[0]
+            if kind == "packet":
+                return message[1]
+            if kind == "pass":
+                self.passes.append((message[1], message[2]))
+                continue
+            self._ended = True
+            if kind == "error":
+                raise RecordingError(message[1], message[2], message[3])
+            if kind == "crash":
+                raise SourceError(f"{self.path}: decoding failed: {message[1]}")
+        raise StopIteration
+
+    def __iter__(self) -> Iterator[Packet]:
+        while True:
+            try:
+                packet = self.next_packet(1.0)
+            except StopIteration:
+                return
+            if packet is not None:
+                yield packet
+
+    def close(self) -> None:
+        self._ended = True
+        self._conn.close()  # the child's next send fails and it exits
+        self._proc.join(_JOIN_S)
+        if self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join(_JOIN_S)

@@ -102,8 +102,9 @@ class GatedSource:
 def _replay(path: Path, speed: float, loop: bool = False, **options):
     import drivers
 
-    # as the CLI opens it: decoded in a child process
-    return drivers.open_source("replay", path=str(path), speed=speed, loop=loop, decode_process=True, **options)
+    # as the CLI opens it: decoded in a child process when paced (see drivers/prefetch.py)
+    return drivers.open_source("replay", path=str(path), speed=speed, loop=loop, decode_process=speed > 0,
+                               **options)
 
 
 # ------------------------------------------------------------------------------------------------ subscriber

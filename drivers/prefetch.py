@@ -10,8 +10,8 @@ costs a pipe read and an unpickle (a memcpy of its events).
 Protocol on the pipe (child -> parent), one pickled tuple per message:
 ("packet", Packet) | ("pass", t_first, t_last) at the end of each pass over the file | ("error", message, path,
 offset) for a RecordingError (after every packet before the defect) or ("crash", text) for anything else |
-("end",). The parent closes its end to stop the child; the child also ignores SIGINT, so Ctrl-C in the terminal
-reaches only the node, which then stops it.
+("end",). The parent closes its end to stop the child; the child ignores SIGINT and SIGTERM, so Ctrl-C in a
+terminal (or a signal to the process group) stops only the node, which then stops the child.
 """
 
 from __future__ import annotations
@@ -42,7 +42,8 @@ def _child(conn: Any, path: str, max_packet_us: int, loop: bool) -> None:
     """Child process: every pass's packets into `conn`, in order, until the parent goes away."""
     from drivers.replay import merged_packets  # imported here: the forkserver has it preloaded anyway
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for sig in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C / kill of the whole group: the node stops us itself
+        signal.signal(sig, signal.SIG_IGN)
     try:
         os.nice(_NICE)
     except OSError:
@@ -145,5 +146,5 @@ class DecodeProcess:
         self._conn.close()  # the child's next send fails and it exits
         self._proc.join(_JOIN_S)
         if self._proc.is_alive():
-            self._proc.terminate()
+            self._proc.kill()  # it ignores SIGTERM
             self._proc.join(_JOIN_S)

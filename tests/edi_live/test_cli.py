@@ -126,6 +126,14 @@ def test_replay_speed_0_ends_by_itself_with_a_summary_and_a_dv_readable_out(real
     assert all(np.array_equal(a["pixels"], b.image.squeeze()) for a, b in zip(frames_b, frames))
 
 
+def _group_alive(pgid: int) -> bool:
+    try:
+        os.killpg(pgid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_signals_stop_cleanly_and_finalise_out(real_recordings, tmp_path, sig, needs_reconstructor):
     import dv_processing as dv  # the test extra's oracle: required, never skipped
@@ -133,7 +141,7 @@ def test_signals_stop_cleanly_and_finalise_out(real_recordings, tmp_path, sig, n
     proc = subprocess.Popen([sys.executable, "-m", "edi_live", "--replay", str(real_recordings[DEMO]), "--loop",
                              "--speed", "1", "--every", "2000", "--publish", "tcp://127.0.0.1:*", "--out", str(out)],
                             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=_env())
+                            env=_env(), start_new_session=True)
     try:
         endpoint = None
         deadline = time.monotonic() + 30
@@ -148,7 +156,8 @@ def test_signals_stop_cleanly_and_finalise_out(real_recordings, tmp_path, sig, n
 
         with Subscriber(endpoint) as sub:
             assert sub.recv(timeout_s=20) is not None, "no frame before the signal"
-        proc.send_signal(sig)
+        # to the whole process group, as Ctrl-C in a terminal does: the replay's decoding child gets it too
+        os.killpg(proc.pid, sig)
         _, err = proc.communicate(timeout=30)
     finally:
         if proc.poll() is None:
@@ -156,6 +165,10 @@ def test_signals_stop_cleanly_and_finalise_out(real_recordings, tmp_path, sig, n
             proc.communicate(timeout=10)
     assert proc.returncode == 0, err
     assert "Traceback" not in err and "done in" in err
+    deadline = time.monotonic() + 10
+    while _group_alive(proc.pid):
+        assert time.monotonic() < deadline, "a child process (the replay's decoder) outlived the node"
+        time.sleep(0.05)
     rec = dv.io.MonoCameraRecording(str(out))
     assert rec.getNextFrame() is not None
 

@@ -17,6 +17,7 @@ import copy
 import functools
 import math
 import time
+from typing import Sequence
 
 import numpy as np
 
@@ -295,6 +296,56 @@ class EdiReconstructor:
         self.events_applied += n
         if arrival_ns:
             self._arrival_ns = arrival_ns
+
+    def on_events_frames(self, events: np.ndarray, cuts: Sequence[int], arrivals: Sequence[int]) -> list[Reconstruction]:
+        """on_events(events), rendering a latent frame after the first cuts[k] events (increasing, within
+        1..len(events)) and stamping it with arrivals[k]. The frames are those of on_events(piece, arrival) +
+        render() per piece, but the kernel's arguments are set up once per batch, not once per frame (the
+        streaming worker's hot path: ~5 µs of a ~25 µs frame)."""
+        self._need_reference("on_events_frames()")
+        if not cuts:
+            self.on_events(events, 0)
+            return []
+        jit = edi._jit
+        flat = self._log_lat.reshape(-1)
+        if jit is None or self._activity is not None or self.events_ignored or flat.dtype != np.float32:
+            return self._frames_one_by_one(events, cuts, arrivals)
+        mask, use_mask = edi._mask_arg(self._hot if self._mask_hot else None)
+        count = not (self._fixed or self._streamer)
+        acc_on, acc_off = self._acc if count else (edi._NO_COUNTS, edi._NO_COUNTS)
+        d_on, d_off = float(self.c_on), -float(self.c_off)
+        disp = self._display.reshape(-1)
+        w, h, lo, hi = self.width, self.height, edi.LOG_MIN, edi.LOG_MAX
+        x, y, p, t = events["x"], events["y"], events["p"], events["t"]
+        out = []
+        i0 = 0
+        for i1, arrival in zip(cuts, arrivals):
+            jit.propagate(x[i0:i1], y[i0:i1], p[i0:i1], w, h, mask, use_mask, flat, d_on, d_off, lo, hi, disp, True,
+                          1.0, acc_on, acc_off, count)
+            if arrival:
+                self._arrival_ns = arrival
+            out.append(self._reconstruction(self._display.copy(), int(t[i1 - 1]), "latent",
+                                            self._pending_events + i1 - i0))
+            self._pending_events = 0
+            i0 = i1
+        n = int(events.size)
+        if i0 < n:
+            jit.propagate(x[i0:], y[i0:], p[i0:], w, h, mask, use_mask, flat, d_on, d_off, lo, hi, disp, True, 1.0,
+                          acc_on, acc_off, count)
+            self._pending_events += n - i0
+        self._t_last = max(self._t_last, int(t[-1]))
+        self.events_applied += n
+        return out
+
+    def _frames_one_by_one(self, events: np.ndarray, cuts: Sequence[int], arrivals: Sequence[int]) -> list:
+        out = []
+        i0 = 0
+        for i1, arrival in zip(cuts, arrivals):
+            self.on_events(events[i0:i1], arrival)
+            out.append(self.render())
+            i0 = i1
+        self.on_events(events[i0:], 0)
+        return out
 
     def render(self) -> Reconstruction:
         self._need_reference("render()")

@@ -338,3 +338,41 @@ def test_streaming_copy_streams_from_the_old_reference_and_cannot_deblur(brick):
     assert not np.array_equal(rec._log_lat, expected), "the original's latent state is not touched by the copy"
     with pytest.raises(NodeError, match="streaming_copy"):
         twin.on_frame(brick.frames[-1], later)
+
+
+@pytest.mark.parametrize("options", [{}, {"c": 0.25}, {"denoise_us": 2000}])
+def test_frames_of_a_batch_equal_frame_by_frame_rendering(brick, rng, options):
+    """on_events_frames (the worker's hot path) must give exactly the frames, stamps and state of
+    on_events(piece) + render() per piece: same pixels, t, n_events, arrival; same latent state and counts."""
+    batch, single = (EdiReconstructor(brick.width, brick.height, **options) for _ in range(2))
+    ev, t = brick.events, brick.events["t"]
+    first = brick.frames[0]
+    end = int(np.searchsorted(t, first.exposure_end_us, side="right"))
+    start = int(np.searchsorted(t, first.exposure_start_us, side="left"))
+    for rec in (batch, single):
+        rec.on_events(ev[:end])
+        rec.on_frame(first, ev[start:end])
+    pos = end
+    while pos < ev.size:
+        chunk = ev[pos:pos + int(rng.integers(1, 3000))]
+        pos += chunk.size
+        cuts = sorted(set(rng.integers(1, chunk.size + 1, int(rng.integers(0, 5))).tolist()))
+        arrivals = [int(a) for a in rng.integers(1, 10**12, len(cuts))]
+        got = batch.on_events_frames(chunk, cuts, arrivals)
+        want, i0 = [], 0
+        for i1, a in zip(cuts, arrivals):
+            single.on_events(chunk[i0:i1], a)
+            want.append(single.render())
+            i0 = i1
+        single.on_events(chunk[i0:])
+        assert len(got) == len(want) == len(cuts)
+        for g, w in zip(got, want):
+            np.testing.assert_array_equal(g.image, w.image)
+            assert (g.t_us, g.n_events, g.arrival_ns, g.kind, g.ref_t_us) == \
+                   (w.t_us, w.n_events, w.arrival_ns, w.kind, w.ref_t_us)
+    np.testing.assert_array_equal(batch._log_lat, single._log_lat)
+    np.testing.assert_array_equal(batch._acc[0], single._acc[0])
+    np.testing.assert_array_equal(batch._acc[1], single._acc[1])
+    assert (batch._pending_events, batch._t_last, batch.events_applied) == \
+           (single._pending_events, single._t_last, single.events_applied)
+    assert batch.render().n_events == single.render().n_events

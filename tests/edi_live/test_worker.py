@@ -290,3 +290,34 @@ def test_deblur_thread_failure_reaches_on_error():
     ev, frames, packets = two_frame_packets()
     worker, rec, out, errors = run_worker(packets, EdiConfig(every=400, deblur_thread=True), rec=FailSecond())
     assert len(errors) == 1 and "second frame failed" in str(errors[0])
+
+
+def test_batched_latent_frames_equal_the_frame_by_frame_path():
+    """Without --max-fps the worker makes a chunk's latent frames in one reconstructor call; with a cap that never
+    binds it takes the frame-by-frame path. Both must send the same frames, split at the same events."""
+    from edi_scenes import make_scene
+
+    from edi_live.reconstructor import EdiReconstructor
+
+    scene = make_scene("brick", c_on=0.25, width=80, height=60, n_frames=4, sigma_c=0.02, seed=3)
+    t = scene.events["t"]
+    rng = np.random.default_rng(7)
+    packets, cut, frames = [], 0, list(scene.frames)
+    while cut < t.size:
+        nxt = min(t.size, cut + int(rng.integers(50, 2500)))
+        due = [f for f in frames if f.exposure_end_us < t[nxt - 1]]
+        frames = frames[len(due):]
+        packets.append(Packet(events=scene.events[cut:nxt], frames=due))
+        cut = nxt
+    sent = {}
+    for max_fps in (None, 1e12):
+        rec = EdiReconstructor(scene.width, scene.height)
+        worker, _, out, errors = run_worker(packets, EdiConfig(every=300, max_fps=max_fps), rec=rec)
+        assert not errors and worker.skipped_max_fps == 0
+        sent[max_fps] = out
+    batched, single = sent[None], sent[1e12]
+    assert sum(r.kind == "latent" for r in batched) > 50
+    assert [(r.kind, r.t_us, r.n_events, r.ref_t_us) for r in batched] == \
+           [(r.kind, r.t_us, r.n_events, r.ref_t_us) for r in single]
+    for a, b in zip(batched, single):
+        np.testing.assert_array_equal(a.image, b.image)

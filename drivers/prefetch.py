@@ -10,7 +10,9 @@ costs a pipe read and an unpickle (a memcpy of its events).
 Protocol on the pipe (child -> parent), one pickled tuple per message:
 ("packet", Packet) | ("pass", t_first, t_last) at the end of each pass over the file | ("error", message, path,
 offset) for a RecordingError (after every packet before the defect) or ("crash", text) for anything else |
-("end",). The parent closes its end to stop the child; the child ignores SIGINT and SIGTERM, so Ctrl-C in a
+("end",). The child is started through a forkserver (spawn where there is none), which imports the parent's main
+module again as "__mp_main__": that module must not start work at import (the CLI's does not). The parent closes
+its end to stop the child; the child ignores SIGINT and SIGTERM, so Ctrl-C in a
 terminal (or a signal to the process group) stops only the node, which then stops the child.
 """
 

@@ -347,7 +347,13 @@ class ReplaySource:
         """Every pass's packets, decoded by a child process (drivers.prefetch); None while none is ready."""
         from drivers.prefetch import DecodeProcess
 
-        child = DecodeProcess(self.path, self.max_packet_us, self.loop)
+        try:
+            child = DecodeProcess(self.path, self.max_packet_us, self.loop)
+        except OSError as exc:  # no process can be started here (limits, no /dev/shm): decode on this thread
+            warnings.warn(f"{self.path}: cannot start the decoding process ({exc}); decoding in this process",
+                          RuntimeWarning, stacklevel=2)
+            yield from self._decode_here()
+            return
         try:
             while not self._stop.is_set():
                 try:

@@ -412,3 +412,17 @@ def test_stopping_mid_file_ends_the_decoding_process(real_recordings):
     while any(c.name == "edi-live-decode" for c in multiprocessing.active_children()):
         assert time.monotonic() < deadline, "the decoding process outlived the replay"
         time.sleep(0.05)
+
+
+def test_decoding_falls_back_to_this_process_when_no_child_can_start(real_recordings, monkeypatch):
+    import drivers.prefetch
+
+    def refuse(*args, **kwargs):
+        raise OSError(11, "Resource temporarily unavailable")
+
+    monkeypatch.setattr(drivers.prefetch, "DecodeProcess", refuse)
+    path = real_recordings["evlib_sample_davis346.aedat4"]
+    with pytest.warns(RuntimeWarning, match="cannot start the decoding process"):
+        with ReplaySource(path, speed=0, decode_process=True) as src:
+            got = sum(len(p.events) for p in src if p is not None)
+    assert got == 6_676

@@ -1,5 +1,5 @@
-"""The Linux udev rule that lets ordinary users open iniVation DAVIS cameras, and a tiny CLI to print or
-install it: `python -m drivers.udev` prints it, `sudo python -m drivers.udev --install` installs it.
+"""The Linux udev rule that lets the logged-in user (and the plugdev group) open iniVation DAVIS cameras, and a
+tiny CLI: `python -m drivers.udev` prints the rule, `sudo python -m drivers.udev --install` installs it.
 """
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import subprocess
 from pathlib import Path
 
 RULES_FILE = Path(__file__).resolve().parent / "99-edi-live-davis.rules"
-RULE_TEXT = ('SUBSYSTEM=="usb", ATTR{idVendor}=="152a", ATTR{idProduct}=="84[0-1]?", MODE="0666", '
-             'TAG+="uaccess"')
+RULE_TEXT = ('SUBSYSTEM=="usb", ATTR{idVendor}=="152a", ATTR{idProduct}=="84[0-1]?", MODE="0660", '
+             'GROUP="plugdev", TAG+="uaccess"')
 INSTALL_DIR = Path("/etc/udev/rules.d")
 
 

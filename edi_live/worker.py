@@ -276,9 +276,13 @@ class EdiWorker:
         self._last_deblur_s = time.monotonic()
         f_us = frame.mid_exposure_us
         arrival = max(entry.arrival_ns, self._last_arrival_ns)
+        if self._pending is not None:
+            # one deblur at a time (APS frames are far apart compared to a deblur), and never on the streaming
+            # copy: after a gap the deblur below is inline, on the original
+            self._adopt(wait=True)
+            if self._pending is not None:  # aborted while waiting
+                return
         if self._use_deblur_thread():
-            if self._pending is not None:
-                self._adopt(wait=True)  # one deblur at a time (APS frames are far apart compared to a deblur)
             streamer = self._copy_reconstructor()
             if streamer is not None:
                 send = self._moving(len(events))
@@ -350,6 +354,9 @@ class EdiWorker:
         self._ref_f_us = pending.entry.frame.mid_exposure_us
         if pending.gap:
             self._await_reference = True  # the catch-up spans lost data: wait for the next APS frame
+            mark_gap = getattr(master, "mark_gap", None)  # the copy got the gap; the original needs it
+            if mark_gap is not None:
+                mark_gap()
         self.busy_s += time.perf_counter() - t0
         if pending.send and pending.result is not None:
             self._emit(pending.result)

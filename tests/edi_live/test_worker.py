@@ -321,3 +321,48 @@ def test_batched_latent_frames_equal_the_frame_by_frame_path():
            [(r.kind, r.t_us, r.n_events, r.ref_t_us) for r in single]
     for a, b in zip(batched, single):
         np.testing.assert_array_equal(a.image, b.image)
+
+
+def test_a_gap_while_a_frame_is_deblurred_on_the_helper_thread():
+    """Live data lost while the helper thread deblurs: the next APS frame must be deblurred on the original
+    reconstructor (never on the streaming copy), and the original must learn of the gap (no consistency pair
+    across it)."""
+    import time
+
+    from edi_scenes import make_scene
+
+    from edi_live.reconstructor import EdiReconstructor
+
+    class SlowDeblur(EdiReconstructor):
+        gaps_seen = 0
+
+        def on_frame(self, frame, events, arrival_ns=0):
+            if self.has_reference and not self._streamer:
+                time.sleep(0.3)  # a slow deblur: the gap and the next frame arrive meanwhile
+            return super().on_frame(frame, events, arrival_ns)
+
+        def mark_gap(self):
+            if not self._streamer:
+                SlowDeblur.gaps_seen += 1
+            super().mark_gap()
+
+    scene = make_scene("brick", c_on=0.25, width=80, height=60, n_frames=4, sigma_c=0.02, seed=3)
+    t = scene.events["t"]
+    packets, cut = [], 0
+    for k, f in enumerate(scene.frames):
+        end = int(np.searchsorted(t, f.exposure_end_us, side="right")) + 10
+        packets.append(Packet(events=scene.events[cut:end], frames=[f], gap=(k == 2)))
+        cut = end
+    packets.append(Packet(events=scene.events[cut:]))
+    ring = EventRing(capacity_events=1 << 20, capacity_frames=16, policy="wait")
+    for p in packets:
+        assert ring.push(p, timeout_s=5)
+    ring.close()
+    out, errors = [], []
+    worker = EdiWorker(ring, SlowDeblur(scene.width, scene.height), EdiConfig(every=500, deblur_thread=True),
+                       [out.append], on_error=errors.append)
+    worker.start()
+    assert worker.done.wait(30)
+    assert not errors, errors
+    assert worker.sent["deblurred"] == 4 and not worker.rec._streamer
+    assert SlowDeblur.gaps_seen >= 1, "the original reconstructor never heard of the gap"

@@ -303,7 +303,8 @@ class EdiReconstructor:
         if arrival_ns:
             self._arrival_ns = arrival_ns
 
-    def on_events_frames(self, events: np.ndarray, cuts: Sequence[int], arrivals: Sequence[int]) -> list[Reconstruction]:
+    def on_events_frames(self, events: np.ndarray, cuts: Sequence[int],
+                         arrivals: Sequence[int]) -> list[Reconstruction]:
         """on_events(events), rendering a latent frame after the first cuts[k] events (increasing, within
         1..len(events)) and stamping it with arrivals[k]. The frames are those of on_events(piece, arrival) +
         render() per piece, but the kernel's arguments are set up once per batch, not once per frame (the

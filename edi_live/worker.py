@@ -51,6 +51,7 @@ log = logging.getLogger(__name__)
 Sink = Callable[[Reconstruction], None]
 _T_MAX = np.iinfo(np.int64).max
 _CHUNK_EVENTS = 1 << 16  # events taken from the ring per lock (then split into every-N slices locally)
+_BATCH_FRAMES = 32  # latent frames made per reconstructor call (bounds the images held before sending)
 _MAX_DEFERRED = 4096
 _IDLE_WAIT_S = 0.25
 _MOVING_EVENTS_CAP = 100  # the threshold at the default --every 1000; larger --every values do not raise it
@@ -220,14 +221,23 @@ class EdiWorker:
         every = self.config.every
         t0 = time.perf_counter()
         if self._batch_frames():
-            # the frames of this chunk in one reconstructor call (same frames as the loop below)
+            # up to _BATCH_FRAMES frames per reconstructor call (same frames as the loop below); the cap bounds
+            # the frames held before they are sent (a 64k-event chunk at --every 1 would be 64k images)
             cuts = range(max(1, every - self._since), n + 1, every)
-            recs = self.rec.on_events_frames(chunk.events, cuts, [chunk.arrival_ns_at(i) for i in cuts])
-            self.busy_s += time.perf_counter() - t0
             tail = n - cuts[-1] if len(cuts) else self._since + n
-            for rec in recs:
-                self._emit(rec)
+            pos = 0
+            for g in range(0, len(cuts), _BATCH_FRAMES):
+                group = cuts[g:g + _BATCH_FRAMES]
+                end = group[-1]
+                recs = self.rec.on_events_frames(chunk.events[pos:end], [c - pos for c in group],
+                                                 [chunk.arrival_ns_at(c) for c in group])
+                pos = end
+                for rec in recs:
+                    self._emit(rec)
+            if pos < n:
+                self.rec.on_events(chunk.events[pos:], chunk.arrival_ns_at(n))
             self._since = tail
+            self.busy_s += time.perf_counter() - t0
             return
         pos = 0
         while pos < n:

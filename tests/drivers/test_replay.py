@@ -1,5 +1,6 @@
 """Replay: merged_packets' ordering contract on real DV files (dv-processing as the oracle), ReplaySource's Source
-behaviour (pacing, loop, stop, None on idle, faults), Pacer arithmetic, the memory bound, and decoding in a child process."""
+behaviour (pacing, loop, stop, None on idle, faults), Pacer arithmetic, the memory bound, and decoding in a
+child process."""
 
 from __future__ import annotations
 

@@ -307,18 +307,40 @@ def test_batched_latent_frames_equal_the_frame_by_frame_path():
         nxt = min(t.size, cut + int(rng.integers(50, 2500)))
         due = [f for f in frames if f.exposure_end_us < t[nxt - 1]]
         frames = frames[len(due):]
-        packets.append(Packet(events=scene.events[cut:nxt], frames=due))
+        # fixed arrival stamps, so that both runs must stamp each frame alike
+        packets.append(Packet(events=scene.events[cut:nxt], frames=due, arrival_ns=10**9 + len(packets)))
         cut = nxt
-    sent = {}
-    for max_fps in (None, 1e12):
-        rec = EdiReconstructor(scene.width, scene.height)
-        worker, _, out, errors = run_worker(packets, EdiConfig(every=300, max_fps=max_fps), rec=rec)
-        assert not errors and worker.skipped_max_fps == 0
-        sent[max_fps] = out
-    batched, single = sent[None], sent[1e12]
+    for every in (300, 7):  # at 7, a 64k-event chunk is split into several reconstructor calls
+        sent = {}
+        for max_fps in (None, 1e12):
+            rec = EdiReconstructor(scene.width, scene.height)
+            batches = []
+            batch_call = rec.on_events_frames
+
+            def counted(ev, cuts, arrivals, batch_call=batch_call, batches=batches):
+                batches.append(len(cuts))
+                return batch_call(ev, cuts, arrivals)
+
+            rec.on_events_frames = counted
+            ring = EventRing(capacity_events=1 << 20, capacity_frames=16, policy="wait")
+            out = []
+            worker = EdiWorker(ring, rec, EdiConfig(every=every, max_fps=max_fps), [out.append])
+            for p in packets:  # all in before the worker starts: its chunks are as large as they get
+                assert ring.push(p, timeout_s=5)
+            ring.close()
+            worker.start()
+            assert worker.done.wait(30) and worker.error is None
+            assert worker.skipped_max_fps == 0 and ring.history_truncated == 0
+            sent[max_fps] = out
+            # frames are handed on at most 32 at a time: memory stays bounded at any --every
+            assert (max(batches) == 32) if max_fps is None and every == 7 else (max(batches, default=0) <= 32)
+        _assert_same_frames(sent[None], sent[1e12])
+
+
+def _assert_same_frames(batched, single):
     assert sum(r.kind == "latent" for r in batched) > 50
-    assert [(r.kind, r.t_us, r.n_events, r.ref_t_us) for r in batched] == \
-           [(r.kind, r.t_us, r.n_events, r.ref_t_us) for r in single]
+    assert [(r.kind, r.t_us, r.n_events, r.ref_t_us, r.arrival_ns) for r in batched] == \
+           [(r.kind, r.t_us, r.n_events, r.ref_t_us, r.arrival_ns) for r in single]
     for a, b in zip(batched, single):
         np.testing.assert_array_equal(a.image, b.image)
 

@@ -18,13 +18,20 @@ terminal (or a signal to the process group) stops only the node, which then stop
 
 from __future__ import annotations
 
+import atexit
+import logging
 import multiprocessing as mp
+import multiprocessing.util  # noqa: F401 - registers its exit handler before ours (ours must run first)
 import os
 import signal
+import traceback
+import weakref
 from typing import Any, Iterator
 
 from edi_live.datatypes import Packet
 from edi_live.errors import RecordingError, SourceError
+
+log = logging.getLogger(__name__)
 
 _JOIN_S = 2.0
 _NICE = 5  # the child only reads ahead: when a core is contended, the node's threads go first
@@ -70,7 +77,7 @@ def _child(conn: Any, path: str, max_packet_us: int, loop: bool) -> None:
     except (BrokenPipeError, EOFError, OSError):
         pass  # the parent stopped reading: nothing left to do
     except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it as one line
-        _send_quietly(conn, ("crash", f"{type(exc).__name__}: {exc}"))
+        _send_quietly(conn, ("crash", f"{type(exc).__name__}: {exc}", traceback.format_exc()))
     finally:
         conn.close()
 
@@ -104,11 +111,17 @@ class DecodeProcess:
         self._conn, child_conn = ctx.Pipe(duplex=False)
         self._proc = ctx.Process(target=_child, args=(child_conn, path, max_packet_us, loop),
                                  name="edi-live-decode", daemon=True)
-        self._proc.start()
-        child_conn.close()  # ours is the read end only: EOF once the child exits
+        try:
+            self._proc.start()
+        except BaseException:
+            self._conn.close()
+            raise
+        finally:
+            child_conn.close()  # ours is the read end only: EOF once the child exits
         self.path = path
         self.passes: list[tuple[int, int]] = []
         self._ended = False
+        _LIVE.add(self)
 
     def next_packet(self, timeout_s: float) -> Packet | None:
         while not self._ended:
@@ -116,7 +129,8 @@ class DecodeProcess:
                 if not self._conn.poll(timeout_s):
                     return None
                 message = self._conn.recv()
-            except EOFError:  # the child died without saying why (killed, out of memory)
+            except (EOFError, OSError):  # the child died without saying why (killed, out of memory), maybe
+                # in the middle of a message
                 self._ended = True
                 self._proc.join(_JOIN_S)
                 raise SourceError(f"{self.path}: the decoding process ended unexpectedly "
@@ -130,7 +144,8 @@ class DecodeProcess:
             self._ended = True
             if kind == "error":
                 raise RecordingError(message[1], message[2], message[3])
-            if kind == "crash":
+            if kind == "crash":  # a bug, not a bad file: its traceback is in the debug log
+                log.debug("the decoding process failed:\n%s", message[2])
                 raise SourceError(f"{self.path}: decoding failed: {message[1]}")
         raise StopIteration
 
@@ -144,9 +159,22 @@ class DecodeProcess:
                 yield packet
 
     def close(self) -> None:
+        _LIVE.discard(self)
         self._ended = True
         self._conn.close()  # the child's next send fails and it exits
         self._proc.join(_JOIN_S)
         if self._proc.is_alive():
             self._proc.kill()  # it ignores SIGTERM
             self._proc.join(_JOIN_S)
+
+
+_LIVE: "weakref.WeakSet[DecodeProcess]" = weakref.WeakSet()
+
+
+@atexit.register
+def _close_all() -> None:
+    """At interpreter exit, stop children nobody closed (an abandoned iterator). The child ignores SIGTERM, so
+    multiprocessing's own exit handler, which terminates and then joins daemon children, would wait forever on
+    a child blocked writing to our still-open pipe."""
+    for child in list(_LIVE):
+        child.close()

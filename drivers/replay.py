@@ -349,7 +349,8 @@ class ReplaySource:
 
         try:
             child = DecodeProcess(self.path, self.max_packet_us, self.loop)
-        except OSError as exc:  # no process can be started here (limits, no /dev/shm): decode on this thread
+        except (OSError, EOFError) as exc:  # no process can start here (limits, no /dev/shm): decode on this thread
+            # (a forkserver that cannot fork shows up as EOFError)
             warnings.warn(f"{self.path}: cannot start the decoding process ({exc}); decoding in this process",
                           RuntimeWarning, stacklevel=2)
             yield from self._decode_here()

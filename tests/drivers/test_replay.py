@@ -381,12 +381,14 @@ def test_decoding_in_a_child_process_gives_the_same_packets(real_recordings, nam
             np.testing.assert_array_equal(fa.image, fb.image)
 
 
-def test_a_killed_decoding_process_is_one_clear_error(real_recordings):
+@pytest.mark.parametrize("packet_us", [1_000, 100_000])
+def test_a_killed_decoding_process_is_one_clear_error(real_recordings, packet_us):
     from drivers.prefetch import DecodeProcess
 
-    child = DecodeProcess(str(real_recordings["emlb_demo-01_davis346.aedat4"]), 1_000, loop=True)
+    # 100 ms packets are larger than the pipe's buffer: the child dies in the middle of writing one
+    child = DecodeProcess(str(real_recordings["emlb_demo-01_davis346.aedat4"]), packet_us, loop=True)
     try:
-        assert isinstance(child.next_packet(30.0), Packet)
+        assert child._conn.poll(30.0)
         child._proc.kill()
         with pytest.raises(SourceError, match="decoding process ended unexpectedly"):
             for _ in range(100_000):  # what was already in the pipe, then the error
@@ -415,11 +417,12 @@ def test_stopping_mid_file_ends_the_decoding_process(real_recordings):
         time.sleep(0.05)
 
 
-def test_decoding_falls_back_to_this_process_when_no_child_can_start(real_recordings, monkeypatch):
+@pytest.mark.parametrize("failure", [OSError(11, "Resource temporarily unavailable"), EOFError("unexpected EOF")])
+def test_decoding_falls_back_to_this_process_when_no_child_can_start(real_recordings, monkeypatch, failure):
     import drivers.prefetch
 
-    def refuse(*args, **kwargs):
-        raise OSError(11, "Resource temporarily unavailable")
+    def refuse(*args, **kwargs):  # what Process.start raises: OSError, or EOFError from a forkserver that failed
+        raise failure
 
     monkeypatch.setattr(drivers.prefetch, "DecodeProcess", refuse)
     path = real_recordings["evlib_sample_davis346.aedat4"]

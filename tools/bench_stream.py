@@ -3,7 +3,7 @@
     python tools/bench_stream.py throughput   # replay --speed 0 -> worker -> publish -> 1 subscriber, --every 1000
     python tools/bench_stream.py stages       # CPU per stage, each alone on one thread (per frame / per event)
     python tools/bench_stream.py latency      # paced replay at ~1 M events/s: latency p50/p99, arrival -> sent
-    python tools/bench_stream.py memory       # RSS over a looped replay (--seconds 60; 600 for the 10-minute run)
+    python tools/bench_stream.py memory       # PSS over a looped replay (--seconds 60; 600 for the 10-minute run)
     python tools/bench_stream.py static       # CPU of the node on a static scene (APS frames, no events)
     python tools/bench_stream.py scaling      # worker cost per latent frame vs changed pixels and resolution
     python tools/bench_stream.py all
@@ -431,7 +431,9 @@ def _publish_cpu_per_frame(recs: list) -> float:
 
 
 def _rss_mib() -> float:
-    """RSS of this process and all its descendants (a paced replay decodes in a child process), in MiB."""
+    """Memory of this process and all its descendants (a paced replay decodes in a child process), in MiB: the
+    sum of their PSS (shared pages split between the processes that map them, so nothing counts twice), or of
+    their RSS where the kernel gives no PSS."""
     parent: dict[int, int] = {}
     for entry in os.listdir("/proc"):
         if entry.isdigit():
@@ -445,19 +447,27 @@ def _rss_mib() -> float:
         more = {pid for pid, ppid in parent.items() if ppid in tree} - tree
         tree |= more
         grew = bool(more)
-    pages = 0
-    for pid in tree:
-        try:
-            with open(f"/proc/{pid}/statm") as fh:
-                pages += int(fh.read().split()[1])
-        except OSError:
-            continue
-    return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+    return sum(_pss_kib(pid) for pid in tree) / 1024
+
+
+def _pss_kib(pid: int) -> float:
+    try:
+        with open(f"/proc/{pid}/smaps_rollup") as fh:
+            for line in fh:
+                if line.startswith("Pss:"):
+                    return float(line.split()[1])
+    except OSError:
+        pass
+    try:
+        with open(f"/proc/{pid}/statm") as fh:
+            return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1024
+    except OSError:
+        return 0.0
 
 
 def bench_memory(path: Path, every: int, seconds: float, speed: float) -> None:
-    print(f"\n## memory: looped replay --speed {speed} for {seconds:.0f} s, --every {every}, publishing, RSS of the "
-          f"node process")
+    print(f"\n## memory: looped replay --speed {speed} for {seconds:.0f} s, --every {every}, publishing, memory (PSS) "
+          f"of the node process and its children (the decoding child of a paced replay)")
     cfg = NodeConfig.from_options({"replay": str(path), "speed": speed, "loop": True, "every": every,
                                    "publish": ["tcp://127.0.0.1:*"], "duration": seconds})
     node = Node(cfg, _replay(path, speed, loop=True))
@@ -481,10 +491,10 @@ def bench_memory(path: Path, every: int, seconds: float, speed: float) -> None:
     rss = np.array([s[1] for s in samples])
     half = len(rss) // 2
     slope = np.polyfit(t[half:], rss[half:], 1)[0] * 60
-    print("| t s | RSS MiB |\n|---|---|")
+    print("| t s | PSS MiB |\n|---|---|")
     for ts, r in samples[:: max(1, len(samples) // 10)]:
         print(f"| {ts:.0f} | {r:.1f} |")
-    print(f"RSS first {rss[0]:.1f} MiB, last {rss[-1]:.1f} MiB, max {rss.max():.1f} MiB; second-half slope "
+    print(f"PSS first {rss[0]:.1f} MiB, last {rss[-1]:.1f} MiB, max {rss.max():.1f} MiB; second-half slope "
           f"{slope:+.2f} MiB/min; {stats['events_processed']} events, {stats['frames_out']} frames")
 
 

@@ -7,13 +7,14 @@ worker wait for the GIL right when a packet had arrived: the slowest 1 % of late
 replay took 2 ms instead of 0.75 ms. In a child the burst only costs CPU on another core, and receiving a packet
 costs a pipe read and an unpickle (a memcpy of its events).
 
-Protocol on the pipe (child -> parent), one pickled tuple per message:
-("packet", Packet) | ("pass", t_first, t_last) at the end of each pass over the file | ("error", message, path,
-offset) for a RecordingError (after every packet before the defect) or ("crash", text) for anything else |
-("end",). The child is started through a forkserver (spawn where there is none), which imports the parent's main
-module again as "__mp_main__": that module must not start work at import (the CLI's does not). The parent closes
-its end to stop the child; the child ignores SIGINT and SIGTERM, so Ctrl-C in a
-terminal (or a signal to the process group) stops only the node, which then stops the child.
+Protocol on the pipe (child -> parent), one pickled tuple per message: ("packet", Packet) | ("pass", t_first,
+t_last) at the end of each pass over the file | ("error", message, path, offset) for a RecordingError (after every
+packet before the defect) | ("crash", text, traceback) for anything else | ("end",).
+
+The child is started through a forkserver (spawn where there is none), which imports the parent's main module
+again as "__mp_main__": that module must not start work at import (the CLI's does not). The parent closes its end
+to stop the child. The child ignores SIGINT and SIGTERM, so Ctrl-C in a terminal (or a signal to the process
+group) stops only the node, which then stops the child.
 """
 
 from __future__ import annotations
@@ -38,8 +39,9 @@ _NICE = 5  # the child only reads ahead: when a core is contended, the node's th
 
 
 def _context() -> Any:
-    # forkserver: a child forked from a clean server (no threads, no ZeroMQ context), ~20 ms once warm;
-    # the node's process itself must not fork (it runs threads)
+    # forkserver: a child forked from a clean server (no threads, no ZeroMQ context); the node's process itself
+    # must not fork (it runs threads). The first packet still comes ~0.4 s after start: the child imports the
+    # main module again and loads the numba kernels from their cache.
     methods = mp.get_all_start_methods()
     ctx = mp.get_context("forkserver" if "forkserver" in methods else "spawn")
     if ctx.get_start_method() == "forkserver":
@@ -129,8 +131,7 @@ class DecodeProcess:
                 if not self._conn.poll(timeout_s):
                     return None
                 message = self._conn.recv()
-            except (EOFError, OSError):  # the child died without saying why (killed, out of memory), maybe
-                # in the middle of a message
+            except (EOFError, OSError):  # the child died (killed, out of memory), perhaps mid-message
                 self._ended = True
                 self._proc.join(_JOIN_S)
                 raise SourceError(f"{self.path}: the decoding process ended unexpectedly "

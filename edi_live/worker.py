@@ -252,8 +252,8 @@ class EdiWorker:
         self.busy_s += time.perf_counter() - t0
 
     def _batch_frames(self) -> bool:
-        """Whether every latent frame of a chunk can be made in one call: causal mode without --max-fps (no
-        frame is held back or skipped), and a reconstructor that offers it."""
+        """Whether a chunk's latent frames can be made in batches (on_events_frames): causal mode without
+        --max-fps (no frame is held back or skipped), and a reconstructor that offers it."""
         return (self.config.max_fps is None and self.config.mode == "causal"
                 and hasattr(self.rec, "on_events_frames"))
 

@@ -186,8 +186,7 @@ def make_source(config: NodeConfig, explicit: set[str] | frozenset = frozenset()
     s = config.source
     if s.replay is not None:
         _existing_file(Path(s.replay), "--replay")
-        return drivers.open_source("replay", path=str(s.replay), speed=s.speed, loop=s.loop,
-                                   decode_process=s.speed > 0)
+        return drivers.open_source("replay", path=str(s.replay), speed=s.speed, loop=s.loop, decode_process=True)
     backend = None
     if s.usb_backend is not None:
         kwargs: dict[str, Any] = {}

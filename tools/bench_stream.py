@@ -102,9 +102,8 @@ class GatedSource:
 def _replay(path: Path, speed: float, loop: bool = False, **options):
     import drivers
 
-    # as the CLI opens it: decoded in a child process when paced (see drivers/prefetch.py)
-    return drivers.open_source("replay", path=str(path), speed=speed, loop=loop, decode_process=speed > 0,
-                               **options)
+    # as the CLI opens it: decoded in a child process (see drivers/prefetch.py)
+    return drivers.open_source("replay", path=str(path), speed=speed, loop=loop, decode_process=True, **options)
 
 
 # ------------------------------------------------------------------------------------------------ subscriber

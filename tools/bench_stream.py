@@ -430,7 +430,7 @@ def _publish_cpu_per_frame(recs: list) -> float:
 
 
 def _rss_mib() -> float:
-    """Memory of this process and all its descendants (a paced replay decodes in a child process), in MiB: the
+    """Memory of this process and all its descendants (the replay decodes in a child process), in MiB: the
     sum of their PSS (shared pages split between the processes that map them, so nothing counts twice), or of
     their RSS where the kernel gives no PSS."""
     parent: dict[int, int] = {}
@@ -466,7 +466,7 @@ def _pss_kib(pid: int) -> float:
 
 def bench_memory(path: Path, every: int, seconds: float, speed: float) -> None:
     print(f"\n## memory: looped replay --speed {speed} for {seconds:.0f} s, --every {every}, publishing, memory (PSS) "
-          f"of the node process and its children (the decoding child of a paced replay)")
+          f"of the node process and its children (the replay's decoding child)")
     cfg = NodeConfig.from_options({"replay": str(path), "speed": speed, "loop": True, "every": every,
                                    "publish": ["tcp://127.0.0.1:*"], "duration": seconds})
     node = Node(cfg, _replay(path, speed, loop=True))

@@ -59,6 +59,10 @@ def _context() -> Any:
     return ctx
 
 
+class _ParentGone(Exception):
+    """The parent closed its end (it stopped reading): the child just ends."""
+
+
 class _Sender:
     """The child's end: one message = a header, the pickled tuple, then a packet's events as raw bytes."""
 
@@ -72,9 +76,12 @@ class _Sender:
             raw = np.ascontiguousarray(packet.events).view(np.uint8).data
             packet.events = None
         meta = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
-        self.sock.sendall(_HEAD.pack(len(meta), len(raw)) + meta)
-        if len(raw):
-            self.sock.sendall(raw)
+        try:
+            self.sock.sendall(_HEAD.pack(len(meta), len(raw)) + meta)
+            if len(raw):
+                self.sock.sendall(raw)
+        except OSError as exc:  # EPIPE, ECONNRESET: not to be confused with an OSError reading the file
+            raise _ParentGone() from exc
 
     def close(self) -> None:
         self.sock.close()
@@ -85,7 +92,6 @@ def _child(conn: Any, path: str, max_packet_us: int, loop: bool) -> None:
     from drivers.replay import merged_packets  # imported here: the forkserver has it preloaded anyway
 
     conn = _Sender(conn)
-
     for sig in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C / kill of the whole group: the node stops us itself
         signal.signal(sig, signal.SIG_IGN)
     try:
@@ -109,7 +115,7 @@ def _child(conn: Any, path: str, max_packet_us: int, loop: bool) -> None:
         conn.send(("end",))
     except RecordingError as exc:
         _send_quietly(conn, ("error", _message(exc), exc.path, exc.offset))
-    except (BrokenPipeError, EOFError, OSError):
+    except _ParentGone:
         pass  # the parent stopped reading: nothing left to do
     except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises it as one line
         _send_quietly(conn, ("crash", f"{type(exc).__name__}: {exc}", traceback.format_exc()))
@@ -127,10 +133,10 @@ def _message(exc: RecordingError) -> str:
     return text
 
 
-def _send_quietly(conn: Any, message: tuple) -> None:
+def _send_quietly(conn: _Sender, message: tuple) -> None:
     try:
         conn.send(message)
-    except (BrokenPipeError, EOFError, OSError):
+    except _ParentGone:
         pass
 
 

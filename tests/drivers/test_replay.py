@@ -431,3 +431,16 @@ def test_decoding_falls_back_to_this_process_when_no_child_can_start(real_record
         with ReplaySource(path, speed=0, decode_process=True) as src:
             got = sum(len(p.events) for p in src if p is not None)
     assert got == 6_676
+
+
+def test_a_file_gone_before_the_child_opens_it_is_one_clear_error(tmp_path):
+    """The child's own errors (here: the file vanished after the replay was set up) reach the parent as the same
+    one-line RecordingError the in-process decoder gives, not as a silent end of the replay."""
+    from drivers import prefetch
+
+    child = prefetch.DecodeProcess(str(tmp_path / "gone.aedat4"), 1_000, loop=False)
+    try:
+        with pytest.raises(RecordingError, match=r"gone\.aedat4: cannot open the recording"):
+            child.next_packet(30.0)
+    finally:
+        child.close()

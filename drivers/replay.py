@@ -268,6 +268,10 @@ class ReplaySource:
         self.poll_s = poll_s
         # decode in a child process (drivers.prefetch): keeps the decoder's bursts off this process's GIL
         self.decode_process = bool(decode_process)
+        if self.decode_process:  # its server loads the decoder meanwhile: the first packet comes in milliseconds
+            from drivers.prefetch import start_early
+
+            start_early()
         with Aedat4Reader(self.path) as reader:
             info = reader.source_info
             try:

@@ -444,3 +444,15 @@ def test_a_file_gone_before_the_child_opens_it_is_one_clear_error(tmp_path):
             child.next_packet(30.0)
     finally:
         child.close()
+
+
+def test_the_forkserver_warm_up_really_decodes_and_leaves_nothing_behind(tmp_path, monkeypatch):
+    """drivers._decoder_warm swallows its errors at import (a failed warm-up only costs start-up time), so its
+    work is checked here directly: it must write, decode and delete a recording with the current codec."""
+    import tempfile
+
+    from drivers import _decoder_warm
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    _decoder_warm._warm()  # raises if the writer or the reader no longer fit it
+    assert list(tmp_path.iterdir()) == []

@@ -306,17 +306,21 @@ def _warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
     width, height = 16, 12
     rng = np.random.default_rng(0)
     image = np.full((height, width), 100, np.uint8)
+    frozen = image.copy()
+    frozen.setflags(write=False)  # numba compiles read-only arrays separately (a decoded frame can be one)
     try:
         rec = make_reconstructor(width, height, edi_config)
         t_us = 0
-        for _ in range(3):  # three frames: the c estimator needs frame pairs
+        for k in range(3):  # three frames: the c estimator needs frame pairs
             events = np.zeros(200, EVENT_DTYPE)
             events["t"] = np.sort(rng.integers(t_us, t_us + 20_000, events.size))
             events["x"] = rng.integers(0, width, events.size)
             events["y"] = rng.integers(0, height, events.size)
             events["p"] = rng.integers(0, 2, events.size).astype(bool)
-            rec.on_frame(Frame(image, t_us, t_us + 10_000), events)
-            rec.on_events(events[events["t"] > t_us + 10_000])
+            rec.on_frame(Frame(image if k % 2 == 0 else frozen, t_us, t_us + 10_000), events)
+            later = events[events["t"] > t_us + 10_000]
+            rec.on_events(later[:-1])
+            rec.on_events(later[-1:])  # one event: its field views count as C-contiguous, another specialisation
             rec.render()
             t_us += 20_000
     except Exception:  # noqa: BLE001 - warm-up only; see docstring

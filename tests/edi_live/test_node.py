@@ -260,3 +260,40 @@ def test_edi_kernels_are_warmed_up_before_the_source_starts(real_recordings):
     gate.set()
     Node(cfg, Watched(replay(path, speed=0), gate), reconstructor_factory=lambda w, h, e: Recording()).run()
     assert "source-enter" in order and "on_frame" in order[: order.index("source-enter")]
+
+
+_NO_NEW_KERNELS = r"""
+import sys
+from edi_live import _jit
+from edi_live.cli import main
+from edi_live.config import EdiConfig
+from edi_live.node import _warm_up, default_reconstructor
+
+def kernels():
+    return {name: set(map(str, f.signatures)) for name, f in vars(_jit).items() if hasattr(f, "signatures")}
+
+if __name__ == "__main__":
+    _warm_up(default_reconstructor, EdiConfig())
+    before = kernels()
+    try:  # the CLI's replay: frames decoded in the child arrive read-only; 1 ms packets give 1-event slices
+        main(["--replay", sys.argv[1], "--no-publish", "--speed", "8", "--every", "7", "--log-level", "error"])
+    except SystemExit as exc:
+        assert not exc.code, exc.code
+    after = kernels()
+    new = {name: sorted(after[name] - before.get(name, set())) for name in after}
+    print({name: sigs for name, sigs in new.items() if sigs})
+"""
+
+
+def test_the_warm_up_covers_every_kernel_specialisation_a_replay_needs(real_recordings, tmp_path):
+    """A numba kernel met with new argument types (a read-only frame, a one-event slice) is compiled on the spot,
+    seconds with a cold cache, stalling the worker mid-stream. After the node's warm-up a real replay must need
+    no new specialisation. Run in a fresh interpreter, so that other tests' calls do not hide a gap."""
+    import subprocess
+
+    script = tmp_path / "no_new_kernels.py"
+    script.write_text(_NO_NEW_KERNELS)
+    done = subprocess.run([sys.executable, str(script), str(real_recordings["emlb_demo-01_davis346.aedat4"])],
+                          capture_output=True, text=True, timeout=120, cwd=str(Path(__file__).resolve().parents[2]))
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip().splitlines()[-1] == "{}", f"compiled during the replay: {done.stdout[-2000:]}"

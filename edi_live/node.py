@@ -33,6 +33,7 @@ import numpy as np
 from edi_live.config import EdiConfig, NodeConfig
 from edi_live.datatypes import EVENT_DTYPE, Frame
 from edi_live.errors import EdiLiveError, NodeError, SourceError
+from edi_live.reconstruction import Reconstructor
 from edi_live.ring import EventRing, as_events
 from edi_live.source import Source
 from edi_live.stats import Rates, StatusLine, collect, with_rates
@@ -41,7 +42,7 @@ from edi_live.writers import OutWriter, RecordWriter
 
 log = logging.getLogger(__name__)
 
-ReconstructorFactory = Callable[[int, int, EdiConfig], Any]
+ReconstructorFactory = Callable[[int, int, EdiConfig], Reconstructor]
 PublisherFactory = Callable[..., Any]
 
 _POLL_S = 0.1
@@ -50,7 +51,7 @@ _DRAIN_ON_STOP_S = 2.0  # after Ctrl-C/--duration the worker may finish what it 
 _JOIN_S = 5.0
 
 
-def default_reconstructor(width: int, height: int, edi: EdiConfig) -> Any:
+def default_reconstructor(width: int, height: int, edi: EdiConfig) -> Reconstructor:
     """The EDI core's reconstructor with the thresholds and re-estimation policy from the config."""
     from edi_live.reconstructor import EdiReconstructor
 
@@ -136,7 +137,7 @@ class Node:
 
     @property
     def bound_endpoints(self) -> list[str]:
-        return list(getattr(self.publisher, "bound_endpoints", []) or [])
+        return [] if self.publisher is None else list(self.publisher.bound_endpoints)
 
     @property
     def started(self) -> threading.Event:

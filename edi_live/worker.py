@@ -1,8 +1,7 @@
 """The EDI worker thread: reads the ring in order and turns APS frames and events into sharp frames.
 
 Accepts: an `EventRing` (events in time order; each APS frame queued at the index just past its exposure end)
-and a reconstructor with the `EdiReconstructor` interface (on_frame, on_events, render,
-render_from_reference, has_reference, c_on, c_off, reestimations). Yields: `Reconstruction`s handed to each
+and a `Reconstructor` (edi_live.reconstruction). Yields: `Reconstruction`s handed to each
 sink (publisher.submit, the --out writer) as they are made: t increases, except that in causal mode a deblurred
 frame (t = mid-exposure f) follows the latent frames up to its exposure end (with the deblur thread: up to
 wherever the stream was when its deblur finished, at most the next APS frame's exposure end). Times are µs on the sensor clock;
@@ -26,14 +25,12 @@ Policy:
 - deblur_thread (causal mode; the node turns it on except for --speed 0 replays): each APS frame after the first
   is deblurred on a helper thread ("edi-deblur") while latent frames keep coming from a copy holding the
   previous reference; then the events the copy applied meanwhile are replayed into the reconstructor, which
-  takes over again, and the deblurred frame is sent. Uses only the public API plus `streaming_copy()` (or
-  copy.deepcopy for reconstructors without it).
+  takes over again, and the deblurred frame is sent (edi_live.deblur_handover).
 """
 
 from __future__ import annotations
 
 import collections
-import copy
 import dataclasses
 import logging
 import threading
@@ -44,6 +41,8 @@ import numpy as np
 
 from edi_live.config import EdiConfig
 from edi_live.datatypes import Reconstruction
+from edi_live.deblur_handover import PendingDeblur
+from edi_live.reconstruction import Reconstructor
 from edi_live.ring import EventChunk, EventRing, FrameEntry
 
 log = logging.getLogger(__name__)
@@ -58,37 +57,6 @@ _MOVING_EVENTS_CAP = 100  # the threshold at the default --every 1000; larger --
 _STATIC_EVENTS = 16  # fewer events than this in an exposure (and since the last frame) = a static scene
 
 
-class _PendingDeblur:
-    """One APS frame being deblurred on the "edi-deblur" helper thread by the master reconstructor, while the
-    worker streams latent frames from a copy that still holds the previous reference. The events the copy
-    applies meanwhile are kept (`catchup`) and replayed into the master when it is adopted."""
-
-    def __init__(self, master: Any, entry: FrameEntry, events: np.ndarray, arrival_ns: int, send: bool,
-                 wake: Callable[[], None]) -> None:
-        self.master, self.entry, self.send = master, entry, send
-        self.catchup: list[np.ndarray] = []
-        self.gap = False
-        self.result: Reconstruction | None = None
-        self.error: BaseException | None = None
-        self.deblur_ms = 0.0
-        self.done = threading.Event()
-        self._wake = wake
-        self._thread = threading.Thread(target=self._run, args=(events, arrival_ns), name="edi-deblur",
-                                        daemon=True)
-        self._thread.start()
-
-    def _run(self, events: np.ndarray, arrival_ns: int) -> None:
-        t0 = time.perf_counter()
-        try:
-            self.result = self.master.on_frame(self.entry.frame, events, arrival_ns)
-        except BaseException as exc:  # re-raised on the worker thread when adopted
-            self.error = exc
-        finally:
-            self.deblur_ms = (time.perf_counter() - t0) * 1e3
-            self.done.set()
-            self._wake()
-
-
 def _concat_events(parts: list[np.ndarray]) -> np.ndarray:
     # through raw bytes: np.concatenate of the padded event dtype would return a packed dtype
     return np.concatenate([p.view(np.uint8) for p in parts]).view(parts[0].dtype)
@@ -97,7 +65,7 @@ def _concat_events(parts: list[np.ndarray]) -> np.ndarray:
 class EdiWorker:
     """Runs the reconstructor on its own thread ("edi-worker"); see the module docstring for the policy."""
 
-    def __init__(self, ring: EventRing, reconstructor: Any, config: EdiConfig, sinks: Sequence[Sink] = (), *,
+    def __init__(self, ring: EventRing, reconstructor: Reconstructor, config: EdiConfig, sinks: Sequence[Sink] = (), *,
                  on_error: Callable[[BaseException], None] | None = None, name: str = "edi-worker") -> None:
         self.ring = ring
         self.rec = reconstructor
@@ -119,8 +87,7 @@ class EdiWorker:
         self._deferred: list[tuple[int, int]] = []  # nearest mode: (t_us, arrival_ns) waiting for the next frame
         self._added_latency_ms: list[float] = []
         self._deblur_ms: collections.deque[float] = collections.deque(maxlen=256)  # on_frame wall time
-        self._pending: _PendingDeblur | None = None  # causal mode with deblur_thread
-        self._copy_failed = False
+        self._pending: PendingDeblur | None = None  # causal mode with deblur_thread
         self.events_in = 0
         self.frames_in = 0
         self.sent = {"deblurred": 0, "latent": 0}
@@ -169,7 +136,7 @@ class EdiWorker:
             if not self._abort.is_set():
                 if self._pending is not None:
                     self._adopt(wait=True)
-                self._flush_deferred(final=True)
+                self._flush_deferred()
         except BaseException as exc:
             self.error = exc
             log.debug("worker failed", exc_info=True)
@@ -212,9 +179,7 @@ class EdiWorker:
             self.gaps += 1
             self._await_reference = True
             self._deferred.clear()
-            mark_gap = getattr(self.rec, "mark_gap", None)  # lets the c estimator skip pairs across the gap
-            if mark_gap is not None:
-                mark_gap()
+            self.rec.mark_gap()  # lets the c estimator skip pairs across the gap
         if self._await_reference or not self.rec.has_reference:
             self._since += n
             return  # nothing to update before the first (or next, after a gap) APS frame
@@ -253,9 +218,8 @@ class EdiWorker:
 
     def _batch_frames(self) -> bool:
         """Whether a chunk's latent frames can be made in batches (on_events_frames): causal mode without
-        --max-fps (no frame is held back or skipped), and a reconstructor that offers it."""
-        return (self.config.max_fps is None and self.config.mode == "causal"
-                and hasattr(self.rec, "on_events_frames"))
+        --max-fps (no frame is held back or skipped)."""
+        return self.config.max_fps is None and self.config.mode == "causal"
 
     def _latent_due(self, t_us: int, arrival_ns: int) -> None:
         now = time.monotonic()
@@ -293,13 +257,11 @@ class EdiWorker:
             if self._pending is not None:  # aborted while waiting
                 return
         if self._use_deblur_thread():
-            streamer = self._copy_reconstructor()
-            if streamer is not None:
-                send = self._moving(len(events))
-                master, self.rec = self.rec, streamer  # the copy keeps streaming from the previous reference
-                self._pending = _PendingDeblur(master, entry, events, arrival, send, self.ring.poke)
-                self.busy_s += time.perf_counter() - t0
-                return
+            send = self._moving(len(events))
+            master, self.rec = self.rec, self.rec.streaming_copy()  # the copy streams from the previous reference
+            self._pending = PendingDeblur(master, entry, events, arrival, send, self.ring.poke)
+            self.busy_s += time.perf_counter() - t0
+            return
         early = self._take_deferred_before((self._ref_f_us + f_us) // 2 if self._ref_f_us is not None else None)
         out = [self._render_at(t, a) for t, a in early]  # still from the previous reference
         first = not self.rec.has_reference
@@ -330,19 +292,7 @@ class EdiWorker:
 
     def _use_deblur_thread(self) -> bool:
         return bool(self.config.deblur_thread and self.config.mode == "causal" and self.rec.has_reference
-                    and not self._await_reference and not self._copy_failed)
-
-    def _copy_reconstructor(self) -> Any:
-        """A streaming copy of the reconstructor (its `streaming_copy()` if it has one, else a deep copy), or None
-        (then deblur inline) if it cannot be copied."""
-        try:
-            cheap = getattr(self.rec, "streaming_copy", None)
-            return cheap() if cheap is not None else copy.deepcopy(self.rec)
-        except Exception as exc:
-            log.warning("reconstructor cannot be copied (%s: %s); deblurring on the worker thread",
-                        type(exc).__name__, exc)
-            self._copy_failed = True
-            return None
+                    and not self._await_reference)
 
     def _adopt(self, wait: bool) -> None:
         """Make the master (with the new reference) the streaming reconstructor again and send its frame."""
@@ -364,9 +314,7 @@ class EdiWorker:
         self._ref_f_us = pending.entry.frame.mid_exposure_us
         if pending.gap:
             self._await_reference = True  # the catch-up spans lost data: wait for the next APS frame
-            mark_gap = getattr(master, "mark_gap", None)  # the copy got the gap; the original needs it
-            if mark_gap is not None:
-                mark_gap()
+            master.mark_gap()  # the copy got the gap; the original needs it
         self.busy_s += time.perf_counter() - t0
         if pending.send and pending.result is not None:
             self._emit(pending.result)
@@ -402,7 +350,7 @@ class EdiWorker:
                 del self._added_latency_ms[:5_000]
         return dataclasses.replace(rec, arrival_ns=arrival_ns)
 
-    def _flush_deferred(self, final: bool = False) -> None:
+    def _flush_deferred(self) -> None:
         if not self._deferred or not self.rec.has_reference:
             return
         pending, self._deferred = self._deferred, []
@@ -427,8 +375,7 @@ class EdiWorker:
 
     def stats(self) -> dict[str, Any]:
         rec = self.rec
-        c_on = float(getattr(rec, "c_on", float("nan")))
-        c_off = float(getattr(rec, "c_off", float("nan")))
+        c_on, c_off = float(rec.c_on), float(rec.c_off)
         lat = list(self._added_latency_ms)
         deblur = list(self._deblur_ms)
         return {
@@ -444,8 +391,8 @@ class EdiWorker:
             "c": round((c_on + c_off) / 2, 4),
             "c_on": round(c_on, 4),
             "c_off": round(c_off, 4),
-            "reestimations": int(getattr(rec, "reestimations", 0)),
-            "hot_pixels": int(getattr(rec, "hot_pixels", 0)),
+            "reestimations": int(rec.reestimations),
+            "hot_pixels": int(rec.hot_pixels),
             "worker_busy_s": round(self.busy_s, 3),
             "deblur_ms_p50": round(float(np.median(deblur)), 3) if deblur else None,
             "deblur_ms_max": round(float(np.max(deblur)), 3) if deblur else None,

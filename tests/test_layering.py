@@ -21,10 +21,14 @@ RESTRICTED = {
     "usb": ("drivers/davis/transport.py", "drivers/emulator.py", "drivers/davis/discovery.py"),
     "tools": (),
 }
-PURE_MATH = ("edi_live/edi.py", "edi_live/contrast.py", "edi_live/reconstructor.py", "edi_live/ring.py")
+# the EDI core: math (edi/, contrast/) and the reconstructor's state around it; no I/O, threads or sockets
+PURE_MATH = ("edi_live/edi/", "edi_live/contrast/", "edi_live/reconstructor.py", "edi_live/reconstruction.py",
+             "edi_live/c_policy.py", "edi_live/contrast_tracking.py", "edi_live/latent_state.py",
+             "edi_live/pixel_masks.py", "edi_live/ring.py")
 PURE_MATH_ALLOWED = {"numpy", "cv2", "numba", "edi_live"}
-PURE_MATH_ALLOWED_EDI = {"edi_live.datatypes", "edi_live.errors", "edi_live.config", "edi_live.edi",
-                         "edi_live.contrast", "edi_live._jit"}
+PURE_MATH_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.errors", "edi_live.edi", "edi_live.contrast",
+                         "edi_live.c_policy", "edi_live.contrast_tracking", "edi_live.latent_state",
+                         "edi_live.pixel_masks", "edi_live.reconstruction")
 DRIVERS_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.source", "edi_live.errors", "edi_live.aedat4")
 
 
@@ -51,9 +55,11 @@ def _violations() -> list[str]:
             allowed = RESTRICTED.get(top)
             if allowed is not None and not rel.startswith(allowed):
                 found.append(f"{where}: only {allowed or 'nothing in the packages'} may import {top}")
-            if rel in PURE_MATH and top not in stdlib:
-                if top not in PURE_MATH_ALLOWED or (top == "edi_live" and name not in PURE_MATH_ALLOWED_EDI):
-                    found.append(f"{where}: pure-math modules import only stdlib, numpy, cv2, numba, datatypes")
+            if rel.startswith(PURE_MATH) and top not in stdlib:
+                if top not in PURE_MATH_ALLOWED or (top == "edi_live" and not name.startswith(PURE_MATH_ALLOWED_EDI)):
+                    found.append(f"{where}: EDI-core modules import only stdlib, numpy, cv2, numba and the core")
+            if name.startswith("edi_live.edi._") and not rel.startswith("edi_live/edi/"):
+                found.append(f"{where}: the EDI kernels are private to edi_live.edi; use its public functions")
             if rel.startswith("edi_live/") and top == "drivers" and rel != "edi_live/cli.py":
                 found.append(f"{where}: within edi_live only cli.py may import drivers")
             if rel.startswith("drivers/") and top == "edi_live" and not name.startswith(DRIVERS_ALLOWED_EDI) \

@@ -76,15 +76,15 @@ def test_fit_test_accepts_true_c_and_rejects_a_wrong_one():
     scene = make_scene("brick", c_on=0.25, width=80, height=60, n_frames=3)
     _, pairs = pairs_of(scene)
     est = contrast.ConsistencyContrast()
-    assert est.fits(None, pairs, (0.25, 0.25))
-    assert not est.fits(None, pairs, (0.35, 0.35))
-    assert not est.fits(None, pairs, (0.18, 0.18))
+    assert est.misfit(None, pairs, (0.25, 0.25)) < est.fit_z
+    assert est.misfit(None, pairs, (0.35, 0.35)) >= est.fit_z
+    assert est.misfit(None, pairs, (0.18, 0.18)) >= est.fit_z
 
 
 def test_consistency_says_nothing_without_pairs_or_events():
     est = contrast.ConsistencyContrast()
     assert est.estimate(None, [], (0.2, 0.2)) is None
-    assert est.fits(None, [], (0.2, 0.2))
+    assert est.misfit(None, [], (0.2, 0.2)) is None
     img = np.full((20, 30), 100, np.uint8)
     b, informative = edi.blurry_to_float(img)
     empty = edi.build_level_table(np.zeros(0, EVENT_DTYPE), 30, 20, 0, 1000)
@@ -103,7 +103,7 @@ def test_energy_estimator_returns_a_c_in_its_range():
 
 def test_fixed_and_unknown_estimators():
     fixed = contrast.FixedContrast(0.3, 0.2)
-    assert fixed.estimate(None, [], (0.1, 0.1)) == (0.3, 0.2) and fixed.fits(None, [], (0.3, 0.2))
+    assert fixed.estimate(None, [], (0.1, 0.1)) == (0.3, 0.2) and fixed.misfit(None, [], (0.3, 0.2)) is None
     with pytest.raises(ValueError, match="unknown c estimator"):
         contrast.make_estimator("psychic")
 

@@ -36,12 +36,12 @@ def brute_divisor(events, width, height, ts, te, f, c_on, c_off):
 
 
 @pytest.fixture(params=["numba", "numpy"])
-def backend(request, monkeypatch):
+def backend(request):
     if request.param == "numpy":
-        monkeypatch.setattr(edi, "_jit", None)
-    elif not edi.have_numba():
-        pytest.skip("numba not installed")
-    return request.param
+        with edi.numpy_reference():
+            yield request.param
+    else:
+        yield request.param
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -67,14 +67,12 @@ def test_divisor_matches_brute_force_integral(backend, seed):
             np.testing.assert_allclose(delta_end, dense[pix], atol=1e-5)
 
 
-def test_numba_and_numpy_tables_agree(rng, monkeypatch):
-    if not edi.have_numba():
-        pytest.skip("numba not installed")
+def test_numba_and_numpy_tables_agree(rng):
     ev = random_events(rng, 5000, 30, 20, 0, 10_000)
     mask = rng.random((20, 30)) < 0.1
     a = edi.build_level_table(ev, 30, 20, 0, 10_000, 4321, mask=mask)
-    monkeypatch.setattr(edi, "_jit", None)
-    b = edi.build_level_table(ev, 30, 20, 0, 10_000, 4321, mask=mask)
+    with edi.numpy_reference():
+        b = edi.build_level_table(ev, 30, 20, 0, 10_000, 4321, mask=mask)
     for name in a.__slots__:
         np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=0, atol=1e-12, err_msg=name)
 

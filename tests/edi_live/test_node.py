@@ -264,13 +264,13 @@ def test_edi_kernels_are_warmed_up_before_the_source_starts(real_recordings):
 
 _NO_NEW_KERNELS = r"""
 import sys
-from edi_live import _jit
 from edi_live.cli import main
+from edi_live.edi import compiled_signatures
 from edi_live.config import EdiConfig
 from edi_live.node import _warm_up, default_reconstructor
 
 def kernels():
-    return {name: set(map(str, f.signatures)) for name, f in vars(_jit).items() if hasattr(f, "signatures")}
+    return compiled_signatures()
 
 if __name__ == "__main__":
     _warm_up(default_reconstructor, EdiConfig())

@@ -54,20 +54,15 @@ def test_deblurs_and_estimates_c_while_streaming(brick):
 
 
 def test_counts_between_frames_are_exact_despite_overlapping_batches(brick):
-    rec = EdiReconstructor(brick.width, brick.height, c=0.25)
-    seen = []
-    orig = rec._choose_c
-    rec._choose_c = lambda cur: (seen.append(list(rec._pairs)), orig(cur))
-    rec._fixed = False  # let pairs be formed, but keep c fixed by never estimating
-    rec._estimator.needs_pair = True
+    rec = EdiReconstructor(brick.width, brick.height)  # c estimated: the reconstructor forms frame pairs
     stream(brick, rec, chunk=333)
-    pairs = seen[-1]
-    assert pairs
-    pair = pairs[-1]
-    f0, f1 = pair.prev.table.ref_t_us, pair.cur.table.ref_t_us
-    n_on, n_off = edi.signed_counts(brick.events, brick.width, brick.height, t0=f0 + 1, t1=f1)
-    np.testing.assert_array_equal(pair.n_on, n_on)
-    np.testing.assert_array_equal(pair.n_off, n_off)
+    assert rec.pairs
+    for pair in rec.pairs:
+        f0, f1 = pair.prev.table.ref_t_us, pair.cur.table.ref_t_us
+        n_on, n_off = edi.signed_counts(brick.events, brick.width, brick.height, t0=f0 + 1, t1=f1,
+                                        mask=rec.hot_pixel_mask)
+        np.testing.assert_array_equal(pair.n_on, n_on)
+        np.testing.assert_array_equal(pair.n_off, n_off)
 
 
 def test_incremental_latent_matches_dense_recompute(brick):
@@ -178,13 +173,10 @@ def test_energy_estimator_runs_from_the_first_frame(brick):
     assert all(np.isfinite(o.image).all() for o in outs)
 
 
-def test_numpy_fallback_gives_the_same_frames(brick, monkeypatch):
-    if not edi.have_numba():
-        pytest.skip("numba not installed: only one backend to compare")
+def test_numpy_reference_gives_the_same_frames(brick):
     fast = stream(brick, EdiReconstructor(brick.width, brick.height))
-    monkeypatch.setattr(edi, "_jit", None)
-    rec = EdiReconstructor(brick.width, brick.height)
-    slow = stream(brick, rec)
+    with edi.numpy_reference():
+        slow = stream(brick, EdiReconstructor(brick.width, brick.height))
     for a, b in zip(fast, slow):
         assert a.c_on == pytest.approx(b.c_on, abs=1e-6)
         assert np.abs(a.image.astype(int) - b.image).max() <= 1
@@ -218,19 +210,22 @@ def test_denoise_filter_keeps_moving_edges(brick):
 
 
 def test_exp_free_rendering_matches_to_uint8(rng):
-    if not edi.have_numba():
-        pytest.skip("numba not installed: the bucket rendering is a numba kernel")
-    from edi_live.reconstructor import _render_buckets
-
-    v0, scale, bucket_u8, bucket_thr = _render_buckets()
+    # the fused frame finish renders log L(f) through bucket tables instead of exp: the same uint8 as to_uint8
+    # at every float32 value, rounding thresholds included. B = 1 everywhere, so log L(f) = -log D exactly.
+    v0, scale, bucket_u8, bucket_thr = edi.render_buckets()
     thr = bucket_thr[np.isfinite(bucket_thr)]
     v = np.concatenate([rng.uniform(-31, 31, 20_000), rng.uniform(-1, 6, 50_000), thr,
                         np.nextafter(thr, np.float32(-np.inf)), np.nextafter(thr, np.float32(np.inf))])
     v = v.astype(np.float32)
-    got = np.array([edi._jit._u8(x, v0, scale, bucket_u8, bucket_thr) for x in v[:3000]] +
-                   [edi._jit._u8(x, v0, scale, bucket_u8, bucket_thr) for x in v[-3 * thr.size:]], np.uint8)
-    want = edi.to_uint8(np.concatenate([v[:3000], v[-3 * thr.size:]]))
-    np.testing.assert_array_equal(got, want)
+    n = v.size
+    image = np.ones((1, n), np.uint8)
+    divisor = (np.arange(n, dtype=np.int64), -v.astype(np.float64), np.zeros(n, np.float32))
+    log_ref, deblurred = np.empty((1, n), np.float32), np.empty((1, n), np.uint8)
+    log_lat, display = np.empty((1, n), np.float32), np.empty((1, n), np.uint8)
+    edi.finish_frame_u8(image, 255.0, divisor, log_ref, deblurred, log_lat, display)
+    np.testing.assert_array_equal(log_ref[0], np.clip(v, edi.LOG_MIN, edi.LOG_MAX))
+    np.testing.assert_array_equal(deblurred, edi.to_uint8(log_ref))
+    np.testing.assert_array_equal(display, edi.to_uint8(log_lat))
 
 
 def _simulated(c: float, c_after: float | None = None, duration_s: float = 1.5):
@@ -320,7 +315,7 @@ def test_streaming_copy_then_replay_equals_inline_processing(brick):
         fed = nxt
         np.testing.assert_array_equal(out_handed.image, out_inline.image)
         assert (handed.c_on, handed.c_off, handed.reestimations) == (inline.c_on, inline.c_off, inline.reestimations)
-        np.testing.assert_array_equal(handed._acc[0], inline._acc[0])
+        np.testing.assert_array_equal(handed.applied_counts[0], inline.applied_counts[0])
         np.testing.assert_array_equal(handed.render().image, inline.render().image)
     assert inline.reestimations >= 1
 
@@ -331,25 +326,20 @@ def test_streaming_copy_streams_from_the_old_reference_and_leaves_the_original_a
     stream(brick, rec)
     twin = rec.streaming_copy()
     later = brick.events[-300:]
-    before = {name: getattr(rec, name).copy() for name in ("_log_lat", "_display", "_activity")
-              if getattr(rec, name) is not None}
-    before["_acc"] = tuple(a.copy() for a in rec._acc)
-    pairs, prev = list(rec._pairs), rec._prev
+    log_lat, counts, pairs = rec.latent_log_image, rec.applied_counts, rec.pairs
     twin.on_events(later)
     twin.mark_gap()  # the worker tells the streaming copy; the original gets it later, when it takes over
-    for name, value in before.items():
-        if name == "_acc":
-            assert all(np.array_equal(a, b) for a, b in zip(rec._acc, value)), "the copy counted into the original"
-        else:
-            np.testing.assert_array_equal(getattr(rec, name), value, err_msg=f"the copy changed the original's {name}")
-    assert list(rec._pairs) == pairs and rec._prev is prev, "mark_gap on the copy reached the original"
+    np.testing.assert_array_equal(rec.latent_log_image, log_lat, err_msg="the copy changed the original's image")
+    assert all(np.array_equal(a, b) for a, b in zip(rec.applied_counts, counts)), "the copy counted into the original"
+    assert rec.pairs == pairs, "mark_gap on the copy reached the original"
     assert pairs or "c" in options, "with c estimated the original holds consistency pairs to protect"
     if "denoise_us" not in options:
-        expected = before["_log_lat"].copy()
+        expected = log_lat.copy()
         edi.propagate_log(expected, later, rec.c_on, rec.c_off, mask=rec.hot_pixel_mask)
-        np.testing.assert_array_equal(twin._log_lat, expected)
+        np.testing.assert_array_equal(twin.latent_log_image, expected)
         np.testing.assert_array_equal(twin.render().image, edi.to_uint8(expected))
-    assert not np.array_equal(twin._log_lat, rec._log_lat)
+    np.testing.assert_array_equal(rec.render().image, edi.to_uint8(log_lat), err_msg="the original's display moved")
+    assert not np.array_equal(twin.latent_log_image, rec.latent_log_image)
     with pytest.raises(NodeError, match="streaming_copy"):
         twin.on_frame(brick.frames[-1], later)
 
@@ -384,9 +374,9 @@ def test_frames_of_a_batch_equal_frame_by_frame_rendering(brick, rng, options):
             np.testing.assert_array_equal(g.image, w.image)
             assert (g.t_us, g.n_events, g.arrival_ns, g.kind, g.ref_t_us) == \
                    (w.t_us, w.n_events, w.arrival_ns, w.kind, w.ref_t_us)
-    np.testing.assert_array_equal(batch._log_lat, single._log_lat)
-    np.testing.assert_array_equal(batch._acc[0], single._acc[0])
-    np.testing.assert_array_equal(batch._acc[1], single._acc[1])
-    assert (batch._pending_events, batch._t_last, batch.events_applied) == \
-           (single._pending_events, single._t_last, single.events_applied)
-    assert batch.render().n_events == single.render().n_events
+    np.testing.assert_array_equal(batch.latent_log_image, single.latent_log_image)
+    np.testing.assert_array_equal(batch.applied_counts[0], single.applied_counts[0])
+    np.testing.assert_array_equal(batch.applied_counts[1], single.applied_counts[1])
+    assert batch.events_applied == single.events_applied
+    last, want = batch.render(), single.render()
+    assert (last.n_events, last.t_us) == (want.n_events, want.t_us)

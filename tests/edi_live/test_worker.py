@@ -1,12 +1,13 @@
 """EdiWorker policy with a stand-in reconstructor that records what it was given.
 
-The stand-in obeys the EdiReconstructor interface of the contract; the oracles are the input events and frames
+The stand-in implements the Reconstructor protocol (edi_live.reconstruction); the oracles are the input events and frames
 (which events belong to an exposure, how many latent frames N events make, which APS frame is nearer).
 The real reconstructor runs end to end in test_node.py.
 """
 
 from __future__ import annotations
 
+import copy
 import threading
 
 import numpy as np
@@ -14,6 +15,7 @@ import pytest
 
 from edi_live.config import EdiConfig
 from edi_live.datatypes import EVENT_DTYPE, Frame, Packet, Reconstruction
+from edi_live.reconstruction import Reconstructor
 from edi_live.ring import EventRing
 from edi_live.worker import EdiWorker
 
@@ -25,6 +27,8 @@ class StandIn:
         self.has_reference = False
         self.c_on = self.c_off = 0.2
         self.reestimations = 0
+        self.hot_pixels = 0
+        self.gaps_marked = 0
         self.ref_f = None
         self.t = None
         self.frames_given = []  # (frame, events) passed to on_frame
@@ -53,6 +57,33 @@ class StandIn:
 
     def render_from_reference(self, t_us, events):
         return self._rec(t_us, "latent")
+
+    def on_events_frames(self, events, cuts, arrivals):
+        out, i0 = [], 0
+        for i1, arrival in zip(cuts, arrivals):
+            self.on_events(events[i0:i1], arrival)
+            out.append(self.render())
+            i0 = i1
+        if i0 < len(events):
+            self.on_events(events[i0:])
+        return out
+
+    def mark_gap(self):
+        self.gaps_marked += 1
+
+    def streaming_copy(self):
+        return copy.copy(self)
+
+    def stats(self):
+        return {}
+
+
+def test_the_stand_in_and_the_real_reconstructor_implement_the_protocol():
+    from edi_live.reconstructor import EdiReconstructor
+
+    assert isinstance(StandIn(), Reconstructor)
+    assert isinstance(EdiReconstructor(4, 3), Reconstructor)
+    assert not isinstance(object(), Reconstructor)
 
 
 def events_at(t_us) -> np.ndarray:

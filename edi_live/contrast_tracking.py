@@ -1,0 +1,112 @@
+"""What the c policy needs from the stream, gathered per APS frame: each frame's data on a fixed pixel sample (B,
+its informative pixels, its level table), the pairs of consecutive frames with the ON/OFF event counts between
+their reference times, and the policy's decision on them.
+
+Runs on the worker thread inside the reconstructor's on_frame. The counts between two reference times come from
+the latent state's accumulator (events applied since the previous f) corrected by the batch at hand, so that no
+event is counted twice or missed.
+"""
+
+from __future__ import annotations
+
+import collections
+
+import numpy as np
+
+import edi_live.contrast as contrast
+import edi_live.edi as edi
+from edi_live.c_policy import ContrastPolicy
+
+
+class ContrastTracker:
+    """Frame data and pairs for the estimator; `policy` holds the decision and the current c."""
+
+    def __init__(self, width: int, height: int, policy: ContrastPolicy, *, history_pairs: int,
+                 sample_pixels: int) -> None:
+        self.width, self.height = width, height
+        self.policy = policy
+        npix = width * height
+        # c is estimated on a fixed random pixel sample: every c evaluation and the tables it needs stay small
+        not_sample = np.ones(npix, bool)
+        keep = np.random.default_rng(20190616).choice(npix, min(npix, int(sample_pixels)), replace=False)
+        not_sample[keep] = False
+        self._not_sample = not_sample.reshape(height, width)
+        self._prev: contrast.FrameData | None = None
+        self._pairs: collections.deque = collections.deque(maxlen=max(1, history_pairs))
+
+    @property
+    def pairs(self) -> list[contrast.FramePair]:
+        return list(self._pairs)
+
+    def mark_gap(self) -> None:
+        """Data were lost: the next frame is not paired with the previous one."""
+        self._prev = None
+        self._pairs.clear()
+
+    def step(self, events: np.ndarray, b: np.ndarray, informative: np.ndarray, window: tuple[int, int, int],
+             hot: np.ndarray | None, acc: tuple[np.ndarray, np.ndarray], t_last: int, has_reference: bool) -> None:
+        """Level table of this frame (on the pixel sample unless the estimator needs the whole image), the pair
+        with the previous frame, then the policy's decision. `window` = (ts, te, f); `acc` holds the ON/OFF counts
+        applied since the previous f, up to `t_last`."""
+        ts, te, f = window
+        est = self.policy.estimator
+        excluded = self._not_sample if hot is None else (self._not_sample | hot)
+        pair_due = self._prev is not None and has_reference
+        counts = None
+        w, h = self.width, self.height
+        if est.needs_full_image:
+            table = edi.build_level_table(events, w, h, ts, te, f, mask=hot, segments=est.separate)
+        else:  # the sample's events first (one cheap pass), so the table build touches only them
+            if pair_due and edi.have_numba() and ts < te:
+                sample, counts = self._sample_and_counts(events, excluded, window, hot, acc, t_last)
+            else:
+                sample = edi.events_at_pixels(events, w, h, ~excluded, ts, te)
+            table = edi.build_level_table(sample, w, h, ts, te, f, segments=est.separate)
+        em = None
+        if est.needs_full_image:
+            em = contrast.event_map(events, w, h, f, ts, te, 0.25 * max(te - ts, 1))
+        cur = contrast.FrameData(b, informative, table, em)
+        if pair_due:
+            n_on, n_off = counts if counts is not None else self._counts_between(events, f, hot, acc, t_last)
+            self._pairs.append(contrast.FramePair(self._prev, cur, n_on, n_off, excluded.reshape(-1)))
+        self.policy.update(cur, list(self._pairs))
+        self._prev = cur
+
+    def _counts_between(self, events: np.ndarray, f: int, hot: np.ndarray | None, acc: tuple[np.ndarray, np.ndarray],
+                        t_last: int) -> tuple[np.ndarray, np.ndarray]:
+        """ON/OFF counts per pixel from the previous f to this f, without counting any event twice: the
+        accumulator holds what was applied after the previous f (up to t_last); this batch may overlap it."""
+        n_on, n_off = acc[0].copy(), acc[1].copy()
+        t0, t1, sign = _count_range(f, t_last)
+        if t1 >= t0:
+            edi.add_counts(events, self.width, self.height, n_on, n_off, t0=t0, t1=t1, mask=hot, sign=sign)
+        np.maximum(n_on, 0, out=n_on)
+        np.maximum(n_off, 0, out=n_off)
+        return n_on, n_off
+
+    def _sample_and_counts(self, events: np.ndarray, excluded: np.ndarray, window: tuple[int, int, int],
+                           hot: np.ndarray | None, acc: tuple[np.ndarray, np.ndarray], t_last: int) \
+            -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        """The sample's events in [ts, te] and the counts of _counts_between, in one pass."""
+        ts, te, f = window
+        t = events["t"]
+        s0, s1 = edi.time_index(t, ts, "left"), edi.time_index(t, te, "right")
+        t0, t1, sign = _count_range(f, t_last)
+        c0, c1 = (edi.time_index(t, t0, "left"), edi.time_index(t, t1, "right")) if t1 >= t0 else (s0, s0)
+        c1 = max(c0, c1)
+        n_on, n_off = acc[0].copy(), acc[1].copy()
+        idx = edi.sample_and_count(events, self.width, self.height, (~excluded).reshape(-1), (s0, s1), hot,
+                                   (n_on, n_off), (c0, c1), sign)
+        np.maximum(n_on, 0, out=n_on)
+        np.maximum(n_off, 0, out=n_off)
+        return events[idx], (n_on, n_off)
+
+
+def _count_range(f: int, t_last: int) -> tuple[int, int, int]:
+    """(t0, t1, sign): the events with t0 <= t <= t1 to add (sign 1) to or take off (sign -1) the accumulator
+    to get the counts from the previous f to f; t1 < t0 when there are none."""
+    if f < t_last:  # applied events after this f do not belong to the interval
+        return f + 1, t_last, -1
+    if f > t_last:  # events up to this f that were not applied yet
+        return t_last + 1, f, 1
+    return 1, 0, 1

@@ -1,0 +1,99 @@
+"""numba kernels over pixels: the background-activity filter, the hot-pixel statistics, and event selection by
+pixel sample (with the ON/OFF counts the c estimator needs, in the same pass).
+
+Private to edi_live.edi (see its public functions and their numpy references).
+"""
+
+from __future__ import annotations
+
+
+import numpy as np
+from numba import njit
+
+@njit(cache=True, nogil=True)
+def background_activity(t, x, y, width, height, last_t, dt_us, keep):
+    """Background-activity filter: keep[i] when one of the 8 neighbours fired within dt_us before event i.
+    last_t is a (height + 2, width + 2) int64 map of each pixel's latest event time (border never written)."""
+    for i in range(t.size):
+        xi = np.int64(x[i])
+        yi = np.int64(y[i])
+        if xi >= width or yi >= height:
+            keep[i] = False
+            continue
+        ti = t[i]
+        ok = False
+        for dy in range(3):
+            for dx in range(3):
+                if (dy != 1 or dx != 1) and ti - last_t[yi + dy, xi + dx] <= dt_us:
+                    ok = True
+        keep[i] = ok
+        last_t[yi + 1, xi + 1] = ti
+
+
+
+@njit(cache=True, nogil=True)
+def update_hot(hot_counts, frame_counts, decay, duration_us, min_rate_hz, rel_factor, hot):
+    """hot_counts = decay * hot_counts + frame_counts (frame_counts is reset to 0), then the hot-pixel rule of
+    edi.hot_pixel_mask on the result, written into `hot` (flat bool)."""
+    total = 0.0
+    n_active = 0
+    for q in range(hot_counts.size):
+        v = hot_counts[q] * decay + frame_counts[q]
+        frame_counts[q] = 0
+        hot_counts[q] = v
+        if v > 0:
+            total += v
+            n_active += 1
+    if n_active == 0 or duration_us <= 0:
+        hot[:] = False
+        return
+    limit = rel_factor * (total / n_active)
+    scale = 1e6 / duration_us
+    for q in range(hot_counts.size):
+        v = hot_counts[q]
+        hot[q] = v * scale > min_rate_hz and v > limit
+
+
+@njit(cache=True, nogil=True)
+def select_pixels(x, y, width, height, keep):
+    """Indices of the events whose pixel is in range and marked in `keep` (flat uint8), in input order."""
+    out = np.empty(x.size, dtype=np.int64)
+    m = 0
+    for i in range(x.size):
+        if x[i] >= width or y[i] >= height:
+            continue
+        if keep[np.int64(y[i]) * width + x[i]]:
+            out[m] = i
+            m += 1
+    return out[:m]
+
+
+@njit(cache=True, nogil=True)
+def select_and_count(x, y, p, width, height, keep, s0, s1, mask, use_mask, out_on, out_off, c0, c1, sign):
+    """select_pixels on events [s0, s1) and count_events on events [c0, c1) (indices into the same arrays) in
+    one pass over their union, which must be contiguous (the ranges overlap or touch)."""
+    out = np.empty(max(s1 - s0, 0), dtype=np.int64)
+    m = 0
+    cuts = np.array([min(s0, c0), s0, s1, c0, c1, max(s1, c1)], dtype=np.int64)
+    cuts.sort()
+    for j in range(cuts.size - 1):  # pieces where both range tests are constant: a branch-light loop for each
+        a = cuts[j]
+        b = cuts[j + 1]
+        if a >= b:
+            continue
+        do_sel = s0 <= a < s1
+        do_cnt = c0 <= a < c1
+        for i in range(a, b):
+            if x[i] >= width or y[i] >= height:
+                continue
+            q = np.int64(y[i]) * width + x[i]
+            if do_sel and keep[q]:
+                out[m] = i
+                m += 1
+            if do_cnt and not (use_mask and mask[q]):
+                on = np.int64(p[i])
+                out_on[q] += sign * on
+                out_off[q] += sign - sign * on
+    return out[:m]
+
+

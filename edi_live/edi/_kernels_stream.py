@@ -1,0 +1,196 @@
+"""numba kernels that stream over events in time order: latent propagation with the display refresh, ON/OFF
+counting, the single-pass log divisor for one c (with the f -> te jump), and the fused frame finish.
+
+Private to edi_live.edi (see its public functions and their numpy references).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+@njit(cache=True, nogil=True)
+def propagate(x, y, p, width, height, mask, use_mask, flat, d_on, d_off, lo, hi, disp, use_disp, gain,
+              acc_on, acc_off, use_acc):
+    applied = 0
+    for i in range(x.size):
+        if x[i] >= width or y[i] >= height:
+            continue
+        q = np.int64(y[i]) * width + x[i]
+        if use_mask and mask[q]:
+            continue
+        on = p[i]
+        v = flat[q] + (d_on if on else d_off)
+        if v < lo:
+            v = lo
+        elif v > hi:
+            v = hi
+        flat[q] = v
+        if use_disp:
+            z = gain * math.exp(min(v, 6.0)) + 0.5
+            if z > 255.0:
+                z = 255.0
+            disp[q] = np.uint8(z)
+        if use_acc:
+            if on:
+                acc_on[q] += 1
+            else:
+                acc_off[q] += 1
+        applied += 1
+    return applied
+
+
+@njit(cache=True, nogil=True)
+def count_events(x, y, p, width, height, mask, use_mask, out_on, out_off, sign):
+    for i in range(x.size):
+        if x[i] >= width or y[i] >= height:
+            continue
+        q = np.int64(y[i]) * width + x[i]
+        if use_mask and mask[q]:
+            continue
+        on = np.int64(p[i])  # branch-free: polarities are unpredictable (two adds beat a mispredict)
+        out_on[q] += sign * on
+        out_off[q] += sign - sign * on
+
+
+DIVISOR_STATE = np.dtype([("s", np.float64), ("t", np.float32), ("lvl", np.float32), ("base", np.float32),
+                          ("lvl_f", np.float32), ("n", np.int32), ("n_f", np.int32)], align=True)
+"""divisor_stream's per-pixel row, 32 bytes so that each event touches one cache line: running sum, last event
+time - ts, net level, base level, level and event count at f, events. float32 is exact for times below 2**24 µs
+(the caller checks the exposure) and for levels up to 2**24 events a pixel."""
+
+
+@njit(cache=True, nogil=True)
+def divisor_stream(t, x, y, p, width, height, mask, use_mask, ts, te, f, c, count_all, use_count_all, state, seen,
+                   acc_on, acc_off, use_acc):
+    """log D(c) per active pixel for c_on == c_off in ONE time-ordered pass, no sort and no exp per event.
+
+    Per pixel: the net level n counted from ts, and a running sum of dwell * exp(c * (n - base)) read from a
+    small table; the base moves up when n climbs more than the table above it (levels far below the base
+    underflow harmlessly), so any event count stays finite. Events must lie in [ts, te]. `state` is scratch
+    (npix rows of DIVISOR_STATE), `seen` (npix uint8) must come zeroed. With use_acc, the ON/OFF counts of the
+    events after f are added to acc_on/acc_off.
+    Returns (pixels in ascending order, log D, c * (n(te) - n(f)))."""
+    npix = width * height
+    k = 64
+    ztab = np.empty(2 * k + 1, dtype=np.float64)
+    for j in range(2 * k + 1):
+        ztab[j] = math.exp(c * (j - k))
+    n_act = 0
+    for i in range(t.size):
+        if x[i] >= width or y[i] >= height:
+            continue
+        q = np.int64(y[i]) * width + x[i]
+        if use_mask and mask[q]:
+            if use_count_all:
+                count_all[q] += 1
+            continue
+        row = state[q]
+        ti = np.float32(t[i] - ts)
+        if seen[q] == 0:  # 1: active, 2: active and f passed
+            seen[q] = 1
+            row.s = 0.0
+            row.t = 0.0
+            row.lvl = 0.0
+            row.base = 0.0
+            row.n = 0
+            n_act += 1
+        if t[i] > f and seen[q] == 1:
+            row.lvl_f = row.lvl
+            row.n_f = row.n
+            seen[q] = 2
+        dwell = ti - row.t
+        if dwell > 0.0:
+            total = row.s
+            if total == 0.0:  # first time with dwell: the base is this level, so the sum stays >= 1 µs
+                row.base = row.lvl
+            d = int(row.lvl - row.base)
+            if d > k:  # far above the base: rebase upwards (log-sum-exp); only levels with dwell count
+                total *= math.exp(-c * d)
+                row.base = row.lvl
+                d = 0
+            row.s = total + dwell * (ztab[d + k] if d >= -k else math.exp(c * d))
+        row.t = ti
+        row.lvl += np.float32(1.0) if p[i] else np.float32(-1.0)
+        row.n += 1
+    pixels = np.empty(n_act, dtype=np.int64)
+    log_d = np.empty(n_act, dtype=np.float64)
+    delta_end = np.empty(n_act, dtype=np.float64)
+    span = float(te - ts)
+    r = 0
+    for q in range(npix):  # ascending: sequential reads here and sequential writes for the caller
+        if seen[q] == 0:
+            continue
+        row = state[q]
+        total = row.s
+        base = row.base
+        if span - row.t > 0.0:
+            if total == 0.0:
+                base = row.lvl
+            d = int(row.lvl - base)
+            if d > k:
+                total *= math.exp(-c * d)
+                base = row.lvl
+                d = 0
+            total += (span - row.t) * (ztab[d + k] if d >= -k else math.exp(c * d))
+        n_f = row.lvl_f if seen[q] == 2 else row.lvl
+        if use_count_all:
+            count_all[q] += row.n
+        if use_acc and seen[q] == 2:
+            n_after = row.n - row.n_f
+            net_after = np.int64(row.lvl - row.lvl_f)
+            acc_on[q] += (n_after + net_after) // 2
+            acc_off[q] += (n_after - net_after) // 2
+        pixels[r] = q
+        log_d[r] = c * (base - n_f) + math.log(total / span)
+        delta_end[r] = c * (row.lvl - n_f)
+        r += 1
+    return pixels, log_d, delta_end
+
+
+
+@njit(cache=True, nogil=True)
+def _u8(v, v0, scale, bucket_u8, bucket_thr):
+    """uint8 rendering of a log intensity without exp: bucket of v, plus one if v reaches the bucket's
+    threshold (the tables hold every rounding threshold; a bucket holds at most one)."""
+    b = (v - v0) * scale
+    if b < 0.0:
+        return np.uint8(0)
+    if b >= bucket_u8.size:
+        return np.uint8(255)
+    i = int(b)
+    return bucket_u8[i] + np.uint8(v >= bucket_thr[i])
+
+
+@njit(cache=True, nogil=True)
+def finish_frame_u8(img, sat, lut_log, lut_u8, pixels, log_d, delta_end, lo, hi, log_ref, deblurred, log_lat,
+                    display, v0, scale, bucket_u8, bucket_thr):
+    """One pass for what follows the divisor of a uint8 APS frame: log L(f) (log B minus log D at the active
+    informative pixels, clipped), its uint8 image, the latent log image at te (plus the f->te exponent) and its
+    uint8 image. Inactive pixels come from 256-entry tables of log(max(B, floor)) and its uint8 rendering;
+    active ones are rendered through the bucket tables (v0, scale, bucket_u8, bucket_thr) instead of exp."""
+    for q in range(img.size):
+        i = img[q]
+        v = lut_log[i]
+        log_ref[q] = v
+        log_lat[q] = v
+        u = lut_u8[i]
+        deblurred[q] = u
+        display[q] = u
+    for r in range(pixels.size):
+        q = pixels[r]
+        i = img[q]
+        v = lut_log[i]
+        if i > 0 and i < sat:
+            v = v - np.float32(log_d[r])
+            v = min(max(v, lo), hi)
+            log_ref[q] = v
+            deblurred[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)
+        w = v + np.float32(delta_end[r])
+        w = min(max(w, lo), hi)
+        log_lat[q] = w
+        display[q] = _u8(w, v0, scale, bucket_u8, bucket_thr)
+
+

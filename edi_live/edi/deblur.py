@@ -1,0 +1,129 @@
+"""Deblurring one APS frame: B as float, log L(f) = log B - log D, and the single-pass divisor for one c.
+
+Intensities are on the 8-bit APS scale (0..255, linear); times are int64 µs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from edi_live.edi import _backend, _kernels_stream
+from edi_live.edi._backend import DARK_FLOOR, LOG_MAX, LOG_MIN
+from edi_live.edi.latent import render_buckets, to_uint8, u8_tables
+from edi_live.edi.levels import LevelTable, build_level_table, log_divisor
+from edi_live.edi.selection import window
+
+
+def blurry_to_float(image: np.ndarray, *, saturation: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """APS image (uint8/uint16/float) -> (B on the 8-bit scale as float32, informative mask).
+
+    A pixel is uninformative when it is at 0 or at/above `saturation` (default: full scale of the dtype):
+    a clipped value does not equal the mean of the latent intensity, so dividing it would be wrong.
+    """
+    img = np.asarray(image)
+    if img.dtype == np.uint8:
+        # the general path below gives exactly this: B = img (scale 1), always finite and >= 0
+        sat = 255.0 if saturation is None else float(saturation)
+        return img.astype(np.float32), (img > 0) & (img < sat)
+    if img.dtype == np.uint16:
+        full = 65535.0
+    else:
+        full = 255.0
+    sat = full if saturation is None else float(saturation)
+    b = img.astype(np.float32) * np.float32(255.0 / full)
+    with np.errstate(invalid="ignore"):
+        informative = (img > 0) & (img < sat) & np.isfinite(b)
+    b = np.nan_to_num(b, nan=0.0, posinf=255.0, neginf=0.0)
+    np.clip(b, 0.0, None, out=b)
+    return b, informative
+
+
+def deblur_log(blurry: np.ndarray, table: LevelTable | None, c_on: float, c_off: float | None = None, *,
+               informative: np.ndarray | None = None,
+               divisor: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """log L(f) on the 8-bit scale, (H, W) float32: log B - log D at active informative pixels, log B elsewhere.
+
+    `blurry` is B as float (8-bit scale, see blurry_to_float); `informative` defaults to 0 < B < 255.
+    log D comes from `table` at (c_on, c_off), or precomputed as `divisor` = (pixels, log D, ...).
+    """
+    b = np.asarray(blurry, dtype=np.float32)
+    if table is not None and b.shape != (table.height, table.width):
+        raise ValueError(f"blurry image shape {b.shape} does not match the table ({table.height}, {table.width})")
+    out = np.log(np.maximum(b, DARK_FLOOR)).reshape(-1)
+    if divisor is None and table is not None and table.n_active:
+        divisor = (table.pixels, log_divisor(table, c_on, c_off))
+    if divisor is not None and divisor[0].size:
+        pix, ld = divisor[0], divisor[1]
+        if informative is None:
+            bp = b.reshape(-1)[pix]
+            use = (bp > 0) & (bp < 255.0)
+        else:
+            use = informative.reshape(-1)[pix]
+        out[pix[use]] -= ld[use].astype(np.float32)
+    np.clip(out, LOG_MIN, LOG_MAX, out=out)
+    return out.reshape(b.shape)
+
+
+def deblur(blurry: np.ndarray, table: LevelTable, c_on: float, c_off: float | None = None, *,
+           informative: np.ndarray | None = None, max_value: float = 4 * 255.0) -> np.ndarray:
+    """Sharp L(f) = B / D(c), float32 (H, W) on the 8-bit scale, finite, clipped to [0, max_value]."""
+    out = np.exp(deblur_log(blurry, table, c_on, c_off, informative=informative))
+    np.clip(out, 0.0, max_value, out=out)
+    return out
+
+
+def log_divisor_events(events: np.ndarray, width: int, height: int, exposure_start_us: int, exposure_end_us: int,
+                       ref_t_us: int | None, c_on: float, c_off: float | None = None, *,
+                       mask: np.ndarray | None = None,
+                       event_counts: np.ndarray | None = None,
+                       counts_after_f: tuple[np.ndarray, np.ndarray] | None = None) \
+        -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(active pixels, log D, exponent change f->te or None) for ONE c straight from the events.
+
+    Same log D as log_divisor(build_level_table(...)) but, for c_on == c_off with numba, a single pass without
+    sorting, which also yields c * E(f -> te) per active pixel (so the latent image at te costs O(pixels)).
+    Pixel order is unspecified. `mask`/`event_counts` as in build_level_table. `counts_after_f` (flat int64
+    n_on, n_off): when the single pass runs (the third result is not None), it adds the ON/OFF counts of the
+    unmasked events in (f, te] to them, which saves the caller a second pass; otherwise they are left alone.
+    """
+    c_off = c_on if c_off is None else c_off
+    ts, te = int(exposure_start_us), int(exposure_end_us)
+    if te < ts:
+        raise ValueError(f"exposure ends before it starts (got {ts}..{te} µs)")
+    f = (ts + te) // 2 if ref_t_us is None else min(max(int(ref_t_us), ts), te)
+    if _backend.have_numba() and c_on == c_off and 0 < te - ts < 2**24:  # float32 times in the pass are exact
+        ev = window(events, ts, te)
+        m, use_m = _backend.mask_arg(mask)
+        cnt = _backend.NO_COUNTS if event_counts is None else event_counts
+        acc_on, acc_off = counts_after_f if counts_after_f is not None else (_backend.NO_COUNTS, _backend.NO_COUNTS)
+        npix = width * height
+        return _kernels_stream.divisor_stream(ev["t"], ev["x"], ev["y"], ev["p"], width, height, m, use_m, ts, te, f,
+                                   float(c_on), cnt, event_counts is not None, np.empty(npix, _kernels_stream.DIVISOR_STATE),
+                                   np.zeros(npix, np.uint8), acc_on, acc_off, counts_after_f is not None)
+    table = build_level_table(events, width, height, ts, te, f, mask=mask, segments=c_on != c_off,
+                              event_counts=event_counts)
+    return table.pixels, log_divisor(table, c_on, c_off), None
+
+
+def finish_frame_u8(image: np.ndarray, saturation: float, divisor: tuple[np.ndarray, np.ndarray, np.ndarray],
+                    log_ref: np.ndarray, deblurred: np.ndarray, log_lat: np.ndarray, display: np.ndarray) -> None:
+    """What follows the divisor of a uint8 APS frame, into the given (H, W) arrays: log L(f) (log B minus log D
+    at the active informative pixels, clipped) and its uint8 image; the latent log image at te (L(f) plus the
+    f -> te exponent of `divisor`, from log_divisor_events) and its uint8 image. One pass with the kernels."""
+    pixels, log_d, delta_end = divisor
+    if _backend.have_numba():
+        lut_log, lut_u8 = u8_tables()
+        _kernels_stream.finish_frame_u8(np.ascontiguousarray(image).reshape(-1), float(saturation), lut_log, lut_u8,
+                                        pixels, log_d, delta_end, np.float32(LOG_MIN), np.float32(LOG_MAX),
+                                        log_ref.reshape(-1), deblurred.reshape(-1), log_lat.reshape(-1),
+                                        display.reshape(-1), *render_buckets())
+        return
+    b, informative = blurry_to_float(image, saturation=saturation)
+    ref = deblur_log(b, None, 1.0, informative=informative, divisor=(pixels, log_d))
+    log_ref[...] = ref
+    deblurred[...] = to_uint8(ref)
+    lat = ref.reshape(-1).copy()
+    lat[pixels] += delta_end.astype(np.float32)
+    np.clip(lat, LOG_MIN, LOG_MAX, out=lat)
+    log_lat[...] = lat.reshape(log_lat.shape)
+    display[...] = to_uint8(log_lat)

@@ -1,0 +1,110 @@
+"""Per-pixel bookkeeping around the EDI: hot-pixel statistics, background-activity (noise) filters, and picking a
+pixel sample's events together with the ON/OFF counts the c estimator needs.
+
+All inputs are time-ordered events of EVENT_DTYPE; masks are (H, W) bool or flat bool of H*W.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from edi_live.edi import _backend, _kernels_pixels
+from edi_live.edi.selection import add_counts, select
+
+
+def hot_pixel_mask(counts: np.ndarray, duration_us: float, *, min_rate_hz: float = 300.0,
+                   rel_factor: float = 10.0) -> np.ndarray:
+    """Hot pixels from per-pixel event counts over `duration_us`: a pixel is hot when its rate exceeds
+    `min_rate_hz` AND its count exceeds `rel_factor` times the mean count over active pixels.
+
+    Moving edges spread their events over many pixels, so they raise the mean; a stuck pixel fires alone.
+    Accumulate `counts` over several frames so edges average out.
+    """
+    counts = np.asarray(counts)
+    active = counts > 0
+    if not active.any() or duration_us <= 0:
+        return np.zeros(counts.shape, dtype=bool)
+    mean_active = float(counts[active].mean())
+    rate_hz = counts * (1e6 / float(duration_us))
+    return (rate_hz > min_rate_hz) & (counts > rel_factor * mean_active)
+
+
+def new_activity_map(width: int, height: int) -> np.ndarray:
+    """State for background_activity_keep: latest event time per pixel, padded by one pixel, 'long ago'."""
+    return np.full((height + 2, width + 2), -(2**62), dtype=np.int64)
+
+
+def background_activity_keep(events: np.ndarray, width: int, height: int, last_t: np.ndarray,
+                             dt_us: int) -> np.ndarray:
+    """Per event: True when one of its 8 neighbours fired within dt_us before it (time-ordered input).
+    `last_t` (from new_activity_map) is updated in place, so successive batches form one stream."""
+    keep = np.empty(len(events), dtype=bool)
+    if _backend.have_numba():
+        _kernels_pixels.background_activity(events["t"], events["x"], events["y"], width, height, last_t, int(dt_us), keep)
+        return keep
+    for i, (t, x, y) in enumerate(zip(events["t"].tolist(), events["x"].tolist(), events["y"].tolist())):
+        if x >= width or y >= height:
+            keep[i] = False
+            continue
+        block = last_t[y:y + 3, x:x + 3]
+        keep[i] = bool(((t - block) <= dt_us).sum() - ((t - block[1, 1]) <= dt_us) > 0)
+        last_t[y + 1, x + 1] = t
+    return keep
+
+
+def supported_events_keep(events: np.ndarray, width: int, height: int, dt_us: int) -> np.ndarray:
+    """Per event of one batch: True when one of its 8 neighbours fired within dt_us before OR after it.
+    The two-sided, stateless form of the background-activity filter, for a whole exposure at once."""
+    fwd = background_activity_keep(events, width, height, new_activity_map(width, height), dt_us)
+    rev = events[::-1].copy()
+    rev["t"] = -rev["t"]
+    bwd = background_activity_keep(rev, width, height, new_activity_map(width, height), dt_us)[::-1]
+    return fwd | bwd
+
+
+def isolated_event_mask(events: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(H, W) bool: pixels with exactly one event in `events` and no event in their 8 neighbours.
+
+    A background-activity filter at window granularity: such lone events are most likely noise.
+    """
+
+    idx, _, _ = select(events, width, height, None, None, None)
+    counts = np.bincount(idx, minlength=width * height).reshape(height, width).astype(np.float32)
+    neigh = cv2.boxFilter(counts, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT) - counts
+    return (counts == 1) & (neigh == 0)
+
+
+def decay_hot_counts(hot_counts: np.ndarray, frame_counts: np.ndarray, decay: float, duration_us: float, *,
+                     min_rate_hz: float, rel_factor: float) -> np.ndarray:
+    """In place: hot_counts = decay * hot_counts + frame_counts, and frame_counts is reset to 0 (flat arrays).
+    Returns the flat bool hot-pixel mask of hot_pixel_mask() on the decayed counts over `duration_us`."""
+    if _backend.have_numba():
+        hot = np.empty(hot_counts.size, bool)
+        _kernels_pixels.update_hot(hot_counts, frame_counts, float(decay), float(duration_us), float(min_rate_hz),
+                                   float(rel_factor), hot)
+        return hot
+    hot_counts *= decay
+    hot_counts += frame_counts
+    frame_counts.fill(0)
+    return hot_pixel_mask(hot_counts, duration_us, min_rate_hz=min_rate_hz, rel_factor=rel_factor)
+
+
+def sample_and_count(events: np.ndarray, width: int, height: int, keep: np.ndarray, select_range: tuple[int, int],
+                     mask: np.ndarray | None, counts: tuple[np.ndarray, np.ndarray], count_range: tuple[int, int],
+                     sign: int) -> np.ndarray:
+    """Indices of the events in `select_range` (index range [s0, s1)) whose pixel is marked in `keep` (flat
+    bool), and, in the same pass, `counts` (flat int64 n_on, n_off) += sign * the ON/OFF counts of the unmasked
+    events in `count_range` ([c0, c1)). The two ranges must overlap or touch."""
+    (s0, s1), (c0, c1) = select_range, count_range
+    n_on, n_off = counts
+    if _backend.have_numba():
+        m, use_m = _backend.mask_arg(mask)
+        return _kernels_pixels.select_and_count(events["x"], events["y"], events["p"], width, height,
+                                                keep.view(np.uint8), s0, s1, m, use_m, n_on, n_off, c0, c1, sign)
+    add_counts(events[c0:c1], width, height, n_on, n_off, mask=mask, sign=sign)
+    part = events[s0:s1]
+    x, y = part["x"], part["y"]
+    inside = (x < width) & (y < height)
+    idx = np.where(inside, y.astype(np.int64) * width + x, 0)
+    return s0 + np.flatnonzero(inside & keep[idx])

@@ -1,0 +1,91 @@
+"""The latent image between APS frames: log L(f) of the current reference, log L(t) advanced event by event with
+its uint8 display kept up to date, and the ON/OFF counts applied since f (which the c estimator needs).
+
+Owns only arrays and the operations on them (edi_live.edi does the math). Emitting a latent frame costs
+O(new events) plus one copy of the display.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import numpy as np
+
+import edi_live.edi as edi
+
+
+class LatentState:
+    def __init__(self, width: int, height: int) -> None:
+        self.width, self.height = width, height
+        self.log_ref = np.zeros((height, width), np.float32)  # replaced per frame, never changed in place
+        self.log_lat = np.zeros((height, width), np.float32)
+        self.display = np.zeros((height, width), np.uint8)
+        npix = width * height
+        self.acc = (np.zeros(npix, np.int64), np.zeros(npix, np.int64))  # ON/OFF applied since f
+
+    def streaming_copy(self) -> "LatentState":
+        """Own image and display; the reference and the counts are shared (the copy reads the one and never
+        writes the other)."""
+        twin = LatentState.__new__(LatentState)
+        twin.width, twin.height = self.width, self.height
+        twin.log_ref, twin.acc = self.log_ref, self.acc
+        twin.log_lat, twin.display = self.log_lat.copy(), self.display.copy()
+        return twin
+
+    def reset_counts(self) -> None:
+        for a in self.acc:
+            a.fill(0)
+
+    def apply(self, events: np.ndarray, c: tuple[float, float], mask: np.ndarray | None, *, count: bool,
+              move: bool, display: bool = True) -> None:
+        """Advance log L(t) over `events` (unless `move` is False: then only count them, if `count`)."""
+        if not move:
+            if count:
+                edi.add_counts(events, self.width, self.height, *self.acc, mask=mask)
+            return
+        edi.propagate_log(self.log_lat, events, c[0], c[1], mask=mask, display=self.display if display else None,
+                          counts=self.acc if count else None)
+
+    def apply_with_frames(self, events: np.ndarray, cuts: Sequence[int], c: tuple[float, float],
+                          mask: np.ndarray | None, count: bool, frame: Callable[[int, int], object]) -> list:
+        """apply(events) and, after the first cuts[k] events, `frame(k, i1)` (which copies the display)."""
+        prop = edi.Propagator(self.log_lat, self.display, c[0], c[1], mask, self.acc if count else None)
+        x, y, p = events["x"], events["y"], events["p"]
+        out = []
+        i0 = 0
+        for k, i1 in enumerate(cuts):
+            prop.apply(x[i0:i1], y[i0:i1], p[i0:i1])
+            out.append(frame(k, i1))
+            i0 = i1
+        if i0 < events.size:
+            prop.apply(x[i0:], y[i0:], p[i0:])
+        return out
+
+    def set_reference(self, image: np.ndarray, saturation: float | None,
+                      divisor: tuple[np.ndarray, np.ndarray, np.ndarray | None],
+                      c: tuple[float, float]) -> tuple[np.ndarray, bool]:
+        """Deblur: log L(f) from B and the divisor; the latent image restarts there, moved on to te when the
+        divisor carries the f -> te exponent. Returns (L(f) as uint8, whether the display is current: the fused
+        pass of a uint8 frame also renders it; otherwise the caller refreshes it)."""
+        pixels, _, delta_end = divisor
+        if edi.have_numba() and image.dtype == np.uint8 and delta_end is not None:
+            deblurred = np.empty((self.height, self.width), np.uint8)
+            self.log_ref = np.empty((self.height, self.width), np.float32)
+            sat = 255.0 if saturation is None else float(saturation)
+            edi.finish_frame_u8(image, sat, divisor, self.log_ref, deblurred, self.log_lat, self.display)
+            return deblurred, True
+        b, informative = edi.blurry_to_float(image, saturation=saturation)
+        self.log_ref = edi.deblur_log(b, None, c[0], c[1], informative=informative, divisor=divisor)
+        np.copyto(self.log_lat, self.log_ref)
+        if delta_end is not None:
+            lat = self.log_lat.reshape(-1)
+            lat[pixels] += delta_end.astype(np.float32)
+            np.clip(lat, edi.LOG_MIN, edi.LOG_MAX, out=lat)
+        return edi.to_uint8(self.log_ref), False
+
+    def refresh_display(self) -> None:
+        np.copyto(self.display, edi.to_uint8(self.log_lat))
+
+    def from_reference(self, delta: np.ndarray | float) -> np.ndarray:
+        """uint8 image of L(f) * exp(delta), without touching the latent state."""
+        return edi.to_uint8(np.clip(self.log_ref + delta, edi.LOG_MIN, edi.LOG_MAX))

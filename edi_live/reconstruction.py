@@ -1,0 +1,60 @@
+"""The Reconstructor protocol: everything the worker and the node ask of the EDI core (edi_live.reconstructor
+implements it; tests use small stand-ins). Runs on the worker thread; not thread-safe.
+
+Time contract (µs, sensor clock): `on_frame(frame, events)` gets every event from frame.exposure_start_us up to
+the caller's "now" (some of them may already have been given to `on_events`); `on_events` gets later events in
+time order. Events before the first APS frame are ignored (there is no reference yet).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol, Sequence, runtime_checkable
+
+import numpy as np
+
+from edi_live.datatypes import Frame, Reconstruction
+
+
+@runtime_checkable
+class Reconstructor(Protocol):
+    has_reference: bool  # an APS frame was deblurred: latent frames can be rendered
+    c_on: float
+    c_off: float
+
+    @property
+    def reestimations(self) -> int: ...
+
+    @property
+    def hot_pixels(self) -> int: ...
+
+    def on_frame(self, frame: Frame, events: np.ndarray, arrival_ns: int = 0) -> Reconstruction:
+        """Deblur `frame` (L(f) at mid-exposure, kind "deblurred"); it becomes the reference."""
+        ...
+
+    def on_events(self, events: np.ndarray, arrival_ns: int = 0) -> None:
+        """Advance the latent image over later events."""
+        ...
+
+    def on_events_frames(self, events: np.ndarray, cuts: Sequence[int],
+                         arrivals: Sequence[int]) -> list[Reconstruction]:
+        """on_events(events), rendering a latent frame after the first cuts[k] events, stamped arrivals[k]."""
+        ...
+
+    def render(self) -> Reconstruction:
+        """The current latent image (kind "latent")."""
+        ...
+
+    def render_from_reference(self, t_us: int, events: np.ndarray) -> Reconstruction:
+        """The latent image at t from the reference, using the events between t and f (t may be before f)."""
+        ...
+
+    def mark_gap(self) -> None:
+        """Data were lost upstream: do not relate the next frame to the previous one."""
+        ...
+
+    def streaming_copy(self) -> "Reconstructor":
+        """A copy that streams latent frames from the current reference while this one deblurs the next frame on
+        another thread; its events are replayed into this one afterwards."""
+        ...
+
+    def stats(self) -> dict[str, Any]: ...

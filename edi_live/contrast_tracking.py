@@ -44,10 +44,11 @@ class ContrastTracker:
         self._pairs.clear()
 
     def step(self, events: np.ndarray, b: np.ndarray, informative: np.ndarray, window: tuple[int, int, int],
-             hot: np.ndarray | None, acc: tuple[np.ndarray, np.ndarray], t_last: int, has_reference: bool) -> None:
+             hot: np.ndarray | None, acc: tuple[np.ndarray, np.ndarray], t_last: int,
+             has_reference: bool) -> contrast.FramePair | None:
         """Level table of this frame (on the pixel sample unless the estimator needs the whole image), the pair
         with the previous frame, then the policy's decision. `window` = (ts, te, f); `acc` holds the ON/OFF counts
-        applied since the previous f, up to `t_last`."""
+        applied since the previous f, up to `t_last`. Returns the new pair, if one was formed."""
         ts, te, f = window
         est = self.policy.estimator
         excluded = self._not_sample if hot is None else (self._not_sample | hot)
@@ -66,11 +67,14 @@ class ContrastTracker:
         if est.needs_full_image:
             em = contrast.event_map(events, w, h, f, ts, te, 0.25 * max(te - ts, 1))
         cur = contrast.FrameData(b, informative, table, em)
+        pair = None
         if pair_due:
             n_on, n_off = counts if counts is not None else self._counts_between(events, f, hot, acc, t_last)
-            self._pairs.append(contrast.FramePair(self._prev, cur, n_on, n_off, excluded.reshape(-1)))
+            pair = contrast.FramePair(self._prev, cur, n_on, n_off, excluded.reshape(-1))
+            self._pairs.append(pair)
         self.policy.update(cur, list(self._pairs))
         self._prev = cur
+        return pair
 
     def _counts_between(self, events: np.ndarray, f: int, hot: np.ndarray | None, acc: tuple[np.ndarray, np.ndarray],
                         t_last: int) -> tuple[np.ndarray, np.ndarray]:

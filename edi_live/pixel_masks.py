@@ -72,3 +72,54 @@ class NoiseFilter:
         fresh = events[edi.time_index(events["t"], seen_until_us, "right"):]
         edi.background_activity_keep(fresh, self.width, self.height, self._last_t, self.window_us)
         return events[edi.supported_events_keep(events, self.width, self.height, self.window_us)]
+
+
+class UnreliablePixels:
+    """Pixels whose events contradict the APS frames: between two consecutive frames their events predict a log
+    change that the frames do not show (mains flicker with ON/OFF bursts that do not cancel, OFF events lost to
+    the refractory period, a pixel stuck firing one polarity). Their events are then ignored like a hot pixel's,
+    so the latent image keeps what the APS says there instead of blooming or drifting.
+
+    Evidence per pair of frames k, k+1, at pixels with at least `min_events` events between f_k and f_k+1:
+    predicted = c_on*n_on - c_off*n_off, observed = log B_k+1 - log B_k. Contradiction: |predicted - observed| >
+    `tolerance` + `relative` * |predicted| where both frames are informative, or |predicted| > `saturated_limit`
+    where either is clipped (the APS cannot confirm a change that large). A decaying score (x `decay` per pair,
+    +1 per contradiction) marks a pixel while it is >= 1 and frees it below `release`. Moving edges explain their
+    frames (the residual of a correct c is small next to the change itself), so they stay."""
+
+    def __init__(self, width: int, height: int, *, min_events: int = 3, tolerance: float = 1.0,
+                 relative: float = 0.5, saturated_limit: float = 3.0, decay: float = 0.9,
+                 release: float = 0.2) -> None:
+        self._shape = (height, width)
+        self.min_events, self.tolerance, self.relative = min_events, tolerance, relative
+        self.saturated_limit, self.decay, self.release = saturated_limit, decay, release
+        self._score = np.zeros(width * height, np.float32)
+        self._mask = np.zeros(self._shape, bool)
+
+    @property
+    def mask(self) -> np.ndarray:
+        """(H, W) bool; replaced, never changed in place."""
+        return self._mask
+
+    @property
+    def count(self) -> int:
+        return int(self._mask.sum())
+
+    def update(self, n_on: np.ndarray, n_off: np.ndarray, b_prev: np.ndarray, b_cur: np.ndarray,
+               informative_prev: np.ndarray, informative_cur: np.ndarray, c: tuple[float, float]) -> None:
+        """One pair of frames: counts (flat) between their reference times, their B (8-bit scale, float) and
+        informative masks."""
+        active = np.flatnonzero((n_on + n_off) >= self.min_events)
+        self._score *= self.decay
+        if active.size:
+            pred = c[0] * n_on[active] - c[1] * n_off[active]
+            bp = b_prev.reshape(-1)[active]
+            bc = b_cur.reshape(-1)[active]
+            both = informative_prev.reshape(-1)[active] & informative_cur.reshape(-1)[active]
+            obs = np.log(np.maximum(bc, edi.DARK_FLOOR)) - np.log(np.maximum(bp, edi.DARK_FLOOR))
+            bad = np.where(both, np.abs(pred - obs) > self.tolerance + self.relative * np.abs(pred),
+                           np.abs(pred) > self.saturated_limit)
+            self._score[active[bad]] += 1.0
+        marked = self._mask.reshape(-1)
+        new = np.where(marked, self._score >= self.release, self._score >= 1.0)
+        self._mask = new.reshape(self._shape)

@@ -24,7 +24,7 @@ from edi_live.contrast_tracking import ContrastTracker
 from edi_live.datatypes import Frame, Reconstruction
 from edi_live.errors import ConfigError, NodeError
 from edi_live.latent_state import LatentState
-from edi_live.pixel_masks import HotPixels, NoiseFilter
+from edi_live.pixel_masks import HotPixels, NoiseFilter, UnreliablePixels
 
 
 @dataclass(frozen=True)
@@ -37,6 +37,7 @@ class ReconstructorSettings:
     c_off: float | None = None
     estimator: str = contrast.DEFAULT_ESTIMATOR
     estimator_options: dict = field(default_factory=dict)
+    separate_thresholds: bool = True  # estimate c_on and c_off apart (one c when the data cannot separate them)
     c_init: float = 0.2
     reestimate_every: int = 0  # frames; 0 = only when the fit test fails
     history_pairs: int = 2  # consecutive-frame pairs the estimator sees
@@ -50,6 +51,7 @@ class ReconstructorSettings:
     hot_decay: float = 0.8
     saturation: float | None = None  # APS value at or above which a pixel is clipped (default: full scale)
     denoise_us: int = 0  # background-activity filter window; 0 = off
+    mask_unreliable_pixels: bool = True  # ignore events that contradict the APS frames (needs c estimation)
 
     def thresholds(self) -> tuple[float, float, bool]:
         """(c_on, c_off, fixed), checked."""
@@ -94,7 +96,10 @@ class EdiReconstructor:
             estimator: contrast.ContrastEstimator = contrast.FixedContrast(self.c_on, self.c_off)
         else:
             try:
-                estimator = contrast.make_estimator(settings.estimator, **settings.estimator_options)
+                options = dict(settings.estimator_options)
+                if settings.estimator == "consistency":
+                    options.setdefault("separate", settings.separate_thresholds)
+                estimator = contrast.make_estimator(settings.estimator, **options)
             except (ValueError, TypeError) as exc:
                 raise ConfigError(str(exc)) from None
         self._policy = ContrastPolicy(estimator, self.c_on, self.c_off, PolicySettings(
@@ -108,6 +113,9 @@ class EdiReconstructor:
                               min_rate_hz=settings.hot_min_rate_hz, rel_factor=settings.hot_rel_factor,
                               decay=settings.hot_decay)
         self._noise = NoiseFilter(self.width, self.height, settings.denoise_us) if settings.denoise_us > 0 else None
+        self._unreliable = (UnreliablePixels(self.width, self.height)
+                            if settings.mask_unreliable_pixels and self._tracker is not None else None)
+        self._mask: np.ndarray | None = self._hot.mask  # events at these pixels are ignored; replaced, not changed
         self._latent = LatentState(self.width, self.height)
         self.has_reference = False
         self.events_ignored = False  # set when the c policy finds that the events carry no signal
@@ -148,6 +156,16 @@ class EdiReconstructor:
     @property
     def hot_pixels(self) -> int:
         return self._hot.count
+
+    @property
+    def unreliable_pixels(self) -> int:
+        """Pixels whose events currently contradict the APS frames (ignored like hot pixels)."""
+        return 0 if self._unreliable is None else self._unreliable.count
+
+    @property
+    def ignored_pixel_mask(self) -> np.ndarray:
+        """(H, W) bool: every pixel whose events are ignored now (hot or unreliable)."""
+        return np.zeros((self.height, self.width), bool) if self._mask is None else self._mask.copy()
 
     @property
     def hot_pixel_mask(self) -> np.ndarray:
@@ -196,7 +214,7 @@ class EdiReconstructor:
         f = frame.mid_exposure_us
         if self.has_reference and f <= self._ref_t:
             self.mark_gap()  # time went backwards (new recording, loop without offset): start over
-        mask = self._hot.mask
+        mask = self._mask
         t_all = events["t"]
         n_new = t_all.size - edi.time_index(t_all, self._t_last, "right")
         t_batch_end = int(t_all[-1]) if t_all.size else self._t_last
@@ -205,9 +223,13 @@ class EdiReconstructor:
         if self._tracker is not None:
             t0 = time.perf_counter()
             b, informative = edi.blurry_to_float(img, saturation=self.settings.saturation)
-            self._tracker.step(events, b, informative, (ts, te, f), mask, self._latent.acc, self._t_last,
-                               self.has_reference)
+            pair = self._tracker.step(events, b, informative, (ts, te, f), mask, self._latent.acc, self._t_last,
+                                      self.has_reference)
             self.c_on, self.c_off = self._policy.c
+            if pair is not None and self._unreliable is not None and not self._policy.events_ignored:
+                self._unreliable.update(pair.n_on, pair.n_off, pair.prev.blurry, pair.cur.blurry,
+                                        pair.prev.informative, pair.cur.informative, self._c())
+                mask = self._mask = self._combined_mask()
             self.events_ignored = self._policy.events_ignored
             self.last_estimate_ms = (time.perf_counter() - t0) * 1e3
             self._latent.reset_counts()  # the accumulators are used (and written) only when c is estimated
@@ -229,6 +251,7 @@ class EdiReconstructor:
             self._latent.refresh_display()
         if frame_counts is not None:
             self._hot.end_exposure(te - ts)
+            self._mask = self._combined_mask()
         self.has_reference = True
         self._ref_t = f
         self._exposure = (ts, te)
@@ -248,7 +271,7 @@ class EdiReconstructor:
         t_end = int(events["t"][-1])
         if self._noise is not None:
             events = self._noise.stream(events)
-        self._latent.apply(events, self._c(), self._hot.mask, count=self._counting(), move=not self.events_ignored)
+        self._latent.apply(events, self._c(), self._mask, count=self._counting(), move=not self.events_ignored)
         self._t_last = max(self._t_last, t_end)
         self._pending_events += n
         self.events_applied += n
@@ -276,7 +299,7 @@ class EdiReconstructor:
             self._pending_events = 0
             return rec
 
-        out = self._latent.apply_with_frames(events, cuts, self._c(), self._hot.mask, self._counting(), frame)
+        out = self._latent.apply_with_frames(events, cuts, self._c(), self._mask, self._counting(), frame)
         self._pending_events += int(events.size) - cuts[-1]
         self._t_last = max(self._t_last, int(t[-1]))
         self.events_applied += int(events.size)
@@ -292,7 +315,7 @@ class EdiReconstructor:
         self._need_reference("render_from_reference()")
         t_us = int(t_us)
         f = self._ref_t
-        mask = self._hot.mask
+        mask = self._mask
         if t_us >= f:
             delta = edi.event_delta(events, self.width, self.height, self.c_on, self.c_off, t0=f + 1, t1=t_us,
                                     mask=mask)
@@ -307,13 +330,19 @@ class EdiReconstructor:
         return {
             "c_on": self.c_on, "c_off": self.c_off, "c_fixed": self._fixed, "estimator": self.estimator.name,
             "reestimations": self.reestimations, "ill_conditioned": self.ill_conditioned,
-            "hot_pixels": self.hot_pixels, "frames": self.frames,
+            "hot_pixels": self.hot_pixels, "unreliable_pixels": self.unreliable_pixels, "frames": self.frames,
             "events_ignored": self.events_ignored,
             "events_applied": self.events_applied, "has_reference": self.has_reference,
             "last_deblur_ms": round(self.last_deblur_ms, 3), "last_estimate_ms": round(self.last_estimate_ms, 3),
         }
 
     # ---- internals ----
+
+    def _combined_mask(self) -> np.ndarray | None:
+        hot = self._hot.mask
+        if self._unreliable is None or self._unreliable.count == 0:
+            return hot
+        return self._unreliable.mask if hot is None else (hot | self._unreliable.mask)
 
     def _c(self) -> tuple[float, float]:
         return self.c_on, self.c_off

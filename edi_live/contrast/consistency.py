@@ -35,6 +35,7 @@ class ConsistencyContrast:
     info_z: float = 2.0  # an estimate that beats c*(1 -+ info_step) by fewer standard errors carries no information
     spread_weight: float = 0.5
     separate: bool = False
+    separate_z: float = 3.0  # separate thresholds only when they beat one c by this many standard errors
     name: str = "consistency"
     needs_pair: bool = True
     needs_full_image: bool = False
@@ -125,6 +126,11 @@ class ConsistencyContrast:
                 c_off, _, k1 = golden_section(lambda x: cost(c_on, x), 0.5 * c_off, 2.0 * c_off, tol=self.tol)
                 c_on, _, k2 = golden_section(lambda x: cost(x, c_off), 0.5 * c_on, 2.0 * c_on, tol=self.tol)
                 n += k1 + k2
+            # one c unless the data clearly separate them: (c_on, c_off) must beat (c, c) by separate_z standard
+            # errors of the per-pixel cost difference
+            z = self.compare(pairs, (c, c), [(c_on, c_off)])
+            if z is None or z < self.separate_z:
+                c_on = c_off = c
         self.last_evaluations = n
         return c_on, c_off
 

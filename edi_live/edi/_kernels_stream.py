@@ -194,3 +194,104 @@ def finish_frame_u8(img, sat, lut_log, lut_u8, pixels, log_d, delta_end, lo, hi,
         display[q] = _u8(w, v0, scale, bucket_u8, bucket_thr)
 
 
+
+
+DIVISOR_STATE_TWO = np.dtype([("s", np.float64), ("w", np.float64), ("base", np.float64), ("t", np.float32),
+                              ("on", np.int32), ("off", np.int32), ("on_f", np.int32), ("off_f", np.int32),
+                              ("pad", np.int32)], align=True)
+"""divisor_stream_two's per-pixel row (48 bytes): running sum of dwell * w, w = exp(E - base) with E = c_on*on -
+c_off*off since ts, the log-scale base, last event time - ts, and the ON/OFF counts now and at f."""
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _add_dwell(row, dwell, c_on, c_off):
+    """row.s += dwell * exp(E - base), E = c_on*on - c_off*off. Fast path: the weight w kept by multiplication is
+    in range. Otherwise E - base comes from the counts: far above the base, rebase up (the sum so far scales down,
+    possibly to 0, harmlessly: this dwell dominates it); far below with a sum already there, the term vanishes;
+    no sum yet, the base becomes this level. w is then re-derived, so it recovers after any excursion."""
+    w = row.w
+    if 1e-150 <= w <= 1e150:
+        row.s += dwell * w
+        return
+    lw = c_on * row.on - c_off * row.off - row.base
+    if row.s == 0.0:
+        row.s = dwell
+        row.base += lw
+        row.w = 1.0
+    elif lw > 0.0:
+        row.s = row.s * math.exp(-lw) + dwell
+        row.base += lw
+        row.w = 1.0
+    else:
+        w = math.exp(lw)
+        row.s += dwell * w
+        row.w = w
+
+
+@njit(cache=True, nogil=True)
+def divisor_stream_two(t, x, y, p, width, height, mask, use_mask, ts, te, f, c_on, c_off, count_all, use_count_all,
+                       state, seen, acc_on, acc_off, use_acc):
+    """divisor_stream for separate thresholds: each event multiplies the pixel's weight w by exp(c_on) or
+    exp(-c_off) (two constants, no exp per event); see _add_dwell for how any event count stays finite. Same
+    arguments and results."""
+    npix = width * height
+    e_on = math.exp(c_on)
+    e_off = math.exp(-c_off)
+    n_act = 0
+    for i in range(t.size):
+        if x[i] >= width or y[i] >= height:
+            continue
+        q = np.int64(y[i]) * width + x[i]
+        if use_mask and mask[q]:
+            if use_count_all:
+                count_all[q] += 1
+            continue
+        row = state[q]
+        ti = np.float32(t[i] - ts)
+        if seen[q] == 0:  # 1: active, 2: active and f passed
+            seen[q] = 1
+            row.s = 0.0
+            row.w = 1.0
+            row.base = 0.0
+            row.t = 0.0
+            row.on = 0
+            row.off = 0
+            n_act += 1
+        if t[i] > f and seen[q] == 1:
+            row.on_f = row.on
+            row.off_f = row.off
+            seen[q] = 2
+        dwell = ti - row.t
+        if dwell > 0.0:
+            _add_dwell(row, dwell, c_on, c_off)
+        row.t = ti
+        if p[i]:
+            row.on += 1
+            row.w *= e_on
+        else:
+            row.off += 1
+            row.w *= e_off
+    pixels = np.empty(n_act, dtype=np.int64)
+    log_d = np.empty(n_act, dtype=np.float64)
+    delta_end = np.empty(n_act, dtype=np.float64)
+    span = float(te - ts)
+    r = 0
+    for q in range(npix):
+        if seen[q] == 0:
+            continue
+        row = state[q]
+        if span - row.t > 0.0:
+            _add_dwell(row, span - row.t, c_on, c_off)
+        total = row.s
+        e_te = c_on * row.on - c_off * row.off
+        e_f = c_on * row.on_f - c_off * row.off_f if seen[q] == 2 else e_te
+        if use_count_all:
+            count_all[q] += row.on + row.off
+        if use_acc and seen[q] == 2:
+            acc_on[q] += row.on - row.on_f
+            acc_off[q] += row.off - row.off_f
+        pixels[r] = q
+        log_d[r] = math.log(total / span) + row.base - e_f
+        delta_end[r] = e_te - e_f
+        r += 1
+    return pixels, log_d, delta_end

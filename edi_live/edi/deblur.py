@@ -80,8 +80,8 @@ def log_divisor_events(events: np.ndarray, width: int, height: int, exposure_sta
         -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """(active pixels, log D, exponent change f->te or None) for ONE c straight from the events.
 
-    Same log D as log_divisor(build_level_table(...)) but, for c_on == c_off with numba, a single pass without
-    sorting, which also yields c * E(f -> te) per active pixel (so the latent image at te costs O(pixels)).
+    Same log D as log_divisor(build_level_table(...)) but, with the kernels, a single pass without sorting, which
+    also yields c * E(f -> te) per active pixel (so the latent image at te costs O(pixels)).
     Pixel order is unspecified. `mask`/`event_counts` as in build_level_table. `counts_after_f` (flat int64
     n_on, n_off): when the single pass runs (the third result is not None), it adds the ON/OFF counts of the
     unmasked events in (f, te] to them, which saves the caller a second pass; otherwise they are left alone.
@@ -91,15 +91,23 @@ def log_divisor_events(events: np.ndarray, width: int, height: int, exposure_sta
     if te < ts:
         raise ValueError(f"exposure ends before it starts (got {ts}..{te} µs)")
     f = (ts + te) // 2 if ref_t_us is None else min(max(int(ref_t_us), ts), te)
-    if _backend.have_numba() and c_on == c_off and 0 < te - ts < 2**24:  # float32 times in the pass are exact
+    if _backend.have_numba() and 0 < te - ts < 2**24:  # float32 times in the pass are exact
         ev = window(events, ts, te)
         m, use_m = _backend.mask_arg(mask)
         cnt = _backend.NO_COUNTS if event_counts is None else event_counts
         acc_on, acc_off = counts_after_f if counts_after_f is not None else (_backend.NO_COUNTS, _backend.NO_COUNTS)
         npix = width * height
-        return _kernels_stream.divisor_stream(ev["t"], ev["x"], ev["y"], ev["p"], width, height, m, use_m, ts, te, f,
-                                   float(c_on), cnt, event_counts is not None, np.empty(npix, _kernels_stream.DIVISOR_STATE),
-                                   np.zeros(npix, np.uint8), acc_on, acc_off, counts_after_f is not None)
+        if c_on == c_off:
+            return _kernels_stream.divisor_stream(ev["t"], ev["x"], ev["y"], ev["p"], width, height, m, use_m, ts, te,
+                                                  f, float(c_on), cnt, event_counts is not None,
+                                                  np.empty(npix, _kernels_stream.DIVISOR_STATE),
+                                                  np.zeros(npix, np.uint8), acc_on, acc_off,
+                                                  counts_after_f is not None)
+        return _kernels_stream.divisor_stream_two(ev["t"], ev["x"], ev["y"], ev["p"], width, height, m, use_m, ts, te,
+                                                  f, float(c_on), float(c_off), cnt, event_counts is not None,
+                                                  np.empty(npix, _kernels_stream.DIVISOR_STATE_TWO),
+                                                  np.zeros(npix, np.uint8), acc_on, acc_off,
+                                                  counts_after_f is not None)
     table = build_level_table(events, width, height, ts, te, f, mask=mask, segments=c_on != c_off,
                               event_counts=event_counts)
     return table.pixels, log_divisor(table, c_on, c_off), None

@@ -58,6 +58,7 @@ PSNR_CAP_DB = 100.0
 SCORED_MODES = ("causal",)
 _PEAK = 255.0
 _INT32_WINDOW_US = (2**31 - 1) // 255  # longest window whose µs-weighted uint8 sum fits int32
+_FLOAT32_EXACT_US = 2**24 // 255  # ... and whose sums are still exact float32 integers
 
 
 @dataclass(frozen=True, slots=True)
@@ -99,14 +100,30 @@ def psnr_db(prediction: np.ndarray, target: np.ndarray, mask: np.ndarray | None 
     diff = np.asarray(prediction, np.float64) - np.asarray(target, np.float64)
     if mask is not None:
         diff = diff[mask]
-    if diff.size == 0:
+    return _psnr_from_sse(float(np.sum(diff * diff)), int(diff.size))
+
+
+def _psnr_from_sse(sse: float, n: int) -> float | None:
+    if n == 0 or not math.isfinite(sse):
         return None
-    mse = float(np.mean(diff * diff))
-    if not math.isfinite(mse):
-        return None
+    mse = sse / n
     if mse <= _PEAK**2 * 10 ** (-PSNR_CAP_DB / 10):
         return PSNR_CAP_DB
     return 10.0 * math.log10(_PEAK**2 / mse)
+
+
+def _psnr_pair(prediction: np.ndarray, target: np.ndarray, valid: np.ndarray, n_valid: int,
+               active_idx: np.ndarray | None) -> tuple[float | None, float | None]:
+    """(PSNR over the valid pixels, PSNR over the active ones), one pass for the squared errors (float32 is
+    exact here: differences of 8-bit values and their squares, or of a prediction on the same scale)."""
+    sq = np.subtract(prediction, target, dtype=np.float32)
+    np.multiply(sq, sq, out=sq)
+    np.multiply(sq, valid, out=sq)
+    flat = sq.reshape(-1)
+    whole = _psnr_from_sse(float(flat.sum()), n_valid)  # numpy sums float32 pairwise: relative error ~1e-7
+    if active_idx is None or active_idx.size == 0:
+        return whole, None
+    return whole, _psnr_from_sse(float(flat[active_idx].sum()), int(active_idx.size))
 
 
 def to_8bit_scale(image: np.ndarray, saturation: float | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -117,9 +134,12 @@ def to_8bit_scale(image: np.ndarray, saturation: float | None = None) -> tuple[n
     b = img.astype(np.float32)
     if full != 255.0:
         b *= np.float32(255.0 / full)
-    with np.errstate(invalid="ignore"):
-        valid = (img > 0) & (img < sat) & np.isfinite(b)
-    return np.nan_to_num(b, nan=0.0, posinf=255.0, neginf=0.0), valid
+    valid = img > 0
+    valid &= img < sat
+    if img.dtype.kind == "f":
+        valid &= np.isfinite(b)
+        b = np.nan_to_num(b, nan=0.0, posinf=255.0, neginf=0.0)
+    return b, valid
 
 
 class PredictionScore:
@@ -163,10 +183,13 @@ class PredictionScore:
         if not self.enabled or self._events_map is None or len(events) == 0:
             return
         h, w = self._shape
-        x = events["x"].astype(np.intp)
-        y = events["y"].astype(np.intp)
-        inside = (x < w) & (y < h)
-        self._events_map[(y * w + x)[inside]] = True
+        x, y = events["x"], events["y"]
+        idx = y.astype(np.intp)
+        idx *= w
+        idx += x
+        if x.max() >= w or y.max() >= h:  # not from this sensor: ignored rather than marked elsewhere
+            idx = idx[(x < w) & (y < h)]
+        self._events_map[idx] = True
         self._events_fed = True
 
     def on_aps_frame(self, frame: Frame) -> list[PredictionResult]:
@@ -261,21 +284,20 @@ class PredictionScore:
             np.multiply(self._img[honest[j]], acc_type(b - a), out=part, dtype=acc_type)
             acc += part
             used += 1
-        return acc / float(w.end - w.start), used, 1.0
+        span = w.end - w.start
+        if span <= _FLOAT32_EXACT_US:  # every sum and the quotient of a constant output are exact in float32
+            return np.divide(acc, np.float32(span), dtype=np.float32), used, 1.0
+        return acc / float(span), used, 1.0
 
     def _score(self, w: _Window) -> PredictionResult:
         prediction, used, coverage = self._integrate(w)
         valid_px = int(np.count_nonzero(w.valid))
-        active = None if w.active is None else (w.active & w.valid)
-        active_px = 0 if active is None else int(np.count_nonzero(active))
+        active_idx = None if w.active is None else np.flatnonzero(w.active & w.valid)
+        active_px = 0 if active_idx is None else int(active_idx.size)
         pred = still = pred_a = still_a = None
         if prediction is not None and valid_px:
-            pred = psnr_db(prediction, w.target, w.valid)
-            still = psnr_db(w.still, w.target, w.valid)
-            if active_px:
-                pred_a = psnr_db(prediction, w.target, active)
-                still_a = psnr_db(w.still, w.target, active)
-        if pred is not None:
+            pred, pred_a = _psnr_pair(prediction, w.target, w.valid, valid_px, active_idx)
+            still, still_a = _psnr_pair(w.still, w.target, w.valid, valid_px, active_idx)
             self.last_prediction = prediction
         result = PredictionResult(w.seq, w.mid, w.start, w.end, pred, still, pred_a, still_a, used, coverage,
                                   valid_px, active_px)

@@ -225,7 +225,7 @@ def test_long_random_stream_matches_a_dense_integration(rng):
             expected = dense_reference(frames, w_start, w_end, w_mid)
             assert r.scored == (expected is not None)
             if expected is not None:
-                np.testing.assert_allclose(s.last_prediction, expected, rtol=0, atol=1e-9)
+                np.testing.assert_allclose(s.last_prediction, expected, rtol=0, atol=3e-5)  # float32: ~2 ulp at 255
                 assert r.psnr_pred_db == pytest.approx(psnr_by_hand(expected, w_b))
     assert s.scored_total >= 25 and s.frames_dropped == 0
     assert len(s._t) < 40  # pruned: not every frame of the stream is held

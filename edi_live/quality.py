@@ -146,8 +146,10 @@ class PredictionScore:
     """Scores each APS frame by how well the node's earlier output predicted it (module docstring)."""
 
     def __init__(self, mode: str = "causal", *, window: int = 100, saturation: float | None = None,
-                 max_frames: int = 2000) -> None:
+                 max_frames: int = 2000, score_every: int = 1) -> None:
         self.enabled = mode in SCORED_MODES
+        self._score_every = max(1, int(score_every))  # score one APS frame in N (the others cost nothing)
+        self._aps_seen = 0
         self.mode = mode
         self._saturation = saturation
         self._max_frames = max(2, int(max_frames))
@@ -205,7 +207,8 @@ class PredictionScore:
         else:
             out = self._complete_all()  # every earlier window is complete once a later APS frame is taken
         target, valid = to_8bit_scale(frame.image, self._saturation)
-        if self._prev_b is not None:
+        self._aps_seen += 1
+        if self._prev_b is not None and self._aps_seen % self._score_every == 0:
             active = None
             if self._events_fed:
                 active = self._events_map.reshape(shape)

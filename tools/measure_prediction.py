@@ -172,6 +172,7 @@ def _fmt(v: float | None, spec: str = "6.2f") -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m tools.measure_prediction", description=__doc__.split("\n")[0],
+                                     allow_abbrev=False,  # --c is a node option, not short for --cost
                                      epilog="Any other option is a node option (see edi-live --help).")
     parser.add_argument("files", nargs="*", metavar="FILE.aedat4")
     parser.add_argument("--cost", action="store_true",

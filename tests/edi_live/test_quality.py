@@ -290,3 +290,9 @@ def test_time_going_backwards_starts_over():
     s.on_aps_frame(aps(np.full((2, 2), 80), 1000, 1100, seq=4))
     (r,) = s.finish()
     assert r.seq == 4 and r.scored and r.n_frames_used == 1
+
+
+def test_scoring_one_frame_in_n():
+    every, _, _ = run_bar_scene(bright=200, n_frames=7)
+    third, _, _ = run_bar_scene(bright=200, n_frames=7, score=PredictionScore(score_every=3))
+    assert [r.seq for r in third] == [2, 5] and all(r == every[r.seq - 1] for r in third)

@@ -83,6 +83,19 @@ class LatentState:
             np.clip(lat, edi.LOG_MIN, edi.LOG_MAX, out=lat)
         return edi.to_uint8(self.log_ref), False
 
+    def fall_back_to_aps(self, pixels: np.ndarray, image: np.ndarray, saturation: float | None,
+                         deblurred: np.ndarray) -> None:
+        """At `pixels` ((H, W) bool), undo the events: L(f) = B and the latent image restarts there (the reference
+        of this frame only; it is this state's own array until the next frame)."""
+        b, _ = edi.blurry_to_float(image, saturation=saturation)
+        idx = np.flatnonzero(pixels)
+        log_b = np.clip(np.log(np.maximum(b.reshape(-1)[idx], edi.DARK_FLOOR)), edi.LOG_MIN, edi.LOG_MAX)
+        self.log_ref.reshape(-1)[idx] = log_b
+        self.log_lat.reshape(-1)[idx] = log_b
+        shown = edi.to_uint8(log_b.astype(np.float32))
+        self.display.reshape(-1)[idx] = shown
+        deblurred.reshape(-1)[idx] = shown
+
     def refresh_display(self) -> None:
         np.copyto(self.display, edi.to_uint8(self.log_lat))
 

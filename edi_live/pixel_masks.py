@@ -81,17 +81,19 @@ class UnreliablePixels:
     so the latent image keeps what the APS says there instead of blooming or drifting.
 
     Evidence per pair of frames k, k+1, at pixels with at least `min_events` events between f_k and f_k+1:
-    predicted = c_on*n_on - c_off*n_off, observed = log B_k+1 - log B_k. Contradiction: |predicted - observed| >
-    `tolerance` + `relative` * |predicted| where both frames are informative, or |predicted| > `saturated_limit`
-    where either is clipped (the APS cannot confirm a change that large). A decaying score (x `decay` per pair,
+    predicted = c_on*n_on - c_off*n_off, observed = log L_k+1(f_k+1) - log L_k(f_k), the deblurred references (the
+    consistency that the c estimator fits on a sample, checked here at every pixel). Contradiction: a large
+    predicted change (>= `min_change` in log units) of which the frames show less than 1 - `relative`, where both
+    frames are informative, or |predicted| > `saturated_limit` where either is clipped (the APS cannot confirm a
+    change that large). A decaying score (x `decay` per pair,
     +1 per contradiction) marks a pixel while it is >= 1 and frees it below `release`. Moving edges explain their
     frames (the residual of a correct c is small next to the change itself), so they stay."""
 
-    def __init__(self, width: int, height: int, *, min_events: int = 3, tolerance: float = 1.0,
-                 relative: float = 0.5, saturated_limit: float = 3.0, decay: float = 0.9,
+    def __init__(self, width: int, height: int, *, min_events: int = 3, min_change: float = 2.5,
+                 relative: float = 0.75, saturated_limit: float = 4.0, decay: float = 0.8,
                  release: float = 0.2) -> None:
         self._shape = (height, width)
-        self.min_events, self.tolerance, self.relative = min_events, tolerance, relative
+        self.min_events, self.min_change, self.relative = min_events, min_change, relative
         self.saturated_limit, self.decay, self.release = saturated_limit, decay, release
         self._score = np.zeros(width * height, np.float32)
         self._mask = np.zeros(self._shape, bool)
@@ -105,20 +107,19 @@ class UnreliablePixels:
     def count(self) -> int:
         return int(self._mask.sum())
 
-    def update(self, n_on: np.ndarray, n_off: np.ndarray, b_prev: np.ndarray, b_cur: np.ndarray,
+    def update(self, n_on: np.ndarray, n_off: np.ndarray, log_prev: np.ndarray, log_cur: np.ndarray,
                informative_prev: np.ndarray, informative_cur: np.ndarray, c: tuple[float, float]) -> None:
-        """One pair of frames: counts (flat) between their reference times, their B (8-bit scale, float) and
-        informative masks."""
+        """One pair of frames: counts (flat) between their reference times, their log L(f) and their informative
+        masks (B neither black nor clipped)."""
         active = np.flatnonzero((n_on + n_off) >= self.min_events)
         self._score *= self.decay
         if active.size:
             pred = c[0] * n_on[active] - c[1] * n_off[active]
-            bp = b_prev.reshape(-1)[active]
-            bc = b_cur.reshape(-1)[active]
             both = informative_prev.reshape(-1)[active] & informative_cur.reshape(-1)[active]
-            obs = np.log(np.maximum(bc, edi.DARK_FLOOR)) - np.log(np.maximum(bp, edi.DARK_FLOOR))
-            bad = np.where(both, np.abs(pred - obs) > self.tolerance + self.relative * np.abs(pred),
-                           np.abs(pred) > self.saturated_limit)
+            obs = log_cur.reshape(-1)[active] - log_prev.reshape(-1)[active]
+            size = np.abs(pred)
+            bad = np.where(both, (size >= self.min_change) & (np.abs(pred - obs) > self.relative * size),
+                           size > self.saturated_limit)
             self._score[active[bad]] += 1.0
         marked = self._mask.reshape(-1)
         new = np.where(marked, self._score >= self.release, self._score >= 1.0)

@@ -117,6 +117,7 @@ class EdiReconstructor:
                             if settings.mask_unreliable_pixels and self._tracker is not None else None)
         self._mask: np.ndarray | None = self._hot.mask  # events at these pixels are ignored; replaced, not changed
         self._latent = LatentState(self.width, self.height)
+        self._pair: contrast.FramePair | None = None  # formed on this frame, judged after its deblur
         self.has_reference = False
         self.events_ignored = False  # set when the c policy finds that the events carry no signal
         self._ref_t = 0
@@ -223,13 +224,10 @@ class EdiReconstructor:
         if self._tracker is not None:
             t0 = time.perf_counter()
             b, informative = edi.blurry_to_float(img, saturation=self.settings.saturation)
-            pair = self._tracker.step(events, b, informative, (ts, te, f), mask, self._latent.acc, self._t_last,
+            self._pair = self._tracker.step(events, b, informative, (ts, te, f), mask, self._latent.acc, self._t_last,
                                       self.has_reference)
             self.c_on, self.c_off = self._policy.c
-            if pair is not None and self._unreliable is not None and not self._policy.events_ignored:
-                self._unreliable.update(pair.n_on, pair.n_off, pair.prev.blurry, pair.cur.blurry,
-                                        pair.prev.informative, pair.cur.informative, self._c())
-                mask = self._mask = self._combined_mask()
+
             self.events_ignored = self._policy.events_ignored
             self.last_estimate_ms = (time.perf_counter() - t0) * 1e3
             self._latent.reset_counts()  # the accumulators are used (and written) only when c is estimated
@@ -239,8 +237,18 @@ class EdiReconstructor:
                                          counts_after_f=None if self._fixed else self._latent.acc)
         if self.events_ignored:  # still scene: L(f) = B and the latent image stays there
             divisor = (divisor[0][:0], divisor[1][:0], divisor[2][:0] if divisor[2] is not None else None)
+        log_prev = self._latent.log_ref
         deblurred, display_current = self._latent.set_reference(img, self.settings.saturation, divisor,
                                                                 self._c())
+        pair, self._pair = self._pair, None
+        if pair is not None and self._unreliable is not None and not self.events_ignored:
+            # judged on this deblur; the mask holds from here on (the latent image continues from L(f))
+            self._unreliable.update(pair.n_on, pair.n_off, log_prev, self._latent.log_ref, pair.prev.informative,
+                                    pair.cur.informative, self._c())
+            self._mask = self._combined_mask()
+            if self._unreliable.count:
+                self._latent.fall_back_to_aps(self._unreliable.mask, img, self.settings.saturation, deblurred)
+                mask = self._mask
         t = events["t"]
         # the events after the point the latent image has reached (te with the f -> te jump, else f); with the
         # jump, the divisor pass already added (f, te] to the counts the consistency pairs need

@@ -1,0 +1,50 @@
+"""Which events the reconstructor trusts: hot pixels, the noise filter state, and pixels whose events contradict
+the APS frames (UnreliablePixels), judged against hand-built counts and log references."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from edi_live.pixel_masks import UnreliablePixels
+
+
+def pair(n_on, n_off, log_prev, log_cur, informative=None):
+    n_on, n_off = np.asarray(n_on, np.int64), np.asarray(n_off, np.int64)
+    inf = np.ones(len(n_on), bool) if informative is None else np.asarray(informative, bool)
+    return n_on, n_off, np.asarray(log_prev, np.float32), np.asarray(log_cur, np.float32), inf, inf
+
+
+def test_events_that_the_frames_confirm_are_trusted_and_contradicted_ones_are_not():
+    u = UnreliablePixels(4, 1)
+    c = (0.2, 0.2)
+    # pixel 0: +30 ON events (a change of 6 log units) that the frames do not show: a blooming lamp
+    # pixel 1: the same events, and the frames show the change: a real brightening
+    # pixel 2: balanced flicker, no net change predicted: nothing to contradict
+    # pixel 3: two events only: no evidence
+    n_on, n_off, lp, lc, ip, ic = pair([30, 30, 40, 2], [0, 0, 40, 0], [3, 3, 3, 3], [3, 9, 3, 3])
+    u.update(n_on, n_off, lp, lc, ip, ic, c)
+    assert u.mask.reshape(-1).tolist() == [True, False, False, False]
+    assert u.count == 1
+
+
+def test_a_clipped_frame_cannot_confirm_a_huge_change():
+    u = UnreliablePixels(2, 1)
+    n_on, n_off, lp, lc, _, _ = pair([30, 10], [0, 0], [5, 5], [5, 5])
+    clipped = np.array([False, False])
+    u.update(n_on, n_off, lp, lc, clipped, clipped, (0.2, 0.2))
+    # 6 log units: beyond what a clipped frame may hide; 2 log units: within it
+    assert u.mask.reshape(-1).tolist() == [True, False]
+
+
+def test_a_marked_pixel_is_released_after_the_evidence_fades():
+    u = UnreliablePixels(1, 1, decay=0.5, release=0.2)
+    bad = pair([30], [0], [3], [3])
+    quiet = pair([0], [0], [3], [3])
+    u.update(*bad, c=(0.2, 0.2))
+    assert u.count == 1
+    marked_for = 0
+    while u.count and marked_for < 10:
+        u.update(*quiet, c=(0.2, 0.2))
+        marked_for += 1
+    # score 1 halves per quiet pair: 0.5, 0.25, 0.125 < release after three pairs
+    assert marked_for == 3

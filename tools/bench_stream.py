@@ -102,7 +102,7 @@ class GatedSource:
 def _replay(path: Path, speed: float, loop: bool = False, **options):
     import drivers
 
-    # as the CLI opens it: decoded in a child process (see drivers/prefetch.py)
+    # as the CLI opens it: decoded in a child process (see drivers/decoding_child.py)
     return drivers.open_source("replay", path=str(path), speed=speed, loop=loop, decode_process=True, **options)
 
 

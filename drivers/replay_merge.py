@@ -24,7 +24,7 @@ from typing import Iterator
 import numpy as np
 
 from edi_live.aedat4 import Aedat4Reader
-from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, Frame, Packet
+from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, Frame, Packet, concat_events
 from edi_live.errors import RecordingError
 
 _NEG_INF = -(2**62)
@@ -145,13 +145,9 @@ def _take(chunks: list[tuple[int, int, np.ndarray]], w: int, dtype: np.dtype) ->
         return np.zeros(0, dtype=dtype)
     if len(taken) == 1:
         return taken[0]
-    return _concat(taken, dtype)
-
-
-def _concat(arrays: list[np.ndarray], dtype: np.dtype) -> np.ndarray:
-    """np.concatenate for structured arrays at memcpy speed (as opaque records: 10x faster than field-wise)."""
-    void = np.dtype(f"V{dtype.itemsize}")
-    return np.concatenate([np.ascontiguousarray(a).view(void) for a in arrays]).view(dtype)
+    if dtype == EVENT_DTYPE:
+        return concat_events(taken)
+    return np.concatenate(taken)  # IMU and triggers: unpadded dtypes, few items
 
 
 def _slot_cuts(t: np.ndarray, max_packet_us: int) -> list[int]:

@@ -43,7 +43,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from edi_live.config import EdiConfig
-from edi_live.datatypes import Reconstruction
+from edi_live.datatypes import Reconstruction, concat_events
 from edi_live.ring import EventChunk, EventRing, FrameEntry
 
 log = logging.getLogger(__name__)
@@ -87,11 +87,6 @@ class _PendingDeblur:
             self.deblur_ms = (time.perf_counter() - t0) * 1e3
             self.done.set()
             self._wake()
-
-
-def _concat_events(parts: list[np.ndarray]) -> np.ndarray:
-    # through raw bytes: np.concatenate of the padded event dtype would return a packed dtype
-    return np.concatenate([p.view(np.uint8) for p in parts]).view(parts[0].dtype)
 
 
 class EdiWorker:
@@ -358,7 +353,7 @@ class EdiWorker:
         t0 = time.perf_counter()
         master = pending.master
         if pending.catchup:
-            master.on_events(_concat_events(pending.catchup), self._last_arrival_ns)
+            master.on_events(concat_events(pending.catchup), self._last_arrival_ns)
         self.rec = master
         self._deblur_ms.append(pending.deblur_ms)
         self._ref_f_us = pending.entry.frame.mid_exposure_us

@@ -10,7 +10,7 @@ import pytest
 from drivers.davis import _kernel
 from drivers.davis.decoder import DavisDecoder
 from drivers.davis.encoder import WordEncoder
-from tests.drivers.helpers import flatten, random_recording
+from tests.helpers.recordings import flatten, random_recording
 
 TS, Y, XOFF, XON, WRAP, SAMPLE = 0x8000, 0x1000, 0x2000, 0x3000, 0x7000, 0x4000
 

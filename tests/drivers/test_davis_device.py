@@ -14,7 +14,7 @@ from drivers.davis import protocol as P
 from drivers.davis.device import DavisSource
 from drivers.davis.discovery import list_devices
 from drivers.emulator import backend
-from tests.drivers.helpers import flatten, random_recording
+from tests.helpers.recordings import flatten, random_recording
 
 MODELS = {"davis346": (346, 260, False), "davis240": (240, 180, True)}
 

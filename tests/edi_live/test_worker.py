@@ -295,7 +295,7 @@ def test_deblur_thread_failure_reaches_on_error():
 def test_batched_latent_frames_equal_the_frame_by_frame_path():
     """Without --max-fps the worker makes a chunk's latent frames in one reconstructor call; with a cap that never
     binds it takes the frame-by-frame path. Both must send the same frames, split at the same events."""
-    from edi_scenes import make_scene
+    from tests.edi_live.edi_scenes import make_scene
 
     from edi_live.reconstructor import EdiReconstructor
 
@@ -351,7 +351,7 @@ def test_a_gap_while_a_frame_is_deblurred_on_the_helper_thread():
     across it)."""
     import time
 
-    from edi_scenes import make_scene
+    from tests.edi_live.edi_scenes import make_scene
 
     from edi_live.reconstructor import EdiReconstructor
 

@@ -23,7 +23,6 @@ stop is named in a NodeError.
 from __future__ import annotations
 
 import logging
-import sys
 import threading
 import time
 from typing import Any, Callable, TextIO
@@ -289,11 +288,6 @@ class Node:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
-
-
-def run_node(config: NodeConfig, source: Source, status_stream: TextIO | None = sys.stderr, **kwargs: Any) -> dict:
-    """Convenience for scripts: build and run a node, returning its final stats."""
-    return Node(config, source, status_stream=status_stream, **kwargs).run()
 
 
 def _warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:

@@ -18,7 +18,7 @@ Overflow policy (the only place live and replay differ):
 
 All state is guarded by one condition variable (`_cond`). Copies in and out happen under its lock, so a live
 overwrite can never change data under the worker: windows and reads are copies, never views.
-Events are copied as raw int64 pairs: a structured-dtype copy is ~20x slower in numpy.
+The storage itself (a circular array addressed by global index) is `edi_live.ring_buffer.EventBuffer`.
 """
 
 from __future__ import annotations
@@ -31,29 +31,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from edi_live.datatypes import EVENT_DTYPE, Frame, Packet
+from edi_live.datatypes import Frame, Packet, as_events, empty_events
+from edi_live.ring_buffer import EventBuffer, raw_pairs
 
 POLICIES = ("drop_oldest", "wait")
-
-
-def as_events(events: np.ndarray) -> np.ndarray:
-    """`events` in EVENT_DTYPE exactly. np.concatenate of padded structured arrays returns a packed 13-byte
-    dtype with the same fields; such arrays (and other field-compatible ones) are converted here."""
-    if events.dtype == EVENT_DTYPE:
-        return events
-    out = np.empty(len(events), EVENT_DTYPE)
-    for name in ("t", "x", "y", "p"):
-        out[name] = events[name]
-    return out
-
-
-def _raw(events: np.ndarray) -> np.ndarray:
-    """View events as (n, 2) int64 for fast copies (the dtype is exactly 16 bytes)."""
-    return np.ascontiguousarray(events).view(np.int64).reshape(-1, 2)
-
-
-def _events(raw: np.ndarray) -> np.ndarray:
-    return raw.view(EVENT_DTYPE).reshape(-1)
 
 
 @dataclass(frozen=True, slots=True)
@@ -100,12 +81,7 @@ class EventRing:
         self.capacity_frames = int(capacity_frames)
         self.policy = policy
         self.max_unread = self.capacity_events // 2
-        # raw 16-byte events. Written now (not np.zeros, whose pages the kernel maps lazily): first-touch page
-        # faults cost ~4 µs per 4 kB page on the development VM, i.e. up to 18 µs per 1000 events pushed while
-        # the first capacity_events stream in; this moves that cost to start-up, before data flows.
-        self._buf = np.empty((self.capacity_events, 2), dtype=np.int64)
-        self._buf.fill(0)
-        self._t = self._buf[:, 0]  # event times (strided view; searchsorted works on it without a copy)
+        self._store = EventBuffer(self.capacity_events)
         # The producer thread (push) and the consumer thread (read_events/pop_frame/window/wait) meet here.
         self._cond = threading.Condition()
         self._head = 0
@@ -183,7 +159,7 @@ class EventRing:
         n_total = len(events)
         if n_total == 0:
             return not self._closed
-        raw = _raw(events)
+        raw = raw_pairs(events)
         done = 0
         if self.policy == "drop_oldest" and n_total > self.max_unread:
             # A burst larger than the ring: keep its newest part, count the rest.
@@ -209,7 +185,7 @@ class EventRing:
                     overflow = self._head - self._read + n - self.max_unread
                     if overflow > 0:
                         self._drop_unread(overflow)
-                self._copy_in(raw[done:done + n])
+                self._store.write(self._head, raw[done:done + n])
                 self._pushes.append((self._head + n, arrival_ns))
                 self._head += n
                 self.pushed_events += n
@@ -229,14 +205,6 @@ class EventRing:
         self._gaps.append(self._read)
         while self._pushes and self._pushes[0][0] <= self._read:
             self._pushes.popleft()
-
-    def _copy_in(self, raw: np.ndarray) -> None:
-        n = len(raw)
-        start = self._head % self.capacity_events
-        first = min(n, self.capacity_events - start)
-        self._buf[start:start + first] = raw[:first]
-        if first < n:
-            self._buf[: n - first] = raw[first:]
 
     def _put_frame(self, frame: Frame, arrival_ns: int, deadline: float | None) -> bool:
         with self._cond:
@@ -317,8 +285,8 @@ class EventRing:
             stop = self._head if until_index is None else min(self._head, until_index)
             n = max(0, min(max_n, stop - start))
             if n == 0:
-                return EventChunk(np.zeros(0, EVENT_DTYPE), start, [], [], False)
-            raw = self._copy_out(start, start + n)
+                return EventChunk(empty_events(), start, [], [], False)
+            events = self._store.copy_out(start, start + n)
             ends, arrivals = [], []
             for end, arrival in self._pushes:
                 ends.append(min(end, start + n) - start)
@@ -336,16 +304,7 @@ class EventRing:
             wants = self._producer_wants
             if wants and self._head - self._read + wants <= self.max_unread:
                 self._cond.notify_all()  # the waiting producer has the room it waits for
-        return EventChunk(_events(raw), start, ends, arrivals, gap)
-
-    def _copy_out(self, start: int, stop: int) -> np.ndarray:
-        cap = self.capacity_events
-        a, b = start % cap, stop % cap
-        if stop - start == 0:
-            return np.zeros((0, 2), np.int64)
-        if a < b:
-            return self._buf[a:b].copy()
-        return np.concatenate((self._buf[a:], self._buf[:b]))
+        return EventChunk(events, start, ends, arrivals, gap)
 
     def peek_frame(self) -> FrameEntry | None:
         with self._cond:
@@ -368,24 +327,12 @@ class EventRing:
             stop = self._read if end_index is None else min(end_index, self._head)
             oldest = max(0, self._head - self.capacity_events)
             if stop <= oldest:
-                return np.zeros(0, EVENT_DTYPE)
-            lo = self._search(oldest, stop, t0_us)
-            hi = self._search(oldest, stop, t1_us)
-            if lo == oldest and oldest > 0 and self._t[oldest % self.capacity_events] > t0_us:
+                return empty_events()
+            lo = self._store.search(oldest, stop, t0_us)
+            hi = self._store.search(oldest, stop, t1_us)
+            if lo == oldest and oldest > 0 and self._store.t_at(oldest) > t0_us:
                 self.history_truncated += 1
-            return _events(self._copy_out(lo, max(lo, hi)))
-
-    def _search(self, start: int, stop: int, t_us: int) -> int:
-        """First index in [start, stop) whose t >= t_us (lock held; the logical range may wrap)."""
-        cap = self.capacity_events
-        a, b = start % cap, stop % cap
-        if a < b or stop - start == 0:
-            return start + int(np.searchsorted(self._t[a:a + (stop - start)], t_us, side="left"))
-        first = self._t[a:]
-        i = int(np.searchsorted(first, t_us, side="left"))
-        if i < len(first):
-            return start + i
-        return start + len(first) + int(np.searchsorted(self._t[:b], t_us, side="left"))
+            return self._store.copy_out(lo, max(lo, hi))
 
     # ---------------------------------------------------------------- any thread
 

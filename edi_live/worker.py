@@ -40,7 +40,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from edi_live.config import EdiConfig
-from edi_live.datatypes import Reconstruction
+from edi_live.datatypes import Reconstruction, concat_events
 from edi_live.deblur_handover import PendingDeblur
 from edi_live.reconstruction import Reconstructor
 from edi_live.ring import EventChunk, EventRing, FrameEntry
@@ -57,9 +57,6 @@ _MOVING_EVENTS_CAP = 100  # the threshold at the default --every 1000; larger --
 _STATIC_EVENTS = 16  # fewer events than this in an exposure (and since the last frame) = a static scene
 
 
-def _concat_events(parts: list[np.ndarray]) -> np.ndarray:
-    # through raw bytes: np.concatenate of the padded event dtype would return a packed dtype
-    return np.concatenate([p.view(np.uint8) for p in parts]).view(parts[0].dtype)
 
 
 class EdiWorker:
@@ -308,7 +305,7 @@ class EdiWorker:
         t0 = time.perf_counter()
         master = pending.master
         if pending.catchup:
-            master.on_events(_concat_events(pending.catchup), self._last_arrival_ns)
+            master.on_events(concat_events(pending.catchup), self._last_arrival_ns)
         self.rec = master
         self._deblur_ms.append(pending.deblur_ms)
         self._ref_f_us = pending.entry.frame.mid_exposure_us

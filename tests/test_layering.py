@@ -1,15 +1,19 @@
 """Import rules between modules, so the one-direction data flow cannot erode silently.
 
-Every module of edi_live/ and drivers/ is parsed with ast (imports inside functions included) and checked
-against the rules below; a failure names the file, line, import and rule.
+Every module of edi_live/ and drivers/ is parsed with ast and checked against the rules below; a failure names
+the file, line, import and rule. Seen as imports: `import x`, `from x import y` (and `x.y` when y is a module),
+relative imports resolved to absolute names, and `importlib.import_module("...")` with a literal name; imports
+inside functions included.
 """
 
 from __future__ import annotations
 
 import ast
+import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
+PACKAGES = ("edi_live", "drivers")
 
 # top-level import name -> modules (repo-relative path prefixes) allowed to import it
 RESTRICTED = {
@@ -24,32 +28,101 @@ RESTRICTED = {
 # the EDI core: math (edi/, contrast/) and the reconstructor's state around it; no I/O, threads or sockets
 PURE_MATH = ("edi_live/edi/", "edi_live/contrast/", "edi_live/reconstructor.py", "edi_live/reconstruction.py",
              "edi_live/c_policy.py", "edi_live/contrast_tracking.py", "edi_live/latent_state.py",
-             "edi_live/pixel_masks.py", "edi_live/ring.py")
+             "edi_live/pixel_masks.py", "edi_live/quality.py", "edi_live/ring.py", "edi_live/ring_buffer.py")
 PURE_MATH_ALLOWED = {"numpy", "cv2", "numba", "edi_live"}
 PURE_MATH_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.errors", "edi_live.edi", "edi_live.contrast",
                          "edi_live.c_policy", "edi_live.contrast_tracking", "edi_live.latent_state",
-                         "edi_live.pixel_masks", "edi_live.reconstruction")
+                         "edi_live.pixel_masks", "edi_live.reconstruction", "edi_live.ring_buffer")
 DRIVERS_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.source", "edi_live.errors", "edi_live.aedat4")
 
+# The data flows driver -> ring -> worker -> publisher (and the other sinks): a stage imports no later stage and
+# no module of the node. A module belongs to a stage if its name is one listed or lies below one listed.
+STAGES = (
+    ("driver", ("drivers",)),
+    ("ring", ("edi_live.ring", "edi_live.ring_buffer")),
+    ("worker", ("edi_live.worker", "edi_live.deblur_handover", "edi_live.reconstructor", "edi_live.reconstruction",
+                "edi_live.edi", "edi_live.contrast", "edi_live.c_policy", "edi_live.contrast_tracking",
+                "edi_live.latent_state", "edi_live.pixel_masks", "edi_live.quality")),
+    ("publisher", ("edi_live.publisher", "edi_live.writers")),
+)
+NODE = ("edi_live.node", "edi_live.cli", "edi_live.__main__")
 
-def _imports(path: Path):
+
+def _within(name: str, prefixes: tuple[str, ...]) -> bool:
+    return any(name == p or name.startswith(p + ".") for p in prefixes)
+
+
+def _stage(name: str) -> int | None:
+    for i, (_, prefixes) in enumerate(STAGES):
+        if _within(name, prefixes):
+            return i
+    return None
+
+
+def _module_name(rel: Path) -> str:
+    parts = list(rel.with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _is_module(root: Path, name: str) -> bool:
+    path = root.joinpath(*name.split("."))
+    return path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()
+
+
+def _resolve(package: str, level: int, module: str | None) -> str:
+    """The absolute name of `from <level dots><module> import ...` written in a module of `package`."""
+    parts = package.split(".")
+    base = parts[: len(parts) - (level - 1)] if level > 1 else parts
+    return ".".join([*base, module] if module else base)
+
+
+def _imports(root: Path, path: Path):
+    """(line, absolute module name) of every import in the file."""
+    rel = path.relative_to(root)
+    name = _module_name(rel)
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     tree = ast.parse(path.read_text(), filename=str(path))
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             for alias in node.names:
                 yield node.lineno, alias.name
-        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            yield node.lineno, node.module
+        elif isinstance(node, ast.ImportFrom):
+            module = _resolve(package, node.level, node.module) if node.level else node.module
+            if not module:
+                continue
+            yield node.lineno, module
+            for alias in node.names:  # `from pkg import sub`: the submodule is imported too
+                if alias.name != "*" and _is_module(root, f"{module}.{alias.name}"):
+                    yield node.lineno, f"{module}.{alias.name}"
+        elif isinstance(node, ast.Call) and _is_import_module(node.func) and node.args \
+                and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str):
+            target = node.args[0].value
+            if target.startswith("."):
+                anchor = package
+                extra = node.args[1:2] or [k.value for k in node.keywords if k.arg == "package"]
+                if extra and isinstance(extra[0], ast.Constant) and isinstance(extra[0].value, str):
+                    anchor = extra[0].value
+                level = len(target) - len(target.lstrip("."))
+                target = _resolve(anchor, level, target.lstrip(".") or None)
+            yield node.lineno, target
 
 
-def _violations() -> list[str]:
-    import sys
+def _is_import_module(func: ast.expr) -> bool:
+    return (isinstance(func, ast.Attribute) and func.attr == "import_module") or \
+        (isinstance(func, ast.Name) and func.id == "import_module")
 
+
+def _violations(root: Path = REPO) -> list[str]:
     stdlib = set(sys.stdlib_module_names)
     found = []
-    for path in sorted([*REPO.glob("edi_live/**/*.py"), *REPO.glob("drivers/**/*.py")]):
-        rel = path.relative_to(REPO).as_posix()
-        for line, name in _imports(path):
+    files = sorted(p for pkg in PACKAGES for p in root.glob(f"{pkg}/**/*.py"))
+    for path in files:
+        rel = path.relative_to(root).as_posix()
+        me = _module_name(path.relative_to(root))
+        my_stage = _stage(me)
+        for line, name in _imports(root, path):
             top = name.split(".")[0]
             where = f"{rel}:{line} imports {name}"
             allowed = RESTRICTED.get(top)
@@ -65,6 +138,12 @@ def _violations() -> list[str]:
             if rel.startswith("drivers/") and top == "edi_live" and not name.startswith(DRIVERS_ALLOWED_EDI) \
                     and name != "edi_live":
                 found.append(f"{where}: drivers may use only {DRIVERS_ALLOWED_EDI} from edi_live")
+            if _within(name, NODE) and not _within(me, NODE):
+                found.append(f"{where}: only the node's own modules {NODE} may import the node")
+            their_stage = _stage(name)
+            if my_stage is not None and their_stage is not None and their_stage > my_stage:
+                found.append(f"{where}: the {STAGES[my_stage][0]} stage imports the later "
+                             f"{STAGES[their_stage][0]} stage (data flows driver -> ring -> worker -> publisher)")
     return found
 
 
@@ -72,13 +151,40 @@ def test_import_rules_hold():
     assert _violations() == []
 
 
-def test_rules_catch_a_violation(tmp_path, monkeypatch):
-    # The checker itself must be able to fail: plant a bad import and see it reported.
-    bad = REPO / "edi_live" / "_layering_probe_tmp.py"
-    bad.write_text("import zmq\nfrom drivers import replay\n")
-    try:
-        found = _violations()
-    finally:
-        bad.unlink()
-    assert any("_layering_probe_tmp.py:1 imports zmq" in v for v in found)
-    assert any("_layering_probe_tmp.py:2 imports drivers" in v for v in found)
+def _plant(root: Path, files: dict[str, str]) -> None:
+    for rel, text in files.items():
+        path = root / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+
+
+def test_rules_catch_every_kind_of_violation(tmp_path):
+    # The checker itself must be able to fail: plant each kind of bad import in a throwaway tree.
+    _plant(tmp_path, {
+        "edi_live/__init__.py": "",
+        "edi_live/node.py": "",
+        "edi_live/publisher.py": "from .node import Node\n",
+        "edi_live/worker.py": "from . import publisher\nimport importlib\nimportlib.import_module('edi_live.node')\n",
+        "edi_live/ring.py": "def later():\n    from .worker import EdiWorker\n",
+        "edi_live/stats.py": "import zmq\nfrom drivers import replay\n",
+        "drivers/__init__.py": "",
+        "drivers/replay.py": "from edi_live import ring\n",
+        "drivers/davis/__init__.py": "",
+        "drivers/davis/device.py": "from importlib import import_module\nimport_module('..replay', 'drivers.davis')\n"
+                                   "import_module('edi_live.worker')\n",
+    })
+    found = _violations(tmp_path)
+    expected = [
+        "edi_live/publisher.py:1 imports edi_live.node: only the node",  # relative `from .x import y`
+        "edi_live/worker.py:1 imports edi_live.publisher: the worker stage imports the later publisher",  # from .
+        "edi_live/worker.py:3 imports edi_live.node: only the node",  # import_module
+        "edi_live/ring.py:2 imports edi_live.worker: the ring stage imports the later worker",  # inside a function
+        "edi_live/stats.py:1 imports zmq: only",
+        "edi_live/stats.py:2 imports drivers: within edi_live only cli.py",
+        "drivers/replay.py:1 imports edi_live.ring: the driver stage imports the later ring",
+        "drivers/davis/device.py:3 imports edi_live.worker: the driver stage imports the later worker",
+    ]
+    for text in expected:
+        assert any(v.startswith(text) for v in found), (text, found)
+    # a relative import_module resolves against its package: ..replay from drivers.davis is drivers.replay
+    assert not any("device.py:2" in v for v in found), found

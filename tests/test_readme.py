@@ -3,7 +3,9 @@
 - `.ci/run` calls exactly the test command the README gives.
 - The first setup command (simulate a recording, replay it through the node with --out) produces sharp frames:
   the deblurred frames in --out beat the blurry APS frames against the simulator's ground truth.
-- tools/figure.py (the README picture) writes a non-blank image.
+- `python -m tools.figure` (the README picture) writes a non-blank image.
+
+Tools run as `python -m tools.NAME` from the repository root; the subprocesses here get it through PYTHONPATH.
 """
 
 from __future__ import annotations
@@ -51,8 +53,8 @@ def test_first_readme_command_deblurs_the_simulated_recording(tmp_path):
     install_and_run, _ = _readme_commands()
     # skip the install step (the suite already runs installed), keep the rest verbatim, shorten the recording
     steps = [s.strip() for s in install_and_run.split("&&") if not s.strip().startswith("pip ")]
-    assert re.match(r"python tools/simulate.py demo\.aedat4$", steps[0]) and steps[1].startswith("edi-live ")
-    sim = subprocess.run([sys.executable, str(REPO / "tools/simulate.py"), "demo.aedat4", "--duration-s", "0.5"],
+    assert re.match(r"python -m tools\.simulate demo\.aedat4$", steps[0]) and steps[1].startswith("edi-live ")
+    sim = subprocess.run([sys.executable, *steps[0].split()[1:], "--duration-s", "0.5"],
                          cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=120)
     assert sim.returncode == 0, sim.stderr
     node_args = steps[1].split()[1:] + ["--speed", "0", "--no-publish"]
@@ -81,9 +83,9 @@ def test_figure_tool_writes_a_non_blank_picture(tmp_path, real_recordings):
     import cv2
 
     out = tmp_path / "fig.png"
-    proc = subprocess.run([sys.executable, str(REPO / "tools/figure.py"), str(out), "--real",
+    proc = subprocess.run([sys.executable, "-m", "tools.figure", str(out), "--real",
                            str(real_recordings["emlb_demo-01_davis346.aedat4"])],
-                          env=_env(), capture_output=True, text=True, timeout=120)
+                          cwd=REPO, env=_env(), capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     img = cv2.imread(str(out), cv2.IMREAD_GRAYSCALE)
     assert img is not None and img.shape[0] == 400  # two rows: simulated and real

@@ -1,7 +1,7 @@
 """Speed of the EDI core on one core: deblur per APS frame (fixed c, with c estimation, cached c) and latent
 update throughput. Synthetic data: 240x180, ~200k events in a 20 ms exposure, frames every 40 ms.
 
-    python tools/bench_edi_speed.py [--events 200000] [--repeats 15] [--no-numba]
+    python -m tools.bench_edi_speed [--events 200000] [--repeats 15] [--no-numba]
 
 Prints medians. --no-numba runs the numpy fallback (sets EDI_LIVE_NO_NUMBA before importing edi_live).
 """
@@ -10,11 +10,7 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 
 def synthetic(rng, np, event_dtype, width, height, n_events, t0, t1):

@@ -1,12 +1,12 @@
 """End-to-end streaming benchmarks of the edi-live node (numbers, not pass/fail).
 
-    python tools/bench_stream.py throughput   # replay --speed 0 -> worker -> publish -> 1 subscriber, --every 1000
-    python tools/bench_stream.py stages       # CPU per stage, each alone on one thread (per frame / per event)
-    python tools/bench_stream.py latency      # paced replay at ~1 M events/s: latency p50/p99, arrival -> sent
-    python tools/bench_stream.py memory       # PSS over a looped replay (--seconds 60; 600 for the 10-minute run)
-    python tools/bench_stream.py static       # CPU of the node on a static scene (APS frames, no events)
-    python tools/bench_stream.py scaling      # worker cost per latent frame vs changed pixels and resolution
-    python tools/bench_stream.py all
+    python -m tools.bench_stream throughput   # replay --speed 0 -> worker -> publish -> 1 subscriber, --every 1000
+    python -m tools.bench_stream stages       # CPU per stage, each alone on one thread (per frame / per event)
+    python -m tools.bench_stream latency      # paced replay at ~1 M events/s: latency p50/p99, arrival -> sent
+    python -m tools.bench_stream memory       # PSS over a looped replay (--seconds 60; 600 for the 10-minute run)
+    python -m tools.bench_stream static       # CPU of the node on a static scene (APS frames, no events)
+    python -m tools.bench_stream scaling      # worker cost per latent frame vs changed pixels and resolution
+    python -m tools.bench_stream all
 
 Input: `--input FILE.aedat4`, or by default a 240x180 recording simulated once by tools/simulate.py (preset
 "fast") and cached in the temp directory. The subscriber runs in its own process, as a viewer would.
@@ -26,12 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-if __package__ in (None, ""):  # run as a script: make the repository importable
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from edi_live.config import NodeConfig  # noqa: E402
-from edi_live.datatypes import EVENT_DTYPE, Frame, Packet, SourceInfo, SourceStatus  # noqa: E402
-from edi_live.node import Node, default_reconstructor  # noqa: E402
+from edi_live.config import NodeConfig
+from edi_live.datatypes import EVENT_DTYPE, Frame, Packet, SourceInfo, SourceStatus
+from edi_live.node import Node, default_reconstructor
 
 
 # ------------------------------------------------------------------------------------------------ inputs
@@ -102,7 +99,7 @@ class GatedSource:
 def _replay(path: Path, speed: float, loop: bool = False, **options):
     import drivers
 
-    # as the CLI opens it: decoded in a child process (see drivers/prefetch.py)
+    # as the CLI opens it: decoded in a child process (see drivers/decoding_child.py)
     return drivers.open_source("replay", path=str(path), speed=speed, loop=loop, decode_process=True, **options)
 
 
@@ -602,7 +599,7 @@ def _extra(args: argparse.Namespace) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python tools/bench_stream.py", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m tools.bench_stream", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("mode", choices=("throughput", "stages", "latency", "memory", "static", "scaling", "all"))
     ap.add_argument("--input", type=Path, help="an .aedat4 recording (default: simulated 240x180, cached)")

@@ -7,8 +7,8 @@ message, as a real client does). Two publisher sides are measured:
              inbox is half full so that nothing is dropped, which a real node never does
 Lossless: SNDHWM = RCVHWM = 0, and a readiness handshake so the slow-joiner effect loses nothing.
 
-    python tools/bench_zmq.py                      # 240x180 u1, 20,000 frames, 5 runs, every combination
-    python tools/bench_zmq.py --size 346x260 --runs 3 --mode raw --latency-fps 0
+    python -m tools.bench_zmq                      # 240x180 u1, 20,000 frames, 5 runs, every combination
+    python -m tools.bench_zmq --size 346x260 --runs 3 --mode raw --latency-fps 0
 It also measures one-way latency (Publisher.submit -> decoded in the subscriber process) at a paced rate.
 """
 
@@ -18,14 +18,9 @@ import argparse
 import multiprocessing as mp
 import os
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
-
-if __package__ in (None, ""):
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from edi_live import wire
 from edi_live.datatypes import Reconstruction

@@ -4,25 +4,21 @@ Top row: a simulated DAVIS240 scene (blurry APS frame, EDI with automatic c, gro
 Bottom row: the real DAVIS346 Newton's-cradle recording (blurry APS frame, EDI at mid-exposure, a latent frame
 later in the same frame interval). Everything goes through `EdiReconstructor` exactly as the node uses it.
 
-    python tools/figure.py docs/blurry_vs_sharp.png [--real ../shared/data/real/emlb_demo-01_davis346.aedat4]
+    python -m tools.figure docs/blurry_vs_sharp.png [--real ../shared/data/real/emlb_demo-01_davis346.aedat4]
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-if __package__ in (None, ""):
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from drivers.replay import merged_packets  # noqa: E402
-from edi_live.datatypes import EVENT_DTYPE  # noqa: E402
-from edi_live.reconstructor import EdiReconstructor  # noqa: E402
-from tools.simulate import preset, simulate  # noqa: E402
+from drivers.replay import merged_packets
+from edi_live.datatypes import EVENT_DTYPE
+from edi_live.reconstructor import EdiReconstructor
+from tools.simulate import preset, simulate
 
 DEFAULT_REAL = Path(__file__).resolve().parent.parent.parent / "shared/data/real/emlb_demo-01_davis346.aedat4"
 

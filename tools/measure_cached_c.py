@@ -2,7 +2,7 @@
 arrive via on_events, each APS frame with every event from its exposure start up to now) and prints, per frame,
 the c in use, whether the fit test kept it or c was re-estimated, and the fit test's costs.
 
-    python tools/measure_cached_c.py [FILE.aedat4 ...] [--loops 3] [--sim] [--quiet]
+    python -m tools.measure_cached_c [FILE.aedat4 ...] [--loops 3] [--sim] [--quiet]
 
 Without files: the three real DAVIS346 recordings (../shared/data/real relative to the repo) and, with --sim, a
 simulated scene with constant c (tools/simulate.py, preset "demo").
@@ -11,14 +11,11 @@ simulated scene with constant c (tools/simulate.py, preset "demo").
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from edi_live.reconstructor import EdiReconstructor  # noqa: E402
+from edi_live.reconstructor import EdiReconstructor
 
 REAL_DIR = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
 

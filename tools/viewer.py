@@ -23,9 +23,6 @@ from typing import Any
 import cv2
 import numpy as np
 
-if __package__ in (None, ""):  # run as `python tools/viewer.py` from a checkout without installing
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
 from edi_live.client import DEFAULT_ENDPOINT, Subscriber
 from edi_live.errors import ClientError, EdiLiveError
 
@@ -33,10 +30,10 @@ log = logging.getLogger("edi-live-viewer")
 BOUNDARY = "edi-live-frame"
 
 EPILOG = """examples:
-  python tools/viewer.py                              # then open http://127.0.0.1:8080
-  python tools/viewer.py --mp4 sharp.mp4 --all --no-http --duration 10
-  python tools/viewer.py --endpoint tcp://10.0.0.5:5555 --png frames/ --http 127.0.0.1:9000
-  python tools/viewer.py --curve-server-key keys/server.key   # edi-live ran with --curve-secret-key
+  python -m tools.viewer                              # then open http://127.0.0.1:8080
+  python -m tools.viewer --mp4 sharp.mp4 --all --no-http --duration 10
+  python -m tools.viewer --endpoint tcp://10.0.0.5:5555 --png frames/ --http 127.0.0.1:9000
+  python -m tools.viewer --curve-server-key keys/server.key   # edi-live ran with --curve-secret-key
 
 status line: recv = frames/s this viewer got; node = frames/s, events/s and c from the node's stats message;
 latency = node-side p50/p99 from event arrival to frame sent; node drops = data the node dropped anywhere
@@ -306,7 +303,7 @@ def _number(kind: type, low: float, high: float | None = None) -> Any:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="python tools/viewer.py", description=__doc__.split("\n\n")[0],
+        prog="python -m tools.viewer", description=__doc__.split("\n\n")[0],
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     src = parser.add_argument_group("input")
     src.add_argument("--endpoint", default=DEFAULT_ENDPOINT,

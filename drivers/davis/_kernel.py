@@ -1,9 +1,10 @@
 """The hot loop of the word decoder: timestamps (wrap multiplier, reset), DVS polarity events, and the
 positions/times of every other word for the slower APS/IMU/special state machine.
 
-Two implementations with identical results: a numba loop (used when numba is importable) and a vectorised
-numpy fallback. `tools/bench_usb_decode.py` measures both. Events are written straight into the 16-byte
-EVENT_DTYPE layout viewed as int64 pairs: [t, x | y << 16 | p << 32].
+`scan` runs the numba-compiled loop (numba is a hard dependency). `scan_numpy` is a vectorised reference with
+identical results, kept only for the tests that check the kernel against it (and for the benchmark's
+comparison, `python -m tools.bench_usb_decode`). Events are written straight into the 16-byte EVENT_DTYPE layout
+viewed as int64 pairs: [t, x | y << 16 | p << 32].
 
 State vector (int64[8]): wrap_add, current (device µs), last_y (-1 = unknown), offset (added to device time),
 started (a timestamp or wrap word was seen), bad (words dropped as out of range), last_out (last event time
@@ -12,6 +13,7 @@ emitted), backwards (events whose time went backwards, e.g. after garbage words;
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 WRAP_STEP = 0x8000
@@ -23,7 +25,7 @@ def new_state(offset_us: int = 0) -> np.ndarray:
 
 
 def _scan_py(words, state, cols, rows, swap, ev, ctrl_idx, ctrl_t):
-    """Reference loop (compiled by numba when available). Returns (n_events, n_ctrl)."""
+    """The loop `scan` runs compiled by numba (plain Python here). Returns (n_events, n_ctrl)."""
     wrap_add = state[0]
     current = state[1]
     last_y = state[2]
@@ -130,7 +132,7 @@ def _segment_np(w, state, cols, rows, swap):
 
 
 def scan_numpy(words: np.ndarray, state: np.ndarray, cols: int, rows: int, swap: bool):
-    """numpy fallback: split at timestamp-reset words (rare) and scan each segment vectorised."""
+    """Reference for tests: split at timestamp-reset words (rare) and scan each segment vectorised."""
     resets = np.flatnonzero(words == 1)
     evs, cidx, cts = [], [], []
     start = 0
@@ -150,28 +152,14 @@ def scan_numpy(words: np.ndarray, state: np.ndarray, cols: int, rows: int, swap:
     return np.concatenate(evs), np.concatenate(cidx), np.concatenate(cts)
 
 
-try:  # numba is optional: the numpy path gives identical results, only slower
-    import numba
-
-    _scan_nb = numba.njit(cache=True, nogil=True)(_scan_py)
-    HAVE_NUMBA = True
-except Exception:  # pragma: no cover - exercised when numba is missing
-    _scan_nb = None
-    HAVE_NUMBA = False
+_scan_nb = numba.njit(cache=True, nogil=True)(_scan_py)
 
 
-def scan_numba(words: np.ndarray, state: np.ndarray, cols: int, rows: int, swap: bool):
+def scan(words: np.ndarray, state: np.ndarray, cols: int, rows: int, swap: bool):
+    """Scan `words`, updating `state`: (events as int64[n, 2], indices of control words, their times)."""
     n = words.shape[0]
     ev = np.empty((n, 2), dtype=np.int64)
     ctrl_idx = np.empty(n, dtype=np.int64)
     ctrl_t = np.empty(n, dtype=np.int64)
     n_ev, n_ctrl = _scan_nb(words, state, cols, rows, swap, ev, ctrl_idx, ctrl_t)
     return ev[:n_ev], ctrl_idx[:n_ctrl], ctrl_t[:n_ctrl]
-
-
-def scan(words: np.ndarray, state: np.ndarray, cols: int, rows: int, swap: bool, use_numba: bool | None = None):
-    if use_numba is None:
-        use_numba = HAVE_NUMBA
-    if use_numba and HAVE_NUMBA:
-        return scan_numba(words, state, cols, rows, swap)
-    return scan_numpy(words, state, cols, rows, swap)

@@ -24,7 +24,6 @@ CHIP_NAMES = {0: "DAVIS240A", 1: "DAVIS240B", 2: "DAVIS240C", 3: "DAVIS128", 4: 
               6: "DAVIS640", 7: "DAVIS640H", 8: "DAVIS208", 9: "DAVIS346C"}
 DAVIS240_CHIPS = (0, 1, 2)
 DAVIS346_CHIPS = (4, 5, 9)
-SUPPORTED_CHIPS = DAVIS240_CHIPS + DAVIS346_CHIPS
 
 FLASHY_HINT = ("update the camera with iniVation's Flashy tool (https://inivation.gitlab.io/dv/dv-docs/docs/"
                "firmware-update/): it installs FX2 firmware 4 / FX3 firmware 6 and logic 18.1")

@@ -67,12 +67,9 @@ def unpack_value(data: bytes | Sequence[int]) -> int:
     return struct.unpack(">I", bytes(data))[0]
 
 
-def pack_multiple(writes: Sequence[Write]) -> bytes:
-    """The data stage of a 0xC2 batched write: N x (module u8, param u8, value u32 BE), no padding."""
-    return b"".join(struct.pack(">BBI", m, p, v & 0xFFFFFFFF) for m, p, v in writes)
-
-
 def unpack_multiple(count: int, data: bytes) -> list[Write]:
+    """The entries of a 0xC2 batched write's data stage: N x (module u8, param u8, value u32 BE), no padding.
+    The driver never batches (libcaer's start sequence needs no 0xC2); the emulator accepts it like a device."""
     if len(data) != 6 * count:
         raise ValueError(f"0xC2 batch of {count} entries needs {6 * count} bytes (got {len(data)})")
     return [struct.unpack_from(">BBI", data, 6 * i) for i in range(count)]
@@ -159,13 +156,13 @@ def default_config(model: DavisModel, *, has_global_shutter: bool, aps_columns: 
 PRODUCERS_OFF: list[Write] = [(DVS, DVS_RUN, 0), (APS, APS_RUN, 0), (IMU, IMU_RUN_ACCEL, 0), (IMU, IMU_RUN_GYRO, 0),
                               (IMU, IMU_RUN_TEMP, 0), (EXTINPUT, EXTINPUT_RUN_DETECTOR, 0)]
 MUX_OFF: list[Write] = [(MUX, MUX_RUN, 0), (MUX, MUX_TIMESTAMP_RUN, 0), (USB, USB_RUN, 0), (MUX, MUX_RUN_CHIP, 0)]
-# dataStart: all off, sleep 10 ms, clear_halt, start reader, chip on, sleep 200 ms, USB+MUX on, sleep 50 ms,
-# producers on. The timestamp reset (a 0xC2 batch) anchors device time 0 to the host clock.
+# libcaer's dataStart: all off, sleep 10 ms, clear_halt, start reader, chip on, sleep 200 ms, USB+MUX on, sleep
+# 50 ms, producers on. No timestamp reset: libcaer sends none (the MUX reset pulse is for syncing several
+# cameras); the driver anchors device time to the host clock when the MUX starts (DavisDecoder.anchor).
 START_ALL_OFF: list[Write] = PRODUCERS_OFF + MUX_OFF
 START_CHIP_ON: list[Write] = [(MUX, MUX_RUN_CHIP, 1)]
 START_MUX_ON: list[Write] = [(USB, USB_RUN, 1), (MUX, MUX_TIMESTAMP_RUN, 1), (MUX, MUX_RUN, 1)]
 START_PRODUCERS_ON: list[Write] = [(DVS, DVS_RUN, 1), (APS, APS_RUN, 1), (IMU, IMU_RUN_ACCEL, 1),
                                    (IMU, IMU_RUN_GYRO, 1), (IMU, IMU_RUN_TEMP, 1), (EXTINPUT, EXTINPUT_RUN_DETECTOR, 1)]
-TIMESTAMP_RESET_BATCH: list[Write] = [(MUX, MUX_TIMESTAMP_RESET, 1), (MUX, MUX_TIMESTAMP_RESET, 0)]
 STOP_SEQUENCE: list[Write] = PRODUCERS_OFF + MUX_OFF
 START_SLEEPS_S = {"drain": 0.010, "chip": 0.200, "mux": 0.050}

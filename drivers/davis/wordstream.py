@@ -31,7 +31,6 @@ class WordStream:
         self.latest = None
         self.done = False       # everything encoded
         self.exhausted = False  # the packet iterator has ended
-        self.late_blocks = 0
         self._n = 0
 
     def _add(self, pkt: Packet) -> None:
@@ -126,11 +125,10 @@ class WordStream:
         return parts or None
 
     def _dev(self, t: int) -> int:
-        d = int(t) - self.shift
-        if d < self.enc.last_t:
-            self.late_blocks += 1
-            d = self.enc.last_t
-        return d
+        """Device time of a block at recording time t. A block older than words already encoded (a frame that
+        arrived more than holdback_us after its exposure start) is sent now, stamped with the latest device time:
+        a device clock never goes backwards. Its data is delivered, only its time moves later."""
+        return max(int(t) - self.shift, self.enc.last_t)
 
     def _maybe_reset(self, next_dev_t: int) -> list[np.ndarray]:
         if self.reset_at_us is not None and next_dev_t >= self.reset_at_us and self.enc.started:

@@ -16,7 +16,7 @@ import numpy as np
 
 from edi_live.aedat4 import schema as S
 from edi_live.aedat4.compression import compressor
-from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, Frame
+from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, Frame, as_events
 from edi_live.errors import RecordingError
 
 _STREAMS = (("events", "EVTS"), ("frames", "FRME"), ("imu", "IMUS"), ("triggers", "TRIG"))
@@ -145,7 +145,7 @@ class Aedat4Writer:
         if events.dtype != EVENT_DTYPE:
             if events.dtype.names != EVENT_DTYPE.names:
                 raise RecordingError(f"write_events needs EVENT_DTYPE, got {events.dtype}", self.path)
-            events = events.astype(EVENT_DTYPE)  # e.g. the packed layout np.concatenate makes of EVENT_DTYPE
+            events = as_events(events)  # e.g. the packed layout np.concatenate makes of EVENT_DTYPE
         if not len(events):
             return
         self._check_sorted("events", events["t"])

@@ -14,7 +14,7 @@ from drivers.davis import protocol as P
 from drivers.davis.device import DavisSource
 from drivers.davis.discovery import list_devices
 from drivers.emulator import backend
-from tests.drivers.helpers import flatten, random_recording
+from tests.helpers.recordings import flatten, random_recording
 
 MODELS = {"davis346": (346, 260, False), "davis240": (240, 180, True)}
 
@@ -71,16 +71,6 @@ def test_real_recording_matches_replay(real_recordings):
         assert np.array_equal(got[0], want[0])
         _check_frames(got[1], want[1], model == "davis240")
         assert len(got[2]) == len(want[2])
-
-
-def test_numpy_fallback_gives_the_same_packets(rng, monkeypatch):
-    from drivers.davis import _kernel
-
-    packets = random_recording(rng, 240, 180, n_events=3000, n_frames=1, n_imu=2)
-    monkeypatch.setattr(_kernel, "HAVE_NUMBA", False)  # as if numba were not installed
-    with DavisSource(backend=backend(packets, speed=0), policy="wait") as src:
-        got = flatten(_read_all(src))
-    assert np.array_equal(got[0], flatten(packets)[0]) and len(got[1]) == 1
 
 
 def test_stop_ends_iteration_promptly():

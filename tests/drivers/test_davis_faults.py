@@ -13,7 +13,7 @@ from drivers.emulator import backend
 from drivers.udev import RULE_TEXT, RULES_FILE
 from edi_live.errors import (DeviceBusyError, DeviceDisconnectedError, DeviceNotFoundError, DevicePermissionError,
                              UnsupportedFirmwareError)
-from tests.drivers.helpers import flatten, random_recording
+from tests.helpers.recordings import flatten, random_recording
 
 
 def _open(**kw):

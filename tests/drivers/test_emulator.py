@@ -15,7 +15,7 @@ from drivers import udev
 from drivers.davis.device import DavisSource
 from drivers.davis.discovery import list_devices
 from drivers.emulator import backend
-from tests.drivers.helpers import flatten, random_recording
+from tests.helpers.recordings import flatten, random_recording
 
 
 def test_cli_hook_spelling_resolves_to_a_no_argument_factory():

@@ -348,7 +348,7 @@ def test_paced_replay_uses_camera_sized_packets(real_recordings):
 def test_slot_cuts_match_a_per_event_scan(rng, span_us):
     """Packets are cut where events enter a new max_packet_us slot; the fast search must find exactly the slots
     a plain per-event scan finds (dense, sparse with long gaps, negative times, repeated timestamps)."""
-    from drivers.replay import _slot_cuts
+    from drivers.replay_merge import _slot_cuts
 
     for max_packet_us in (1, 7, 1_000, 10_000):
         t = np.sort(rng.integers(-span_us, span_us, size=int(rng.integers(1, 400)))).astype(np.int64)
@@ -384,7 +384,7 @@ def test_decoding_in_a_child_process_gives_the_same_packets(real_recordings, nam
 
 @pytest.mark.parametrize("packet_us", [1_000, 100_000])
 def test_a_killed_decoding_process_is_one_clear_error(real_recordings, packet_us):
-    from drivers.prefetch import DecodeProcess
+    from drivers.decoding_child import DecodeProcess
 
     # 100 ms packets are larger than the socket's buffer: the child dies in the middle of writing one
     child = DecodeProcess(str(real_recordings["emlb_demo-01_davis346.aedat4"]), packet_us, loop=True)
@@ -420,12 +420,12 @@ def test_stopping_mid_file_ends_the_decoding_process(real_recordings):
 
 @pytest.mark.parametrize("failure", [OSError(11, "Resource temporarily unavailable"), EOFError("unexpected EOF")])
 def test_decoding_falls_back_to_this_process_when_no_child_can_start(real_recordings, monkeypatch, failure):
-    import drivers.prefetch
+    import drivers.decoding_child
 
     def refuse(*args, **kwargs):  # what Process.start raises: OSError, or EOFError from a forkserver that failed
         raise failure
 
-    monkeypatch.setattr(drivers.prefetch, "DecodeProcess", refuse)
+    monkeypatch.setattr(drivers.decoding_child, "DecodeProcess", refuse)
     path = real_recordings["evlib_sample_davis346.aedat4"]
     with pytest.warns(RuntimeWarning, match="cannot start the decoding process"):
         with ReplaySource(path, speed=0, decode_process=True) as src:
@@ -436,9 +436,9 @@ def test_decoding_falls_back_to_this_process_when_no_child_can_start(real_record
 def test_a_file_gone_before_the_child_opens_it_is_one_clear_error(tmp_path):
     """The child's own errors (here: the file vanished after the replay was set up) reach the parent as the same
     one-line RecordingError the in-process decoder gives, not as a silent end of the replay."""
-    from drivers import prefetch
+    from drivers import decoding_child
 
-    child = prefetch.DecodeProcess(str(tmp_path / "gone.aedat4"), 1_000, loop=False)
+    child = decoding_child.DecodeProcess(str(tmp_path / "gone.aedat4"), 1_000, loop=False)
     try:
         with pytest.raises(RecordingError, match=r"gone\.aedat4: cannot open the recording"):
             child.next_packet(30.0)
@@ -447,12 +447,30 @@ def test_a_file_gone_before_the_child_opens_it_is_one_clear_error(tmp_path):
 
 
 def test_the_forkserver_warm_up_really_decodes_and_leaves_nothing_behind(tmp_path, monkeypatch):
-    """drivers._decoder_warm swallows its errors at import (a failed warm-up only costs start-up time), so its
-    work is checked here directly: it must write, decode and delete a recording with the current codec."""
+    """The forkserver only logs a failed warm-up (it costs start-up time, not data), so the warm-up's work is
+    checked here directly: it must write, decode and delete a recording with the current codec."""
     import tempfile
 
-    from drivers import _decoder_warm
+    from drivers import decoding_child
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
-    _decoder_warm._warm()  # raises if the writer or the reader no longer fit it
+    decoding_child.warm_decoder()  # raises if the writer or the reader no longer fit it
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_failed_warm_up_is_our_error_and_the_forkserver_logs_it(tmp_path, monkeypatch, caplog):
+    import tempfile
+
+    from drivers import decoding_child
+
+    def broken(path, **kwargs):
+        raise RecordingError("the codec changed", path, 0)
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.setattr(decoding_child, "merged_packets", broken)
+    with pytest.raises(SourceError, match="warming up the AEDAT4 decoder failed: RecordingError: .*codec changed"):
+        decoding_child.warm_decoder()
+    assert list(tmp_path.iterdir()) == []
+    with caplog.at_level("WARNING", logger="drivers.decoding_child"):
+        assert decoding_child.warm_decoder_or_warn() is False
+    assert "warming up the AEDAT4 decoder failed" in caplog.text and "first packet" in caplog.text

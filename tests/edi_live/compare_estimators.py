@@ -1,6 +1,6 @@
 """Which c estimator recovers the simulated c best? Prints per-scene errors and a summary.
 
-    python tests/edi_live/compare_estimators.py
+    python -m tests.edi_live.compare_estimators      # from the repository root
 
 Scenes from the test fixture edi_scenes.py (80x60, 4 APS frames, 8 ms exposures every 20 ms, threshold
 mismatch sigma 0.02): 4 textures x 2 c values x 2 velocities. The consistency estimator uses the 3 frame pairs
@@ -9,19 +9,13 @@ jointly; the energy estimator (single frame) is scored on frames 2-4.
 
 from __future__ import annotations
 
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-sys.path[:0] = [str(HERE), str(HERE.parent.parent)]
-
-from edi_scenes import make_scene  # noqa: E402
-from test_contrast import pairs_of  # noqa: E402
-
-import edi_live.contrast as contrast  # noqa: E402
+import edi_live.contrast as contrast
+from tests.edi_live.edi_scenes import make_scene
+from tests.edi_live.test_contrast import pairs_of
 
 
 def main() -> None:

@@ -8,7 +8,7 @@ import warnings
 
 import numpy as np
 import pytest
-from aedat4_oracles import aedat_read, dv_read
+from tests.helpers.aedat4_oracles import aedat_read, dv_read
 
 from edi_live.aedat4 import Aedat4Reader, Aedat4Writer
 from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, Frame

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from edi_scenes import make_scene
+from tests.edi_live.edi_scenes import make_scene
 
 import edi_live.contrast as contrast
 import edi_live.edi as edi

@@ -6,35 +6,26 @@ frame message, kinds), dv-processing reopening the --out file. Every wait has a 
 
 from __future__ import annotations
 
+import subprocess
 import sys
 import threading
 from pathlib import Path
 
+import dv_processing as dv
 import numpy as np
 import pytest
 
 from edi_live.config import NodeConfig
 from edi_live.errors import BindError, NodeError, RecordingError
-from edi_live.node import Node
+from edi_live.node import Node, default_reconstructor
+from tests.edi_live.test_worker import StandIn
 from tools.bench_stream import GatedSource  # holds the first packet until a subscriber joined
-
-sys.path.insert(0, str(Path(__file__).parent))
-from test_worker import StandIn  # noqa: E402
 
 DEMO = "emlb_demo-01_davis346.aedat4"  # 0.51 s, 13 APS frames, 346x260, motion blur
 
 
 def real_reconstructor(width, height, edi):
-    reconstructor = pytest.importorskip("edi_live.reconstructor")
-    from edi_live.node import default_reconstructor
-
-    assert reconstructor is not None
     return default_reconstructor(width, height, edi)
-
-
-@pytest.fixture
-def needs_reconstructor():
-    pytest.importorskip("edi_live.reconstructor")
 
 
 def replay(path, **options):
@@ -57,7 +48,7 @@ def start_in_thread(node: Node):
     return thread, result
 
 
-def test_replay_node_streams_deblurred_and_latent_frames_then_stops_cleanly(real_recordings, needs_reconstructor):
+def test_replay_node_streams_deblurred_and_latent_frames_then_stops_cleanly(real_recordings):
     from edi_live.client import Subscriber
 
     path = real_recordings[DEMO]
@@ -101,9 +92,7 @@ def test_replay_node_streams_deblurred_and_latent_frames_then_stops_cleanly(real
     assert leftovers == []
 
 
-def test_truncated_recording_delivers_frames_before_the_fault_and_finalises_out(real_recordings, tmp_path,
-                                                                               needs_reconstructor):
-    dv = pytest.importorskip("dv_processing")
+def test_truncated_recording_delivers_frames_before_the_fault_and_finalises_out(real_recordings, tmp_path):
     data = real_recordings[DEMO].read_bytes()
     cut = tmp_path / "cut.aedat4"
     cut.write_bytes(data[: int(len(data) * 0.7)])
@@ -285,15 +274,13 @@ if __name__ == "__main__":
 """
 
 
-def test_the_warm_up_covers_every_kernel_specialisation_a_replay_needs(real_recordings, tmp_path):
+def test_the_warm_up_covers_every_kernel_specialisation_a_replay_needs(real_recordings):
     """A numba kernel met with new argument types (a read-only frame, a one-event slice) is compiled on the spot,
     seconds with a cold cache, stalling the worker mid-stream. After the node's warm-up a real replay must need
     no new specialisation. Run in a fresh interpreter, so that other tests' calls do not hide a gap."""
-    import subprocess
-
-    script = tmp_path / "no_new_kernels.py"
-    script.write_text(_NO_NEW_KERNELS)
-    done = subprocess.run([sys.executable, str(script), str(real_recordings["emlb_demo-01_davis346.aedat4"])],
-                          capture_output=True, text=True, timeout=120, cwd=str(Path(__file__).resolve().parents[2]))
+    # -c with the repository as the working directory: the interpreter imports this checkout's packages
+    recording = str(real_recordings["emlb_demo-01_davis346.aedat4"])
+    done = subprocess.run([sys.executable, "-c", _NO_NEW_KERNELS, recording], capture_output=True, text=True,
+                          timeout=120, cwd=str(Path(__file__).resolve().parents[2]))
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip().splitlines()[-1] == "{}", f"compiled during the replay: {done.stdout[-2000:]}"

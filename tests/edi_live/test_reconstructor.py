@@ -6,7 +6,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from edi_scenes import make_scene, psnr
+from tests.edi_live.edi_scenes import make_scene, psnr
 
 import edi_live.contrast as contrast
 import edi_live.edi as edi

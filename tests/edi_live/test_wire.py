@@ -211,8 +211,44 @@ def test_decoded_numbers_stay_finite(rng):
     assert all(math.isfinite(header[k]) for k in ("c_on", "c_off"))
 
 
-def test_the_published_name_map_matches_the_header(rng):
-    rec = make_rec(rng, 5, 3, c_on=0.2, c_off=0.4)
-    header = header_of(wire.encode_frame(rec, 0, "cam"))
-    for code_name, wire_key in wire.FRAME_KEYS.items():
-        assert header[wire_key] == getattr(rec, code_name)
+# The frame header table of the README ("The wire protocol"), written out here independently of edi_live.wire:
+# key -> (type, value expected for make_rec(..., c_on=0.2, c_off=0.4) sent as seq 9 from "DAVIS346_00000391").
+README_FRAME_TABLE = {
+    "v": (int, 1),
+    "seq": (int, 9),
+    "t": (int, 1_700_000_123_456),
+    "w": (int, 5),
+    "h": (int, 3),
+    "dtype": (str, "u1"),
+    "kind": (str, "latent"),
+    "c": (float, None),  # only when ON and OFF thresholds are equal
+    "c_on": (float, 0.2),
+    "c_off": (float, 0.4),
+    "ref_t": (int, 1_700_000_100_000),
+    "exp_start": (int, 1_700_000_095_000),
+    "exp_end": (int, 1_700_000_105_000),
+    "n_events": (int, 1000),
+    "source": (str, "DAVIS346_00000391"),
+}
+
+
+def test_the_header_is_the_documented_table(rng):
+    header = header_of(wire.encode_frame(make_rec(rng, 5, 3, c_on=0.2, c_off=0.4), 9, "DAVIS346_00000391"))
+    assert set(header) == set(README_FRAME_TABLE) - {"c"}
+    for key, value in header.items():
+        kind, expected = README_FRAME_TABLE[key]
+        assert type(value) is kind, (key, value)
+        assert value == pytest.approx(expected), key
+    same = header_of(wire.encode_frame(make_rec(rng, 5, 3, c_on=0.25, c_off=0.25), 9, "DAVIS346_00000391"))
+    assert set(same) == set(README_FRAME_TABLE) - {"c_on", "c_off"} and same["c"] == pytest.approx(0.25)
+
+
+def test_the_readme_documents_exactly_these_keys(repo_root):
+    text = (repo_root / "README.md").read_text()
+    table = text.split("## The wire protocol", 1)[1].split("**Frames**", 1)[1].split("**Stats**", 1)[0]
+    documented = set()
+    for line in table.splitlines():
+        cells = line.split("|")
+        if len(cells) > 2 and "`" in cells[1]:
+            documented.update(cells[1].split("`")[1::2])
+    assert documented == set(README_FRAME_TABLE)

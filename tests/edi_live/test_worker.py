@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import copy
 import threading
+import time
 
 import numpy as np
 import pytest
 
+import edi_live.worker
 from edi_live.config import EdiConfig
 from edi_live.datatypes import EVENT_DTYPE, Frame, Packet, Reconstruction
 from edi_live.reconstruction import Reconstructor
@@ -135,31 +137,105 @@ def test_no_frames_before_the_first_aps_frame():
     assert not errors and out == [] and rec.events_applied == 0
 
 
-def test_max_fps_caps_latent_frames_and_counts_the_rest():
-    ev = events_at(np.arange(0, 100_000, 2))
-    packets = [Packet(events=ev[:10], frames=[aps(0, 10)]), Packet(events=ev[10:])]
-    worker, rec, out, errors = run_worker(packets, EdiConfig(every=100, max_fps=0.5))
-    latent = sum(r.kind == "latent" for r in out)
-    assert latent + worker.skipped_max_fps == (len(ev) - 6) // 100
-    assert latent <= 1  # one frame per 2 s at most; the run takes far less
+class FrozenClock:
+    """Stands in for the `time` module inside edi_live.worker: monotonic() (the clock of --max-fps and the
+    heartbeat) moves only when the test advances it, so counts do not depend on how fast this machine is.
+    Everything else is the real `time`. Values are binary fractions, so sums are exact."""
+
+    def __init__(self, start_s: float = 1024.0) -> None:
+        self.now = start_s
+
+    def monotonic(self) -> float:
+        return self.now
+
+    def advance(self, seconds: float) -> None:
+        self.now += seconds
+
+    def __getattr__(self, name: str):
+        return getattr(time, name)
 
 
-def test_static_scene_heartbeat_only_and_no_busy_loop():
-    ring = EventRing(capacity_events=1 << 12, policy="wait")
-    rec = StandIn()
-    out = []
-    worker = EdiWorker(ring, rec, EdiConfig(every=100, heartbeat_s=0.05), [out.append])
+@pytest.fixture
+def clock(monkeypatch) -> FrozenClock:
+    frozen = FrozenClock()
+    monkeypatch.setattr(edi_live.worker, "time", frozen)
+    return frozen
+
+
+class Collect:
+    """A sink that lets the test wait (with a timeout) for the n-th frame."""
+
+    def __init__(self) -> None:
+        self.frames: list[Reconstruction] = []
+        self._cond = threading.Condition()
+
+    def __call__(self, rec: Reconstruction) -> None:
+        with self._cond:
+            self.frames.append(rec)
+            self._cond.notify_all()
+
+    def wait_for(self, n: int, timeout_s: float = 10.0) -> None:
+        with self._cond:
+            assert self._cond.wait_for(lambda: len(self.frames) >= n, timeout_s), f"fewer than {n} frames came"
+
+
+def poll_until(predicate, timeout_s: float = 10.0) -> None:
+    stop = threading.Event()
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not reached within the timeout"
+        stop.wait(0.005)
+
+
+def test_max_fps_caps_latent_frames_and_counts_the_rest(clock):
+    ev = events_at(np.arange(0, 100_000, 2))  # 50,000 events; the APS frame [0, 10] takes the first 6
+    ring = EventRing(capacity_events=1 << 17, capacity_frames=8, policy="wait")
+    out, errors = Collect(), []
+    worker = EdiWorker(ring, StandIn(), EdiConfig(every=100, max_fps=0.5, heartbeat_s=64.0), [out],
+                       on_error=errors.append)
+    worker.start()
+    # the deblurred frame goes out, then 5000 events: 50 latent frames due, all within 2 s of it -> all skipped
+    ring.push(Packet(events=ev[:5006], frames=[aps(0, 10)]))
+    poll_until(lambda: worker.skipped_max_fps == 50)
+    clock.advance(2.5)  # past the 2 s cap: the next due frame goes out, the 448 after it are skipped again
+    ring.push(Packet(events=ev[5006:]))
+    ring.close()
+    assert worker.done.wait(10) and not errors
+    assert [r.kind for r in out.frames] == ["deblurred", "latent"]
+    assert worker.skipped_max_fps == 50 + 448
+    assert 1 + worker.skipped_max_fps == (len(ev) - 6) // 100
+
+
+class WaitRecordingRing(EventRing):
+    """Records how long the worker asks to sleep each time it has nothing to do."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.idle_timeouts: list[float] = []
+
+    def wait(self, since_version: int, timeout_s: float) -> bool:
+        self.idle_timeouts.append(timeout_s)
+        return super().wait(since_version, timeout_s)
+
+
+def test_static_scene_heartbeat_only_and_no_busy_loop(clock):
+    heartbeat_s = 0.125
+    ring = WaitRecordingRing(capacity_events=1 << 12, policy="wait")
+    out = Collect()
+    worker = EdiWorker(ring, StandIn(), EdiConfig(every=100, heartbeat_s=heartbeat_s), [out])
     worker.start()
     ring.push(Packet(events=events_at(np.arange(10)), frames=[aps(0, 9)]))
-    deadline = threading.Event()
-    deadline.wait(0.5)  # nothing arrives: only heartbeats may go out
+    out.wait_for(1)
+    for k in range(1, 6):  # nothing arrives: one heartbeat per heartbeat_s of clock time, nothing else
+        clock.advance(heartbeat_s)
+        ring.poke()
+        out.wait_for(1 + k)
     ring.close()
     assert worker.done.wait(5)
-    kinds = [r.kind for r in out]
-    assert kinds[0] == "deblurred"
-    assert 1 <= worker.heartbeats == len(kinds) - 1
-    assert worker.heartbeats <= 0.5 / 0.05 + 2
-    assert worker.wakeups <= 60, "the worker sleeps on the ring's condition instead of spinning"
+    assert [r.kind for r in out.frames] == ["deblurred"] + ["latent"] * 5 and worker.heartbeats == 5
+    # idle, the worker sleeps on the ring until the next heartbeat is due (the clock stands still meanwhile),
+    # never in short polling steps
+    assert ring.idle_timeouts and all(t == heartbeat_s for t in ring.idle_timeouts), ring.idle_timeouts
 
 
 def test_static_aps_frames_are_not_sent_again():
@@ -326,7 +402,7 @@ def test_deblur_thread_failure_reaches_on_error():
 def test_batched_latent_frames_equal_the_frame_by_frame_path():
     """Without --max-fps the worker makes a chunk's latent frames in one reconstructor call; with a cap that never
     binds it takes the frame-by-frame path. Both must send the same frames, split at the same events."""
-    from edi_scenes import make_scene
+    from tests.edi_live.edi_scenes import make_scene
 
     from edi_live.reconstructor import EdiReconstructor
 
@@ -382,7 +458,7 @@ def test_a_gap_while_a_frame_is_deblurred_on_the_helper_thread():
     across it)."""
     import time
 
-    from edi_scenes import make_scene
+    from tests.edi_live.edi_scenes import make_scene
 
     from edi_live.reconstructor import EdiReconstructor
 

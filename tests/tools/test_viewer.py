@@ -1,4 +1,4 @@
-"""tools/viewer.py against a real Publisher on loopback: PNG and MP4 recording, the HTTP endpoints, the CLI
+"""tools/viewer.py (`python -m tools.viewer`) against a real Publisher on loopback: PNG and MP4 recording, the HTTP endpoints, the CLI
 (--help, a timed run, Ctrl-C, a busy port), and the live MJPEG page in real headless Chromium."""
 
 from __future__ import annotations
@@ -94,7 +94,7 @@ def wait_for(predicate, timeout_s: float = 10.0) -> None:
 
 
 def test_help_teaches():
-    out = subprocess.run([sys.executable, str(REPO / "tools" / "viewer.py"), "--help"], capture_output=True,
+    out = subprocess.run([sys.executable, "-m", "tools.viewer", "--help"], cwd=REPO, capture_output=True,
                          text=True, timeout=60, check=False)
     assert out.returncode == 0
     for needle in ("--mp4", "--png", "127.0.0.1:8080", "--endpoint", "examples:", "--curve-server-key"):
@@ -198,7 +198,8 @@ def test_mjpeg_page_shows_the_frame_in_headless_chromium(feeder, tmp_path):
 
 
 def run_cli(args: list[str], **kwargs) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, str(REPO / "tools" / "viewer.py"), *args], stderr=subprocess.PIPE,
+    kwargs.setdefault("cwd", REPO)  # tools run as `python -m tools.viewer` from the repository root
+    return subprocess.Popen([sys.executable, "-m", "tools.viewer", *args], stderr=subprocess.PIPE,
                             stdout=subprocess.PIPE, text=True, **kwargs)
 
 

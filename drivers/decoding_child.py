@@ -1,6 +1,6 @@
 """Decoding a recording in a child process, so the node's own process only receives ready packets.
 
-Owns: the child process that runs `merged_packets` (decompression, FlatBuffers walk, merge and slicing) pass after
+Owns: the child process that runs `drivers.replay_merge.merged_packets` (decompression, FlatBuffers walk, merge and slicing) pass after
 pass, and the socket pair that carries its packets back in order. Why: that work comes in bursts (one file packet
 of ~20k events at a time, ~0.5 ms of CPU in a few long C calls that hold the GIL). In the node's process it made
 the worker wait for the GIL right when a packet had arrived: the slowest 1 % of latent frames at 1 M events/s
@@ -14,7 +14,9 @@ The tuples: ("packet", Packet without events) | ("pass", t_first, t_last) at the
 traceback) for anything else | ("end",).
 
 The child is started through a forkserver (spawn where there is none), which imports the parent's main module
-again as "__mp_main__": that module must not start work at import (the CLI's does not). The parent closes its end
+again as "__mp_main__": that module must not start work at import (the CLI's does not). The server also imports
+`drivers._forkserver_warmup`, which calls `warm_decoder()` there once, so every child is forked with the AEDAT4
+reader's numba kernels loaded (a child that loads them itself needs ~0.4 s for its first packet). The parent closes its end
 to stop the child. The child ignores SIGINT and SIGTERM, so Ctrl-C in a terminal (or a signal to the process
 group) stops only the node, which then stops the child.
 """
@@ -31,12 +33,15 @@ import select
 import signal
 import socket
 import struct
+import tempfile
 import traceback
 import weakref
 from typing import Any, Iterator
 
 import numpy as np
 
+from drivers.replay_merge import merged_packets
+from edi_live.aedat4 import Aedat4Writer
 from edi_live.datatypes import EVENT_DTYPE, Packet
 from edi_live.errors import RecordingError, SourceError
 
@@ -54,14 +59,45 @@ def _context() -> Any:
     methods = mp.get_all_start_methods()
     ctx = mp.get_context("forkserver" if "forkserver" in methods else "spawn")
     if ctx.get_start_method() == "forkserver":
-        ctx.set_forkserver_preload(["drivers.replay", "drivers.prefetch", "drivers._decoder_warm"])
+        ctx.set_forkserver_preload(["drivers.decoding_child", "drivers._forkserver_warmup"])
     return ctx
+
+
+def warm_decoder() -> None:
+    """Write a tiny recording to a temporary file and decode it once, so the AEDAT4 reader's numba kernels are
+    loaded in this process (compiled if the on-disk cache is cold). The file is always removed.
+
+    Raises SourceError naming the cause if that fails; callers that can run without it report it and go on.
+    """
+    events = np.zeros(8, EVENT_DTYPE)
+    events["t"] = np.arange(8)
+    try:
+        with tempfile.TemporaryDirectory(prefix="edi-live-warm-") as tmp:
+            path = os.path.join(tmp, "warm.aedat4")
+            with Aedat4Writer(path, 4, 4) as writer:
+                writer.write_events(events)
+            decoded = sum(len(p.events) for p in merged_packets(path))
+    except Exception as exc:  # noqa: BLE001 - any failure, bug or environment, becomes one reported error
+        raise SourceError(f"warming up the AEDAT4 decoder failed: {type(exc).__name__}: {exc}") from exc
+    if decoded != len(events):
+        raise SourceError(f"warming up the AEDAT4 decoder failed: it decoded {decoded} of {len(events)} events")
+
+
+def warm_decoder_or_warn() -> bool:
+    """`warm_decoder()`, logging a warning instead of raising: without it, each child only starts slower."""
+    try:
+        warm_decoder()
+    except SourceError as exc:
+        log.warning("%s; each decoding process loads the decoder itself (its first packet comes ~0.4 s later)", exc)
+        return False
+    return True
 
 
 def start_early() -> None:
     """Start the forkserver now, in the background: it loads the decoder's kernels while the caller does its own
     warm-up, so the first child's first packet comes in milliseconds instead of ~0.4 s. Optional and harmless to
-    repeat; a failure is left to DecodeProcess to report."""
+    repeat. A server that cannot start now is not an error yet: DecodeProcess reports it when a child is needed
+    (and the replay then decodes in its own process)."""
     ctx = _context()
     if ctx.get_start_method() != "forkserver":
         return
@@ -69,8 +105,8 @@ def start_early() -> None:
         from multiprocessing import forkserver
 
         forkserver.ensure_running()
-    except (OSError, ValueError):
-        pass
+    except (OSError, ValueError) as exc:
+        log.debug("the decoding forkserver did not start early (%s); DecodeProcess will report it", exc)
 
 
 class _ParentGone(Exception):
@@ -103,8 +139,6 @@ class _Sender:
 
 def _child(conn: Any, path: str, max_packet_us: int, loop: bool) -> None:
     """Child process: every pass's packets into the socket `conn`, in order, until the parent goes away."""
-    from drivers.replay import merged_packets  # imported here: the forkserver has it preloaded anyway
-
     conn = _Sender(conn)
     for sig in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C / kill of the whole group: the node stops us itself
         signal.signal(sig, signal.SIG_IGN)

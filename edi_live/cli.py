@@ -89,6 +89,9 @@ def build_parser() -> argparse.ArgumentParser:
                           "(default: on, except for --speed 0 replays where throughput matters)")
     edi.add_argument("--reestimate-every", type=int, metavar="K",
                      help="also re-estimate c every K APS frames (default: 0 = only when it stops fitting)")
+    edi.add_argument("--quality-every", type=int, metavar="N",
+                     help="score how well the output predicted one APS frame in N (the live quality figure; "
+                          "default: 2, 0 = off)")
     out = p.add_argument_group("output")
     out.add_argument("--publish", action="append", metavar="ENDPOINT",
                      help=f"ZeroMQ PUB endpoint, repeatable (default: {DEFAULT_ENDPOINT}; loopback only)")

@@ -121,6 +121,8 @@ class EdiConfig:
     # causal mode: deblur APS frames on a helper thread while latent frames keep flowing (lower latency, ~25 %
     # less throughput). None = automatic: on for a live camera and paced replay, off for --speed 0.
     deblur_thread: bool | None = None
+    # the live prediction figure (edi_live.quality): score one APS frame in N; 0 = off
+    quality_every: int = 2
 
     def __post_init__(self) -> None:
         _check(isinstance(self.every, int) and not isinstance(self.every, bool) and self.every >= 1,
@@ -138,6 +140,9 @@ class EdiConfig:
         _positive_or_none("heartbeat-s", self.heartbeat_s)
         _check(isinstance(self.reestimate_every, int) and self.reestimate_every >= 0,
                f"reestimate-every must be an integer >= 0 (got {self.reestimate_every!r})")
+        _check(isinstance(self.quality_every, int) and not isinstance(self.quality_every, bool)
+               and 0 <= self.quality_every <= 1_000_000,
+               f"quality-every must be an integer in [0, 1000000] (got {self.quality_every!r})")
         _check(self.deblur_thread is None or isinstance(self.deblur_thread, bool),
                f"deblur-thread must be true or false (got {self.deblur_thread!r})")
 
@@ -292,6 +297,7 @@ OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
     "max_fps": ("edi", "max_fps", _num),
     "heartbeat_s": ("edi", "heartbeat_s", _num),
     "reestimate_every": ("edi", "reestimate_every", None),
+    "quality_every": ("edi", "quality_every", None),
     "deblur_thread": ("edi", "deblur_thread", None),
     "publish": ("publisher", "endpoints", _endpoints),
     "no_publish": ("publisher", "-", _bool("no-publish")),

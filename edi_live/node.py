@@ -131,7 +131,9 @@ class Node:
         keep = ("events_per_s", "frames_per_s", "c", "c_on", "c_off", "reestimations", "hot_pixels", "drops",
                 "ring_occupancy", "ring_dropped_events", "ring_dropped_frames", "events_in", "events_processed",
                 "aps_frames_in", "frames_deblurred", "frames_latent", "heartbeats", "skipped_max_fps",
-                "source_dropped_events", "source_gaps", "nearest_added_latency_ms_p50", "out_wait_s")
+                "source_dropped_events", "source_gaps", "nearest_added_latency_ms_p50", "out_wait_s",
+                "unreliable_pixels", "pred_psnr_db", "still_psnr_db", "pred_gain_db", "pred_psnr_active_db",
+                "still_psnr_active_db", "pred_beats_still_frac", "pred_frames_scored")
         return {k: s[k] for k in keep if k in s and s[k] is not None}
 
     @property

@@ -224,8 +224,8 @@ class PredictionScore:
 
     def on_emitted(self, rec: Reconstruction) -> list[PredictionResult]:
         """A frame the node sent, in emission order. Returns the results it completes."""
-        if not self.enabled:
-            return []
+        if not self.enabled or (self._shape is not None and rec.image.shape != self._shape):
+            return []  # not an image of this sensor's APS layout: nothing it could predict
         t, ref = int(rec.t_us), int(rec.ref_t_us)
         i = bisect.bisect_right(self._t, t)
         self._t.insert(i, t)

@@ -27,6 +27,11 @@ class Reconstructor(Protocol):
     @property
     def hot_pixels(self) -> int: ...
 
+    @property
+    def unreliable_pixels(self) -> int:
+        """Pixels whose events are ignored because they contradict the APS frames."""
+        ...
+
     def on_frame(self, frame: Frame, events: np.ndarray, arrival_ns: int = 0) -> Reconstruction:
         """Deblur `frame` (L(f) at mid-exposure, kind "deblurred"); it becomes the reference."""
         ...

@@ -85,7 +85,26 @@ def format_status(s: dict[str, Any]) -> str:
         f"c={c[0]:.3f}" if abs(c[0] - c[1]) < 1e-9 else f"c_on={c[0]:.3f} c_off={c[1]:.3f}")
     return (f"{_si(s.get('events_per_s', 0))} ev/s  {s.get('frames_per_s', 0):.0f} fps  {c_text}  "
             f"latency p50 {_ms(s.get('latency_p50_us'))} p99 {_ms(s.get('latency_p99_us'))}  "
-            f"drops {s.get('drops', 0)}  ring {100 * s.get('ring_occupancy', 0):.0f}%")
+            f"drops {s.get('drops', 0)}  ring {100 * s.get('ring_occupancy', 0):.0f}%{_prediction_short(s)}")
+
+
+def _prediction_short(s: dict[str, Any]) -> str:
+    if s.get("pred_psnr_db") is None or s.get("still_psnr_db") is None:
+        return ""
+    return f"  predicts {s['pred_psnr_db']:.1f} dB (still {s['still_psnr_db']:.1f})"
+
+
+def _prediction_line(s: dict[str, Any]) -> str | None:
+    """The summary's quality line: how well the output predicted the APS frames it had not seen yet."""
+    if s.get("pred_psnr_db") is None or s.get("still_psnr_db") is None:
+        return None
+    active = ""
+    if s.get("pred_psnr_active_db") is not None and s.get("still_psnr_active_db") is not None:
+        active = f"; at pixels with events {s['pred_psnr_active_db']:.2f} against {s['still_psnr_active_db']:.2f} dB"
+    beats = s.get("pred_beats_still_frac")
+    beats_text = "" if beats is None else f", better in {100 * beats:.0f} % of them"
+    return (f"  prediction of the next APS frame: {s['pred_psnr_db']:.2f} dB PSNR against {s['still_psnr_db']:.2f} dB "
+            f"for 'nothing moved' over {s.get('pred_frames_scored', 0)} scored frames{beats_text}{active}")
 
 
 def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
@@ -99,7 +118,8 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         f"({s.get('frames_deblurred', 0)} deblurred, {s.get('frames_latent', 0)} latent, "
         f"{s.get('heartbeats', 0)} heartbeats; {frames / el:.0f} fps)",
         f"  c_on={s.get('c_on', float('nan')):.4f} c_off={s.get('c_off', float('nan')):.4f}, "
-        f"re-estimated {s.get('reestimations', 0)} times; drops {s.get('drops', 0)} "
+        f"re-estimated {s.get('reestimations', 0)} times; ignored pixels: hot {s.get('hot_pixels', 0)}, "
+        f"unreliable {s.get('unreliable_pixels', 0)}; drops {s.get('drops', 0)} "
         f"(ring events {s.get('ring_dropped_events', 0)}, ring frames {s.get('ring_dropped_frames', 0)}, "
         f"publish {s.get('publish_dropped', 0)}, source events {s.get('source_dropped_events', 0)}); "
         f"skipped: static {s.get('skipped_static', 0)}, max-fps {s.get('skipped_max_fps', 0)}",
@@ -109,6 +129,9 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         if s.get("latency_p99_us") is not None:
             latency = f"; last-interval latency p50 {_ms(s.get('latency_p50_us'))} p99 {_ms(s['latency_p99_us'])}"
         lines.append(f"  published {s['frames_sent']} frames{latency}")
+    prediction = _prediction_line(s)
+    if prediction is not None:
+        lines.append(prediction)
     if s.get("nearest_added_latency_ms_p50") is not None:
         lines.append(f"  mode nearest: held-back frames waited {s['nearest_added_latency_ms_p50']:.2f} ms (p50)")
     if "out_frames" in s:

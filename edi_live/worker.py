@@ -42,6 +42,8 @@ import numpy as np
 from edi_live.config import EdiConfig
 from edi_live.datatypes import Reconstruction, concat_events
 from edi_live.deblur_handover import PendingDeblur
+from edi_live.nearest_mode import NearestHoldBack
+from edi_live.quality import PredictionScore
 from edi_live.reconstruction import Reconstructor
 from edi_live.ring import EventChunk, EventRing, FrameEntry
 
@@ -51,7 +53,6 @@ Sink = Callable[[Reconstruction], None]
 _T_MAX = np.iinfo(np.int64).max
 _CHUNK_EVENTS = 1 << 16  # events taken from the ring per lock (then split into every-N slices locally)
 _BATCH_FRAMES = 32  # latent frames made per reconstructor call (bounds the images held before sending)
-_MAX_DEFERRED = 4096
 _IDLE_WAIT_S = 0.25
 _MOVING_EVENTS_CAP = 100  # the threshold at the default --every 1000; larger --every values do not raise it
 _STATIC_EVENTS = 16  # fewer events than this in an exposure (and since the last frame) = a static scene
@@ -80,11 +81,12 @@ class EdiWorker:
         self._last_emit_s = 0.0
         self._last_arrival_ns = 0
         self._ref_f_us: int | None = None
-        self._interval_us: int | None = None
-        self._deferred: list[tuple[int, int]] = []  # nearest mode: (t_us, arrival_ns) waiting for the next frame
-        self._added_latency_ms: list[float] = []
+        self._nearest = NearestHoldBack()
         self._deblur_ms: collections.deque[float] = collections.deque(maxlen=256)  # on_frame wall time
         self._pending: PendingDeblur | None = None  # causal mode with deblur_thread
+        # how well the output predicted each APS frame (scored on this thread; stats() reads a copy)
+        self.quality = (PredictionScore(config.mode, score_every=config.quality_every)
+                        if config.quality_every else None)
         self.events_in = 0
         self.frames_in = 0
         self.sent = {"deblurred": 0, "latent": 0}
@@ -134,6 +136,8 @@ class EdiWorker:
                 if self._pending is not None:
                     self._adopt(wait=True)
                 self._flush_deferred()
+                if self.quality is not None:
+                    self.quality.finish()
         except BaseException as exc:
             self.error = exc
             log.debug("worker failed", exc_info=True)
@@ -166,6 +170,8 @@ class EdiWorker:
     def _on_chunk(self, chunk: EventChunk) -> None:
         n = len(chunk.events)
         self.events_in += n
+        if self.quality is not None:
+            self.quality.on_events(chunk.events)
         self._last_arrival_ns = chunk.arrival_ns_at(n)
         if self._pending is not None:
             if chunk.gap:
@@ -175,7 +181,7 @@ class EdiWorker:
         if chunk.gap:
             self.gaps += 1
             self._await_reference = True
-            self._deferred.clear()
+            self._nearest.take_all()
             self.rec.mark_gap()  # lets the c estimator skip pairs across the gap
         if self._await_reference or not self.rec.has_reference:
             self._since += n
@@ -224,21 +230,16 @@ class EdiWorker:
         if self.config.max_fps is not None and now - self._last_emit_s < 1.0 / self.config.max_fps:
             self.skipped_max_fps += 1
             return
-        if self._should_defer(t_us):
-            self._deferred.append((t_us, arrival_ns))
+        if self.config.mode == "nearest" and self._nearest.should_hold(t_us, self._ref_f_us):
+            self._nearest.held.append((t_us, arrival_ns))
             return
         self._emit(self.rec.render())
-
-    def _should_defer(self, t_us: int) -> bool:
-        if self.config.mode != "nearest" or self._ref_f_us is None or self._interval_us is None:
-            return False
-        if len(self._deferred) >= _MAX_DEFERRED:
-            return False
-        return t_us > self._ref_f_us + self._interval_us // 2
 
     def _on_frame(self, entry: FrameEntry) -> None:
         frame = entry.frame
         self.frames_in += 1
+        if self.quality is not None:
+            self.quality.on_aps_frame(frame)
         t0 = time.perf_counter()
         events = self.ring.window(frame.exposure_start_us, _T_MAX)  # exposure start .. read cursor
         if self._static_frame(len(events)):
@@ -259,18 +260,16 @@ class EdiWorker:
             self._pending = PendingDeblur(master, entry, events, arrival, send, self.ring.poke)
             self.busy_s += time.perf_counter() - t0
             return
-        early = self._take_deferred_before((self._ref_f_us + f_us) // 2 if self._ref_f_us is not None else None)
+        early = self._nearest.take_before((self._ref_f_us + f_us) // 2 if self._ref_f_us is not None else None)
         out = [self._render_at(t, a) for t, a in early]  # still from the previous reference
         first = not self.rec.has_reference
         t_deblur = time.perf_counter()
         deblurred = self.rec.on_frame(frame, events, arrival)
         self._deblur_ms.append((time.perf_counter() - t_deblur) * 1e3)
-        if self._ref_f_us is not None and f_us > self._ref_f_us:
-            self._interval_us = f_us - self._ref_f_us
+        self._nearest.new_reference(self._ref_f_us, f_us)
         self._ref_f_us = f_us
         self._await_reference = False
-        late = self._deferred
-        self._deferred = []
+        late = self._nearest.take_all()
         out.extend(self._render_at(t, a) for t, a in late)  # from the new, nearer reference
         if first or out or self._moving(len(events)):
             out.append(deblurred)
@@ -328,13 +327,6 @@ class EdiWorker:
             return False
         return time.monotonic() - self._last_deblur_s < self.config.heartbeat_s
 
-    def _take_deferred_before(self, mid_us: int | None) -> list[tuple[int, int]]:
-        if mid_us is None or not self._deferred:
-            return []
-        early = [d for d in self._deferred if d[0] < mid_us]
-        self._deferred = [d for d in self._deferred if d[0] >= mid_us]
-        return early
-
     def _render_at(self, t_us: int, arrival_ns: int) -> Reconstruction:
         """nearest mode: the latent image at t_us from the current reference, with the held-back latency."""
         f_us = self._ref_f_us if self._ref_f_us is not None else t_us
@@ -342,16 +334,13 @@ class EdiWorker:
         events = self.ring.window(lo, hi + 1, end_index=self.ring.read_index)
         rec = self.rec.render_from_reference(t_us, events)
         if arrival_ns:
-            self._added_latency_ms.append((time.monotonic_ns() - arrival_ns) / 1e6)
-            if len(self._added_latency_ms) > 10_000:
-                del self._added_latency_ms[:5_000]
+            self._nearest.waited(arrival_ns)
         return dataclasses.replace(rec, arrival_ns=arrival_ns)
 
     def _flush_deferred(self) -> None:
-        if not self._deferred or not self.rec.has_reference:
+        if not self._nearest.held or not self.rec.has_reference:
             return
-        pending, self._deferred = self._deferred, []
-        for t, a in pending:
+        for t, a in self._nearest.take_all():
             self._emit(self._render_at(t, a))
 
     def _heartbeat(self) -> None:
@@ -365,6 +354,8 @@ class EdiWorker:
         self._since = 0
         self._last_emit_s = time.monotonic()
         self.sent[rec.kind] = self.sent.get(rec.kind, 0) + 1
+        if self.quality is not None:
+            self.quality.on_emitted(rec)
         for sink in self.sinks:
             sink(rec)
 
@@ -373,7 +364,6 @@ class EdiWorker:
     def stats(self) -> dict[str, Any]:
         rec = self.rec
         c_on, c_off = float(rec.c_on), float(rec.c_off)
-        lat = list(self._added_latency_ms)
         deblur = list(self._deblur_ms)
         return {
             "events_processed": self.events_in,
@@ -393,5 +383,7 @@ class EdiWorker:
             "worker_busy_s": round(self.busy_s, 3),
             "deblur_ms_p50": round(float(np.median(deblur)), 3) if deblur else None,
             "deblur_ms_max": round(float(np.max(deblur)), 3) if deblur else None,
-            "nearest_added_latency_ms_p50": round(float(np.median(lat)), 3) if lat else None,
+            "nearest_added_latency_ms_p50": self._nearest.waited_ms_p50(),
+            "unreliable_pixels": int(rec.unreliable_pixels),
+            **(self.quality.stats() if self.quality is not None else {}),
         }

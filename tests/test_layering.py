@@ -42,7 +42,7 @@ STAGES = (
     ("ring", ("edi_live.ring", "edi_live.ring_buffer")),
     ("worker", ("edi_live.worker", "edi_live.deblur_handover", "edi_live.reconstructor", "edi_live.reconstruction",
                 "edi_live.edi", "edi_live.contrast", "edi_live.c_policy", "edi_live.contrast_tracking",
-                "edi_live.latent_state", "edi_live.pixel_masks", "edi_live.quality")),
+                "edi_live.latent_state", "edi_live.pixel_masks", "edi_live.quality", "edi_live.nearest_mode")),
     ("publisher", ("edi_live.publisher", "edi_live.writers")),
 )
 NODE = ("edi_live.node", "edi_live.cli", "edi_live.__main__")

@@ -296,3 +296,17 @@ def test_scoring_one_frame_in_n():
     every, _, _ = run_bar_scene(bright=200, n_frames=7)
     third, _, _ = run_bar_scene(bright=200, n_frames=7, score=PredictionScore(score_every=3))
     assert [r.seq for r in third] == [2, 5] and all(r == every[r.seq - 1] for r in third)
+
+
+def test_frames_of_another_shape_are_ignored_not_fatal():
+    from edi_live.datatypes import Frame, Reconstruction
+    from edi_live.quality import PredictionScore
+
+    score = PredictionScore("causal")
+    aps = np.full((4, 6), 100, np.uint8)
+    score.on_aps_frame(Frame(aps, 0, 1000, 0, 1000, 0))
+    odd = Reconstruction(np.zeros((2, 2), np.uint8), 500, "deblurred", 500, 0, 1000, 0.2, 0.2, 0)
+    assert score.on_emitted(odd) == []
+    score.on_aps_frame(Frame(aps, 2000, 3000, 2000, 3000, 1))
+    score.finish()
+    assert score.stats()["pred_psnr_db"] is None  # nothing of the right shape was sent: unscored, not an error

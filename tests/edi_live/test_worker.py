@@ -30,6 +30,7 @@ class StandIn:
         self.c_on = self.c_off = 0.2
         self.reestimations = 0
         self.hot_pixels = 0
+        self.unreliable_pixels = 0
         self.gaps_marked = 0
         self.ref_f = None
         self.t = None

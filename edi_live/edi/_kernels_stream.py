@@ -165,11 +165,12 @@ def _u8(v, v0, scale, bucket_u8, bucket_thr):
 
 
 @njit(cache=True, nogil=True)
-def finish_frame_u8(img, sat, lut_log, lut_u8, pixels, log_d, delta_end, lo, hi, log_ref, deblurred, log_lat,
+def finish_frame_u8(img, sat, dark, lut_log, lut_u8, pixels, log_d, delta_end, lo, hi, log_ref, deblurred, log_lat,
                     display, v0, scale, bucket_u8, bucket_thr):
     """One pass for what follows the divisor of a uint8 APS frame: log L(f) (log B minus log D at the active
     informative pixels, clipped), its uint8 image, the latent log image at te (plus the f->te exponent) and its
-    uint8 image. Inactive pixels come from 256-entry tables of log(max(B, floor)) and its uint8 rendering;
+    uint8 image. Pixels at or below `dark` (the black level) or at/above `sat` are not divided. Inactive pixels
+    come from 256-entry tables of log(max(B - black level, floor)) and its uint8 rendering;
     active ones are rendered through the bucket tables (v0, scale, bucket_u8, bucket_thr) instead of exp."""
     for q in range(img.size):
         i = img[q]
@@ -183,7 +184,7 @@ def finish_frame_u8(img, sat, lut_log, lut_u8, pixels, log_d, delta_end, lo, hi,
         q = pixels[r]
         i = img[q]
         v = lut_log[i]
-        if i > 0 and i < sat:
+        if i > dark and i < sat:
             v = v - np.float32(log_d[r])
             v = min(max(v, lo), hi)
             log_ref[q] = v

@@ -14,13 +14,22 @@ from edi_live.edi.levels import LevelTable, build_level_table, log_divisor
 from edi_live.edi.selection import window
 
 
-def blurry_to_float(image: np.ndarray, *, saturation: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+def blurry_to_float(image: np.ndarray, *, saturation: float | None = None,
+                    black_level: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """APS image (uint8/uint16/float) -> (B on the 8-bit scale as float32, informative mask).
 
-    A pixel is uninformative when it is at 0 or at/above `saturation` (default: full scale of the dtype):
-    a clipped value does not equal the mean of the latent intensity, so dividing it would be wrong.
+    `black_level` (8-bit scale) is the APS value of no light: it is subtracted, so B is linear in intensity.
+    A pixel is uninformative when it is at or below the black level or at/above `saturation` (default: full
+    scale of the dtype): a clipped value does not equal the mean of the latent intensity, so dividing it would
+    be wrong.
     """
     img = np.asarray(image)
+    if black_level:
+        b, informative = blurry_to_float(img, saturation=saturation)
+        informative &= b > black_level
+        b -= np.float32(black_level)
+        np.maximum(b, 0.0, out=b)
+        return b, informative
     if img.dtype == np.uint8:
         # the general path below gives exactly this: B = img (scale 1), always finite and >= 0
         sat = 255.0 if saturation is None else float(saturation)
@@ -114,19 +123,22 @@ def log_divisor_events(events: np.ndarray, width: int, height: int, exposure_sta
 
 
 def finish_frame_u8(image: np.ndarray, saturation: float, divisor: tuple[np.ndarray, np.ndarray, np.ndarray],
-                    log_ref: np.ndarray, deblurred: np.ndarray, log_lat: np.ndarray, display: np.ndarray) -> None:
+                    log_ref: np.ndarray, deblurred: np.ndarray, log_lat: np.ndarray, display: np.ndarray, *,
+                    black_level: float = 0.0) -> None:
     """What follows the divisor of a uint8 APS frame, into the given (H, W) arrays: log L(f) (log B minus log D
     at the active informative pixels, clipped) and its uint8 image; the latent log image at te (L(f) plus the
-    f -> te exponent of `divisor`, from log_divisor_events) and its uint8 image. One pass with the kernels."""
+    f -> te exponent of `divisor`, from log_divisor_events) and its uint8 image, B taken above `black_level`
+    (see blurry_to_float). One pass with the kernels."""
     pixels, log_d, delta_end = divisor
     if _backend.have_numba():
-        lut_log, lut_u8 = u8_tables()
-        _kernels_stream.finish_frame_u8(np.ascontiguousarray(image).reshape(-1), float(saturation), lut_log, lut_u8,
+        lut_log, lut_u8 = u8_tables(float(black_level))
+        _kernels_stream.finish_frame_u8(np.ascontiguousarray(image).reshape(-1), float(saturation),
+                                        float(black_level), lut_log, lut_u8,
                                         pixels, log_d, delta_end, np.float32(LOG_MIN), np.float32(LOG_MAX),
                                         log_ref.reshape(-1), deblurred.reshape(-1), log_lat.reshape(-1),
                                         display.reshape(-1), *render_buckets())
         return
-    b, informative = blurry_to_float(image, saturation=saturation)
+    b, informative = blurry_to_float(image, saturation=saturation, black_level=black_level)
     ref = deblur_log(b, None, 1.0, informative=informative, divisor=(pixels, log_d))
     log_ref[...] = ref
     deblurred[...] = to_uint8(ref)

@@ -115,10 +115,11 @@ def to_uint8(log_values: np.ndarray, gain: float = 1.0) -> np.ndarray:
     return np.clip(v + 0.5, 0.0, 255.0).astype(np.uint8)
 
 
-@functools.lru_cache(maxsize=1)
-def u8_tables() -> tuple[np.ndarray, np.ndarray]:
-    """For every uint8 B: log L(f) where no event moved it (clipped log(max(B, floor))), and its uint8 image."""
-    b = np.arange(256, dtype=np.float32)
+@functools.lru_cache(maxsize=64)
+def u8_tables(black_level: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """For every uint8 B: log L(f) where no event moved it (clipped log(max(B - black_level, floor))), and its
+    uint8 image."""
+    b = np.maximum(np.arange(256, dtype=np.float32) - np.float32(black_level), np.float32(0.0))
     log_b = np.clip(np.log(np.maximum(b, DARK_FLOOR)), LOG_MIN, LOG_MAX).astype(np.float32)
     return log_b, to_uint8(log_b)
 

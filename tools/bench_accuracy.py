@@ -10,8 +10,8 @@ Methods: the blurry frame; direct integration from the blurry frame; the complem
 the `EdiReconstructor` default. Prints a markdown table and saves a PSNR-versus-ms plot (the run-time/error
 trade-off across c-search settings) to docs/bench_accuracy.png.
 
-    python tools/bench_accuracy.py            # full suite, a few minutes on one core
-    python tools/bench_accuracy.py --quick    # 4 short scenes
+    python -m tools.bench_accuracy            # full suite, a few minutes on one core
+    python -m tools.bench_accuracy --quick    # 4 short scenes
 """
 
 from __future__ import annotations
@@ -34,11 +34,9 @@ from typing import Callable, Iterator  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-if __package__ in (None, ""):
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
+from edi_live.simulation import (SKIMAGE_TEXTURES, SceneConfig, Simulation, preset, simulate,  # noqa: E402
+                                 write_aedat4)
 from tools import baselines as bl  # noqa: E402
-from tools.simulate import SKIMAGE_TEXTURES, SceneConfig, Simulation, preset, simulate  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 cv2.setNumThreads(1)
@@ -630,7 +628,6 @@ def node_end_to_end(cfg: SceneConfig, workdir: Path, *, every: int = 2000, log=p
     import subprocess
 
     from edi_live.aedat4.reader import Aedat4Reader
-    from tools.simulate import write_aedat4
 
     workdir.mkdir(parents=True, exist_ok=True)
     rec, out = workdir / "e2e_in.aedat4", workdir / "e2e_out.aedat4"
@@ -683,7 +680,7 @@ def node_end_to_end(cfg: SceneConfig, workdir: Path, *, every: int = 2000, log=p
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python tools/bench_accuracy.py", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m tools.bench_accuracy", description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="4 short scenes instead of 8, no sweep")
     ap.add_argument("--no-sweep", action="store_true", help="skip the c-search resolution sweep")
     ap.add_argument("--pitfalls", action="store_true",
@@ -720,7 +717,7 @@ def main(argv: list[str] | None = None) -> int:
         print(per_scene_tables(pit, methods))
     if args.plot:
         save_plot(args.plot, results, methods, sweep_results,
-                  title=f"python tools/bench_accuracy.py{' --quick' if args.quick else ''}: {len(scenes)} scenes")
+                  title=f"python -m tools.bench_accuracy{' --quick' if args.quick else ''}: {len(scenes)} scenes")
         print(f"\nplot: {args.plot}")
     print(f"\nwall time {time.perf_counter() - t0:.0f} s (numba kernels: "
           f"{'on' if _have_numba() else 'off'})")

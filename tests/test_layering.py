@@ -25,7 +25,10 @@ PURE_MATH = ("edi_live/edi.py", "edi_live/contrast.py", "edi_live/reconstructor.
 PURE_MATH_ALLOWED = {"numpy", "cv2", "numba", "edi_live"}
 PURE_MATH_ALLOWED_EDI = {"edi_live.datatypes", "edi_live.errors", "edi_live.config", "edi_live.edi",
                          "edi_live.contrast", "edi_live._jit"}
-DRIVERS_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.source", "edi_live.errors", "edi_live.aedat4")
+DRIVERS_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.source", "edi_live.errors", "edi_live.aedat4",
+                       "edi_live.simulation")  # the emulator's generated scene
+# the simulator is the ground truth: it must not use the EDI code it is there to judge
+SIMULATION_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.errors", "edi_live.aedat4", "edi_live.simulation")
 
 
 def _imports(path: Path):
@@ -56,6 +59,9 @@ def _violations() -> list[str]:
                     found.append(f"{where}: pure-math modules import only stdlib, numpy, cv2, numba, datatypes")
             if rel.startswith("edi_live/") and top == "drivers" and rel != "edi_live/cli.py":
                 found.append(f"{where}: within edi_live only cli.py may import drivers")
+            if rel.startswith("edi_live/simulation/") and top == "edi_live" \
+                    and not name.startswith(SIMULATION_ALLOWED_EDI):
+                found.append(f"{where}: the simulator may use only {SIMULATION_ALLOWED_EDI} from edi_live")
             if rel.startswith("drivers/") and top == "edi_live" and not name.startswith(DRIVERS_ALLOWED_EDI) \
                     and name != "edi_live":
                 found.append(f"{where}: drivers may use only {DRIVERS_ALLOWED_EDI} from edi_live")
@@ -70,9 +76,14 @@ def test_rules_catch_a_violation(tmp_path, monkeypatch):
     # The checker itself must be able to fail: plant a bad import and see it reported.
     bad = REPO / "edi_live" / "_layering_probe_tmp.py"
     bad.write_text("import zmq\nfrom drivers import replay\n")
+    sim_bad = REPO / "edi_live" / "simulation" / "_layering_probe_tmp.py"
+    sim_bad.write_text("from edi_live import edi\nfrom edi_live.simulation import config\n")
     try:
         found = _violations()
     finally:
         bad.unlink()
+        sim_bad.unlink()
     assert any("_layering_probe_tmp.py:1 imports zmq" in v for v in found)
     assert any("_layering_probe_tmp.py:2 imports drivers" in v for v in found)
+    assert any("simulation/_layering_probe_tmp.py:1 imports edi_live" in v for v in found)
+    assert not any("simulation/_layering_probe_tmp.py:2" in v for v in found)

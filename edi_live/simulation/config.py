@@ -58,13 +58,15 @@ class SceneConfig:
     flicker_depth: float = 0.4  # lamp intensity = level * (1 + depth * sin(2 pi f t))
     flicker_level: float = 0.55  # the lamp's mean linear intensity (fraction of full scale)
     flicker_region: tuple[float, float, float] = (0.72, 0.3, 0.14)  # centre x, y (fractions of w, h), radius (of h)
+    texture_anchor: str = "top-left"  # where a photograph is cropped: "top-left" or "centre"
+    texture_stretch: tuple[float, float] = (0.0, 100.0)  # texture percentiles mapped onto intensity_range
     ref_jitter: float = 0.0  # initial reference level offset, uniform +/- ref_jitter * min(c_on, c_off) per pixel
     effects: tuple[str, ...] = ()  # the named camera effects switched on (camera.EFFECTS), for the record
 
 
 # fields that the ground-truth file leaves out while they hold their default (files stay as they were)
 LATER_FIELDS = ("shot_noise_hz", "shot_noise_dark", "flicker_hz", "flicker_depth", "flicker_level",
-                "flicker_region", "ref_jitter", "effects")
+                "flicker_region", "texture_anchor", "texture_stretch", "ref_jitter", "effects")
 
 PRESETS: dict[str, dict] = {
     # README's first command: short, blurry, DAVIS240-sized, a few seconds of CPU
@@ -111,6 +113,8 @@ def validate(cfg: SceneConfig) -> None:
                  "shot_noise_hz", "flicker_hz", "ref_jitter", "aps_offset_dn"):
         if not getattr(cfg, name) >= 0:  # also catches NaN
             raise ValueError(f"{name} must be >= 0 (got {getattr(cfg, name)})")
+    if cfg.texture_anchor not in ("top-left", "centre"):
+        raise ValueError(f"texture_anchor must be 'top-left' or 'centre' (got {cfg.texture_anchor!r})")
     if not cfg.aps_gamma > 0:
         raise ValueError(f"aps_gamma must be > 0 (got {cfg.aps_gamma})")
     if not 0 < cfg.shot_noise_dark <= 1:

@@ -57,14 +57,18 @@ def _skimage_texture(name: str) -> np.ndarray:
 
 
 def make_texture(name: str, height: int, width: int, *, seed: int = 0,
-                 intensity_range: tuple[float, float] = (0.05, 0.95)) -> np.ndarray:
+                 intensity_range: tuple[float, float] = (0.05, 0.95), anchor: str = "top-left",
+                 stretch: tuple[float, float] = (0.0, 100.0)) -> np.ndarray:
     """A float32 (height, width) texture with linear intensities in `intensity_range` (strictly positive).
 
     Procedural names ("blocks", "noise", "stripes") use numpy only; scikit-image names ("camera",
-    "astronaut", "brick", "grass", ...) are resized/tiled to the canvas. A light blur (optics) keeps the
+    "astronaut", "brick", "grass", ...) are enlarged to cover the canvas and cropped at its top-left corner
+    or, with anchor="centre", around the photograph's centre (small canvases: the subject). A light blur (optics) keeps the
     texture band-limited so sub-pixel warps and log-linear interpolation between render steps are accurate.
+    `stretch` (percentiles) maps the texture's range onto `intensity_range`, clipping what lies outside.
     """
     rng = np.random.default_rng(seed)
+    bounds = None  # percentiles of the whole photograph, so the crop does not change the stretch
     if name in PROCEDURAL_TEXTURES:
         img = _procedural(name, height, width, rng)
     elif name in SKIMAGE_TEXTURES:
@@ -72,11 +76,18 @@ def make_texture(name: str, height: int, width: int, *, seed: int = 0,
         scale = max(height / src.shape[0], width / src.shape[1], 1.0)
         if scale > 1.0:
             src = cv2.resize(src, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
-        img = src[:height, :width]
+        y0, x0 = ((src.shape[0] - height) // 2, (src.shape[1] - width) // 2) if anchor == "centre" else (0, 0)
+        img = src[y0:y0 + height, x0:x0 + width]
+        if tuple(stretch) != (0.0, 100.0):
+            bounds = np.percentile(cv2.GaussianBlur(src, (0, 0), 0.8), stretch)
     else:
         raise ValueError(f"unknown texture {name!r}; choose from {PROCEDURAL_TEXTURES + SKIMAGE_TEXTURES}")
     img = cv2.GaussianBlur(img, (0, 0), 0.8)
     lo, hi = intensity_range
-    mn, mx = float(img.min()), float(img.max())
-    img = (img - mn) / max(mx - mn, 1e-6)
+    if tuple(stretch) == (0.0, 100.0):
+        mn, mx = float(img.min()), float(img.max())
+        img = (img - mn) / max(mx - mn, 1e-6)
+    else:
+        mn, mx = (float(v) for v in (np.percentile(img, stretch) if bounds is None else bounds))
+        img = np.clip((img - mn) / max(mx - mn, 1e-6), 0.0, 1.0)
     return (lo + (hi - lo) * img).astype(np.float32)

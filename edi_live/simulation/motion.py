@@ -29,7 +29,8 @@ class Renderer:
         margin = int(min(reach, 4 * max(w, h))) + max(w, h) // 2 + 8
         self.canvas_w, self.canvas_h = w + 2 * margin, h + 2 * margin
         self.texture = make_texture(cfg.texture, self.canvas_h, self.canvas_w, seed=cfg.seed,
-                                    intensity_range=cfg.intensity_range, anchor=cfg.texture_anchor, stretch=cfg.texture_stretch)
+                                    intensity_range=cfg.intensity_range, anchor=cfg.texture_anchor,
+                                    stretch=cfg.texture_stretch)
         self.lamp = None  # canvas weight in [0, 1] of the flickering lamp (None: no lamp)
         if cfg.flicker_hz > 0:
             self.lamp = self._lamp_mask()

@@ -82,6 +82,7 @@ def load_ground_truth(path: str | Path) -> dict:
     stored = json.loads(str(out.pop("config_json")))
     out["config"] = {**_DEFAULTS, **stored}
     fields = {f.name for f in dataclasses.fields(SceneConfig)}
-    cfg = SceneConfig(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in out["config"].items() if k in fields})
+    cfg = SceneConfig(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in out["config"].items()
+                         if k in fields})
     out["camera"] = true_camera(cfg, out["c_on_map"], out["c_off_map"], out["hot_pixel_xy"])
     return out

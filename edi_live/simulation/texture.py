@@ -88,6 +88,7 @@ def make_texture(name: str, height: int, width: int, *, seed: int = 0,
         mn, mx = float(img.min()), float(img.max())
         img = (img - mn) / max(mx - mn, 1e-6)
     else:
-        mn, mx = (float(v) for v in (np.percentile(img, stretch) if bounds is None else bounds))
+        lo_hi = np.percentile(img, stretch) if bounds is None else bounds
+        mn, mx = float(lo_hi[0]), float(lo_hi[1])
         img = np.clip((img - mn) / max(mx - mn, 1e-6), 0.0, 1.0)
     return (lo + (hi - lo) * img).astype(np.float32)

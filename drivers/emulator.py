@@ -31,9 +31,9 @@ import usb.core
 
 from drivers.davis import models, protocol as P
 from drivers.davis.encoder import WordEncoder
-from drivers.davis.scene import generated_scene
 from drivers.davis.wordstream import WordStream
 from edi_live.datatypes import Packet
+from edi_live.simulation.stream import generated_scene
 
 _FAULTS = {"no_device", "permission_denied", "busy", "logic_version", "logic_patch", "firmware",
            "unplug_after_bytes", "replug_after_s", "garbage_words", "drop_words", "reset_at_us", "serial", "width",

@@ -33,7 +33,10 @@ PURE_MATH_ALLOWED = {"numpy", "cv2", "numba", "edi_live"}
 PURE_MATH_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.errors", "edi_live.edi", "edi_live.contrast",
                          "edi_live.c_policy", "edi_live.contrast_tracking", "edi_live.latent_state",
                          "edi_live.pixel_masks", "edi_live.reconstruction", "edi_live.ring_buffer")
-DRIVERS_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.source", "edi_live.errors", "edi_live.aedat4")
+DRIVERS_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.source", "edi_live.errors", "edi_live.aedat4",
+                       "edi_live.simulation")  # the emulator's generated scene
+# the simulator is the ground truth: it must not use the EDI code it is there to judge
+SIMULATION_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.errors", "edi_live.aedat4", "edi_live.simulation")
 
 # The data flows driver -> ring -> worker -> publisher (and the other sinks): a stage imports no later stage and
 # no module of the node. A module belongs to a stage if its name is one listed or lies below one listed.
@@ -135,6 +138,9 @@ def _violations(root: Path = REPO) -> list[str]:
                 found.append(f"{where}: the EDI kernels are private to edi_live.edi; use its public functions")
             if rel.startswith("edi_live/") and top == "drivers" and rel != "edi_live/cli.py":
                 found.append(f"{where}: within edi_live only cli.py may import drivers")
+            if rel.startswith("edi_live/simulation/") and top == "edi_live" \
+                    and not name.startswith(SIMULATION_ALLOWED_EDI):
+                found.append(f"{where}: the simulator may use only {SIMULATION_ALLOWED_EDI} from edi_live")
             if rel.startswith("drivers/") and top == "edi_live" and not name.startswith(DRIVERS_ALLOWED_EDI) \
                     and name != "edi_live":
                 found.append(f"{where}: drivers may use only {DRIVERS_ALLOWED_EDI} from edi_live")
@@ -172,6 +178,8 @@ def test_rules_catch_every_kind_of_violation(tmp_path):
         "drivers/davis/__init__.py": "",
         "drivers/davis/device.py": "from importlib import import_module\nimport_module('..replay', 'drivers.davis')\n"
                                    "import_module('edi_live.worker')\n",
+        "edi_live/simulation/__init__.py": "",
+        "edi_live/simulation/probe.py": "from edi_live import edi\nfrom edi_live.simulation import config\n",
     })
     found = _violations(tmp_path)
     expected = [
@@ -183,8 +191,10 @@ def test_rules_catch_every_kind_of_violation(tmp_path):
         "edi_live/stats.py:2 imports drivers: within edi_live only cli.py",
         "drivers/replay.py:1 imports edi_live.ring: the driver stage imports the later ring",
         "drivers/davis/device.py:3 imports edi_live.worker: the driver stage imports the later worker",
+        "edi_live/simulation/probe.py:1 imports edi_live: the simulator may use only",  # the judge uses no EDI
     ]
     for text in expected:
         assert any(v.startswith(text) for v in found), (text, found)
     # a relative import_module resolves against its package: ..replay from drivers.davis is drivers.replay
     assert not any("device.py:2" in v for v in found), found
+    assert not any("probe.py:2" in v for v in found), found

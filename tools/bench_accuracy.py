@@ -10,8 +10,13 @@ Methods: the blurry frame; direct integration from the blurry frame; the complem
 the `EdiReconstructor` default. Prints a markdown table and saves a PSNR-versus-ms plot (the run-time/error
 trade-off across c-search settings) to docs/bench_accuracy.png.
 
-    python tools/bench_accuracy.py            # full suite, a few minutes on one core
-    python tools/bench_accuracy.py --quick    # 4 short scenes
+The realistic-camera section (`--realistic`) scores the blurry frame, the default node and an EDI that knows
+the true camera (true c_on/c_off, events moved back by the true clock offset, APS linearised with the true black
+level and response, hot pixels masked) on scenes with mixes of camera effects and each effect alone.
+
+    python -m tools.bench_accuracy                       # full suite, a few minutes on one core
+    python -m tools.bench_accuracy --quick               # 4 short scenes
+    python -m tools.bench_accuracy --realistic [--quick] # the realistic-camera section
 """
 
 from __future__ import annotations
@@ -34,11 +39,9 @@ from typing import Callable, Iterator  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-if __package__ in (None, ""):
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
+from edi_live.simulation import (EFFECTS, SKIMAGE_TEXTURES, SceneConfig, Simulation, linearise_aps,  # noqa: E402
+                                 preset, simulate, with_effects, write_aedat4)
 from tools import baselines as bl  # noqa: E402
-from tools.simulate import SKIMAGE_TEXTURES, SceneConfig, Simulation, preset, simulate  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 cv2.setNumThreads(1)
@@ -630,7 +633,6 @@ def node_end_to_end(cfg: SceneConfig, workdir: Path, *, every: int = 2000, log=p
     import subprocess
 
     from edi_live.aedat4.reader import Aedat4Reader
-    from tools.simulate import write_aedat4
 
     workdir.mkdir(parents=True, exist_ok=True)
     rec, out = workdir / "e2e_in.aedat4", workdir / "e2e_out.aedat4"
@@ -682,15 +684,146 @@ def node_end_to_end(cfg: SceneConfig, workdir: Path, *, every: int = 2000, log=p
     return "\n".join(lines)
 
 
+# --------------------------------------------------------------------------------------------- realistic camera
+
+def realistic_suite(quick: bool = False) -> list[tuple[str, str, SceneConfig]]:
+    """(group, label, config): the realistic-camera scenes. 'mix': scenes with different mixes of effects (the
+    means are over these); 'alone': one base scene with each effect alone, then all together."""
+    d = 0.25 if quick else 0.5
+    base = preset("translate", texture=_texture("camera"), velocity_px_s=(200.0, 50.0), duration_s=d, seed=21,
+                  latent_per_interval=4)
+    mixes = [
+        ("blocks 300 px/s: thresholds, clock offset, black level",
+         preset("translate", texture=_texture("blocks"), velocity_px_s=(300.0, 40.0), duration_s=d, seed=22),
+         ("thresholds", "clock_offset", "black_level")),
+        ("brick rotate: response, read noise, refractory, background",
+         preset("rotate", texture=_texture("brick"), rotation_deg_s=90.0, duration_s=d, seed=23),
+         ("response", "read_noise", "refractory", "background")),
+        ("grass zoom: hot pixels, flicker, thresholds",
+         preset("zoom", texture=_texture("grass"), zoom_per_s=1.0, duration_s=d, seed=24),
+         ("hot_pixels", "flicker", "thresholds")),
+        ("astronaut fast: clock offset, response, flicker, refractory",
+         preset("fast", texture=_texture("astronaut"), velocity_px_s=(450.0, 100.0), duration_s=d, seed=25),
+         ("clock_offset", "response", "flicker", "refractory")),
+        ("346x260 camera: all effects",
+         preset("davis346", texture=_texture("camera"), oscillation_period_s=0.0, velocity_px_s=(250.0, 60.0),
+                duration_s=d, seed=26), ("all",)),
+    ]
+    out = [("mix", label, with_effects(cfg, *names)) for label, cfg, names in mixes]
+    if quick:
+        return [out[0], out[4], ("alone", "camera 200 px/s: all effects", with_effects(base, "all"))]
+    out.append(("alone", "camera 200 px/s: ideal camera", base))
+    out += [("alone", f"camera 200 px/s: {name} alone", with_effects(base, name)) for name in EFFECTS]
+    out.append(("alone", "camera 200 px/s: all effects", with_effects(base, "all")))
+    return out
+
+
+def oracle_inputs(sim: Simulation) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+    """What an EDI that knows the true camera feeds itself: events moved back by the true clock offset with
+    the hot pixels' events removed, and each APS frame linearised with the true black level and response
+    (float, 0..255) beside its informative mask (neither clipped at 0 nor saturated)."""
+    cam = sim.camera()
+    cfg = sim.config
+    ev = sim.events.copy()
+    ev["t"] -= int(cam["event_offset_us"])
+    if len(cam["hot_pixel_xy"]):
+        hot = np.zeros((cfg.height, cfg.width), bool)
+        hot[cam["hot_pixel_xy"][:, 1], cam["hot_pixel_xy"][:, 0]] = True
+        ev = ev[~hot[ev["y"], ev["x"]]]
+    frames = [(linearise_aps(cfg, f.image).astype(np.float32), (f.image > 0) & (f.image < 255)) for f in sim.frames]
+    return ev, frames
+
+
+def run_oracle_camera(sim: Simulation) -> Outputs:
+    """EDI (edi_live.edi's public functions) with the true c_on/c_off on inputs corrected with the true camera."""
+    from edi_live import edi
+
+    cfg = sim.config
+    cam = sim.camera()
+    c_on, c_off = float(cam["c_on"]), float(cam["c_off"])
+    out = Outputs(note=f"c_on={c_on:g} c_off={c_off:g}, offset {cam['event_offset_us']} µs, "
+                       f"black {cam['aps_offset_dn']:g} DN, gamma {cam['aps_gamma']:g}, {len(cam['hot_pixel_xy'])} hot")
+    mids, lat = _gt_targets(sim)
+    ev, frames = oracle_inputs(sim)
+    for k, (f, (b, informative)) in enumerate(zip(sim.frames, frames)):
+        t0 = _cpu()
+        table = edi.build_level_table(ev, cfg.width, cfg.height, f.exposure_start_us, f.exposure_end_us,
+                                      segments=c_on != c_off)
+        log_l = edi.deblur_log(b, table, c_on, c_off, informative=informative)
+        out.deblurred[mids[k]] = (np.exp(log_l), (_cpu() - t0) * 1e3)
+        state, t_state = log_l.copy(), table.ref_t_us
+        for g in lat.get(k, []):
+            t0 = _cpu()
+            t = int(sim.gt_t_us[g])
+            edi.propagate_log(state, _events_between(ev, t_state, t), c_on, c_off)
+            t_state = t
+            out.latent[g] = (np.exp(state), (_cpu() - t0) * 1e3)
+    return out
+
+
+REALISTIC_METHODS = (("blurry frame", run_blurry), ("EDI default (reconstructor)", lambda s: run_reconstructor(s)),
+                     ("EDI oracle camera (edi.py)", run_oracle_camera))
+
+
+def run_realistic(quick: bool = False, *, log=print) -> list[tuple[str, str, dict[str, Score]]]:
+    """Score blurry frame, default node and oracle on every realistic-camera scene."""
+    rows = []
+    for group, label, cfg in realistic_suite(quick):
+        sim = simulate(cfg)
+        log(f"# {label}: {sim.events.size} events ({int(sim.is_noise.sum())} noise), {len(sim.frames)} APS frames")
+        rows.append((group, label, {name: score(sim, runner(sim)) for name, runner in REALISTIC_METHODS}))
+    return rows
+
+
+def realistic_table(rows) -> str:
+    """Per scene PSNR/SSIM at f and latent for each method, the default's gap to the oracle, and the mean
+    over the mixed scenes."""
+    names = [n for n, _ in REALISTIC_METHODS]
+    short = {"blurry frame": "blurry", "EDI default (reconstructor)": "default", "EDI oracle camera (edi.py)": "oracle"}
+    head = " | ".join(f"{short[n]} PSNR f | {short[n]} PSNR lat" for n in names)
+    lines = [f"| scene | {head} | default - oracle f (dB) | default - oracle lat (dB) | SSIM f b/d/o | "
+             "SSIM lat b/d/o |", "|---|" + "---:|" * (2 * len(names) + 4)]
+
+    def line(label, per):
+        vals = " | ".join(f"{per[n].psnr_deblur:.2f} | {per[n].psnr_latent:.2f}" for n in names)
+        d, o = per[names[1]], per[names[2]]
+        ss_f = "/".join(f"{per[n].ssim_deblur:.3f}" for n in names)
+        ss_l = "/".join(f"{per[n].ssim_latent:.3f}" for n in names)
+        return (f"| {label} | {vals} | {d.psnr_deblur - o.psnr_deblur:+.2f} | {d.psnr_latent - o.psnr_latent:+.2f} | "
+                f"{ss_f} | {ss_l} |")
+    mix = [(lab, per) for g, lab, per in rows if g == "mix"]
+    for label, per in mix:
+        lines.append(line(label, per))
+    if mix:
+        mean = {n: Score(*(float(np.mean([getattr(p[n], f) for _, p in mix])) for f in
+                           ("psnr_deblur", "ssim_deblur", "psnr_latent", "ssim_latent", "ms_deblur", "ms_latent")))
+                for n in names}
+        lines.append(line(f"**mean of the {len(mix)} mixed scenes**", mean))
+    for g, label, per in rows:
+        if g == "alone":
+            lines.append(line(label, per))
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python tools/bench_accuracy.py", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m tools.bench_accuracy", description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="4 short scenes instead of 8, no sweep")
     ap.add_argument("--no-sweep", action="store_true", help="skip the c-search resolution sweep")
     ap.add_argument("--pitfalls", action="store_true",
                     help="also run scenes with APS offset/gamma and late events (not in the means or targets)")
     ap.add_argument("--plot", default=str(REPO / "docs" / "bench_accuracy.png"), help="PNG path ('' = none)")
     ap.add_argument("--no-node", action="store_true", help="skip the end-to-end run of edi-live on the demo recording")
+    ap.add_argument("--realistic", action="store_true",
+                    help="only the realistic-camera section: blurry frame, default node and an EDI that knows the "
+                         "true camera, on scenes with mixes of camera effects and each effect alone")
     args = ap.parse_args(argv)
+    if args.realistic:
+        t0 = time.perf_counter()
+        rows = run_realistic(args.quick)
+        print("\n## Realistic camera: PSNR (dB) of the blurry frame, the default node and the oracle camera\n")
+        print(realistic_table(rows))
+        print(f"\nwall time {time.perf_counter() - t0:.0f} s")
+        return 0
     methods = available_methods()
     scenes = scene_suite(args.quick)
     sweeps = [] if (args.quick or args.no_sweep) else sweep_settings()
@@ -720,7 +853,7 @@ def main(argv: list[str] | None = None) -> int:
         print(per_scene_tables(pit, methods))
     if args.plot:
         save_plot(args.plot, results, methods, sweep_results,
-                  title=f"python tools/bench_accuracy.py{' --quick' if args.quick else ''}: {len(scenes)} scenes")
+                  title=f"python -m tools.bench_accuracy{' --quick' if args.quick else ''}: {len(scenes)} scenes")
         print(f"\nplot: {args.plot}")
     print(f"\nwall time {time.perf_counter() - t0:.0f} s (numba kernels: "
           f"{'on' if _have_numba() else 'off'})")

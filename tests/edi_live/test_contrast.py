@@ -127,7 +127,7 @@ def test_fit_score_and_information_are_in_standard_errors():
     assert est.information(pairs, (0.25, 0.25)) >= est.info_z
     # the slower the motion, the fewer pixels pin c down: the information shrinks
     info = []
-    for v in ((0.02, 0.0), (0.1, 0.05)):
+    for v in ((0.01, 0.0), (0.05, 0.02)):  # below ~50 px/s on this scene (faster: blur takes information away)
         slow = make_scene("camera", c_on=0.25, velocity_px_per_ms=v, width=80, height=60, n_frames=3, seed=1)
         _, pr = pairs_of(slow)
         info.append(est.information(pr, (0.25, 0.25)))

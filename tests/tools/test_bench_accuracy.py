@@ -42,3 +42,46 @@ def test_harness_scores_baselines_on_a_tiny_scene():
     assert direct.psnr_latent > blurry.psnr_latent + 1.0
     cf = ba.score(sim, ba.run_complementary(sim, 5.0))
     assert np.isfinite(cf.psnr_latent) and 0 < cf.ssim_latent <= 1
+
+
+def _tiny(**kw):
+    from edi_live.simulation import preset
+    return preset("translate", width=64, height=48, duration_s=0.2, frame_interval_us=40_000, exposure_us=20_000,
+                  velocity_px_s=(150.0, 30.0), latent_per_interval=2, seed=3, **kw)
+
+
+def test_oracle_inputs_undo_the_true_camera():
+    from edi_live.simulation import with_effects
+    ideal = ba.simulate(_tiny())
+    real = ba.simulate(with_effects(_tiny(), "clock_offset", "black_level", "response", "hot_pixels"))
+    ev, frames = ba.oracle_inputs(real)
+    hot = {tuple(xy) for xy in real.hot_pixel_xy}
+    assert hot and not any((int(e["x"]), int(e["y"])) in hot for e in ev)
+    keep = np.array([(int(x), int(y)) not in hot for x, y in zip(ideal.events["x"], ideal.events["y"])])
+    signal = ideal.events[keep]
+    np.testing.assert_array_equal(ev["t"][: signal.size], signal["t"])  # back on the APS clock
+    for (b, informative), lin in zip(frames, real.aps_linear):
+        assert np.abs(b - lin)[informative].max() < 0.6  # linear again, up to 8-bit rounding
+
+
+def test_oracle_camera_is_plain_edi_on_an_ideal_camera_and_wins_on_a_real_one():
+    ideal = ba.simulate(_tiny())
+    a, b = ba.run_oracle_camera(ideal), ba.run_edi_functions(ideal)
+    for g in a.deblurred:
+        np.testing.assert_allclose(a.deblurred[g][0], b.deblurred[g][0], rtol=1e-6)
+    from edi_live.simulation import with_effects
+    real = ba.simulate(with_effects(_tiny(), "black_level", "response", "clock_offset"))
+    oracle = ba.score(real, ba.run_oracle_camera(real))
+    default = ba.score(real, ba.run_reconstructor(real))
+    assert oracle.psnr_deblur > default.psnr_deblur + 3.0 and oracle.psnr_latent > default.psnr_latent
+
+
+def test_realistic_section_runs_quick(capsys):
+    assert ba.main(["--realistic", "--quick"]) == 0
+    out = capsys.readouterr().out
+    assert "default - oracle f (dB)" in out and "mean of the 2 mixed scenes" in out and "all effects" in out
+    assert len([ln for ln in out.splitlines() if ln.startswith("| ") and "PSNR" not in ln]) == 4
+    full = ba.realistic_suite()
+    from edi_live.simulation import EFFECTS
+    assert sum(g == "mix" for g, _, _ in full) >= 5
+    assert {lab.split(": ")[1] for g, lab, _ in full if g == "alone"} >= {f"{n} alone" for n in EFFECTS}

@@ -172,9 +172,10 @@ class Reconstruction:
     """One sharp frame produced by the EDI worker.
 
     `image` is (height, width) uint8 gray, display-ready and owned by the receiver (a copy, never a view
-    of reconstructor state); linear intensity on the 8-bit APS scale. `t_us` the latent time, `ref_t_us` the reference time f of the APS frame it derives from,
-    `exposure_*` that APS frame's exposure window. `c_on`/`c_off` are the thresholds used (equal when
-    a single c is used). `n_events` counts events since the previous emitted reconstruction.
+    of reconstructor state); linear intensity on the 8-bit APS scale, above the APS black level (an APS frame of
+    this scene would read image + black_level). `t_us` the latent time, `ref_t_us` the reference time f of the APS
+    frame it derives from, `exposure_*` that APS frame's exposure window. `c_on`/`c_off` are the thresholds used
+    (equal when a single c is used). `n_events` counts events since the previous emitted reconstruction.
     `arrival_ns` is the host arrival time of the last event included (for latency).
     """
 
@@ -188,3 +189,4 @@ class Reconstruction:
     c_off: float
     n_events: int
     arrival_ns: int = 0
+    black_level: float = 0.0

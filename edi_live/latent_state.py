@@ -63,7 +63,7 @@ class LatentState:
 
     def set_reference(self, image: np.ndarray, saturation: float | None,
                       divisor: tuple[np.ndarray, np.ndarray, np.ndarray | None],
-                      c: tuple[float, float]) -> tuple[np.ndarray, bool]:
+                      c: tuple[float, float], black_level: float = 0.0) -> tuple[np.ndarray, bool]:
         """Deblur: log L(f) from B and the divisor; the latent image restarts there, moved on to te when the
         divisor carries the f -> te exponent. Returns (L(f) as uint8, whether the display is current: the fused
         pass of a uint8 frame also renders it; otherwise the caller refreshes it)."""
@@ -72,9 +72,10 @@ class LatentState:
             deblurred = np.empty((self.height, self.width), np.uint8)
             self.log_ref = np.empty((self.height, self.width), np.float32)
             sat = 255.0 if saturation is None else float(saturation)
-            edi.finish_frame_u8(image, sat, divisor, self.log_ref, deblurred, self.log_lat, self.display)
+            edi.finish_frame_u8(image, sat, divisor, self.log_ref, deblurred, self.log_lat, self.display,
+                                black_level=black_level)
             return deblurred, True
-        b, informative = edi.blurry_to_float(image, saturation=saturation)
+        b, informative = edi.blurry_to_float(image, saturation=saturation, black_level=black_level)
         self.log_ref = edi.deblur_log(b, None, c[0], c[1], informative=informative, divisor=divisor)
         np.copyto(self.log_lat, self.log_ref)
         if delta_end is not None:
@@ -84,10 +85,10 @@ class LatentState:
         return edi.to_uint8(self.log_ref), False
 
     def fall_back_to_aps(self, pixels: np.ndarray, image: np.ndarray, saturation: float | None,
-                         deblurred: np.ndarray) -> None:
+                         deblurred: np.ndarray, black_level: float = 0.0) -> None:
         """At `pixels` ((H, W) bool), undo the events: L(f) = B and the latent image restarts there (the reference
         of this frame only; it is this state's own array until the next frame)."""
-        b, _ = edi.blurry_to_float(image, saturation=saturation)
+        b, _ = edi.blurry_to_float(image, saturation=saturation, black_level=black_level)
         idx = np.flatnonzero(pixels)
         log_b = np.clip(np.log(np.maximum(b.reshape(-1)[idx], edi.DARK_FLOOR)), edi.LOG_MIN, edi.LOG_MAX)
         self.log_ref.reshape(-1)[idx] = log_b

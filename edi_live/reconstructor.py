@@ -50,6 +50,7 @@ class ReconstructorSettings:
     hot_rel_factor: float = 10.0
     hot_decay: float = 0.8
     saturation: float | None = None  # APS value at or above which a pixel is clipped (default: full scale)
+    black_level: float | None = None  # APS value of no light, 8-bit scale; None = estimated with c
     denoise_us: int = 0  # background-activity filter window; 0 = off
     mask_unreliable_pixels: bool = True  # ignore events that contradict the APS frames (needs c estimation)
 
@@ -102,10 +103,16 @@ class EdiReconstructor:
                 estimator = contrast.make_estimator(settings.estimator, **options)
             except (ValueError, TypeError) as exc:
                 raise ConfigError(str(exc)) from None
+        if settings.black_level is not None:
+            if not (math.isfinite(settings.black_level) and 0.0 <= settings.black_level < 128.0):
+                raise ConfigError(f"black level must be in [0, 128) DN on the 8-bit scale "
+                                  f"(got {settings.black_level!r})")
+            estimator.black_level = float(settings.black_level)
         self._policy = ContrastPolicy(estimator, self.c_on, self.c_off, PolicySettings(
             reestimate_every=int(settings.reestimate_every), startup_estimates=settings.history_pairs,
             fit_patience=int(settings.fit_patience), fit_strong=float(settings.fit_strong),
-            c_history=int(settings.c_history)))
+            c_history=int(settings.c_history), estimate_black_level=settings.black_level is None))
+        self.black_level = self._policy.black_level
         if not self._fixed:
             self._tracker = ContrastTracker(self.width, self.height, self._policy,
                                             history_pairs=settings.history_pairs, sample_pixels=settings.sample_pixels)
@@ -227,7 +234,7 @@ class EdiReconstructor:
             self._pair = self._tracker.step(events, b, informative, (ts, te, f), mask, self._latent.acc, self._t_last,
                                       self.has_reference)
             self.c_on, self.c_off = self._policy.c
-
+            self.black_level = self._policy.black_level
             self.events_ignored = self._policy.events_ignored
             self.last_estimate_ms = (time.perf_counter() - t0) * 1e3
             self._latent.reset_counts()  # the accumulators are used (and written) only when c is estimated
@@ -239,7 +246,7 @@ class EdiReconstructor:
             divisor = (divisor[0][:0], divisor[1][:0], divisor[2][:0] if divisor[2] is not None else None)
         log_prev = self._latent.log_ref
         deblurred, display_current = self._latent.set_reference(img, self.settings.saturation, divisor,
-                                                                self._c())
+                                                                self._c(), self.black_level)
         pair, self._pair = self._pair, None
         if pair is not None and self._unreliable is not None and not self.events_ignored:
             # judged on this deblur; the mask holds from here on (the latent image continues from L(f))
@@ -247,7 +254,8 @@ class EdiReconstructor:
                                     pair.cur.informative, self._c())
             self._mask = self._combined_mask()
             if self._unreliable.count:
-                self._latent.fall_back_to_aps(self._unreliable.mask, img, self.settings.saturation, deblurred)
+                self._latent.fall_back_to_aps(self._unreliable.mask, img, self.settings.saturation, deblurred,
+                                              self.black_level)
                 mask = self._mask
         t = events["t"]
         # the events after the point the latent image has reached (te with the f -> te jump, else f); with the
@@ -336,7 +344,8 @@ class EdiReconstructor:
 
     def stats(self) -> dict:
         return {
-            "c_on": self.c_on, "c_off": self.c_off, "c_fixed": self._fixed, "estimator": self.estimator.name,
+            "c_on": self.c_on, "c_off": self.c_off, "c_fixed": self._fixed, "black_level": self.black_level,
+            "estimator": self.estimator.name,
             "reestimations": self.reestimations, "ill_conditioned": self.ill_conditioned,
             "hot_pixels": self.hot_pixels, "unreliable_pixels": self.unreliable_pixels, "frames": self.frames,
             "events_ignored": self.events_ignored,
@@ -376,4 +385,4 @@ class EdiReconstructor:
         return Reconstruction(image=image, t_us=int(t_us), kind=kind, ref_t_us=int(self._ref_t),
                               exposure_start_us=self._exposure[0], exposure_end_us=self._exposure[1],
                               c_on=float(self.c_on), c_off=float(self.c_off), n_events=int(n_events),
-                              arrival_ns=int(self._arrival_ns))
+                              arrival_ns=int(self._arrival_ns), black_level=float(self.black_level))

@@ -1,8 +1,9 @@
 """The `edi-live` command line: flags (and --config TOML) -> NodeConfig -> a source -> Node.run().
 
 Owns: the flag definitions and help text, logging set-up, resolving `--usb-backend MODULE:CALLABLE`, signal
-handling (SIGINT/SIGTERM stop the node cleanly), the summary, and mapping errors to exit codes:
-0 success (also after Ctrl-C/SIGTERM), 2 usage error, 1 runtime error; every error is one line
+handling (SIGINT/SIGTERM stop the node cleanly, also during start-up; repeated ones are ignored while the stop
+finishes), the summary, and mapping errors to exit codes: 0 success (also after Ctrl-C/SIGTERM), 2 usage error,
+1 runtime error; every error is one line
 `edi-live: error: ...` (a traceback only with --log-level debug).
 """
 
@@ -14,6 +15,7 @@ import inspect
 import logging
 import signal
 import sys
+import threading
 import traceback
 from pathlib import Path
 from typing import Any, Sequence
@@ -36,7 +38,7 @@ examples:
   # no camera: the built-in emulator replays a recording through the USB driver
   edi-live --device davis240 --usb-backend drivers.emulator:backend --emulate-from rec.aedat4
 
-Ctrl-C or SIGTERM stops cleanly (files finalised, exit 0). Exit codes: 0 ok, 1 runtime error, 2 usage error.
+Ctrl-C or SIGTERM stops cleanly (files finalised, exit 0; a second Ctrl-C is ignored while it stops). Exit codes: 0 ok, 1 runtime error, 2 usage error.
 Every flag can also be set in --config FILE.toml with the same name (e.g. `every = 1000`, `c-on = 0.2`).
 """
 
@@ -269,18 +271,50 @@ def _setup_logging(level: str, stream: Any = None) -> None:
         logging.getLogger(name).setLevel(wanted)
 
 
-def _install_signal_handlers(node: Any) -> dict:
-    previous = {}
+class _StopSignals:
+    """SIGINT/SIGTERM, handled from the first line of main(): the first one stops the node cleanly (a signal that
+    arrives while edi-live starts up stops the node as soon as it exists, before any data flows); any later one
+    is ignored with one line. The stop itself is bounded (every join has a timeout), and a second Ctrl-C that
+    interrupted it would cut the file finalisation short, so the summary would no longer match --out."""
 
-    def handler(signum: int, frame: Any) -> None:
-        if node._stop.is_set() and signum == signal.SIGINT:
-            raise KeyboardInterrupt  # a second Ctrl-C: stop waiting for the drain
-        log.info("%s: stopping", signal.Signals(signum).name)
-        node.stop()
+    def __init__(self) -> None:
+        self.received: str | None = None
+        self._node: Any = None
+        self._repeated = False
+        self._previous: dict[int, Any] = {}
 
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        previous[sig] = signal.signal(sig, handler)
-    return previous
+    def install(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return  # (an in-process call from a thread: Python allows handlers on the main thread only)
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._previous[sig] = signal.signal(sig, self._handle)
+
+    def restore(self) -> None:
+        for sig, old in self._previous.items():
+            signal.signal(sig, old)
+        self._previous.clear()
+
+    def ignore_from_now_on(self) -> None:
+        if self._previous:
+            for sig in self._previous:
+                signal.signal(sig, signal.SIG_IGN)
+
+    def attach(self, node: Any) -> None:
+        self._node = node
+        if self.received is not None:
+            node.stop()
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        name = signal.Signals(signum).name
+        if self.received is not None:
+            if not self._repeated:
+                self._repeated = True
+                log.warning("%s: already stopping; the received data and files are being finalised", name)
+            return
+        self.received = name
+        log.info("%s: stopping", name)
+        if self._node is not None:
+            self._node.stop()
 
 
 def _error_line(exc: BaseException) -> str:
@@ -289,6 +323,22 @@ def _error_line(exc: BaseException) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The program (argv None: sys.argv) or an in-process call. SIGINT/SIGTERM are handled from the start; an
+    in-process call restores the previous handlers on return. The program, once stopped by a signal, ignores
+    further ones until it has exited: Python resets its own handlers to the default action while it finalises
+    (e.g. while the replay's decoding child is reaped), where a late Ctrl-C would kill it (rc -2)."""
+    signals = _StopSignals()
+    signals.install()
+    try:
+        return _main(argv, signals)
+    finally:
+        if argv is None and signals.received is not None:
+            signals.ignore_from_now_on()
+        else:
+            signals.restore()
+
+
+def _main(argv: Sequence[str] | None, signals: _StopSignals) -> int:
     level = "info"
     try:
         flags, config_path = options_from_args(argv)
@@ -305,12 +355,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from edi_live.node import Node
 
         node = Node(config, source, status_stream=sys.stderr)
-        previous = _install_signal_handlers(node)
+        signals.attach(node)
         try:
             node.run()
         finally:
-            for sig, old in previous.items():
-                signal.signal(sig, old)
             if node.final_stats and node.started.is_set():  # no summary when it never got going
                 from edi_live.stats import format_summary
 

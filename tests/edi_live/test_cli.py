@@ -10,6 +10,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -327,3 +328,76 @@ def test_a_huge_every_still_sends_every_moving_deblurred_frame(real_recordings, 
                    timeout_s=60)
     assert proc.returncode == 0, proc.stderr
     assert "(13 deblurred" in proc.stderr, proc.stderr
+
+
+def _out_frames(path: Path) -> int:
+    from edi_live.aedat4 import Aedat4Reader
+
+    with Aedat4Reader(path) as reader:
+        return sum(1 for stream, _ in reader if stream.type == "FRME")
+
+
+@pytest.mark.parametrize("gap_s", [0.0, 0.01, 0.05])
+def test_a_second_ctrl_c_is_ignored_and_the_summary_matches_out(real_recordings, tmp_path, gap_s,
+                                                                needs_reconstructor):
+    """Issue 15.2: two SIGINTs close together gave exit 1 ("the out-writer thread failed: KeyboardInterrupt"), a
+    summary that disagreed with --out, or death by the signal (rc -2)."""
+    out = tmp_path / "sharp.aedat4"
+    proc = subprocess.Popen([sys.executable, "-m", "edi_live", "--replay", str(real_recordings[DEMO]), "--loop",
+                             "--every", "500", "--publish", "tcp://127.0.0.1:*", "--out", str(out)],
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+    try:
+        endpoint = None
+        while endpoint is None:
+            line = proc.stderr.readline()
+            assert line, "the node never reported its endpoint"
+            m = re.search(r"publishing on (tcp://\S+)", line)
+            endpoint = m.group(1) if m else None
+        from edi_live.client import Subscriber
+
+        with Subscriber(endpoint) as sub:
+            assert sub.recv(timeout_s=20) is not None, "no frame before the signal"
+        proc.send_signal(signal.SIGINT)
+        time.sleep(gap_s)  # the test's input: the gap between the two Ctrl-Cs (not a synchronisation)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err and not error_lines(err)
+    written = int(re.search(r"--out frames written: (\d+)", err).group(1))
+    assert written == _out_frames(out) > 0
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_sigterm_during_start_up_is_a_clean_stop(real_recordings, tmp_path):
+    """Issue 15.3: SIGTERM in the first moments (here: while the config file is being read, through a FIFO that
+    blocks until the test writes it) killed the process (rc -15) without a word."""
+    fifo = tmp_path / "edi.toml"
+    os.mkfifo(fifo)
+    out = tmp_path / "sharp.aedat4"
+    proc = subprocess.Popen([sys.executable, "-m", "edi_live", "--config", str(fifo), "--replay",
+                             str(real_recordings[DEMO]), "--no-publish", "--out", str(out)],
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+    try:
+        deadline = time.monotonic() + 30
+        writer = None
+        while writer is None:  # opening a FIFO's write end without blocking succeeds once the reader has it open
+            assert time.monotonic() < deadline and proc.poll() is None, "the CLI never opened its config"
+            try:
+                writer = os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
+            except OSError:  # ENXIO: no reader yet
+                threading.Event().wait(0.01)
+        proc.send_signal(signal.SIGTERM)
+        os.write(writer, b"every = 1000\n")
+        os.close(writer)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=10)
+    assert proc.returncode == 0, f"rc {proc.returncode}: {err}"
+    assert "SIGTERM: stopping" in err and "Traceback" not in err and not error_lines(err)
+    assert not out.exists(), "stopped before the node started: nothing is created"

@@ -401,3 +401,21 @@ def test_sigterm_during_start_up_is_a_clean_stop(real_recordings, tmp_path):
     assert proc.returncode == 0, f"rc {proc.returncode}: {err}"
     assert "SIGTERM: stopping" in err and "Traceback" not in err and not error_lines(err)
     assert not out.exists(), "stopped before the node started: nothing is created"
+
+
+def test_the_emulator_processes_a_truncated_recording_up_to_the_cut_like_replay(real_recordings, tmp_path,
+                                                                                needs_reconstructor):
+    """Issue 15.4: through the emulated camera a truncated file gave 0 events (the held-back data before the
+    fault was dropped with the error); --replay gives everything before the cut. Both must agree."""
+    cut = tmp_path / "t.aedat4"
+    cut.write_bytes(real_recordings[DEMO].read_bytes()[:1487450])  # the issue's cut, inside a packet
+    counts = {}
+    for name, args in (("replay", ["--replay", str(cut)]),
+                       ("emulator", ["--device", "davis346", "--usb-backend", "drivers.emulator:backend",
+                                     "--emulate-from", str(cut)])):
+        proc = run_cli(*args, "--speed", "0", "--no-publish", timeout_s=90)
+        assert proc.returncode == 1, proc.stderr
+        lines = error_lines(proc.stderr)
+        assert len(lines) == 1 and "t.aedat4 at byte" in lines[0] and "truncated" in lines[0], proc.stderr
+        counts[name] = int(re.search(r"done in [\d.]+ s: (\d+) events", proc.stderr).group(1))
+    assert counts["emulator"] == counts["replay"] > 100_000

@@ -14,6 +14,7 @@ import importlib
 import inspect
 import logging
 import signal
+import stat
 import sys
 import threading
 import traceback
@@ -98,6 +99,8 @@ def build_parser() -> argparse.ArgumentParser:
     out.add_argument("--curve-secret-key", metavar="FILE",
                      help="encrypt with CURVE using this server secret key file "
                           "(make one: python -m edi_live.publisher --gen-curve-keys DIR)")
+    out.add_argument("--stats-interval-s", type=float, metavar="S",
+                     help="period of the [b\"stats\", map] message on the socket, seconds (default: 1.0)")
     out.add_argument("--out", metavar="FILE.aedat4", help="also write every emitted frame (8-bit gray, lossless)")
     out.add_argument("--record", metavar="FILE.aedat4", help="record the raw input as received, for --replay")
     adv = p.add_argument_group("advanced")
@@ -175,10 +178,19 @@ def _accepted_kwargs(factory: Any, kwargs: dict[str, Any]) -> dict[str, Any]:
 
 
 def _existing_file(path: Path, flag: str) -> None:
-    if path.is_dir():
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        raise RecordingError(f"no such file (check the {flag} path)", str(path)) from None
+    except OSError as exc:
+        raise RecordingError(f"cannot open the recording ({exc.strerror or exc})", str(path)) from None
+    if stat.S_ISDIR(mode):
         raise RecordingError(f"is a directory, not a recording (give {flag} an .aedat4 file)", str(path))
-    if not path.is_file():
-        raise RecordingError(f"no such file (check the {flag} path)", str(path))
+    if not stat.S_ISREG(mode):
+        kind = ("a FIFO (named pipe)" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode)
+                else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a regular file")
+        raise RecordingError(f"is {kind}, not a regular file: {flag} seeks in the recording, so save the stream "
+                             f"to an .aedat4 file first", str(path))
 
 
 def make_source(config: NodeConfig, explicit: set[str] | frozenset = frozenset()) -> Any:

@@ -44,6 +44,44 @@ def _check(ok: bool, message: str) -> None:
         raise ConfigError(message)
 
 
+def _int_in(name: str, value: Any, lo: int, hi: int, what: str) -> None:
+    hi_text = f"10^{len(str(hi)) - 1}" if str(hi).rstrip("0") == "1" else str(hi)
+    _check(isinstance(value, int) and not isinstance(value, bool) and lo <= value <= hi,
+           f"{name} must be an integer in [{lo}, {hi_text}] ({what}) (got {value!r})")
+
+
+EVENT_BYTES = 16  # one ring slot (EVENT_DTYPE)
+
+
+def available_memory_bytes() -> int | None:
+    """Memory the system can still give (Linux MemAvailable, else the physical total), or None if unknown."""
+    try:
+        with open("/proc/meminfo", "rb") as fh:
+            for line in fh:
+                if line.startswith(b"MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_endpoint(endpoint: Any) -> None:
+    """A ZeroMQ bind endpoint: SCHEME://ADDRESS; for tcp the port is 1-65535 or * (any free port).
+    libzmq itself wraps an out-of-range port silently (99999 binds 34463)."""
+    _check(isinstance(endpoint, str) and "://" in endpoint and endpoint.split("://", 1)[1] != "",
+           f"publish endpoint must look like tcp://HOST:PORT or ipc://PATH (got {endpoint!r})")
+    scheme, _, address = endpoint.partition("://")
+    if scheme != "tcp":
+        return
+    host, sep, port = address.rpartition(":")
+    ok = bool(sep and host) and (port == "*" or (port.isdigit() and 1 <= int(port) <= 65535))
+    _check(ok, f"publish endpoint {endpoint!r}: a tcp endpoint needs HOST:PORT with a port in 1-65535, or * for "
+               f"any free port (e.g. tcp://127.0.0.1:5555)")
+
+
 def _positive_or_none(name: str, value: float | None) -> None:
     if value is not None:
         _check(isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
@@ -98,10 +136,14 @@ class RingConfig:
     policy: str | None = None  # None: "wait" for replay, "drop_oldest" for a live device
 
     def __post_init__(self) -> None:
-        _check(isinstance(self.capacity_events, int) and self.capacity_events >= 1024,
-               f"ring-events must be an integer >= 1024 (got {self.capacity_events!r})")
-        _check(isinstance(self.capacity_frames, int) and self.capacity_frames >= 1,
-               f"ring-frames must be an integer >= 1 (got {self.capacity_frames!r})")
+        _check(isinstance(self.capacity_events, int) and not isinstance(self.capacity_events, bool)
+               and self.capacity_events >= 1024, f"ring-events must be an integer >= 1024 (got {self.capacity_events!r})")
+        need, free = self.capacity_events * EVENT_BYTES, available_memory_bytes()
+        _check(free is None or need <= free,
+               f"ring-events {self.capacity_events} needs {need / 2**30:.1f} GiB ({EVENT_BYTES} bytes per event) but "
+               f"only {(free or 0) / 2**30:.1f} GiB of memory is available; choose at most {(free or 0) // EVENT_BYTES}"
+               f" (default 4194304 = 64 MiB)")
+        _int_in("ring-frames", self.capacity_frames, 1, 10**6, "APS frames the ring holds")
         _check(self.policy is None or self.policy in POLICIES,
                f"ring-policy must be one of {', '.join(POLICIES)} (got {self.policy!r})")
 
@@ -123,8 +165,7 @@ class EdiConfig:
     deblur_thread: bool | None = None
 
     def __post_init__(self) -> None:
-        _check(isinstance(self.every, int) and not isinstance(self.every, bool) and self.every >= 1,
-               f"every must be an integer >= 1 (events per latent frame) (got {self.every!r})")
+        _int_in("every", self.every, 1, 10**12, "events per latent frame")
         for name in ("c", "c_on", "c_off"):
             value = getattr(self, name)
             _check(value is None or (isinstance(value, (int, float)) and 0.01 <= value <= 2.0),
@@ -136,8 +177,7 @@ class EdiConfig:
         _check(self.mode in MODES, f"mode must be one of {', '.join(MODES)} (got {self.mode!r})")
         _positive_or_none("max-fps", self.max_fps)
         _positive_or_none("heartbeat-s", self.heartbeat_s)
-        _check(isinstance(self.reestimate_every, int) and self.reestimate_every >= 0,
-               f"reestimate-every must be an integer >= 0 (got {self.reestimate_every!r})")
+        _int_in("reestimate-every", self.reestimate_every, 0, 10**9, "APS frames; 0 = only when c stops fitting")
         _check(self.deblur_thread is None or isinstance(self.deblur_thread, bool),
                f"deblur-thread must be true or false (got {self.deblur_thread!r})")
 
@@ -152,8 +192,7 @@ class PublisherConfig:
 
     def __post_init__(self) -> None:
         for endpoint in self.endpoints:
-            _check(isinstance(endpoint, str) and "://" in endpoint,
-                   f"publish endpoint must look like tcp://HOST:PORT or ipc://PATH (got {endpoint!r})")
+            check_endpoint(endpoint)
         _positive_or_none("stats-interval-s", self.stats_interval_s)
 
     @property
@@ -314,10 +353,17 @@ def _build(opts: dict[str, Any]) -> NodeConfig:
                                            "node": {}}
     for key, value in opts.items():
         section, name, convert = OPTION_KEYS[key]
-        value = convert(value) if convert is not None else value
+        if convert is not None:
+            try:
+                value = convert(value)
+            except (TypeError, ValueError, OverflowError) as exc:  # e.g. float(10**400), Path(3)
+                raise ConfigError(f"{key.replace('_', '-')}: {exc} (got {value!r})") from None
         if name != "-":
             sections[section][name] = value
     if opts.get("no_publish"):
+        if "publish" in opts:
+            raise ConfigError(f"publish and no-publish contradict each other (got publish={opts['publish']!r} "
+                              f"and no-publish); give one of them")
         sections["publisher"]["endpoints"] = ()
     return NodeConfig(
         source=SourceConfig(**sections["source"]),
@@ -341,6 +387,11 @@ def read_toml(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"cannot read config file {path}: {exc.strerror}") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"config file {path} is not valid TOML: {exc}") from None
+    except UnicodeDecodeError as exc:  # a binary file: TOML is UTF-8 text
+        raise ConfigError(f"config file {path} is not a TOML text file (not UTF-8 at byte {exc.start}); give "
+                          f"--config a .toml file") from None
+    except (ValueError, RecursionError) as exc:  # anything else the parser trips over is still the file's fault
+        raise ConfigError(f"config file {path} is not valid TOML ({type(exc).__name__}: {exc})") from None
     nested = [k for k, v in data.items() if isinstance(v, dict)]
     _check(not nested, f"config file {path}: keys go at the top level, like the flags (got table(s) {nested})")
     normalized = {_norm(k): v for k, v in data.items()}
@@ -364,6 +415,8 @@ def merge_options(file_options: Mapping[str, Any], flag_options: Mapping[str, An
         merged.pop("device", None)
     if "publish" in flags:
         merged.pop("no_publish", None)
+    if flags.get("no_publish"):
+        merged.pop("publish", None)
     merged.update(flags)
     return merged
 

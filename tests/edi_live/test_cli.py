@@ -59,7 +59,11 @@ def test_help_teaches_groups_units_defaults_and_examples():
 @pytest.mark.parametrize("args,code,fragment", [
     (("--bogus",), 2, "unrecognized arguments: --bogus"),
     (("--replay", "x.aedat4", "--every", "zero"), 2, "invalid int value"),
-    (("--replay", "x.aedat4", "--every", "0"), 2, "every must be an integer >= 1"),
+    (("--replay", "x.aedat4", "--every", "0"), 2, "every must be an integer in [1, 10^12]"),
+    (("--replay", "x.aedat4", "--every", str(10**23)), 2, "every must be an integer in [1, 10^12]"),
+    (("--replay", "x.aedat4", "--ring-events", "100000000000"), 2, "of memory is available; choose at most"),
+    (("--replay", "x.aedat4", "--publish", "tcp://127.0.0.1:99999"), 2, "port in 1-65535, or *"),
+    (("--replay", "x.aedat4", "--publish", "tcp://127.0.0.1:5555", "--no-publish"), 2, "contradict each other"),
     ((), 2, "choose an input"),
     (("--device", "davis240", "--replay", "x.aedat4"), 2, "choose one input"),
     (("--replay", "does-not-exist.aedat4"), 1, "does-not-exist.aedat4: no such file"),
@@ -81,6 +85,23 @@ def test_errors_are_one_line_with_the_right_exit_code(args, code, fragment):
     assert len(lines) == 1 and fragment in lines[0], proc.stderr
     assert "Traceback" not in proc.stderr
     assert proc.stderr.strip().count("\n") == 0, "nothing but the one error line"
+
+
+def test_a_binary_config_is_a_usage_error_and_a_fifo_replay_is_named(tmp_path):
+    """Issue 15.7: a binary --config said "internal error ... report it" (exit 1); a FIFO as --replay was
+    reported as "no such file"."""
+    binary = tmp_path / "photo.toml"
+    binary.write_bytes(bytes(range(256)) * 4)
+    proc = run_cli("--config", str(binary))
+    assert proc.returncode == 2 and error_lines(proc.stderr) == [
+        f"edi-live: error: config file {binary} is not a TOML text file (not UTF-8 at byte 128); give --config a "
+        f".toml file"], proc.stderr
+    fifo = tmp_path / "stream.aedat4"
+    os.mkfifo(fifo)
+    proc = run_cli("--replay", str(fifo), "--no-publish")
+    lines = error_lines(proc.stderr)
+    assert proc.returncode == 1 and len(lines) == 1 and "is a FIFO (named pipe), not a regular file" in lines[0]
+    assert "no such file" not in proc.stderr
 
 
 def test_not_an_aedat4_file_is_one_line_exit_1(tmp_path):

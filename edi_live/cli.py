@@ -18,6 +18,7 @@ import stat
 import sys
 import threading
 import traceback
+import warnings
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -272,7 +273,14 @@ def _warn_if_exposed(config: NodeConfig) -> None:
                         "(use --curve-secret-key FILE, or a 127.0.0.1 endpoint)", endpoint)
 
 
+def _log_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int, file: Any = None,
+                 line: str | None = None) -> None:
+    """Python warnings (from a library, or a driver's notice) as edi-live log lines, not raw RuntimeWarnings."""
+    log.warning("%s", message)
+
+
 def _setup_logging(level: str, stream: Any = None) -> None:
+    warnings.showwarning = _log_warning
     handler = _LogHandler(sys.stderr if stream is None else stream)
     handler.setFormatter(logging.Formatter("edi-live: %(levelname)s: %(message)s"))
     root = logging.getLogger()

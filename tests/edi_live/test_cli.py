@@ -440,3 +440,44 @@ def test_the_emulator_processes_a_truncated_recording_up_to_the_cut_like_replay(
         assert len(lines) == 1 and "t.aedat4 at byte" in lines[0] and "truncated" in lines[0], proc.stderr
         counts[name] = int(re.search(r"done in [\d.]+ s: (\d+) events", proc.stderr).group(1))
     assert counts["emulator"] == counts["replay"] > 100_000
+
+
+def _packet_at(data: bytes, index: int) -> int:
+    """File offset of packet `index` (walked from the header, independently of the reader)."""
+    import struct
+
+    pos = 18 + struct.unpack_from("<I", data, 14)[0]
+    for _ in range(index):
+        pos += 8 + struct.unpack_from("<i", data, pos + 4)[0]
+    return pos
+
+
+@pytest.mark.parametrize("damage", ["stream id 77", "table cut by 7 bytes"])
+def test_damage_is_one_error_line_after_the_summary_never_a_silent_exit_0(real_recordings, tmp_path, damage,
+                                                                          needs_reconstructor):
+    """Issue 15.6, the damage policy: every kind of damage is processed up to the fault, then one line names the
+    file and byte and the exit code is 1. Before: a raw RuntimeWarning, 335 events lost behind "drops 0" and exit
+    0 (corrupt stream id); exit 0 without a word (a FileDataTable cut short, which dv-processing refuses)."""
+    import struct
+
+    data = bytearray(real_recordings[DEMO].read_bytes())
+    if damage == "stream id 77":
+        at = _packet_at(data, 600)
+        struct.pack_into("<i", data, at, 77)
+    else:
+        del data[-7:]
+    bad = tmp_path / "damaged.aedat4"
+    bad.write_bytes(bytes(data))
+    out = tmp_path / "sharp.aedat4"
+    proc = run_cli("--replay", str(bad), "--speed", "0", "--no-publish", "--out", str(out), timeout_s=90)
+    assert proc.returncode == 1, proc.stderr
+    lines = error_lines(proc.stderr)
+    assert len(lines) == 1 and f"{bad} at byte" in lines[0], proc.stderr
+    if damage == "stream id 77":
+        assert f"at byte {at}:" in lines[0] and "stream 77" in lines[0]
+    else:
+        assert "FileDataTable" in lines[0]
+    assert proc.stderr.strip().splitlines()[-1] == lines[0], "the error is the last line, after the summary"
+    assert "Warning" not in proc.stderr.replace("edi-live: WARNING", "") and "Traceback" not in proc.stderr
+    written = int(re.search(r"--out frames written: (\d+)", proc.stderr).group(1))
+    assert written == _out_frames(out) > 0

@@ -13,10 +13,8 @@ import argparse
 import importlib
 import inspect
 import logging
-import signal
 import stat
 import sys
-import threading
 import traceback
 import warnings
 from pathlib import Path
@@ -25,6 +23,7 @@ from typing import Any, Sequence
 from edi_live import __version__
 from edi_live.config import DEFAULT_ENDPOINT, LOG_LEVELS, NodeConfig, merge_options, read_toml
 from edi_live.errors import ConfigError, EdiLiveError, RecordingError, SourceError
+from edi_live.stop_signals import StopSignals
 
 PROG = "edi-live"
 log = logging.getLogger("edi_live")
@@ -291,52 +290,6 @@ def _setup_logging(level: str, stream: Any = None) -> None:
         logging.getLogger(name).setLevel(wanted)
 
 
-class _StopSignals:
-    """SIGINT/SIGTERM, handled from the first line of main(): the first one stops the node cleanly (a signal that
-    arrives while edi-live starts up stops the node as soon as it exists, before any data flows); any later one
-    is ignored with one line. The stop itself is bounded (every join has a timeout), and a second Ctrl-C that
-    interrupted it would cut the file finalisation short, so the summary would no longer match --out."""
-
-    def __init__(self) -> None:
-        self.received: str | None = None
-        self._node: Any = None
-        self._repeated = False
-        self._previous: dict[int, Any] = {}
-
-    def install(self) -> None:
-        if threading.current_thread() is not threading.main_thread():
-            return  # (an in-process call from a thread: Python allows handlers on the main thread only)
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            self._previous[sig] = signal.signal(sig, self._handle)
-
-    def restore(self) -> None:
-        for sig, old in self._previous.items():
-            signal.signal(sig, old)
-        self._previous.clear()
-
-    def ignore_from_now_on(self) -> None:
-        if self._previous:
-            for sig in self._previous:
-                signal.signal(sig, signal.SIG_IGN)
-
-    def attach(self, node: Any) -> None:
-        self._node = node
-        if self.received is not None:
-            node.stop()
-
-    def _handle(self, signum: int, frame: Any) -> None:
-        name = signal.Signals(signum).name
-        if self.received is not None:
-            if not self._repeated:
-                self._repeated = True
-                log.warning("%s: already stopping; the received data and files are being finalised", name)
-            return
-        self.received = name
-        log.info("%s: stopping", name)
-        if self._node is not None:
-            self._node.stop()
-
-
 def _error_line(exc: BaseException) -> str:
     text = " ".join(str(exc).split()) or type(exc).__name__
     return f"{PROG}: error: {text}"
@@ -347,7 +300,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     in-process call restores the previous handlers on return. The program, once stopped by a signal, ignores
     further ones until it has exited: Python resets its own handlers to the default action while it finalises
     (e.g. while the replay's decoding child is reaped), where a late Ctrl-C would kill it (rc -2)."""
-    signals = _StopSignals()
+    signals = StopSignals()
     signals.install()
     try:
         return _main(argv, signals)
@@ -358,7 +311,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             signals.restore()
 
 
-def _main(argv: Sequence[str] | None, signals: _StopSignals) -> int:
+def _main(argv: Sequence[str] | None, signals: StopSignals) -> int:
     level = "info"
     try:
         flags, config_path = options_from_args(argv)

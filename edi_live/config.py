@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
+from edi_live.checks import check as _check
+from edi_live.checks import check_endpoint, fits_memory, int_in as _int_in, positive_or_none as _positive_or_none
 from edi_live.errors import ConfigError
 
 if sys.version_info >= (3, 11):
@@ -39,53 +41,7 @@ DEVICE_MODELS = ("davis240", "davis346", "auto")
 LOG_LEVELS = ("debug", "info", "warning", "error")
 
 
-def _check(ok: bool, message: str) -> None:
-    if not ok:
-        raise ConfigError(message)
-
-
-def _int_in(name: str, value: Any, lo: int, hi: int, what: str) -> None:
-    hi_text = f"10^{len(str(hi)) - 1}" if str(hi).rstrip("0") == "1" else str(hi)
-    _check(isinstance(value, int) and not isinstance(value, bool) and lo <= value <= hi,
-           f"{name} must be an integer in [{lo}, {hi_text}] ({what}) (got {value!r})")
-
-
 EVENT_BYTES = 16  # one ring slot (EVENT_DTYPE)
-
-
-def available_memory_bytes() -> int | None:
-    """Memory the system can still give (Linux MemAvailable, else the physical total), or None if unknown."""
-    try:
-        with open("/proc/meminfo", "rb") as fh:
-            for line in fh:
-                if line.startswith(b"MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return None
-
-
-def check_endpoint(endpoint: Any) -> None:
-    """A ZeroMQ bind endpoint: SCHEME://ADDRESS; for tcp the port is 1-65535 or * (any free port).
-    libzmq itself wraps an out-of-range port silently (99999 binds 34463)."""
-    _check(isinstance(endpoint, str) and "://" in endpoint and endpoint.split("://", 1)[1] != "",
-           f"publish endpoint must look like tcp://HOST:PORT or ipc://PATH (got {endpoint!r})")
-    scheme, _, address = endpoint.partition("://")
-    if scheme != "tcp":
-        return
-    host, sep, port = address.rpartition(":")
-    ok = bool(sep and host) and (port == "*" or (port.isdigit() and 1 <= int(port) <= 65535))
-    _check(ok, f"publish endpoint {endpoint!r}: a tcp endpoint needs HOST:PORT with a port in 1-65535, or * for "
-               f"any free port (e.g. tcp://127.0.0.1:5555)")
-
-
-def _positive_or_none(name: str, value: float | None) -> None:
-    if value is not None:
-        _check(isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-               and value > 0, f"{name} must be a positive number (got {value!r})")
 
 
 @dataclass(frozen=True)
@@ -138,11 +94,7 @@ class RingConfig:
     def __post_init__(self) -> None:
         _check(isinstance(self.capacity_events, int) and not isinstance(self.capacity_events, bool)
                and self.capacity_events >= 1024, f"ring-events must be an integer >= 1024 (got {self.capacity_events!r})")
-        need, free = self.capacity_events * EVENT_BYTES, available_memory_bytes()
-        _check(free is None or need <= free,
-               f"ring-events {self.capacity_events} needs {need / 2**30:.1f} GiB ({EVENT_BYTES} bytes per event) but "
-               f"only {(free or 0) / 2**30:.1f} GiB of memory is available; choose at most {(free or 0) // EVENT_BYTES}"
-               f" (default 4194304 = 64 MiB)")
+        fits_memory("ring-events", self.capacity_events, EVENT_BYTES, "4194304 = 64 MiB")
         _int_in("ring-frames", self.capacity_frames, 1, 10**6, "APS frames the ring holds")
         _check(self.policy is None or self.policy in POLICIES,
                f"ring-policy must be one of {', '.join(POLICIES)} (got {self.policy!r})")

@@ -142,6 +142,9 @@ def _child(conn: Any, path: str, max_packet_us: int, loop: bool) -> None:
     conn = _Sender(conn)
     for sig in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C / kill of the whole group: the node stops us itself
         signal.signal(sig, signal.SIG_IGN)
+    # no log lines from here: the parent's own reader announced what the header says, and our faults travel to
+    # the parent as messages (unformatted lines from this process would interleave with the node's)
+    logging.disable(logging.WARNING)
     try:
         os.nice(_NICE)
     except OSError:

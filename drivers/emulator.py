@@ -23,7 +23,7 @@ import errno
 import threading
 import time
 from array import array
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, Iterator
 
 import numpy as np
 import usb.backend
@@ -33,6 +33,7 @@ from drivers.davis import models, protocol as P
 from drivers.davis.encoder import WordEncoder
 from drivers.davis.wordstream import WordStream
 from edi_live.datatypes import Packet
+from edi_live.errors import RecordingError
 from edi_live.simulation.stream import generated_scene
 
 _FAULTS = {"no_device", "permission_denied", "busy", "logic_version", "logic_patch", "firmware",
@@ -50,10 +51,19 @@ def _usb_error(msg: str, code: int, backend_code: int) -> usb.core.USBError:
     return usb.core.USBError(msg, backend_code, code)
 
 
-def _recording_factory(recording: Any) -> Callable[[], Iterable[Packet]]:
+def _recording_factory(recording: Any, on_fault: Callable[[RecordingError], None]) -> Callable[[], Iterable[Packet]]:
     if isinstance(recording, (str, bytes)) or hasattr(recording, "__fspath__"):
         from drivers.replay import merged_packets  # the replay engineer's reader: time-ordered packets
-        return lambda: merged_packets(recording)
+
+        def packets() -> Iterator[Packet]:
+            # A damaged file ends the stream like its end would, so the word stream still sends everything
+            # before the fault (held back until then); the camera then reports the fault (bulk_read).
+            try:
+                yield from merged_packets(recording)
+            except RecordingError as exc:
+                on_fault(exc)
+
+        return packets
     packets = list(recording)
     return lambda: packets
 
@@ -110,7 +120,7 @@ class EmulatorBackend(usb.backend.IBackend):
             seed = int(faults.get("seed", 7))
             factory = lambda: generated_scene(w, h, epoch_us=epoch, seed=seed, timing=self.aps_timing)  # noqa: E731
         else:
-            factory = _recording_factory(recording)
+            factory = _recording_factory(recording, self._recording_fault)
         self.stream = WordStream(factory, self.encoder, loop, int(faults.get("holdback_us", 200_000)),
                                   faults.get("reset_at_us"))
         self.regs = self._register_file(mdl, w, h, dvs_o, aps_o, imu_o)
@@ -127,6 +137,16 @@ class EmulatorBackend(usb.backend.IBackend):
         self._drop_words = int(faults.get("drop_words", 0))
         self._rng = np.random.default_rng(int(faults.get("seed", 7)))
         self._stream_epoch: int | None = None
+        self._fault: RecordingError | None = None
+
+    def _recording_fault(self, exc: RecordingError) -> None:
+        """The recording is damaged: no further pass (no loop); raised once everything before it was read."""
+        self._fault = exc
+        self.stream.loop = False
+
+    def _raise_fault_at_end_locked(self) -> None:
+        if self._fault is not None and self.stream.done and not self._pending:
+            raise self._fault
 
     # -- register file --
     def _register_file(self, mdl: models.DavisModel, w: int, h: int, dvs_o: int, aps_o: int, imu_o: int) -> dict:
@@ -163,7 +183,7 @@ class EmulatorBackend(usb.backend.IBackend):
         with self._lock:
             if not self.stream.done and self.streaming and not self._pending:
                 self._fill_locked()
-            return self.stream.done and not self._pending
+            return self.stream.done and not self._pending and self._fault is None  # a fault: bulk_read raises it
 
     def _present(self) -> bool:
         if self.faults.get("no_device"):
@@ -313,6 +333,7 @@ class EmulatorBackend(usb.backend.IBackend):
                     n = self._take_locked(buff)
                     if n:
                         return n
+                    self._raise_fault_at_end_locked()
             wait = deadline - time.monotonic()
             if wait <= 0:
                 raise usb.core.USBTimeoutError("Operation timed out", -7, errno.ETIMEDOUT)

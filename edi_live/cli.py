@@ -1,8 +1,9 @@
 """The `edi-live` command line: flags (and --config TOML) -> NodeConfig -> a source -> Node.run().
 
 Owns: the flag definitions and help text, logging set-up, resolving `--usb-backend MODULE:CALLABLE`, signal
-handling (SIGINT/SIGTERM stop the node cleanly), the summary, and mapping errors to exit codes:
-0 success (also after Ctrl-C/SIGTERM), 2 usage error, 1 runtime error; every error is one line
+handling (SIGINT/SIGTERM stop the node cleanly, also during start-up; repeated ones are ignored while the stop
+finishes), the summary, and mapping errors to exit codes: 0 success (also after Ctrl-C/SIGTERM), 2 usage error,
+1 runtime error; every error is one line
 `edi-live: error: ...` (a traceback only with --log-level debug).
 """
 
@@ -12,15 +13,17 @@ import argparse
 import importlib
 import inspect
 import logging
-import signal
+import stat
 import sys
 import traceback
+import warnings
 from pathlib import Path
 from typing import Any, Sequence
 
 from edi_live import __version__
 from edi_live.config import DEFAULT_ENDPOINT, LOG_LEVELS, NodeConfig, merge_options, read_toml
 from edi_live.errors import ConfigError, EdiLiveError, RecordingError, SourceError
+from edi_live.stop_signals import StopSignals
 
 PROG = "edi-live"
 log = logging.getLogger("edi_live")
@@ -36,7 +39,7 @@ examples:
   # no camera: the built-in emulator replays a recording through the USB driver
   edi-live --device davis240 --usb-backend drivers.emulator:backend --emulate-from rec.aedat4
 
-Ctrl-C or SIGTERM stops cleanly (files finalised, exit 0). Exit codes: 0 ok, 1 runtime error, 2 usage error.
+Ctrl-C or SIGTERM stops cleanly (files finalised, exit 0; a second Ctrl-C is ignored while it stops). Exit codes: 0 ok, 1 runtime error, 2 usage error.
 Every flag can also be set in --config FILE.toml with the same name (e.g. `every = 1000`, `c-on = 0.2`).
 """
 
@@ -99,6 +102,8 @@ def build_parser() -> argparse.ArgumentParser:
     out.add_argument("--curve-secret-key", metavar="FILE",
                      help="encrypt with CURVE using this server secret key file "
                           "(make one: python -m edi_live.publisher --gen-curve-keys DIR)")
+    out.add_argument("--stats-interval-s", type=float, metavar="S",
+                     help="period of the [b\"stats\", map] message on the socket, seconds (default: 1.0)")
     out.add_argument("--out", metavar="FILE.aedat4", help="also write every emitted frame (8-bit gray, lossless)")
     out.add_argument("--record", metavar="FILE.aedat4", help="record the raw input as received, for --replay")
     adv = p.add_argument_group("advanced")
@@ -176,10 +181,19 @@ def _accepted_kwargs(factory: Any, kwargs: dict[str, Any]) -> dict[str, Any]:
 
 
 def _existing_file(path: Path, flag: str) -> None:
-    if path.is_dir():
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        raise RecordingError(f"no such file (check the {flag} path)", str(path)) from None
+    except OSError as exc:
+        raise RecordingError(f"cannot open the recording ({exc.strerror or exc})", str(path)) from None
+    if stat.S_ISDIR(mode):
         raise RecordingError(f"is a directory, not a recording (give {flag} an .aedat4 file)", str(path))
-    if not path.is_file():
-        raise RecordingError(f"no such file (check the {flag} path)", str(path))
+    if not stat.S_ISREG(mode):
+        kind = ("a FIFO (named pipe)" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode)
+                else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a regular file")
+        raise RecordingError(f"is {kind}, not a regular file: {flag} seeks in the recording, so save the stream "
+                             f"to an .aedat4 file first", str(path))
 
 
 def make_source(config: NodeConfig, explicit: set[str] | frozenset = frozenset()) -> Any:
@@ -261,7 +275,14 @@ def _warn_if_exposed(config: NodeConfig) -> None:
                         "(use --curve-secret-key FILE, or a 127.0.0.1 endpoint)", endpoint)
 
 
+def _log_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int, file: Any = None,
+                 line: str | None = None) -> None:
+    """Python warnings (from a library, or a driver's notice) as edi-live log lines, not raw RuntimeWarnings."""
+    log.warning("%s", message)
+
+
 def _setup_logging(level: str, stream: Any = None) -> None:
+    warnings.showwarning = _log_warning
     handler = _LogHandler(sys.stderr if stream is None else stream)
     handler.setFormatter(logging.Formatter("edi-live: %(levelname)s: %(message)s"))
     root = logging.getLogger()
@@ -272,26 +293,28 @@ def _setup_logging(level: str, stream: Any = None) -> None:
         logging.getLogger(name).setLevel(wanted)
 
 
-def _install_signal_handlers(node: Any) -> dict:
-    previous = {}
-
-    def handler(signum: int, frame: Any) -> None:
-        if node._stop.is_set() and signum == signal.SIGINT:
-            raise KeyboardInterrupt  # a second Ctrl-C: stop waiting for the drain
-        log.info("%s: stopping", signal.Signals(signum).name)
-        node.stop()
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        previous[sig] = signal.signal(sig, handler)
-    return previous
-
-
 def _error_line(exc: BaseException) -> str:
     text = " ".join(str(exc).split()) or type(exc).__name__
     return f"{PROG}: error: {text}"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The program (argv None: sys.argv) or an in-process call. SIGINT/SIGTERM are handled from the start; an
+    in-process call restores the previous handlers on return. The program, once stopped by a signal, ignores
+    further ones until it has exited: Python resets its own handlers to the default action while it finalises
+    (e.g. while the replay's decoding child is reaped), where a late Ctrl-C would kill it (rc -2)."""
+    signals = StopSignals()
+    signals.install()
+    try:
+        return _main(argv, signals)
+    finally:
+        if argv is None and signals.received is not None:
+            signals.ignore_from_now_on()
+        else:
+            signals.restore()
+
+
+def _main(argv: Sequence[str] | None, signals: StopSignals) -> int:
     level = "info"
     try:
         flags, config_path = options_from_args(argv)
@@ -308,12 +331,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from edi_live.node import Node
 
         node = Node(config, source, status_stream=sys.stderr)
-        previous = _install_signal_handlers(node)
+        signals.attach(node)
         try:
             node.run()
         finally:
-            for sig, old in previous.items():
-                signal.signal(sig, old)
             if node.final_stats and node.started.is_set():  # no summary when it never got going
                 from edi_live.stats import format_summary
 

@@ -9,6 +9,16 @@ a viewer that falls behind skips to the present instead of lagging (ZMQ_CONFLATE
 only the last *part* of a multipart message). Every receive has a timeout or waits in short interruptible
 slices. Malformed or oversized messages raise `ClientError`; a receive that times out raises `ClientTimeout`
 (a `ClientError` and a `TimeoutError`) from `subscribe()`, or returns None from `Subscriber.recv()`.
+
+Memory is bounded before anything is received: libzmq refuses any message part over `max_bytes`
+(ZMQ_MAXMSGSIZE, checked against the part's length prefix, so nothing is allocated) by dropping the connection,
+and the receive queue holds at most `max_queued_bytes // max_bytes` messages (ZMQ_RCVHWM). A dropped
+connection is re-established by the client itself (libzmq does not reconnect after a protocol error).
+
+The SUB sockets use TCP keepalive, not ZMTP heartbeats, to notice a vanished publisher: libzmq 4.3 aborts
+("Assertion failed: _input_stopped (stream_engine_base.cpp)") when a heartbeat timeout fires while the receive
+queue is full (a slow reader) and the reconnected engine inherits the full queue. Keepalive errors surface only
+when the engine reads, which it does not while the queue is full.
 """
 
 from __future__ import annotations
@@ -27,6 +37,8 @@ from edi_live.errors import ClientError
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
 DEFAULT_MAX_BYTES = wire.DEFAULT_MAX_BYTES
+DEFAULT_MAX_QUEUED_BYTES = 1 << 30
+"""The receive queue's bound: RCVHWM is capped at max_queued_bytes // max_bytes messages (16 by default)."""
 _SLICE_S = 0.1  # longest single wait, so Ctrl-C is noticed even with timeout_s=None
 _MAX_DRAIN = 10_000  # bound on messages drained per receive, so a flood cannot spin forever
 
@@ -54,32 +66,45 @@ class Subscriber:
 
     def __init__(self, endpoint: str = DEFAULT_ENDPOINT, *, newest_only: bool = True,
                  max_bytes: int = DEFAULT_MAX_BYTES, curve_server_key: str | bytes | os.PathLike | None = None,
-                 rcvhwm: int | None = None, stats: bool = True) -> None:
+                 rcvhwm: int | None = None, stats: bool = True,
+                 max_queued_bytes: int = DEFAULT_MAX_QUEUED_BYTES) -> None:
+        """rcvhwm: messages queued in libzmq (default 16, or 1000 without newest_only; 0 = as many as
+        max_queued_bytes allows), always capped at max_queued_bytes // max_bytes: a subscriber that wants
+        every frame of small images lowers max_bytes to get a deeper queue (max_bytes=1 << 20: 1024)."""
+        if not (isinstance(max_bytes, int) and max_bytes > 0 and isinstance(max_queued_bytes, int)
+                and max_queued_bytes > 0):
+            raise ClientError(f"max_bytes and max_queued_bytes must be positive integers "
+                              f"(got {max_bytes!r}, {max_queued_bytes!r})")
         self.endpoint = endpoint
         self.newest_only = newest_only
         self.max_bytes = max_bytes
         self.received = 0  # frames handed to the caller
         self.skipped = 0  # frames drained and discarded by newest_only
+        self.reconnects = 0  # connections re-established after libzmq dropped them (e.g. an oversized part)
         self.last_stats: dict | None = None
         self._server_key = _server_public_key(curve_server_key) if curve_server_key is not None else None
-        self._rcvhwm = rcvhwm if rcvhwm is not None else (16 if newest_only else 1000)
+        wanted = rcvhwm if rcvhwm is not None else (16 if newest_only else 1000)
+        cap = max(1, max_queued_bytes // max_bytes)
+        self.rcvhwm = cap if wanted <= 0 else min(wanted, cap)
         self._ctx = zmq.Context(io_threads=1)
+        self._monitors: dict[zmq.Socket, zmq.Socket] = {}
         try:
-            self._frames = self._socket(wire.FRAME_TOPIC)
-            self._stats = self._socket(wire.STATS_TOPIC) if stats else None
+            self._frames = self._socket(wire.FRAME_TOPIC, self.max_bytes, self.rcvhwm)
+            self._stats = self._socket(wire.STATS_TOPIC, wire.MAX_HEADER_BYTES, 16) if stats else None
         except BaseException:
             self._ctx.destroy(linger=0)
             raise
 
-    def _socket(self, topic: bytes) -> zmq.Socket:
+    def _socket(self, topic: bytes, max_part: int, rcvhwm: int) -> zmq.Socket:
         sock = self._ctx.socket(zmq.SUB)
         sock.setsockopt(zmq.LINGER, 0)
-        sock.setsockopt(zmq.RCVHWM, self._rcvhwm)
-        sock.setsockopt(zmq.HEARTBEAT_IVL, 1000)  # notice a vanished publisher host and reconnect
-        sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, 3000)
-        # libzmq disconnects a peer that sends a larger part: a memory guard well above max_bytes, so
-        # moderately oversized messages still arrive and are rejected with a ClientError.
-        sock.setsockopt(zmq.MAXMSGSIZE, 4 * self.max_bytes)
+        sock.setsockopt(zmq.RCVHWM, rcvhwm)
+        sock.setsockopt(zmq.MAXMSGSIZE, max_part)  # a larger part: libzmq drops the connection
+        # a vanished publisher host is noticed by TCP keepalive (~8 s), not by ZMTP heartbeats (module doc)
+        sock.setsockopt(zmq.TCP_KEEPALIVE, 1)
+        sock.setsockopt(zmq.TCP_KEEPALIVE_IDLE, 5)
+        sock.setsockopt(zmq.TCP_KEEPALIVE_INTVL, 1)
+        sock.setsockopt(zmq.TCP_KEEPALIVE_CNT, 3)
         if self._server_key is not None:
             public, secret = zmq.curve_keypair()
             sock.curve_secretkey, sock.curve_publickey = secret, public
@@ -91,7 +116,24 @@ class Subscriber:
             sock.close(linger=0)
             raise ClientError(f"cannot connect to {self.endpoint}: {exc.strerror}; expected "
                               "tcp://HOST:PORT or ipc:///PATH") from exc
+        self._monitors[sock] = sock.get_monitor_socket(zmq.EVENT_DISCONNECTED)
         return sock
+
+    def _reconnect_if_dropped(self, sock: zmq.Socket) -> None:
+        """After libzmq dropped the connection (a part over max_bytes, a protocol error: it does not
+        reconnect by itself then), connect again. Harmless after an ordinary disconnect."""
+        monitor = self._monitors[sock]
+        dropped = False
+        while monitor.poll(0):
+            monitor.recv_multipart()
+            dropped = True
+        if dropped:
+            self.reconnects += 1
+            try:
+                sock.disconnect(self.endpoint)
+            except zmq.ZMQError:
+                pass  # already gone
+            sock.connect(self.endpoint)
 
     def _wait(self, sock: zmq.Socket, timeout_s: float | None) -> bool:
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
@@ -99,12 +141,14 @@ class Subscriber:
             slice_s = _SLICE_S if deadline is None else min(_SLICE_S, deadline - time.monotonic())
             if sock.poll(max(0, int(slice_s * 1000))):
                 return True
+            self._reconnect_if_dropped(sock)
             if deadline is not None and time.monotonic() >= deadline:
                 return False
 
     def _recv_parts(self, sock: zmq.Socket, timeout_s: float | None,
                     newest: bool) -> tuple[list[zmq.Frame] | None, int]:
         """The next message (or the newest available one when `newest`) and how many were skipped."""
+        self._reconnect_if_dropped(sock)
         try:  # a message already waiting costs no poll
             parts = sock.recv_multipart(flags=zmq.NOBLOCK, copy=False)
         except zmq.Again:
@@ -143,6 +187,8 @@ class Subscriber:
         return self.last_stats
 
     def close(self) -> None:
+        for sock in self._monitors:
+            sock.disable_monitor()
         self._ctx.destroy(linger=0)
 
     def __enter__(self) -> Subscriber:

@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
+from edi_live.checks import check as _check
+from edi_live.checks import check_endpoint, fits_memory, int_in as _int_in, positive_or_none as _positive_or_none
 from edi_live.errors import ConfigError
 
 if sys.version_info >= (3, 11):
@@ -39,15 +41,7 @@ DEVICE_MODELS = ("davis240", "davis346", "auto")
 LOG_LEVELS = ("debug", "info", "warning", "error")
 
 
-def _check(ok: bool, message: str) -> None:
-    if not ok:
-        raise ConfigError(message)
-
-
-def _positive_or_none(name: str, value: float | None) -> None:
-    if value is not None:
-        _check(isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-               and value > 0, f"{name} must be a positive number (got {value!r})")
+EVENT_BYTES = 16  # one ring slot (EVENT_DTYPE)
 
 
 @dataclass(frozen=True)
@@ -98,10 +92,10 @@ class RingConfig:
     policy: str | None = None  # None: "wait" for replay, "drop_oldest" for a live device
 
     def __post_init__(self) -> None:
-        _check(isinstance(self.capacity_events, int) and self.capacity_events >= 1024,
-               f"ring-events must be an integer >= 1024 (got {self.capacity_events!r})")
-        _check(isinstance(self.capacity_frames, int) and self.capacity_frames >= 1,
-               f"ring-frames must be an integer >= 1 (got {self.capacity_frames!r})")
+        _check(isinstance(self.capacity_events, int) and not isinstance(self.capacity_events, bool)
+               and self.capacity_events >= 1024, f"ring-events must be an integer >= 1024 (got {self.capacity_events!r})")
+        fits_memory("ring-events", self.capacity_events, EVENT_BYTES, "4194304 = 64 MiB")
+        _int_in("ring-frames", self.capacity_frames, 1, 10**6, "APS frames the ring holds")
         _check(self.policy is None or self.policy in POLICIES,
                f"ring-policy must be one of {', '.join(POLICIES)} (got {self.policy!r})")
 
@@ -125,8 +119,7 @@ class EdiConfig:
     quality_every: int = 2
 
     def __post_init__(self) -> None:
-        _check(isinstance(self.every, int) and not isinstance(self.every, bool) and self.every >= 1,
-               f"every must be an integer >= 1 (events per latent frame) (got {self.every!r})")
+        _int_in("every", self.every, 1, 10**12, "events per latent frame")
         for name in ("c", "c_on", "c_off"):
             value = getattr(self, name)
             _check(value is None or (isinstance(value, (int, float)) and 0.01 <= value <= 2.0),
@@ -138,11 +131,8 @@ class EdiConfig:
         _check(self.mode in MODES, f"mode must be one of {', '.join(MODES)} (got {self.mode!r})")
         _positive_or_none("max-fps", self.max_fps)
         _positive_or_none("heartbeat-s", self.heartbeat_s)
-        _check(isinstance(self.reestimate_every, int) and self.reestimate_every >= 0,
-               f"reestimate-every must be an integer >= 0 (got {self.reestimate_every!r})")
-        _check(isinstance(self.quality_every, int) and not isinstance(self.quality_every, bool)
-               and 0 <= self.quality_every <= 1_000_000,
-               f"quality-every must be an integer in [0, 1000000] (got {self.quality_every!r})")
+        _int_in("reestimate-every", self.reestimate_every, 0, 10**9, "APS frames; 0 = only when c stops fitting")
+        _int_in("quality-every", self.quality_every, 0, 10**6, "score one APS frame in N; 0 = off")
         _check(self.deblur_thread is None or isinstance(self.deblur_thread, bool),
                f"deblur-thread must be true or false (got {self.deblur_thread!r})")
 
@@ -157,8 +147,7 @@ class PublisherConfig:
 
     def __post_init__(self) -> None:
         for endpoint in self.endpoints:
-            _check(isinstance(endpoint, str) and "://" in endpoint,
-                   f"publish endpoint must look like tcp://HOST:PORT or ipc://PATH (got {endpoint!r})")
+            check_endpoint(endpoint)
         _positive_or_none("stats-interval-s", self.stats_interval_s)
 
     @property
@@ -320,10 +309,17 @@ def _build(opts: dict[str, Any]) -> NodeConfig:
                                            "node": {}}
     for key, value in opts.items():
         section, name, convert = OPTION_KEYS[key]
-        value = convert(value) if convert is not None else value
+        if convert is not None:
+            try:
+                value = convert(value)
+            except (TypeError, ValueError, OverflowError) as exc:  # e.g. float(10**400), Path(3)
+                raise ConfigError(f"{key.replace('_', '-')}: {exc} (got {value!r})") from None
         if name != "-":
             sections[section][name] = value
     if opts.get("no_publish"):
+        if "publish" in opts:
+            raise ConfigError(f"publish and no-publish contradict each other (got publish={opts['publish']!r} "
+                              f"and no-publish); give one of them")
         sections["publisher"]["endpoints"] = ()
     return NodeConfig(
         source=SourceConfig(**sections["source"]),
@@ -347,6 +343,11 @@ def read_toml(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"cannot read config file {path}: {exc.strerror}") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"config file {path} is not valid TOML: {exc}") from None
+    except UnicodeDecodeError as exc:  # a binary file: TOML is UTF-8 text
+        raise ConfigError(f"config file {path} is not a TOML text file (not UTF-8 at byte {exc.start}); give "
+                          f"--config a .toml file") from None
+    except (ValueError, RecursionError) as exc:  # anything else the parser trips over is still the file's fault
+        raise ConfigError(f"config file {path} is not valid TOML ({type(exc).__name__}: {exc})") from None
     nested = [k for k, v in data.items() if isinstance(v, dict)]
     _check(not nested, f"config file {path}: keys go at the top level, like the flags (got table(s) {nested})")
     normalized = {_norm(k): v for k, v in data.items()}
@@ -370,6 +371,8 @@ def merge_options(file_options: Mapping[str, Any], flag_options: Mapping[str, An
         merged.pop("device", None)
     if "publish" in flags:
         merged.pop("no_publish", None)
+    if flags.get("no_publish"):
+        merged.pop("publish", None)
     merged.update(flags)
     return merged
 

@@ -154,6 +154,8 @@ class Node:
         entered = False
         try:
             _warm_up(self._make_reconstructor, self.config.edi)
+            if self._stop.is_set():  # stopped during start-up (SIGTERM, Ctrl-C): open nothing, create no file
+                return self.final_stats
             self.source.__enter__()
             entered = True
             self._build_and_start()

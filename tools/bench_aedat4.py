@@ -25,7 +25,6 @@ import numpy as np
 
 from drivers.replay import merged_packets
 from edi_live.aedat4 import Aedat4Reader, Aedat4Writer
-from edi_live.aedat4._check import HAVE_NUMBA
 from edi_live.datatypes import EVENT_DTYPE, Frame
 
 REAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
@@ -161,8 +160,7 @@ def main(argv: list[str] | None = None) -> None:
         readers["aedat"] = aedat_pkg
     readers["replay merge"] = replay_merge
     ours(REAL / REAL_FILES[1])  # warm up (numba compile, imports)
-    print(f"numba validation kernel: {'yes' if HAVE_NUMBA else 'no (numpy fallback)'}; "
-          f"cores: {len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else '?'}")
+    print(f"cores: {len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else '?'}")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         gen = Path(tmp) / "generated.aedat4"

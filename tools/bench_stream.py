@@ -109,7 +109,7 @@ def _subscriber(endpoint: str, conn) -> None:
     """Child process: receive every frame (no newest-only skipping), report count, seq gaps and timing."""
     from edi_live.client import Subscriber
 
-    with Subscriber(endpoint, newest_only=False, rcvhwm=0) as sub:
+    with Subscriber(endpoint, newest_only=False, rcvhwm=0, max_bytes=1 << 20) as sub:
         while sub.recv_stats(timeout_s=0.5) is None:  # the subscription is live once stats arrive
             pass
         conn.send("ready")

@@ -59,7 +59,7 @@ def bare_receiver(endpoint: str):
 def client_receiver(endpoint: str):
     from edi_live.client import Subscriber
 
-    sub = Subscriber(endpoint, newest_only=False, rcvhwm=0, stats=False)
+    sub = Subscriber(endpoint, newest_only=False, rcvhwm=0, max_bytes=1 << 20, stats=False)
     return sub.recv, sub.close
 
 
@@ -130,7 +130,7 @@ def latency_subscriber(endpoint: str, n: int, ready, result) -> None:
     from edi_live.client import Subscriber
 
     ages_us = []
-    with Subscriber(endpoint, newest_only=False, rcvhwm=0, stats=False) as sub:
+    with Subscriber(endpoint, newest_only=False, rcvhwm=0, max_bytes=1 << 20, stats=False) as sub:
         deadline = time.monotonic() + 60
         while len(ages_us) < n and time.monotonic() < deadline:
             item = sub.recv(1.0)

@@ -11,6 +11,7 @@ import argparse
 import html
 import http.server
 import json
+import math
 import logging
 import os
 import signal
@@ -103,6 +104,26 @@ update(); setInterval(update, 1000);
 """
 
 
+def json_safe(value: Any) -> Any:
+    """A copy that strict JSON can carry: the node's stats map comes from the network and may hold binary
+    values or keys, msgpack extension types or non-finite floats (bytes become hex, the rest their repr)."""
+    if isinstance(value, dict):
+        return {_json_key(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, float):
+        return value if math.isfinite(value) else repr(value)
+    if value is None or isinstance(value, (bool, int, str)):
+        return value
+    if isinstance(value, (bytes, bytearray, memoryview)):
+        return bytes(value).hex()
+    return repr(value)
+
+
+def _json_key(key: Any) -> str:
+    return key if isinstance(key, str) else bytes(key).hex() if isinstance(key, (bytes, bytearray)) else repr(key)
+
+
 def make_handler(hub: FrameHub) -> type[http.server.BaseHTTPRequestHandler]:
     class Handler(http.server.BaseHTTPRequestHandler):
         protocol_version = "HTTP/1.0"
@@ -124,7 +145,7 @@ def make_handler(hub: FrameHub) -> type[http.server.BaseHTTPRequestHandler]:
                 line = str(hub.status.get("line", "waiting for stats...")).replace(" | ", "\n")
                 self._send(PAGE.replace("@LINE@", html.escape(line)).encode(), "text/html; charset=utf-8")
             elif path == "/status.json":
-                self._send(json.dumps(hub.status).encode(), "application/json")
+                self._send(json.dumps(json_safe(hub.status)).encode(), "application/json")
             elif path == "/frame.jpg":
                 _, jpeg = hub.wait_jpeg(hub.version - 1, 0)
                 if jpeg is None:

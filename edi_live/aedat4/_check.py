@@ -1,19 +1,20 @@
 """Validation of decoded event records: sorted by time, on the sensor, polarity 0/1.
 
-One pass over the raw 16-byte records. With numba (optional) it is a compiled loop: on DV's small packets
-(~600 events) the numpy version's fixed cost of ~6 µs per packet would cut decode throughput by a third
-(tools/bench_aedat4.py measures both). Returns the index of the first bad event and why, or (-1, 0).
+One pass over the raw 16-byte records in a numba kernel: on DV's small packets (~600 events) a numpy version's
+fixed cost of ~6 µs per packet would cut decode throughput by a third. Returns the index of the first bad event
+and why, or (-1, 0). `check_events_numpy` is the plain reference the tests check the kernel against.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 OK, UNSORTED, OFF_SENSOR, BAD_POLARITY = 0, 1, 2, 3
 
 
 def check_events_numpy(raw: np.ndarray, width: int, height: int, t_floor: int) -> tuple[int, int]:
-    """raw: uint8, C-contiguous, 16 bytes per event record. Cheap whole-array tests first; indices only on failure."""
+    """The reference for `check_events` (tests only). raw: uint8, C-contiguous, 16 bytes per event record."""
     n = raw.size // 16
     if n == 0:
         return -1, OK
@@ -31,85 +32,78 @@ def check_events_numpy(raw: np.ndarray, width: int, height: int, t_floor: int) -
     return (first, why) if why else (-1, OK)
 
 
-try:
-    from numba import njit
+@njit(cache=True, nogil=True)
+def check_events(raw, width, height, t_floor):  # pragma: no cover - compiled
+    """(index of the first bad event, why) or (-1, 0); raw as in check_events_numpy."""
+    n = raw.size // 16
+    t64 = raw.view(np.int64)
+    u16 = raw.view(np.uint16)
+    prev = t_floor
+    for i in range(n):
+        t = t64[2 * i]
+        if t < prev:
+            return i, 1
+        prev = t
+        if width > 0 and (u16[8 * i + 4] >= width or u16[8 * i + 5] >= height):
+            return i, 2
+        if raw[16 * i + 12] > 1:
+            return i, 3
+    return -1, 0
 
-    @njit(cache=True, nogil=True)
-    def _check_jit(raw, width, height, t_floor):  # pragma: no cover - compiled
-        n = raw.size // 16
-        t64 = raw.view(np.int64)
-        u16 = raw.view(np.uint16)
-        prev = t_floor
-        for i in range(n):
-            t = t64[2 * i]
-            if t < prev:
-                return i, 1
-            prev = t
-            if width > 0 and (u16[8 * i + 4] >= width or u16[8 * i + 5] >= height):
-                return i, 2
-            if raw[16 * i + 12] > 1:
-                return i, 3
-        return -1, 0
 
-    check_events = _check_jit
+@njit(inline="always")
+def _u32(b, i):  # pragma: no cover - compiled
+    return np.int64(b[i]) | (np.int64(b[i + 1]) << 8) | (np.int64(b[i + 2]) << 16) | (np.int64(b[i + 3]) << 24)
 
-    @njit(inline="always")
-    def _u32(b, i):  # pragma: no cover - compiled
-        return np.int64(b[i]) | (np.int64(b[i + 1]) << 8) | (np.int64(b[i + 2]) << 16) | (np.int64(b[i + 3]) << 24)
 
-    @njit(inline="always")
-    def _u16(b, i):  # pragma: no cover - compiled
-        return np.int64(b[i]) | (np.int64(b[i + 1]) << 8)
+@njit(inline="always")
+def _u16(b, i):  # pragma: no cover - compiled
+    return np.int64(b[i]) | (np.int64(b[i + 1]) << 8)
 
-    @njit(cache=True, nogil=True)
-    def parse_check_evts(b, width, height):  # pragma: no cover - compiled
-        """An EVTS payload's vtable walk and the event check in one call: (start, count, first bad, why).
 
-        start = -1 means "not the plain layout": the caller falls back to the general (Python) parser, which also
-        produces the precise error. Saves ~3 µs of Python per packet, a sixth of the time on DV's small packets.
-        """
-        n = b.size
-        if n < 16 or b[8] != 69 or b[9] != 86 or b[10] != 84 or b[11] != 83:  # "EVTS"
-            return -1, 0, -1, 0
-        if _u32(b, 0) + 4 > n:
-            return -1, 0, -1, 0
-        table = _u32(b, 4) + 4
-        if table + 4 > n:
-            return -1, 0, -1, 0
-        so = _u32(b, table)
-        if so >= 2**31:
-            so -= 2**32
-        vt = table - so
-        if vt < 0 or vt + 6 > n:
-            return -1, 0, -1, 0
-        off = _u16(b, vt + 4)
-        if _u16(b, vt) < 6 or off == 0 or table + off + 4 > n:
-            return -1, 0, -1, 0
-        field = table + off
-        v = field + _u32(b, field)
-        if v + 4 > n:
-            return -1, 0, -1, 0
-        count = _u32(b, v)
-        start = v + 4
-        if start + 16 * count > n or start % 8 != 0:
-            return -1, 0, -1, 0
-        recs = b[start:start + 16 * count]
-        t64 = recs.view(np.int64)
-        u16 = recs.view(np.uint16)
-        prev = -(2**62)
-        for i in range(count):
-            t = t64[2 * i]
-            if t < prev:
-                return start, count, i, 1
-            prev = t
-            if width > 0 and (u16[8 * i + 4] >= width or u16[8 * i + 5] >= height):
-                return start, count, i, 2
-            if recs[16 * i + 12] > 1:
-                return start, count, i, 3
-        return start, count, -1, 0
+@njit(cache=True, nogil=True)
+def parse_check_evts(b, width, height):  # pragma: no cover - compiled
+    """An EVTS payload's vtable walk and the event check in one call: (start, count, first bad, why).
 
-    HAVE_NUMBA = True
-except ImportError:  # numba is optional: same contract, numpy speed
-    check_events = check_events_numpy
-    parse_check_evts = None
-    HAVE_NUMBA = False
+    start = -1 means "not the plain layout": the caller falls back to the general (Python) parser, which also
+    produces the precise error. Saves ~3 µs of Python per packet, a sixth of the time on DV's small packets.
+    """
+    n = b.size
+    if n < 16 or b[8] != 69 or b[9] != 86 or b[10] != 84 or b[11] != 83:  # "EVTS"
+        return -1, 0, -1, 0
+    if _u32(b, 0) + 4 > n:
+        return -1, 0, -1, 0
+    table = _u32(b, 4) + 4
+    if table + 4 > n:
+        return -1, 0, -1, 0
+    so = _u32(b, table)
+    if so >= 2**31:
+        so -= 2**32
+    vt = table - so
+    if vt < 0 or vt + 6 > n:
+        return -1, 0, -1, 0
+    off = _u16(b, vt + 4)
+    if _u16(b, vt) < 6 or off == 0 or table + off + 4 > n:
+        return -1, 0, -1, 0
+    field = table + off
+    v = field + _u32(b, field)
+    if v + 4 > n:
+        return -1, 0, -1, 0
+    count = _u32(b, v)
+    start = v + 4
+    if start + 16 * count > n or start % 8 != 0:
+        return -1, 0, -1, 0
+    recs = b[start:start + 16 * count]
+    t64 = recs.view(np.int64)
+    u16 = recs.view(np.uint16)
+    prev = -(2**62)
+    for i in range(count):
+        t = t64[2 * i]
+        if t < prev:
+            return start, count, i, 1
+        prev = t
+        if width > 0 and (u16[8 * i + 4] >= width or u16[8 * i + 5] >= height):
+            return start, count, i, 2
+        if recs[16 * i + 12] > 1:
+            return start, count, i, 3
+    return start, count, -1, 0

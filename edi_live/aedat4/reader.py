@@ -1,72 +1,49 @@
 """Streaming AEDAT 4.0 reader: one packet in memory at a time.
 
-Owns: the IOHeader (FlatBuffer parsed through its vtable, never fixed offsets), the infoNode XML (streams, resolution,
-camera), packet walking (decompression in `compression`), decoding of EVTS (a zero-copy view in EVENT_DTYPE, checked
-by `_check`), FRME (exposure window from SOE/EOE, both DV layouts), IMUS and TRIG (via `payloads`), and the
-optional FileDataTable. Packets come out in file order (arrival order, not time order; `drivers.replay` merges them).
-Every defect in the file is a `RecordingError` naming the file and byte offset, raised after every packet
-before the defect has been yielded. Unknown stream types are skipped with a warning.
+Owns: the file (opening, chunked reads into one reused buffer), packet walking (decompression in `compression`),
+dispatching payloads to their decoders (EVTS and FRME in `decode`, IMUS and TRIG in `payloads`), and the
+FileDataTable (`datatable`). The file head is parsed by `header`. Packets come out in file order (arrival order,
+not time order; `drivers.replay` merges them).
+
+Damage policy, the same for every kind of damage (a cut, a flipped byte, a corrupt stream id or size, a damaged
+FileDataTable, ...): everything before the damage is yielded, then one `RecordingError` names the file, the byte
+offset and what is wrong. Nothing is skipped in silence and nothing is only warned about; the CLI turns the error
+into `edi-live: error: FILE at byte N: ...` and exit 1 after the data before it was processed. A packet whose stream
+id the header does not declare is such damage. Streams the header declares with a type edi-live does not decode
+(e.g. bounding boxes) are not damage: they are announced once on the log and skipped.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import struct
-import warnings
-import xml.etree.ElementTree as ET
-from dataclasses import dataclass
 from typing import Iterable, Iterator
 
 import numpy as np
 
 from edi_live.aedat4 import schema as S
-from edi_live.aedat4._check import check_events, parse_check_evts
 from edi_live.aedat4.compression import decompressor
-from edi_live.aedat4.payloads import decode_imu, decode_triggers, to_gray
-from edi_live.datatypes import EVENT_DTYPE, Frame, SourceInfo
+from edi_live.aedat4.datatable import DATA_TABLE_DTYPE, parse_data_table
+from edi_live.aedat4.decode import decode_events, decode_frame
+from edi_live.aedat4.header import SUPPORTED_TYPES, StreamInfo, read_header, split_camera_label
+from edi_live.aedat4.payloads import decode_imu, decode_triggers
 from edi_live.errors import RecordingError
 
-SUPPORTED_TYPES = ("EVTS", "FRME", "IMUS", "TRIG")
+__all__ = ["Aedat4Reader", "StreamInfo", "DATA_TABLE_DTYPE", "SUPPORTED_TYPES", "split_camera_label", "READ_CHUNK"]
+
+log = logging.getLogger(__name__)
+
 READ_CHUNK = 1 << 20
-
-DATA_TABLE_DTYPE = np.dtype([("byte_offset", "<i8"), ("stream_id", "<i4"), ("size", "<i4"),
-                             ("num_elements", "<i8"), ("t_start", "<i8"), ("t_end", "<i8")])
-"""One FileDataTable entry: `byte_offset` addresses the packet body (its header is 8 bytes before)."""
-
 _PH = struct.Struct("<ii")
-_I8, _I16, _I32, _I64 = (struct.Struct(f) for f in ("<b", "<h", "<i", "<q"))
-
-
-@dataclass(frozen=True)
-class StreamInfo:
-    """One stream declared in the header XML."""
-
-    id: int
-    type: str  # typeIdentifier: "EVTS", "FRME", "IMUS", "TRIG" or something unsupported
-    name: str = ""  # originalOutputName, e.g. "events"
-    width: int = 0  # sizeX (events and frames only; 0 when not given)
-    height: int = 0
-    source: str = ""  # camera, e.g. "DAVIS346_00000391"
-    compression: str = ""
-
-    @property
-    def supported(self) -> bool:
-        return self.type in SUPPORTED_TYPES
-
-
-def split_camera_label(label: str) -> tuple[str, str]:
-    """'DAVIS346_00000391' -> ('DAVIS346', '00000391'); a label without '_<digits>' is all name."""
-    head, sep, tail = label.rpartition("_")
-    if sep and head and tail.isdigit():
-        return head, tail
-    return (label or "unknown"), ""
 
 
 class Aedat4Reader:
     """Streaming AEDAT4 reader; a context manager. Iterate for `(StreamInfo, data)` in file order.
 
     data is an events ndarray (EVENT_DTYPE, a read-only view of the decompressed packet), a `Frame`, an IMU ndarray
-    (IMU_DTYPE) or a triggers ndarray (TRIGGER_DTYPE). Iterating again starts from the first packet.
+    (IMU_DTYPE) or a triggers ndarray (TRIGGER_DTYPE). Iterating again starts from the first packet. A pass that
+    reaches the end of the packets also checks the FileDataTable (when the file has one).
     """
 
     def __init__(self, path: str | os.PathLike, *, validate: bool = True) -> None:
@@ -78,105 +55,34 @@ class Aedat4Reader:
             raise RecordingError(f"cannot open the recording ({exc.strerror or exc})", self.path) from exc
         try:
             self.file_size = os.fstat(self._file.fileno()).st_size
-            self._read_header()
+            head = read_header(self._read_at, self.file_size, self.path)
         except BaseException:
             self._file.close()
             raise
-        self._warned: set[int] = set()
-        self._buffer: memoryview | None = None
-        self._buffer_busy = False
-
-    # ------------------------------------------------------------------------------------------- header
-    def _error(self, message: str, offset: int | None) -> RecordingError:
-        return RecordingError(message, self.path, offset)
-
-    def _read_header(self) -> None:
-        if self.file_size == 0:
-            raise self._error("the file is empty, not an AEDAT4 recording", 0)
-        head = self._read_at(0, S.HEADER_START + 4)
-        if not head.startswith(S.MAGIC):
-            if S.MAGIC.startswith(head):
-                raise self._error("the file ends inside the AEDAT4 magic line (truncated)", len(head))
-            if head.startswith(b"#!AER-DAT"):
-                version = head[9:12].decode("ascii", "replace")
-                raise self._error(f"AEDAT {version} is not supported; only AEDAT 4.0 files can be read", 0)
-            raise self._error("not an AEDAT4 recording (the file does not start with '#!AER-DAT4.0')", 0)
-        if len(head) < S.HEADER_START + 4:
-            raise self._error("the file ends inside the header (truncated)", len(head))
-        n = struct.unpack_from("<I", head, S.HEADER_START)[0]
-        self.data_start = S.HEADER_START + 4 + n
-        if self.data_start > self.file_size:
-            raise self._error(f"the header claims {n} bytes but the file ends at byte {self.file_size} (truncated)",
-                              S.HEADER_START)
-        buf = head[S.HEADER_START:] + self._read_at(S.HEADER_START + 4, n)
-        try:
-            root = S.root_table(buf, b"IOHE")
-            code_pos = root.field_pos(S.IOH_COMPRESSION, 4)
-            code = _I32.unpack_from(buf, code_pos)[0] if code_pos else 0
-            dtp = root.scalar(S.IOH_DATA_TABLE_POSITION, _I64, -1)
-            xml = root.string(S.IOH_INFO_NODE)
-        except S.FlatBufferError as exc:
-            raise self._error(f"corrupt IOHeader: {exc}", S.HEADER_START + exc.pos) from None
-        if code not in S.COMPRESSION_NAMES:
-            raise self._error(f"unknown compression type {code} (known: 0-4)", S.HEADER_START + code_pos)
-        self.compression = S.COMPRESSION_NAMES[code]
-        if dtp >= 0 and (dtp < self.data_start or dtp > self.file_size):
-            if dtp > self.file_size:
-                self._dtp_error = f"the FileDataTable should start at byte {dtp} but the file ends at byte " \
-                                  f"{self.file_size} (truncated)"
-            else:
-                raise self._error(f"dataTablePosition {dtp} points into the header", S.HEADER_START)
-        self.data_table_position = dtp
-        self._end = dtp if 0 <= dtp <= self.file_size else self.file_size
-        self.streams = self._parse_xml(xml)
+        self.data_start = head.data_start
+        self.compression = head.compression
+        self.data_table_position = head.data_table_position
+        self._end = head.end
+        self._table_beyond_end = head.table_beyond_end
+        self.streams = head.streams
+        self.source_info = head.source_info
         self._by_id = {s.id: s for s in self.streams}
         for s in self.streams:
             if not s.supported:
-                warnings.warn(f"{self.path}: stream {s.id} '{s.name}' has type {s.type}, which edi-live does not "
-                              f"read; its packets are skipped", RuntimeWarning, stacklevel=3)
-        self.source_info = self._source_info()
+                log.warning("%s: stream %d '%s' has type %s, which edi-live does not read; its packets are skipped",
+                            self.path, s.id, s.name, s.type)
+        self._buffer: memoryview | None = None
+        self._buffer_busy = False
 
-    _dtp_error: str | None = None
-
-    def _parse_xml(self, xml: bytes) -> list[StreamInfo]:
-        if not xml:
-            return []
-        try:
-            root = ET.fromstring(xml.decode("utf-8", "replace"))
-        except ET.ParseError as exc:
-            raise self._error(f"the stream description (infoNode XML) is malformed: {exc}", S.HEADER_START) from None
-        streams = []
-        for node in root.iter("node"):
-            attrs = {a.get("key"): (a.text or "") for a in node.findall("attr")}
-            if "typeIdentifier" not in attrs:
-                continue
-            try:
-                sid = int(node.get("name", ""))
-            except ValueError:
-                continue
-            info = node.find("node[@name='info']")
-            iattrs = {a.get("key"): (a.text or "") for a in info.findall("attr")} if info is not None else {}
-            streams.append(StreamInfo(id=sid, type=attrs["typeIdentifier"].strip(),
-                                      name=attrs.get("originalOutputName", "").strip() or f"stream{sid}",
-                                      width=_int(iattrs.get("sizeX")), height=_int(iattrs.get("sizeY")),
-                                      source=iattrs.get("source", "").strip(),
-                                      compression=attrs.get("compression", "").strip()))
-        return streams
-
-    def _source_info(self) -> SourceInfo:
-        ranked = sorted(self.streams, key=lambda s: (s.type != "EVTS", s.type != "FRME", s.id))
-        sized = [s for s in ranked if s.width > 0 and s.height > 0]
-        label = next((s.source for s in ranked if s.source), "")
-        name, serial = split_camera_label(label)
-        w, h = (sized[0].width, sized[0].height) if sized else (0, 0)
-        return SourceInfo(width=w, height=h, name=name, serial=serial, kind="replay")
+    def _error(self, message: str, offset: int | None) -> RecordingError:
+        return RecordingError(message, self.path, offset)
 
     # ------------------------------------------------------------------------------------------ packets
     def packets(self, types: Iterable[str] | None = None) -> Iterator[tuple[StreamInfo, int, bytes]]:
         """Raw packets in file order: (stream, file offset of the packet header, decompressed payload).
 
-        Packets of unknown or undeclared streams are skipped (with one warning per stream), and so, without being
-        decompressed, are packets whose type is not in `types` (when given, e.g. ("EVTS",)).
+        Packets of declared streams of unsupported types are skipped, and so, without being decompressed, are
+        packets whose type is not in `types` (when given, e.g. ("EVTS",)). Ends with the table check.
         """
         end, pos = self._end, self.data_start
         # The file is read in chunks of READ_CHUNK bytes (or one packet, if larger) into one reused buffer, and
@@ -189,16 +95,35 @@ class Aedat4Reader:
             memoryview(bytearray(max(8, min(READ_CHUNK, end - pos))))
         if shared:
             self._buffer, self._buffer_busy = view, True
+        walked: list[tuple[int, int]] = []  # (offset, size) of every packet, for the table check
         try:
-            yield from self._walk(view, pos, end, types, shared)
+            yield from self._walk(view, pos, end, types, shared, walked)
         finally:
             if shared:
                 self._buffer_busy = False
-        if self._dtp_error:
-            raise self._error(self._dtp_error, self.file_size)
+        if self._table_beyond_end:
+            raise self._error(f"the FileDataTable should start at byte {self.data_table_position} but the file ends "
+                              f"at byte {self.file_size} (truncated)", self.file_size)
+        self._check_table(walked)
 
-    def _walk(self, view: memoryview, pos: int, end: int, types: Iterable[str] | None,
-              shared: bool) -> Iterator[tuple[StreamInfo, int, bytes]]:
+    def _check_table(self, walked: list[tuple[int, int]]) -> None:
+        """Damage in the FileDataTable is reported like damage anywhere else: it must parse and list exactly the
+        packets the file holds (DV, aestream, evlib and our writer all list every packet in file order). Stream
+        ids are not compared: a wrong one in a packet header is caught by its payload's FlatBuffer identifier."""
+        table = self.data_table()
+        if table is None:
+            return
+        found = np.array(walked, dtype=np.int64).reshape(-1, 2)
+        listed = np.stack([table["byte_offset"] - 8, table["size"]], axis=1).astype(np.int64)
+        if found.shape != listed.shape or not np.array_equal(found, listed):
+            n = min(len(found), len(listed))
+            k = int(np.flatnonzero((found[:n] != listed[:n]).any(axis=1))[0]) if n and not np.array_equal(
+                found[:n], listed[:n]) else n
+            raise self._error(f"the FileDataTable lists {len(listed)} packets but the file holds {len(found)}; they "
+                              f"first differ at packet {k} (a damaged table)", self.data_table_position)
+
+    def _walk(self, view: memoryview, pos: int, end: int, types: Iterable[str] | None, shared: bool,
+              walked: list[tuple[int, int]]) -> Iterator[tuple[StreamInfo, int, bytes]]:
         unpack_from = _PH.unpack_from
         decompress = decompressor(self.compression)
         by_id = self._by_id
@@ -220,7 +145,12 @@ class Aedat4Reader:
                 what = "the FileDataTable" if end == self.data_table_position else "the end of the file"
                 why = "corrupt size or table position" if end == self.data_table_position else "truncated"
                 raise self._error(f"packet of {size} bytes runs past {what}, which is at byte {end} ({why})", pos)
-            if wanted is not None and sid not in wanted and sid in by_id:
+            walked.append((pos, size))
+            stream = by_id.get(sid)
+            if stream is None:
+                raise self._error(f"packet of {size} bytes belongs to stream {sid}, which the header does not "
+                                  f"declare (declared: {sorted(by_id)}; a corrupt stream id)", pos)
+            if not stream.supported or (wanted is not None and sid not in wanted):
                 pos += 8 + size
                 continue
             if rel + 8 + size > filled:
@@ -228,15 +158,6 @@ class Aedat4Reader:
                 buf, base, rel = view.obj, pos, 0
                 if shared:
                     self._buffer = view  # grown for a large packet: keep the larger one
-            stream = by_id.get(sid)
-            if stream is None or not stream.supported:
-                if sid not in self._warned:
-                    self._warned.add(sid)
-                    if stream is None:
-                        warnings.warn(f"{self.path}: packet at byte {pos} belongs to stream {sid}, which the header "
-                                      f"does not declare; skipped", RuntimeWarning, stacklevel=2)
-                pos += 8 + size
-                continue
             try:
                 payload = decompress(view[rel + 8:rel + 8 + size])
             except Exception as exc:  # lz4/zstandard raise their own types (RuntimeError, ZstdError, ...)
@@ -286,17 +207,17 @@ class Aedat4Reader:
             try:
                 t = stream.type
                 if t == "EVTS":
-                    data = self._events(payload, stream, pos)
+                    data = decode_events(payload, stream, self.validate)
                 elif t == "FRME":
                     seq = seqs.get(stream.id, 0)
                     seqs[stream.id] = seq + 1
-                    data = self._frame(payload, stream, pos, seq)
+                    data = decode_frame(payload, stream, seq)
                 elif t == "IMUS":
                     data = decode_imu(payload)
                 else:
                     data = decode_triggers(payload)
-            except RecordingError:
-                raise
+            except RecordingError as exc:
+                raise self._error(str(exc), pos) from None
             except S.FlatBufferError as exc:
                 raise self._error(f"corrupt {stream.type} packet: {exc} (payload byte {exc.pos})", pos) from None
             except Exception as exc:  # anything else a damaged payload provokes (struct, numpy, ...) is the same fault
@@ -305,110 +226,33 @@ class Aedat4Reader:
 
     def events(self) -> Iterator[np.ndarray]:
         """Only the event arrays, in file order (other packets are skipped undecompressed): the fast path."""
-        decode = self._events
+        validate = self.validate
         for stream, pos, payload in self.packets(("EVTS",)):
             try:
-                ev = decode(payload, stream, pos)
+                ev = decode_events(payload, stream, validate)
+            except RecordingError as exc:
+                raise self._error(str(exc), pos) from None
             except S.FlatBufferError as exc:
                 raise self._error(f"corrupt EVTS packet: {exc} (payload byte {exc.pos})", pos) from None
             yield ev
-
-    def _events(self, payload: bytes, stream: StreamInfo, pos: int) -> np.ndarray:
-        if self.validate and parse_check_evts is not None:  # numba: parse and check in one compiled call
-            start, count, first, why = parse_check_evts(np.frombuffer(payload, np.uint8), stream.width,
-                                                        stream.height)
-            if start >= 0:
-                if why:
-                    raise self._error(f"corrupt event packet of stream {stream.id}: event {first} of {count} "
-                                      f"{_WHY[why].format(w=stream.width, h=stream.height)}", pos)
-                return np.frombuffer(payload, dtype=EVENT_DTYPE, count=count, offset=start) if count else _NO_EVENTS
-        # the vtable walk of schema.Table, inlined for the common layout (this runs once per event packet)
-        n = len(payload)
-        start = count = -1
-        if n >= 16:
-            size, root, ident = _EVTS_HEAD.unpack_from(payload, 0)
-            table = root + 4
-            if ident == b"EVTS" and size + 4 <= n and table + 4 <= n:
-                vt = table - _I32.unpack_from(payload, table)[0]
-                if 0 <= vt <= n - 6:
-                    vt_len, _, off = _VT3.unpack_from(payload, vt)
-                    field = table + off
-                    if vt_len >= 6 and off and field + 4 <= n:
-                        v = field + _U32.unpack_from(payload, field)[0]
-                        if v + 4 <= n:
-                            count = _U32.unpack_from(payload, v)[0]
-                            start = v + 4
-                            if start + 16 * count > n:
-                                start = -1
-        if start < 0:  # anything unusual: the general, fully checked path (raises FlatBufferError)
-            start, count = S.root_table(payload, b"EVTS").vector(0, S.EVENT_RECORD_BYTES)
-        if not count:
-            return _NO_EVENTS
-        if self.validate:
-            first, why = check_events(np.frombuffer(payload, np.uint8, count * 16, start), stream.width,
-                                      stream.height, _T_MIN)
-            if why:
-                raise self._error(f"corrupt event packet of stream {stream.id}: event {first} of {count} "
-                                  f"{_WHY[why].format(w=stream.width, h=stream.height)}", pos)
-        return np.frombuffer(payload, dtype=EVENT_DTYPE, count=count, offset=start)
-
-    def _frame(self, payload: bytes, stream: StreamInfo, pos: int, seq: int) -> Frame:
-        tb = S.root_table(payload, b"FRME")
-        ts = tb.scalar(S.FR_TIMESTAMP, _I64)
-        soe, eoe = tb.scalar(S.FR_SOE, _I64), tb.scalar(S.FR_EOE, _I64)
-        sof, eof = tb.scalar(S.FR_SOF, _I64), tb.scalar(S.FR_EOF, _I64)
-        exposure = tb.scalar(S.FR_EXPOSURE, _I64, None)
-        fmt = tb.scalar(S.FR_FORMAT, _I8)
-        w, h = tb.scalar(S.FR_SIZE_X, _I16), tb.scalar(S.FR_SIZE_Y, _I16)
-        px, py = tb.scalar(S.FR_POS_X, _I16), tb.scalar(S.FR_POS_Y, _I16)
-        if fmt not in S.FRAME_FORMAT_CHANNELS:
-            raise self._error(f"frame pixel format {fmt} is not supported (8/16-bit gray, BGR or BGRA)", pos)
-        channels, depth = S.FRAME_FORMAT_CHANNELS[fmt]
-        if w <= 0 or h <= 0 or px < 0 or py < 0:
-            raise self._error(f"frame with invalid size {w}x{h} at ({px}, {py})", pos)
-        start, count = tb.vector(S.FR_PIXELS, 1)
-        if count != w * h * channels * depth:
-            raise self._error(f"frame holds {count} pixel bytes, {w}x{h}x{channels}x{depth} expected", pos)
-        dtype = np.uint8 if depth == 1 else np.dtype("<u2")
-        img = np.frombuffer(payload, dtype=dtype, count=w * h * channels, offset=start)
-        img = img.reshape(h, w) if channels == 1 else to_gray(img.reshape(h, w, channels))
-        if (stream.width and stream.height and (w, h) != (stream.width, stream.height)
-                and px + w <= stream.width and py + h <= stream.height):
-            full = np.zeros((stream.height, stream.width), dtype=img.dtype)  # an ROI frame: place it on the sensor
-            full[py:py + h, px:px + w] = img
-            img = full
-        if soe or eoe:
-            lo, hi = soe, eoe if eoe else soe + (exposure or 0)
-        else:  # no exposure timestamps: newer layouts give timestamp = start plus an exposure duration
-            lo, hi = ts, ts + (exposure or 0)
-        if hi < lo or (exposure is not None and exposure < 0):
-            raise self._error(f"frame with a negative exposure (start {lo} µs, end {hi} µs)", pos)
-        return Frame(image=img, exposure_start_us=lo, exposure_end_us=hi,
-                     start_us=sof or None, end_us=eof or None, seq=seq)
 
     # ------------------------------------------------------------------------------------- data table
     def data_table(self) -> np.ndarray | None:
         """The FileDataTable as a DATA_TABLE_DTYPE array (missing fields are 0), or None when the file has none."""
         dtp = self.data_table_position
-        if dtp < 0 or self._dtp_error:
+        if dtp < 0 or self._table_beyond_end:
             return None
         body = self._read_at(dtp, self.file_size - dtp)
         try:
             payload = decompressor(self.compression)(body)
         except Exception as exc:
-            raise self._error(f"the FileDataTable does not decompress ({exc})", dtp) from None
+            raise self._error(f"the FileDataTable does not decompress ({exc}; damaged or truncated)", dtp) from None
         try:
-            start, count = S.root_table(payload, b"FTAB").vector(0, 4)
-            cols = S.table_vector_fields(payload, start, count, {0: "<i8", 1: "<i8", 2: "<i8", 3: "<i8", 4: "<i8"})
-            out = np.zeros(count, dtype=DATA_TABLE_DTYPE)
-            info = cols[1].astype("<i8")  # PacketInfo struct {i32 stream id, i32 size}, little-endian
-            out["byte_offset"], out["num_elements"], out["t_start"], out["t_end"] = cols[0], cols[2], cols[3], cols[4]
-            out["stream_id"], out["size"] = (info & 0xFFFFFFFF).astype("<u4").view("<i4"), (info >> 32)
+            return parse_data_table(payload)
         except S.FlatBufferError as exc:
             raise self._error(f"corrupt FileDataTable: {exc}", dtp) from None
         except Exception as exc:  # whatever else a damaged table provokes is the same fault
             raise self._error(f"corrupt FileDataTable ({type(exc).__name__}: {exc})", dtp) from exc
-        return out
 
     def time_range(self) -> tuple[int, int] | None:
         """(first, last) timestamp in µs from the FileDataTable, or None when the table lacks timestamps."""
@@ -427,21 +271,3 @@ class Aedat4Reader:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-_U32 = struct.Struct("<I")
-_EVTS_HEAD = struct.Struct("<II4s")
-_VT3 = struct.Struct("<HHH")
-
-
-_T_MIN = -(2**62)  # "no floor" (a smaller Python int makes numba dispatch 20x slower)
-_WHY = {1: "goes back in time", 2: "lies outside the {w}x{h} sensor", 3: "has a polarity byte other than 0/1"}
-_NO_EVENTS = np.zeros(0, dtype=EVENT_DTYPE)
-_NO_EVENTS.flags.writeable = False
-
-
-def _int(text: str | None) -> int:
-    try:
-        return max(0, int((text or "0").strip()))
-    except ValueError:
-        return 0

@@ -111,10 +111,6 @@ class Table:
         v = self._indirect(slot)
         return Table(self.buf, v) if v else None
 
-    def tables(self, slot: int) -> list["Table"]:
-        start, count = self.vector(slot, 4)
-        return [Table(self.buf, start + 4 * i + _U32.unpack_from(self.buf, start + 4 * i)[0]) for i in range(count)]
-
 
 def root_table(buf, identifier: bytes | None, size_prefixed: bool = True) -> Table:
     """The root table of a (size-prefixed) FlatBuffer, checking the 4-byte file identifier when given."""

@@ -278,7 +278,9 @@ def test_fuzz_uncompressed_flatbuffers(tmp_path, uncompressed_real, mutation):
     _read_and_replay(path)
 
 
-def test_damaged_data_table_is_reported_but_does_not_stop_replay(tmp_path):
+def test_damaged_data_table_is_reported_after_the_replay(tmp_path):
+    """The damage policy (issue 15.6): a damaged FileDataTable is damage like any other. The replay never needs the
+    table, so every packet is delivered, and then the RecordingError names the table's byte offset."""
     from drivers.replay import ReplaySource
 
     path = tmp_path / "f.aedat4"
@@ -288,11 +290,79 @@ def test_damaged_data_table_is_reported_but_does_not_stop_replay(tmp_path):
     data[dtp + 8:] = b"\x00" * (len(data) - dtp - 8)  # wipe the table body after its frame header
     path.write_bytes(bytes(data))
     with Aedat4Reader(path) as reader:
-        assert sum(len(e) for e in reader.events()) == 500
         with pytest.raises(RecordingError, match="FileDataTable") as info:
             reader.data_table()
         assert info.value.offset == dtp
+        got = []
+        with pytest.raises(RecordingError, match="FileDataTable") as info:
+            for events in reader.events():
+                got.append(len(events))
+        assert sum(got) == 500 and info.value.offset == dtp
     src = ReplaySource(path, speed=0)
     assert src.time_range() is None
-    with src:
-        assert sum(len(p.events) for p in src if p is not None) == 500
+    n = 0
+    with src, pytest.raises(RecordingError, match="FileDataTable"):
+        for packet in src:
+            n += len(packet.events) if packet is not None else 0
+    assert n == 500
+
+
+def _no_warnings_read(path) -> tuple[int, RecordingError | None]:
+    """Events delivered by merged_packets before it raised, and the error; any Python warning fails the test."""
+    n = 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        try:
+            for packet in merged_packets(path):
+                n += len(packet.events)
+        except RecordingError as exc:
+            return n, exc
+    return n, None
+
+
+def test_a_corrupt_stream_id_is_damage_not_a_warning(tmp_path):
+    """Issue 15.6: one packet's stream id overwritten with 77 lost its events with only a raw RuntimeWarning and
+    exit 0. Now the packets before it are delivered and the error names the file and the packet's byte."""
+    path = tmp_path / "f.aedat4"
+    data = bytearray(_simple_file(path, "lz4"))
+    pos = _packet_offsets(bytes(data))[2][0]
+    struct.pack_into("<i", data, pos, 77)
+    path.write_bytes(bytes(data))
+    n, err = _no_warnings_read(path)
+    assert err is not None and err.offset == pos and str(path) in str(err)
+    assert "stream 77, which the header does not declare" in str(err)
+    assert n == 200  # the two event packets before it
+
+
+@pytest.mark.parametrize("cut", [1, 7, 40])
+def test_a_cut_inside_the_data_table_is_damage(real_recordings, tmp_path, cut):
+    """Issue 15.6: a file whose last bytes (inside the FileDataTable) are cut replayed with exit 0 and no word,
+    although dv-processing refuses it. Now: every event, then the error at the table's offset."""
+    src = real_recordings["evlib_sample_davis346.aedat4"]
+    with Aedat4Reader(src) as reader:
+        total = sum(len(e) for e in reader.events())
+        dtp = reader.data_table_position
+    path = tmp_path / "cut.aedat4"
+    path.write_bytes(src.read_bytes()[:-cut])
+    n, err = _no_warnings_read(path)
+    assert n == total
+    assert err is not None and err.offset == dtp and "FileDataTable" in str(err)
+
+
+def test_a_table_that_lists_other_packets_is_damage(tmp_path):
+    """A table that parses but disagrees with the packets (here: one packet more in the file than listed)."""
+    path = tmp_path / "f.aedat4"
+    data = _simple_file(path, "none")
+    offsets = _packet_offsets(data)
+    first, _, size = offsets[0]
+    with Aedat4Reader(path) as reader:
+        dtp = reader.data_table_position
+    # a copy of the first packet inserted before the table, the header's table position moved along
+    patched = bytearray(data[:dtp] + data[first:first + 8 + size] + data[dtp:])
+    head = bytes(patched[:18 + struct.unpack_from("<I", patched, 14)[0]])
+    at = head.index(struct.pack("<q", dtp))  # the IOHeader's dataTablePosition field
+    struct.pack_into("<q", patched, at, dtp + 8 + size)
+    path.write_bytes(bytes(patched))
+    got, err = _read(path)
+    assert len(got) == 7 and err is not None and err.offset == dtp + 8 + size
+    assert "lists 6 packets but the file holds 7" in str(err)

@@ -10,6 +10,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -58,7 +59,11 @@ def test_help_teaches_groups_units_defaults_and_examples():
 @pytest.mark.parametrize("args,code,fragment", [
     (("--bogus",), 2, "unrecognized arguments: --bogus"),
     (("--replay", "x.aedat4", "--every", "zero"), 2, "invalid int value"),
-    (("--replay", "x.aedat4", "--every", "0"), 2, "every must be an integer >= 1"),
+    (("--replay", "x.aedat4", "--every", "0"), 2, "every must be an integer in [1, 10^12]"),
+    (("--replay", "x.aedat4", "--every", str(10**23)), 2, "every must be an integer in [1, 10^12]"),
+    (("--replay", "x.aedat4", "--ring-events", "100000000000"), 2, "of memory is available; choose at most"),
+    (("--replay", "x.aedat4", "--publish", "tcp://127.0.0.1:99999"), 2, "port in 1-65535, or *"),
+    (("--replay", "x.aedat4", "--publish", "tcp://127.0.0.1:5555", "--no-publish"), 2, "contradict each other"),
     ((), 2, "choose an input"),
     (("--device", "davis240", "--replay", "x.aedat4"), 2, "choose one input"),
     (("--replay", "does-not-exist.aedat4"), 1, "does-not-exist.aedat4: no such file"),
@@ -80,6 +85,23 @@ def test_errors_are_one_line_with_the_right_exit_code(args, code, fragment):
     assert len(lines) == 1 and fragment in lines[0], proc.stderr
     assert "Traceback" not in proc.stderr
     assert proc.stderr.strip().count("\n") == 0, "nothing but the one error line"
+
+
+def test_a_binary_config_is_a_usage_error_and_a_fifo_replay_is_named(tmp_path):
+    """Issue 15.7: a binary --config said "internal error ... report it" (exit 1); a FIFO as --replay was
+    reported as "no such file"."""
+    binary = tmp_path / "photo.toml"
+    binary.write_bytes(bytes(range(256)) * 4)
+    proc = run_cli("--config", str(binary))
+    assert proc.returncode == 2 and error_lines(proc.stderr) == [
+        f"edi-live: error: config file {binary} is not a TOML text file (not UTF-8 at byte 128); give --config a "
+        f".toml file"], proc.stderr
+    fifo = tmp_path / "stream.aedat4"
+    os.mkfifo(fifo)
+    proc = run_cli("--replay", str(fifo), "--no-publish")
+    lines = error_lines(proc.stderr)
+    assert proc.returncode == 1 and len(lines) == 1 and "is a FIFO (named pipe), not a regular file" in lines[0]
+    assert "no such file" not in proc.stderr
 
 
 def test_not_an_aedat4_file_is_one_line_exit_1(tmp_path):
@@ -327,3 +349,135 @@ def test_a_huge_every_still_sends_every_moving_deblurred_frame(real_recordings, 
                    timeout_s=60)
     assert proc.returncode == 0, proc.stderr
     assert "(13 deblurred" in proc.stderr, proc.stderr
+
+
+def _out_frames(path: Path) -> int:
+    from edi_live.aedat4 import Aedat4Reader
+
+    with Aedat4Reader(path) as reader:
+        return sum(1 for stream, _ in reader if stream.type == "FRME")
+
+
+@pytest.mark.parametrize("gap_s", [0.0, 0.01, 0.05])
+def test_a_second_ctrl_c_is_ignored_and_the_summary_matches_out(real_recordings, tmp_path, gap_s,
+                                                                needs_reconstructor):
+    """Issue 15.2: two SIGINTs close together gave exit 1 ("the out-writer thread failed: KeyboardInterrupt"), a
+    summary that disagreed with --out, or death by the signal (rc -2)."""
+    out = tmp_path / "sharp.aedat4"
+    proc = subprocess.Popen([sys.executable, "-m", "edi_live", "--replay", str(real_recordings[DEMO]), "--loop",
+                             "--every", "500", "--publish", "tcp://127.0.0.1:*", "--out", str(out)],
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+    try:
+        endpoint = None
+        while endpoint is None:
+            line = proc.stderr.readline()
+            assert line, "the node never reported its endpoint"
+            m = re.search(r"publishing on (tcp://\S+)", line)
+            endpoint = m.group(1) if m else None
+        from edi_live.client import Subscriber
+
+        with Subscriber(endpoint) as sub:
+            assert sub.recv(timeout_s=20) is not None, "no frame before the signal"
+        proc.send_signal(signal.SIGINT)
+        time.sleep(gap_s)  # the test's input: the gap between the two Ctrl-Cs (not a synchronisation)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err and not error_lines(err)
+    written = int(re.search(r"--out frames written: (\d+)", err).group(1))
+    assert written == _out_frames(out) > 0
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_sigterm_during_start_up_is_a_clean_stop(real_recordings, tmp_path):
+    """Issue 15.3: SIGTERM in the first moments (here: while the config file is being read, through a FIFO that
+    blocks until the test writes it) killed the process (rc -15) without a word."""
+    fifo = tmp_path / "edi.toml"
+    os.mkfifo(fifo)
+    out = tmp_path / "sharp.aedat4"
+    proc = subprocess.Popen([sys.executable, "-m", "edi_live", "--config", str(fifo), "--replay",
+                             str(real_recordings[DEMO]), "--no-publish", "--out", str(out)],
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+    try:
+        deadline = time.monotonic() + 30
+        writer = None
+        while writer is None:  # opening a FIFO's write end without blocking succeeds once the reader has it open
+            assert time.monotonic() < deadline and proc.poll() is None, "the CLI never opened its config"
+            try:
+                writer = os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
+            except OSError:  # ENXIO: no reader yet
+                threading.Event().wait(0.01)
+        proc.send_signal(signal.SIGTERM)
+        os.write(writer, b"every = 1000\n")
+        os.close(writer)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=10)
+    assert proc.returncode == 0, f"rc {proc.returncode}: {err}"
+    assert "SIGTERM: stopping" in err and "Traceback" not in err and not error_lines(err)
+    assert not out.exists(), "stopped before the node started: nothing is created"
+
+
+def test_the_emulator_processes_a_truncated_recording_up_to_the_cut_like_replay(real_recordings, tmp_path,
+                                                                                needs_reconstructor):
+    """Issue 15.4: through the emulated camera a truncated file gave 0 events (the held-back data before the
+    fault was dropped with the error); --replay gives everything before the cut. Both must agree."""
+    cut = tmp_path / "t.aedat4"
+    cut.write_bytes(real_recordings[DEMO].read_bytes()[:1487450])  # the issue's cut, inside a packet
+    counts = {}
+    for name, args in (("replay", ["--replay", str(cut)]),
+                       ("emulator", ["--device", "davis346", "--usb-backend", "drivers.emulator:backend",
+                                     "--emulate-from", str(cut)])):
+        proc = run_cli(*args, "--speed", "0", "--no-publish", timeout_s=90)
+        assert proc.returncode == 1, proc.stderr
+        lines = error_lines(proc.stderr)
+        assert len(lines) == 1 and "t.aedat4 at byte" in lines[0] and "truncated" in lines[0], proc.stderr
+        counts[name] = int(re.search(r"done in [\d.]+ s: (\d+) events", proc.stderr).group(1))
+    assert counts["emulator"] == counts["replay"] > 100_000
+
+
+def _packet_at(data: bytes, index: int) -> int:
+    """File offset of packet `index` (walked from the header, independently of the reader)."""
+    import struct
+
+    pos = 18 + struct.unpack_from("<I", data, 14)[0]
+    for _ in range(index):
+        pos += 8 + struct.unpack_from("<i", data, pos + 4)[0]
+    return pos
+
+
+@pytest.mark.parametrize("damage", ["stream id 77", "table cut by 7 bytes"])
+def test_damage_is_one_error_line_after_the_summary_never_a_silent_exit_0(real_recordings, tmp_path, damage,
+                                                                          needs_reconstructor):
+    """Issue 15.6, the damage policy: every kind of damage is processed up to the fault, then one line names the
+    file and byte and the exit code is 1. Before: a raw RuntimeWarning, 335 events lost behind "drops 0" and exit
+    0 (corrupt stream id); exit 0 without a word (a FileDataTable cut short, which dv-processing refuses)."""
+    import struct
+
+    data = bytearray(real_recordings[DEMO].read_bytes())
+    if damage == "stream id 77":
+        at = _packet_at(data, 600)
+        struct.pack_into("<i", data, at, 77)
+    else:
+        del data[-7:]
+    bad = tmp_path / "damaged.aedat4"
+    bad.write_bytes(bytes(data))
+    out = tmp_path / "sharp.aedat4"
+    proc = run_cli("--replay", str(bad), "--speed", "0", "--no-publish", "--out", str(out), timeout_s=90)
+    assert proc.returncode == 1, proc.stderr
+    lines = error_lines(proc.stderr)
+    assert len(lines) == 1 and f"{bad} at byte" in lines[0], proc.stderr
+    if damage == "stream id 77":
+        assert f"at byte {at}:" in lines[0] and "stream 77" in lines[0]
+    else:
+        assert "FileDataTable" in lines[0]
+    assert proc.stderr.strip().splitlines()[-1] == lines[0], "the error is the last line, after the summary"
+    assert "Warning" not in proc.stderr.replace("edi-live: WARNING", "") and "Traceback" not in proc.stderr
+    written = int(re.search(r"--out frames written: (\d+)", proc.stderr).group(1))
+    assert written == _out_frames(out) > 0

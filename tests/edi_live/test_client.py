@@ -4,6 +4,9 @@ ClientError while the subscriber stays usable."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+import textwrap
 import threading
 import time
 
@@ -50,17 +53,27 @@ def good(i: int = 1) -> list:
     return [bytes(p) for p in wire.encode_frame(make_rec(i), i, "cam")]
 
 
-def wait_first(sock, sub: Subscriber, parts) -> tuple:
-    """Send `parts` until the subscriber receives something (slow-joiner fix); returns what it got."""
+def wait_first(sock, sub: Subscriber, parts, also: zmq.Socket | None = None) -> tuple:
+    """Send `parts` until the subscriber (and the raw socket `also`, drained) receives something (slow-joiner
+    fix); returns what the subscriber got."""
     deadline = time.monotonic() + 10
+    got = None
     while time.monotonic() < deadline:
         sock.send_multipart(parts)
-        try:
-            item = sub.recv(0.05)
-        except ClientError as exc:
-            return ("error", exc)
-        if item is not None:
-            return ("frame", item)
+        if got is None:
+            try:
+                item = sub.recv(0.05)
+            except ClientError as exc:
+                got = ("error", exc)
+            else:
+                got = ("frame", item) if item is not None else None
+        if also is not None and also.poll(50):
+            while also.poll(0):
+                also.recv_multipart()
+            if got is not None:
+                return got
+        elif also is None and got is not None:
+            return got
     raise AssertionError("nothing arrived")
 
 
@@ -104,13 +117,21 @@ def test_recv_returns_none_on_timeout():
 
 def test_newest_only_skips_to_the_newest_frame(raw_pub):
     sock, endpoint = raw_pub
+    probe = sock.context.socket(zmq.SUB)  # sees the same stream: once it has frame 100, `sub` has it queued
+    probe.setsockopt(zmq.LINGER, 0)
+    probe.setsockopt(zmq.SUBSCRIBE, b"")
+    probe.connect(endpoint)
     with Subscriber(endpoint, newest_only=True, rcvhwm=1000) as sub:
-        wait_first(sock, sub, good(0))
+        wait_first(sock, sub, good(0), also=probe)
         while sub.recv(0.1) is not None:
             pass
         for i in range(1, 101):
             sock.send_multipart(good(i))
-        time.sleep(0.3)  # let the backlog reach the subscriber's queue
+        last = -1
+        while last != 100:
+            assert probe.poll(int(RECV_S * 1000)), "the backlog never arrived"
+            last = msgpack.unpackb(probe.recv_multipart()[1])["seq"]
+        probe.close()
         seqs = []
         while (item := sub.recv(0.5)) is not None:
             seqs.append(item[0]["seq"])
@@ -157,11 +178,85 @@ def test_malformed_messages_raise_client_error_and_the_subscriber_recovers(raw_p
 
 
 def test_oversized_messages_are_rejected(raw_pub):
+    """Parts each under max_bytes but together over it: received, then refused with a ClientError."""
     sock, endpoint = raw_pub
     big = [bytes(p) for p in wire.encode_frame(make_rec(1, 346, 260), 1, "cam")]
-    with Subscriber(endpoint, newest_only=False, max_bytes=50_000) as sub:
+    with Subscriber(endpoint, newest_only=False, max_bytes=89_980) as sub:
         kind, what = wait_first(sock, sub, big)
-        assert kind == "error" and isinstance(what, ClientError) and "exceeds the limit of 50000" in str(what)
+        assert kind == "error" and isinstance(what, ClientError) and "exceeds the limit of 89980" in str(what)
+
+
+def test_a_part_over_the_limit_is_never_received_and_the_subscriber_recovers(raw_pub):
+    """Issue 15.1: memory is bounded before receiving. A part larger than max_bytes is refused by libzmq from
+    its length prefix (the connection is dropped, never the process), the client reconnects by itself, and
+    the receive queue is capped so that it holds at most max_queued_bytes."""
+    sock, endpoint = raw_pub
+    limit = 64 * 1024
+    huge = [b"frame", b"\x80", b"\x00" * (3 * limit)]  # 3x the limit, as in the issue's 250 MiB repro
+    with Subscriber(endpoint, newest_only=False, max_bytes=limit, max_queued_bytes=16 * limit,
+                    rcvhwm=1000) as sub:
+        assert sub.rcvhwm == 16
+        assert sub._frames.getsockopt(zmq.MAXMSGSIZE) == limit
+        assert sub._frames.getsockopt(zmq.RCVHWM) == 16
+        kind, _ = wait_first(sock, sub, good(0))  # connected
+        assert kind == "frame"
+        errors: list[ClientError] = []
+
+        def receive() -> tuple | None:
+            try:
+                return sub.recv(0.05)
+            except ClientError as exc:  # the old client let 3x-limit parts in and rejected them only here
+                errors.append(exc)
+                return None
+
+        deadline = time.monotonic() + 10
+        while sub.reconnects == 0 and not errors:
+            assert time.monotonic() < deadline, "the oversized parts neither dropped the connection nor failed"
+            for _ in range(40):
+                sock.send_multipart(huge)
+            receive()
+        kind, item = wait_first(sock, sub, good(5))  # the client reconnected by itself
+        assert kind == "frame"
+        assert not errors, "an oversized part was received into memory"
+        assert item[0]["seq"] == 5
+
+
+_SLOW_READER = textwrap.dedent("""
+    import sys, zmq
+    from edi_live.client import Subscriber
+    pub = zmq.Context().socket(zmq.PUB)
+    pub.setsockopt(zmq.LINGER, 0)
+    port = pub.bind_to_random_port("tcp://127.0.0.1")
+    with Subscriber(f"tcp://127.0.0.1:{port}", newest_only=False, rcvhwm=1, stats=False) as sub:
+        while True:  # slow joiner
+            pub.send_multipart([b"frame", b"x", b"y"])
+            if sub._frames.poll(50):
+                break
+        monitor = sub._frames.get_monitor_socket(zmq.EVENT_DISCONNECTED | zmq.EVENT_HANDSHAKE_SUCCEEDED)
+        for i in range(2000):  # the subscriber's queue fills up: libzmq stops reading the connection
+            pub.send_multipart([b"frame", b"x", b"y" * 100_000])
+        # the old client's ZMTP heartbeat timed out (3 s) and reconnected with the full queue; wait for that
+        # disconnect (or for 5 s, when there is none) and the new connection's handshake
+        if monitor.poll(5000):
+            monitor.recv_multipart()
+            print("disconnected, reconnected:", bool(monitor.poll(5000)), flush=True)
+        else:
+            print("still connected", flush=True)
+        n = 0
+        while sub._frames.poll(500):  # the old client aborted here: Assertion failed: _input_stopped
+            sub._frames.recv_multipart()
+            n += 1
+        print("drained", n, flush=True)
+""")
+
+
+def test_a_slow_reader_with_a_full_queue_does_not_abort_libzmq():
+    """Issue 15.9 (the slow-subscriber abort of test_publisher.py): a ZMTP heartbeat timeout while the receive
+    queue is full made libzmq 4.3 reconnect with the full queue and abort on the next read. Run in a child
+    process, since the failure is an abort."""
+    proc = subprocess.run([sys.executable, "-c", _SLOW_READER], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, f"rc {proc.returncode}: {proc.stdout} {proc.stderr[-500:]}"
+    assert "still connected" in proc.stdout and "drained" in proc.stdout
 
 
 def test_stats_arrive_on_their_own_socket(pub):

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
-from edi_live.config import DEFAULT_ENDPOINT, NodeConfig, merge_options, read_toml
+from edi_live.config import DEFAULT_ENDPOINT, OPTION_KEYS, NodeConfig, merge_options, read_toml
 from edi_live.errors import ConfigError
 
 
@@ -22,7 +25,20 @@ def test_defaults_are_safe():
 
 
 @pytest.mark.parametrize("options,fragment", [
-    ({"replay": "x", "every": 0}, "every must be an integer >= 1"),
+    ({"replay": "x", "every": 0}, "every must be an integer in [1, 10^12]"),
+    # issue 15.7: accepted silently before
+    ({"replay": "x", "every": 10**23}, "every must be an integer in [1, 10^12] (events per latent frame) (got 1000"),
+    ({"replay": "x", "publish": ["tcp://127.0.0.1:5555"], "no_publish": True}, "contradict each other"),
+    ({"replay": "x", "ring_events": 10**11}, "of memory is available; choose at most"),
+    ({"replay": "x", "ring_frames": 10**9}, "ring-frames must be an integer in [1, 10^6]"),
+    ({"replay": "x", "reestimate_every": -1}, "reestimate-every must be an integer in [0, 10^9]"),
+    # issue 15.5: libzmq wraps an out-of-range port (99999 bound 34463)
+    ({"replay": "x", "publish": ["tcp://127.0.0.1:99999"]}, "port in 1-65535, or * for any free port"),
+    ({"replay": "x", "publish": ["tcp://127.0.0.1:0"]}, "port in 1-65535"),
+    ({"replay": "x", "publish": ["tcp://127.0.0.1"]}, "HOST:PORT"),
+    ({"replay": "x", "publish": ["tcp://:5555"]}, "HOST:PORT"),
+    ({"replay": "x", "publish": ["tcp://127.0.0.1:55a"]}, "port in 1-65535"),
+    ({"replay": "x", "c": 10**400}, "c: int too large"),
     ({"replay": "x", "speed": -1}, "speed must be >= 0"),
     ({"replay": "x", "c": 0}, "(got 0"),
     ({"replay": "x", "c_on": 0.2}, "c-on and c-off go together"),
@@ -75,6 +91,17 @@ def test_no_publish_empties_the_endpoints():
     assert not cfg.publisher.enabled
 
 
+@pytest.mark.parametrize("endpoint", ["tcp://127.0.0.1:1", "tcp://127.0.0.1:65535", "tcp://*:*", "tcp://[::1]:5555",
+                                      "ipc:///tmp/edi.sock", "inproc://frames"])
+def test_valid_endpoints_are_accepted(endpoint):
+    assert NodeConfig.from_options({"replay": "x", "publish": [endpoint]}).publisher.endpoints == (endpoint,)
+
+
+def test_a_no_publish_flag_overrides_publish_from_the_file():
+    merged = merge_options({"replay": "a.aedat4", "publish": ["tcp://127.0.0.1:6000"]}, {"no_publish": True})
+    assert not NodeConfig.from_options(merged).publisher.enabled
+
+
 def test_toml_uses_the_flag_names_and_flags_override_it(tmp_path: Path):
     path = tmp_path / "edi.toml"
     path.write_text('replay = "rec.aedat4"\nspeed = 0\nevery = 500\nc-on = 0.2\nc_off = 0.3\n'
@@ -110,6 +137,46 @@ def test_bad_toml_files_are_config_errors_naming_the_file(tmp_path: Path, text, 
     assert fragment in str(info.value) and str(path) in str(info.value)
 
 
+def test_a_binary_config_file_is_a_usage_error(tmp_path: Path):
+    """Issue 15.7: a binary --config gave "internal error ... report it" (exit 1)."""
+    path = tmp_path / "photo.toml"
+    path.write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(ConfigError, match="not a TOML text file") as info:
+        read_toml(path)
+    assert info.value.exit_code == 2 and str(path) in str(info.value)
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.one_of(st.binary(max_size=200),
+                 st.lists(st.sampled_from(["every = 3\n", "c = 0.2\n", "[t]\n", "a = [\n", "x = \"\\u00\"\n",
+                                           "replay = 'r'\n", "\x00", "\xff", "= 1\n", "loop = true\n"]),
+                          max_size=6).map(lambda parts: "".join(parts).encode("utf-8", "surrogatepass"))))
+def test_fuzzed_toml_files_give_a_mapping_or_a_config_error(tmp_path: Path, data):
+    path = tmp_path / "fuzz.toml"
+    path.write_bytes(data)
+    try:
+        options = read_toml(path)
+    except ConfigError as exc:
+        assert str(path) in str(exc)
+        return
+    assert isinstance(options, dict)
+
+
+_TOML_VALUES = st.one_of(st.none(), st.booleans(), st.integers(-2**80, 2**80), st.floats(), st.text(max_size=6),
+                         st.lists(st.one_of(st.text(max_size=6), st.integers()), max_size=3),
+                         st.dictionaries(st.text(max_size=3), st.integers(), max_size=2))
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.dictionaries(st.sampled_from(sorted(OPTION_KEYS)), _TOML_VALUES, max_size=6))
+def test_fuzzed_option_values_give_a_config_or_a_config_error(options):
+    """Any value for any key (as a TOML file or flags could give): a NodeConfig or one ConfigError (exit 2)."""
+    try:
+        NodeConfig.from_options(options)
+    except ConfigError as exc:
+        assert exc.exit_code == 2 and "\n" not in str(exc)
+
+
 def test_missing_toml_file(tmp_path: Path):
     with pytest.raises(ConfigError, match="not found"):
         read_toml(tmp_path / "nope.toml")
@@ -117,7 +184,7 @@ def test_missing_toml_file(tmp_path: Path):
 
 def test_config_is_frozen():
     cfg = NodeConfig.from_options({"replay": "x"})
-    with pytest.raises(Exception):
+    with pytest.raises(dataclasses.FrozenInstanceError):
         cfg.edi.every = 3  # type: ignore[misc]
 
 

@@ -60,7 +60,7 @@ def test_replay_node_streams_deblurred_and_latent_frames_then_stops_cleanly(real
     assert node.started.wait(20), result.get("error")
     endpoint = node.bound_endpoints[0]
     headers = []
-    with Subscriber(endpoint, newest_only=False, rcvhwm=0) as sub:
+    with Subscriber(endpoint, newest_only=False, rcvhwm=0, max_bytes=1 << 20) as sub:
         assert sub.recv_stats(timeout_s=10) is not None, "no stats message: the subscription never became live"
         gate.set()
         while True:

@@ -28,20 +28,35 @@ def make_rec(i: int, w: int = 240, h: int = 180, arrival_ns: int = 0) -> Reconst
 
 
 def sync(pub: Publisher, *subs: Subscriber) -> int:
-    """Submit probe frames until every subscriber has received one (slow-joiner fix); returns the next seq."""
-    got = [False] * len(subs)
+    """Submit probe frames until every subscriber has received one (slow-joiner fix), then drain each one up to
+    the last probe; returns the next seq."""
+    seen = [-1] * len(subs)
+    submitted = 0
     deadline = time.monotonic() + 10
-    while not all(got):
+    while min(seen) < 0:
         assert time.monotonic() < deadline, "subscribers never received a probe frame"
         pub.submit(make_rec(0, 4, 2))
+        submitted += 1
         for k, sub in enumerate(subs):
-            while sub.recv(0.02) is not None:
-                got[k] = True
-    time.sleep(0.05)
-    for sub in subs:  # drain stragglers
-        while sub.recv(0.05) is not None:
-            pass
-    return pub.stats()["last_seq"] + 1
+            while (item := sub.recv(0.02)) is not None:
+                seen[k] = item[0]["seq"]
+    wait_until(lambda: pub.stats()["sent"] == submitted, "the publisher never sent every probe")
+    last = pub.stats()["last_seq"]
+    for sub, seq in zip(subs, seen):  # drain stragglers: every probe up to the last one
+        while seq < last:
+            item = sub.recv(RECV_S)
+            assert item is not None, f"probe {last} never arrived"
+            seq = item[0]["seq"]
+    return last + 1
+
+
+def wait_until(condition, message: str, timeout_s: float = 10.0) -> None:
+    """Poll `condition` (a cheap check) until it holds; fail with `message` after `timeout_s`."""
+    done = threading.Event()
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, message
+        done.wait(0.005)
 
 
 @pytest.fixture
@@ -121,16 +136,16 @@ def test_a_socket_failure_in_an_inline_send_is_reported_as_the_publishers(publis
     """submit() runs sends on the caller's thread; a socket error there must not escape into the caller (the
     EDI worker) but reach on_error, as it would from the publisher thread."""
     failures: list[BaseException] = []
-    pub = publisher([ANY], "cam", on_error=failures.append)
+    failed = threading.Event()
+    pub = publisher([ANY], "cam", on_error=lambda exc: (failures.append(exc), failed.set()))
 
     def broken(sock, rec):
         raise zmq.ZMQError(zmq.ETERM)
 
     pub._send_frame = broken
     pub.submit(make_rec(1))  # must not raise
-    deadline = time.monotonic() + 5  # (had the thread held the socket, the frame was queued: it fails there)
-    while not failures and time.monotonic() < deadline:
-        time.sleep(0.01)
+    # (had the thread held the socket, the frame was queued: it fails there)
+    assert failed.wait(5), "the failure never reached on_error"
     assert len(failures) == 1 and isinstance(failures[0], zmq.ZMQError)
     assert pub.error is failures[0]
 

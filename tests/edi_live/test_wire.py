@@ -252,3 +252,40 @@ def test_the_readme_documents_exactly_these_keys(repo_root):
         if len(cells) > 2 and "`" in cells[1]:
             documented.update(cells[1].split("`")[1::2])
     assert documented == set(README_FRAME_TABLE)
+
+
+_MSGPACK_VALUES = st.recursive(
+    st.one_of(st.none(), st.booleans(), st.integers(-2**63, 2**64 - 1), st.floats(), st.text(max_size=8),
+              st.binary(max_size=8), st.builds(msgpack.ExtType, st.integers(0, 127), st.binary(max_size=4))),
+    lambda inner: st.one_of(st.lists(inner, max_size=4), st.dictionaries(st.text(max_size=4), inner, max_size=4)),
+    max_leaves=12)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.dictionaries(st.text(max_size=8), _MSGPACK_VALUES, max_size=6), st.booleans())
+def test_fuzzed_stats_maps_decode_or_give_client_errors(extra, with_version):
+    """Any msgpack map, with any values (binary, ext types, nesting): a dict or one ClientError."""
+    stats = dict(extra, v=1) if with_version else extra
+    parts = [b"stats", msgpack.packb(stats, use_bin_type=True)]
+    try:
+        decoded = wire.decode_stats(parts)
+    except ClientError:
+        assert not with_version or len(parts[1]) > wire.MAX_HEADER_BYTES
+        return
+    assert isinstance(decoded, dict) and decoded["v"] == 1
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 10**6), st.integers(1, 255)), min_size=1, max_size=6),
+       st.integers(0, 2))
+def test_bit_flipped_frames_decode_consistently_or_give_client_errors(flips, part):
+    """A valid frame with bytes flipped in one part: either a frame whose image matches its header, or a
+    ClientError (never a numpy, msgpack or unicode exception)."""
+    parts = [bytearray(p) for p in as_bytes(wire.encode_frame(make_rec(np.random.default_rng(1), 12, 8), 3, "cam"))]
+    for where, xor in flips:
+        parts[part][where % len(parts[part])] ^= xor
+    try:
+        header, image = wire.decode_frame([bytes(p) for p in parts])
+    except ClientError:
+        return
+    assert image.shape == (header["h"], header["w"]) and image.dtype == wire.DTYPES[header["dtype"]]

@@ -287,3 +287,48 @@ def test_cli_timed_run_prints_rates(feeder):
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 0, err
     assert "recv" in err and "Mev/s" in err and "latency p50" in err
+
+
+def test_status_json_answers_a_stats_map_with_binary_values():
+    """Issue 15.8: a stats message holding a binary value (a hostile or foreign publisher) made /status.json
+    answer with a traceback and no response."""
+    import msgpack
+    import zmq
+
+    from edi_live import wire
+
+    ctx = zmq.Context()
+    pub = ctx.socket(zmq.PUB)
+    pub.setsockopt(zmq.LINGER, 0)
+    port = pub.bind_to_random_port("tcp://127.0.0.1")
+    stats = {"v": 1, "events_per_s": 1.0e6, "blob": b"\x00\xff", b"raw-key": 3, "inf": float("inf"),
+             "ext": msgpack.ExtType(5, b"x"), "nested": [b"\x01", {"nan": float("nan")}]}
+    v, thread = start_viewer(["--endpoint", f"tcp://127.0.0.1:{port}", "--http", "127.0.0.1:0", "--quiet"])
+    stop = threading.Event()
+
+    def feed():
+        i = 0
+        while not stop.wait(0.02):
+            pub.send_multipart(wire.encode_frame(rec(i), i, "cam"))
+            pub.send_multipart([b"stats", msgpack.packb(stats, use_bin_type=True)])
+            i += 1
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    try:
+        wait_for(lambda: v.hub.status.get("node"))
+        with urllib.request.urlopen(v.url + "status.json", timeout=10) as resp:
+            assert resp.status == 200
+            body = resp.read().decode()
+
+        def no_constants(name):
+            raise AssertionError(f"{name} is not JSON")
+
+        node = json.loads(body, parse_constant=no_constants)["node"]
+        assert node["blob"] == "00ff" and node[b"raw-key".hex()] == 3 and node["events_per_s"] == 1.0e6
+        assert node["inf"] == "inf" and node["nested"][0] == "01" and node["ext"] == [5, "78"]
+    finally:
+        stop.set()
+        feeder.join(5)
+        stop_viewer(v, thread)
+        ctx.destroy(linger=0)

@@ -1,0 +1,67 @@
+"""Value checks for the configuration, each failing with a one-line `ConfigError` that names the option and the
+bad value "(got ...)": integer and positive-number ranges, ZeroMQ endpoints, and sizes against the memory the
+system can still give. No I/O beyond reading /proc/meminfo.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from typing import Any
+
+from edi_live.errors import ConfigError
+
+
+def check(ok: bool, message: str) -> None:
+    if not ok:
+        raise ConfigError(message)
+
+
+def int_in(name: str, value: Any, lo: int, hi: int, what: str) -> None:
+    """An int (not a bool) in [lo, hi]; `what` says what it counts, for the message."""
+    hi_text = f"10^{len(str(hi)) - 1}" if str(hi).rstrip("0") == "1" else str(hi)
+    check(isinstance(value, int) and not isinstance(value, bool) and lo <= value <= hi,
+          f"{name} must be an integer in [{lo}, {hi_text}] ({what}) (got {value!r})")
+
+
+def positive_or_none(name: str, value: float | None) -> None:
+    if value is not None:
+        check(isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+              and value > 0, f"{name} must be a positive number (got {value!r})")
+
+
+def available_memory_bytes() -> int | None:
+    """Memory the system can still give (Linux MemAvailable, else the physical total), or None if unknown."""
+    try:
+        with open("/proc/meminfo", "rb") as fh:
+            for line in fh:
+                if line.startswith(b"MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def fits_memory(name: str, count: int, item_bytes: int, default: str) -> None:
+    """`count` items of `item_bytes` each must fit in the available memory (checked before allocating)."""
+    need, free = count * item_bytes, available_memory_bytes()
+    check(free is None or need <= free,
+          f"{name} {count} needs {need / 2**30:.1f} GiB ({item_bytes} bytes each) but only {(free or 0) / 2**30:.1f} "
+          f"GiB of memory is available; choose at most {(free or 0) // item_bytes} (default {default})")
+
+
+def check_endpoint(endpoint: Any) -> None:
+    """A ZeroMQ bind endpoint: SCHEME://ADDRESS; for tcp the port is 1-65535 or * (any free port).
+    libzmq itself wraps an out-of-range port silently (99999 binds 34463)."""
+    check(isinstance(endpoint, str) and "://" in endpoint and endpoint.split("://", 1)[1] != "",
+          f"publish endpoint must look like tcp://HOST:PORT or ipc://PATH (got {endpoint!r})")
+    scheme, _, address = endpoint.partition("://")
+    if scheme != "tcp":
+        return
+    host, sep, port = address.rpartition(":")
+    ok = bool(sep and host) and (port == "*" or (port.isdigit() and 1 <= int(port) <= 65535))
+    check(ok, f"publish endpoint {endpoint!r}: a tcp endpoint needs HOST:PORT with a port in 1-65535, or * for any "
+              f"free port (e.g. tcp://127.0.0.1:5555)")

@@ -1,0 +1,59 @@
+"""SIGINT/SIGTERM for the command line: the first one stops the node cleanly, at any moment from the first line
+of `cli.main()` (a signal during start-up stops the node as soon as it exists, before it opens anything); any
+later one is ignored with one log line while the bounded stop finishes.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+from typing import Any
+
+log = logging.getLogger("edi_live")
+
+
+class StopSignals:
+    """SIGINT/SIGTERM, handled from the first line of main(): the first one stops the node cleanly (a signal that
+    arrives while edi-live starts up stops the node as soon as it exists, before any data flows); any later one
+    is ignored with one line. The stop itself is bounded (every join has a timeout), and a second Ctrl-C that
+    interrupted it would cut the file finalisation short, so the summary would no longer match --out."""
+
+    def __init__(self) -> None:
+        self.received: str | None = None
+        self._node: Any = None
+        self._repeated = False
+        self._previous: dict[int, Any] = {}
+
+    def install(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return  # (an in-process call from a thread: Python allows handlers on the main thread only)
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._previous[sig] = signal.signal(sig, self._handle)
+
+    def restore(self) -> None:
+        for sig, old in self._previous.items():
+            signal.signal(sig, old)
+        self._previous.clear()
+
+    def ignore_from_now_on(self) -> None:
+        if self._previous:
+            for sig in self._previous:
+                signal.signal(sig, signal.SIG_IGN)
+
+    def attach(self, node: Any) -> None:
+        self._node = node
+        if self.received is not None:
+            node.stop()
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        name = signal.Signals(signum).name
+        if self.received is not None:
+            if not self._repeated:
+                self._repeated = True
+                log.warning("%s: already stopping; the received data and files are being finalised", name)
+            return
+        self.received = name
+        log.info("%s: stopping", name)
+        if self._node is not None:
+            self._node.stop()

@@ -61,6 +61,7 @@ def default_reconstructor(width: int, height: int, edi: EdiConfig) -> Reconstruc
         kwargs["c_on"], kwargs["c_off"] = edi.c_on, edi.c_off
     if edi.reestimate_every:
         kwargs["reestimate_every"] = edi.reestimate_every
+    kwargs["black_level"] = None if edi.black_level == "auto" else float(edi.black_level)
     return EdiReconstructor(width, height, **kwargs)
 
 
@@ -132,7 +133,7 @@ class Node:
                 "ring_occupancy", "ring_dropped_events", "ring_dropped_frames", "events_in", "events_processed",
                 "aps_frames_in", "frames_deblurred", "frames_latent", "heartbeats", "skipped_max_fps",
                 "source_dropped_events", "source_gaps", "nearest_added_latency_ms_p50", "out_wait_s",
-                "unreliable_pixels", "pred_psnr_db", "still_psnr_db", "pred_gain_db", "pred_psnr_active_db",
+                "unreliable_pixels", "black_level_dn", "pred_psnr_db", "still_psnr_db", "pred_gain_db", "pred_psnr_active_db",
                 "still_psnr_active_db", "pred_beats_still_frac", "pred_frames_scored")
         return {k: s[k] for k in keep if k in s and s[k] is not None}
 

@@ -20,6 +20,7 @@ class Reconstructor(Protocol):
     has_reference: bool  # an APS frame was deblurred: latent frames can be rendered
     c_on: float
     c_off: float
+    black_level: float  # APS black level (8-bit DN) taken off the frames
 
     @property
     def reestimations(self) -> int: ...

@@ -50,7 +50,9 @@ class ReconstructorSettings:
     hot_rel_factor: float = 10.0
     hot_decay: float = 0.8
     saturation: float | None = None  # APS value at or above which a pixel is clipped (default: full scale)
-    black_level: float | None = None  # APS value of no light, 8-bit scale; None = estimated with c
+    # APS value of no light (8-bit scale), taken off B so that frames are linear; None = estimated with c (biased:
+    # see docs/calibration.md). DV's 8-bit frames reach 0 DN, hence the default.
+    black_level: float | None = 0.0
     denoise_us: int = 0  # background-activity filter window; 0 = off
     mask_unreliable_pixels: bool = True  # ignore events that contradict the APS frames (needs c estimation)
 

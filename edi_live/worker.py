@@ -385,5 +385,6 @@ class EdiWorker:
             "deblur_ms_max": round(float(np.max(deblur)), 3) if deblur else None,
             "nearest_added_latency_ms_p50": self._nearest.waited_ms_p50(),
             "unreliable_pixels": int(rec.unreliable_pixels),
+            "black_level_dn": round(float(rec.black_level), 2),
             **(self.quality.stats() if self.quality is not None else {}),
         }

@@ -31,6 +31,7 @@ class StandIn:
         self.reestimations = 0
         self.hot_pixels = 0
         self.unreliable_pixels = 0
+        self.black_level = 0.0
         self.gaps_marked = 0
         self.ref_f = None
         self.t = None

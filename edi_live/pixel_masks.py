@@ -7,6 +7,7 @@ Runs on the worker thread; plain numpy state, the math is edi_live.edi's.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 import edi_live.edi as edi
@@ -91,12 +92,15 @@ class UnreliablePixels:
 
     def __init__(self, width: int, height: int, *, min_events: int = 3, min_change: float = 2.5,
                  relative: float = 0.75, saturated_limit: float = 4.0, decay: float = 0.8,
-                 release: float = 0.2) -> None:
+                 release: float = 0.2, grow_px: int = 0) -> None:
         self._shape = (height, width)
+        self._grow = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow_px + 1, 2 * grow_px + 1)) \
+            if grow_px > 0 else None
         self.min_events, self.min_change, self.relative = min_events, min_change, relative
         self.saturated_limit, self.decay, self.release = saturated_limit, decay, release
         self._score = np.zeros(width * height, np.float32)
-        self._mask = np.zeros(self._shape, bool)
+        self._own = np.zeros(self._shape, bool)  # pixels marked on their own evidence
+        self._mask = self._own
 
     @property
     def mask(self) -> np.ndarray:
@@ -121,6 +125,10 @@ class UnreliablePixels:
             bad = np.where(both, (size >= self.min_change) & (np.abs(pred - obs) > self.relative * size),
                            size > self.saturated_limit)
             self._score[active[bad]] += 1.0
-        marked = self._mask.reshape(-1)
-        new = np.where(marked, self._score >= self.release, self._score >= 1.0)
-        self._mask = new.reshape(self._shape)
+        marked = self._own.reshape(-1)
+        own = np.where(marked, self._score >= self.release, self._score >= 1.0).reshape(self._shape)
+        self._own = own
+        if self._grow is not None and own.any():
+            # a lamp's halo contradicts the frames less clearly than its core, but just as surely
+            own = cv2.dilate(own.view(np.uint8), self._grow).view(bool)
+        self._mask = own

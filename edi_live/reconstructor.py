@@ -122,7 +122,7 @@ class EdiReconstructor:
                               min_rate_hz=settings.hot_min_rate_hz, rel_factor=settings.hot_rel_factor,
                               decay=settings.hot_decay)
         self._noise = NoiseFilter(self.width, self.height, settings.denoise_us) if settings.denoise_us > 0 else None
-        self._unreliable = (UnreliablePixels(self.width, self.height)
+        self._unreliable = (UnreliablePixels(self.width, self.height, grow_px=2)
                             if settings.mask_unreliable_pixels and self._tracker is not None else None)
         self._mask: np.ndarray | None = self._hot.mask  # events at these pixels are ignored; replaced, not changed
         self._latent = LatentState(self.width, self.height)

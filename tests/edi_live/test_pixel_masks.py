@@ -48,3 +48,14 @@ def test_a_marked_pixel_is_released_after_the_evidence_fades():
         marked_for += 1
     # score 1 halves per quiet pair: 0.5, 0.25, 0.125 < release after three pairs
     assert marked_for == 3
+
+
+def test_grow_marks_the_halo_around_a_contradicted_pixel():
+    u = UnreliablePixels(7, 7, grow_px=2)
+    n_on = np.zeros(49, np.int64)
+    n_on[3 * 7 + 3] = 30  # the centre pixel's events say x400 brighter; the frames say nothing changed
+    zeros = np.zeros(49, np.float32)
+    u.update(n_on, np.zeros(49, np.int64), zeros, zeros, np.ones(49, bool), np.ones(49, bool), (0.2, 0.2))
+    mask = u.mask
+    assert mask[3, 3] and mask[1, 3] and mask[3, 5] and mask[2, 2]  # within 2 px
+    assert not mask[0, 0] and not mask[3, 0]  # beyond

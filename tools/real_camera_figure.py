@@ -1,0 +1,84 @@
+"""Before/after pictures of the real DAVIS346 recordings: the APS frame, then the deblurred frame and a latent frame
+10 ms after the exposure, with the previous defaults (one c, every event trusted) and with today's (separate
+c_on/c_off, events that contradict the APS frames ignored). Events reach the reconstructor exactly as the worker
+hands them over (all events in time order, each APS frame once its exposure is in).
+
+    python -m tools.real_camera_figure docs/real_before_after.png [RECORDING ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from drivers.replay import merged_packets
+from edi_live.datatypes import EVENT_DTYPE, concat_events
+from edi_live.reconstructor import EdiReconstructor
+from tools.figure import _fit, _label
+
+REAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
+DEFAULT = [(REAL / "emlb_demo-01_davis346.aedat4", 6), (REAL / "aestream_davis346.aedat4", 2),
+           (REAL / "evlib_sample_davis346.aedat4", 2)]
+BEFORE = {"separate_thresholds": False, "mask_unreliable_pixels": False}
+
+
+def load(path: Path) -> tuple[np.ndarray, list]:
+    events, frames = [], []
+    for packet in merged_packets(path):
+        if len(packet.events):
+            events.append(np.asarray(packet.events, dtype=EVENT_DTYPE))
+        frames.extend(packet.frames)
+    return concat_events(events), frames
+
+
+def reconstruct(events: np.ndarray, frames: list, index: int, settings: dict) -> tuple:
+    """(deblurred frame `index`, latent 10 ms after its exposure end, reconstructor)."""
+    rec = EdiReconstructor(frames[0].width, frames[0].height, **settings)
+    t = events["t"]
+    fed = 0
+    out = None
+    for frame in frames[: index + 1]:
+        end = int(np.searchsorted(t, frame.exposure_end_us, side="right"))
+        rec.on_events(events[fed:end])
+        fed = end
+        out = rec.on_frame(frame, events[int(np.searchsorted(t, frame.exposure_start_us)):end])
+    later = int(np.searchsorted(t, frames[index].exposure_end_us + 10_000, side="right"))
+    rec.on_events(events[fed:later])
+    return out, rec.render(), rec
+
+
+def row(path: Path, index: int, height: int) -> np.ndarray:
+    events, frames = load(path)
+    index = min(index, len(frames) - 1)
+    frame = frames[index]
+    gain = 255.0 / max(1.0, float(np.percentile(frame.image, 99.5)))  # dark recordings: one gain for the row
+    tiles = [_label(frame.image * gain, f"{path.stem.split('_')[0]}: APS frame {index}")]
+    for name, settings in (("before", BEFORE), ("now", {})):
+        deblurred, latent, rec = reconstruct(events, frames, index, settings)
+        c = f"c={rec.c_on:.2f}" if rec.c_on == rec.c_off else f"c_on={rec.c_on:.2f} c_off={rec.c_off:.2f}"
+        tiles += [_label(deblurred.image * gain, f"{name}: deblurred, {c}"),
+                  _label(latent.image * gain, f"{name}: latent +10 ms")]
+    return np.hstack(_fit(tiles, height))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("out", type=Path, help="PNG to write")
+    ap.add_argument("recordings", type=Path, nargs="*", help="recordings (default: the three real ones)")
+    ap.add_argument("--height", type=int, default=180)
+    args = ap.parse_args(argv)
+    wanted = [(p, 3) for p in args.recordings] or DEFAULT
+    rows = [row(p, i, args.height) for p, i in wanted]
+    width = max(r.shape[1] for r in rows)
+    rows = [np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0))) for r in rows]
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(args.out), np.vstack(rows))
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -34,7 +34,7 @@ import sys  # noqa: E402
 import time  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 from pathlib import Path  # noqa: E402
-from typing import Callable, Iterator  # noqa: E402
+from typing import Callable  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
@@ -217,19 +217,24 @@ def run_edi_functions(sim: Simulation, c_on: float | None = None, c_off: float |
     cfg = sim.config
     c_on = cfg.c_on if c_on is None else c_on
     c_off = cfg.c_off if c_off is None else c_off
-    out = Outputs(note=f"c_on={c_on:g} c_off={c_off:g}")
+    frames = [edi.blurry_to_float(f.image) for f in sim.frames]
+    return _edi_on(sim, sim.events, frames, c_on, c_off, Outputs(note=f"c_on={c_on:g} c_off={c_off:g}"))
+
+
+def _edi_on(sim: Simulation, ev: np.ndarray, frames: list, c_on: float, c_off: float, out: Outputs) -> Outputs:
+    """EDI with edi_live.edi's public functions on the given events and (B, informative) per APS frame: L(f) at
+    every mid-exposure, then each ground-truth latent time propagated from it."""
+    from edi_live import edi
+
+    cfg = sim.config
     mids, lat = _gt_targets(sim)
-    ev = sim.events
-    for k, f in enumerate(sim.frames):
+    for k, (f, (b, informative)) in enumerate(zip(sim.frames, frames)):
         t0 = _cpu()
-        b, informative = edi.blurry_to_float(f.image)
         table = edi.build_level_table(ev, cfg.width, cfg.height, f.exposure_start_us, f.exposure_end_us,
                                       segments=c_on != c_off)
         log_l = edi.deblur_log(b, table, c_on, c_off, informative=informative)
-        img = np.exp(log_l)
-        out.deblurred[mids[k]] = (img, (_cpu() - t0) * 1e3)
-        state = log_l.copy()
-        t_state = table.ref_t_us
+        out.deblurred[mids[k]] = (np.exp(log_l), (_cpu() - t0) * 1e3)
+        state, t_state = log_l.copy(), table.ref_t_us
         for g in lat.get(k, []):
             t0 = _cpu()
             t = int(sim.gt_t_us[g])
@@ -736,29 +741,12 @@ def oracle_inputs(sim: Simulation) -> tuple[np.ndarray, list[tuple[np.ndarray, n
 
 def run_oracle_camera(sim: Simulation) -> Outputs:
     """EDI (edi_live.edi's public functions) with the true c_on/c_off on inputs corrected with the true camera."""
-    from edi_live import edi
-
-    cfg = sim.config
     cam = sim.camera()
     c_on, c_off = float(cam["c_on"]), float(cam["c_off"])
     out = Outputs(note=f"c_on={c_on:g} c_off={c_off:g}, offset {cam['event_offset_us']} µs, "
                        f"black {cam['aps_offset_dn']:g} DN, gamma {cam['aps_gamma']:g}, {len(cam['hot_pixel_xy'])} hot")
-    mids, lat = _gt_targets(sim)
     ev, frames = oracle_inputs(sim)
-    for k, (f, (b, informative)) in enumerate(zip(sim.frames, frames)):
-        t0 = _cpu()
-        table = edi.build_level_table(ev, cfg.width, cfg.height, f.exposure_start_us, f.exposure_end_us,
-                                      segments=c_on != c_off)
-        log_l = edi.deblur_log(b, table, c_on, c_off, informative=informative)
-        out.deblurred[mids[k]] = (np.exp(log_l), (_cpu() - t0) * 1e3)
-        state, t_state = log_l.copy(), table.ref_t_us
-        for g in lat.get(k, []):
-            t0 = _cpu()
-            t = int(sim.gt_t_us[g])
-            edi.propagate_log(state, _events_between(ev, t_state, t), c_on, c_off)
-            t_state = t
-            out.latent[g] = (np.exp(state), (_cpu() - t0) * 1e3)
-    return out
+    return _edi_on(sim, ev, frames, c_on, c_off, out)
 
 
 REALISTIC_METHODS = (("blurry frame", run_blurry), ("EDI default (reconstructor)", lambda s: run_reconstructor(s)),

@@ -84,12 +84,17 @@ def main(argv: list[str] | None = None) -> int:
     rows = [np.hstack(simulated_row(height))]
     if args.real.is_file():
         rows.append(np.hstack(real_row(args.real, height)))
+    write_rows(rows, args.out)
+    return 0
+
+
+def write_rows(rows: list[np.ndarray], out: Path) -> None:
+    """Stack picture rows of different widths (padded with black on the right) into one PNG."""
     width = max(r.shape[1] for r in rows)
     rows = [np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0))) for r in rows]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(args.out), np.vstack(rows))
-    print(f"wrote {args.out}")
-    return 0
+    out.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(out), np.vstack(rows))
+    print(f"wrote {out}")
 
 
 if __name__ == "__main__":

@@ -11,13 +11,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from drivers.replay import merged_packets
 from edi_live.datatypes import EVENT_DTYPE, concat_events
 from edi_live.reconstructor import EdiReconstructor
-from tools.figure import _fit, _label
+from tools.figure import _fit, _label, write_rows
 
 REAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
 DEFAULT = [(REAL / "emlb_demo-01_davis346.aedat4", 6), (REAL / "aestream_davis346.aedat4", 2),
@@ -71,12 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--height", type=int, default=180)
     args = ap.parse_args(argv)
     wanted = [(p, 3) for p in args.recordings] or DEFAULT
-    rows = [row(p, i, args.height) for p, i in wanted]
-    width = max(r.shape[1] for r in rows)
-    rows = [np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0))) for r in rows]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(args.out), np.vstack(rows))
-    print(f"wrote {args.out}")
+    write_rows([row(p, i, args.height) for p, i in wanted], args.out)
     return 0
 
 

@@ -12,8 +12,8 @@ Modules, each owning one part:
 - stream.py: an endless scene as time-ordered packets, for the emulator.
 """
 
-from edi_live.simulation.camera import EFFECTS, linearise_aps, true_camera, with_effects
-from edi_live.simulation.config import PRESETS, RESOLUTIONS, SceneConfig, preset
+from edi_live.simulation.camera import EFFECTS, linearise_aps, preset, true_camera, with_effects
+from edi_live.simulation.config import PRESETS, RESOLUTIONS, SceneConfig
 from edi_live.simulation.engine import Simulation, simulate
 from edi_live.simulation.output import load_ground_truth, save_ground_truth, write_aedat4
 from edi_live.simulation.texture import PROCEDURAL_TEXTURES, SKIMAGE_TEXTURES, make_texture

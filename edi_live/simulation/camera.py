@@ -14,7 +14,7 @@ from typing import Callable
 
 import numpy as np
 
-from edi_live.simulation.config import SceneConfig
+from edi_live.simulation.config import PRESETS, SceneConfig
 
 _DEFAULTS = SceneConfig()
 
@@ -129,3 +129,15 @@ def true_camera(cfg: SceneConfig, c_on_map: np.ndarray, c_off_map: np.ndarray, h
             "shot_noise_dark": cfg.shot_noise_dark, "hot_pixel_xy": hot_pixel_xy, "hot_rate_hz": cfg.hot_rate_hz,
             "flicker_hz": cfg.flicker_hz, "flicker_depth": cfg.flicker_depth, "flicker_level": cfg.flicker_level,
             "flicker_region": tuple(cfg.flicker_region), "effects": tuple(cfg.effects)}
+
+
+def preset(name: str, *, effects: tuple[str, ...] | list[str] = (), **overrides) -> SceneConfig:
+    """A named scene (see config.PRESETS) with keyword overrides, then camera effects switched on, e.g.
+    preset("translate", c_on=0.3, effects=("flicker",)). Effects fill in their documented values only
+    for parameters still at SceneConfig's defaults: what you set explicitly wins."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+    base = dict(PRESETS[name])
+    names = tuple(base.pop("effects", ())) + tuple(effects)
+    cfg = dataclasses.replace(SceneConfig(**base), **overrides)
+    return with_effects(cfg, *names) if names else cfg

@@ -6,7 +6,6 @@ and simulates exactly as before the effects existed. `camera.py` owns the effect
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 RESOLUTIONS = {"240x180": (240, 180), "346x260": (346, 260)}
@@ -85,20 +84,6 @@ PRESETS: dict[str, dict] = {
     # every realistic camera effect of camera.EFFECTS at its documented DAVIS value
     "realistic": dict(duration_s=0.6, texture="blocks", velocity_px_s=(200.0, 50.0), effects=("all",)),
 }
-
-
-def preset(name: str, *, effects: tuple[str, ...] | list[str] = (), **overrides) -> SceneConfig:
-    """A named scene (see PRESETS) with keyword overrides, then camera effects switched on, e.g.
-    preset("translate", c_on=0.3, effects=("flicker",)). Effects fill in their documented values only
-    for parameters still at SceneConfig's defaults: what you set explicitly wins."""
-    from edi_live.simulation.camera import with_effects
-
-    if name not in PRESETS:
-        raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
-    base = dict(PRESETS[name])
-    names = tuple(base.pop("effects", ())) + tuple(effects)
-    cfg = dataclasses.replace(SceneConfig(**base), **overrides)
-    return with_effects(cfg, *names) if names else cfg
 
 
 def validate(cfg: SceneConfig) -> None:

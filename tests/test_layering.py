@@ -198,3 +198,59 @@ def test_rules_catch_every_kind_of_violation(tmp_path):
     # a relative import_module resolves against its package: ..replay from drivers.davis is drivers.replay
     assert not any("device.py:2" in v for v in found), found
     assert not any("probe.py:2" in v for v in found), found
+
+
+def _cycles(root: Path = REPO) -> list[list[str]]:
+    """Import cycles between modules of the packages (imports inside functions included). An import of one's
+    own parent package is not an edge: Python runs the parent first anyway, and `from pkg import sub` names it."""
+    files = sorted(p for pkg in PACKAGES for p in root.glob(f"{pkg}/**/*.py"))
+    graph: dict[str, set[str]] = {}
+    for path in files:
+        me = _module_name(path.relative_to(root))
+        graph[me] = {name for _, name in _imports(root, path)
+                     if name != me and _is_module(root, name) and not me.startswith(name + ".")}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:  # Tarjan's strongly connected components
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_no_import_cycle():
+    assert _cycles() == []
+
+
+def test_the_cycle_check_can_fail(tmp_path):
+    _plant(tmp_path, {
+        "edi_live/__init__.py": "",
+        "edi_live/a.py": "from edi_live import b\n",
+        "edi_live/b.py": "def later():\n    from . import a\n",  # hidden inside a function, relative
+        "drivers/__init__.py": "",
+    })
+    assert _cycles(tmp_path) == [["edi_live.a", "edi_live.b"]]

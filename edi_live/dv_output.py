@@ -138,6 +138,10 @@ class DvOutput:
             self._inbox.append(item)
         self._wake()
 
+    def pending(self) -> int:
+        """Items submitted but not yet handed to the clients' queues."""
+        return len(self._inbox)
+
     def client_count(self) -> int:
         return len(self._clients)
 

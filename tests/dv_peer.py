@@ -6,6 +6,7 @@ IOHeader) hold the GIL, so in the test's process they would starve the Python se
     python tests/dv_peer.py read HOST PORT N            NetworkReader: print the stream info, then N frames or
                                                         event batches as JSON lines, then exit (= disconnect)
     python tests/dv_peer.py serve KIND FILE [--port P] [--wait-clients K] [--hold-s S] [--size WxH]
+                                                        [--pace-s S] [--go-file F]
                                                         NetworkWriter serving one stream KIND (events | frames |
                                                         imu | triggers) of a real recording, read with
                                                         dv-processing's own MonoCameraRecording; prints
@@ -61,7 +62,7 @@ def _free_port() -> int:
 
 
 def serve(kind: str, path: str, port: int, wait_clients: int, hold_s: float, size: str | None,
-          pace_s: float) -> None:
+          pace_s: float, go_file: str | None = None) -> None:
     rec = dv.io.MonoCameraRecording(path)
     camera = rec.getCameraName()
     res = tuple(int(v) for v in size.split("x")) if size else rec.getEventResolution()
@@ -75,6 +76,8 @@ def serve(kind: str, path: str, port: int, wait_clients: int, hold_s: float, siz
     deadline = time.monotonic() + 30
     while writer.getClientCount() < wait_clients and time.monotonic() < deadline:
         time.sleep(0.005)
+    while go_file and not os.path.exists(go_file) and time.monotonic() < deadline + 30:
+        time.sleep(0.01)
     n = 0
     get, put = {"events": (rec.getNextEventBatch, writer.writeEvents),
                 "frames": (rec.getNextFrame, writer.writeFrame),
@@ -113,11 +116,12 @@ def main() -> None:
     s.add_argument("--hold-s", type=float, default=0.5)
     s.add_argument("--size")
     s.add_argument("--pace-s", type=float, default=0.0)
+    s.add_argument("--go-file", help="start writing once this file exists")
     a = p.parse_args()
     if a.cmd == "read":
         read(a.host, a.port, a.n)
     else:
-        serve(a.kind, a.file, a.port, a.wait_clients, a.hold_s, a.size, a.pace_s)
+        serve(a.kind, a.file, a.port, a.wait_clients, a.hold_s, a.size, a.pace_s, a.go_file)
     sys.stdout.flush()
 
 

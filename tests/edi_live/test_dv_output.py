@@ -200,7 +200,8 @@ def test_a_client_that_never_reads_costs_drops_not_stalls():
         for k in range(400):  # 36 MB of frames into a client that reads nothing
             out.submit(_rec(T0 + k, k % 200))
         assert time.monotonic() - start < 2.0, "submit() must never wait for a client"
-        _wait(lambda: out.stats()["dv_frames_dropped"] > 200)
+        _wait(lambda: out.pending() == 0)
+        assert out.stats()["dv_frames_dropped"] > 200
         live = socket.create_connection((host, port))  # a healthy client meanwhile gets the newest frames
         _wait(lambda: out.client_count() == 2)
         out.submit(_rec(T0 + 10_000, 9))
@@ -229,3 +230,50 @@ def test_bind_errors_are_one_line_and_endpoints_are_checked():
     for bad in ("127.0.0.1:7777", "udp://127.0.0.1:1", "tcp://127.0.0.1", "tcp://:80"):
         with pytest.raises(ConfigError, match="tcp://HOST:PORT"):
             parse_tcp_endpoint(bad)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_the_cli_takes_dv_input_and_serves_dv_output_and_out_is_finalised(real_recordings, tmp_path):
+    """DV in (two real NetworkWriters) -> edi-live -> DV out (a real NetworkReader) and --out, end to end."""
+    path = real_recordings["emlb_demo-01_davis346.aedat4"]
+    go = tmp_path / "go"
+    peers = {}
+    for kind, pace in (("events", ["--pace-s", "0.001"]), ("frames", [])):
+        proc = subprocess.Popen([sys.executable, str(PEER), "serve", kind, str(path), "--go-file", str(go), *pace],
+                                stdout=subprocess.PIPE, text=True)
+        peers[kind] = (proc, json.loads(proc.stdout.readline())["port"])
+    port = _free_port()
+    out = tmp_path / "sharp.aedat4"
+    cli = subprocess.Popen([sys.executable, "-m", "edi_live", "--dv-input", f"tcp://127.0.0.1:{peers['events'][1]}",
+                            "--dv-input", f"tcp://127.0.0.1:{peers['frames'][1]}", "--dv-output",
+                            f"tcp://127.0.0.1:{port}", "--no-publish", "--out", str(out), "--every", "5000"],
+                           cwd=Path(__file__).resolve().parents[2], stderr=subprocess.PIPE, text=True)
+    try:
+        for line in cli.stderr:
+            if "serving DV frames on" in line:
+                break
+        reader = _reader(port, 5)
+        assert json.loads(reader.stdout.readline())["camera"] == "DAVIS346_00000391"
+        go.touch()  # the DV servers start streaming now that every client is connected
+        frames = [json.loads(line) for line in reader.communicate(timeout=60)[0].splitlines()]
+        err = cli.communicate(timeout=60)[1]
+    finally:
+        for proc in [cli] + [p for p, _ in peers.values()]:
+            if proc.poll() is None:
+                proc.kill()
+    # the DV servers went away: exit 1 with one error line, after everything received was processed
+    assert cli.returncode == 1, err[-3000:]
+    errors = [line for line in err.splitlines() if line.startswith("edi-live: error:")]
+    assert len(errors) == 1 and "ended" in errors[0]
+    assert "319512 events" in err
+    assert len(frames) == 5 and all(f["shape"] == [260, 346] and f["source"] == "RECONSTRUCTION" for f in frames)
+    ts = [f["t"] for f in frames]
+    assert ts == sorted(ts) and 1643243628737093 <= ts[0] <= 1643243629248083
+    with Aedat4Reader(out) as reader:  # finalised: the data table is there
+        assert reader.data_table() is not None
+        assert sum(1 for s, _ in reader if s.type == "FRME") >= 5

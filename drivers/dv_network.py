@@ -196,10 +196,8 @@ class _Feed:
         while not self.owner._stop.wait(self.owner.retry_s):
             try:
                 self.connect()
-            except DeviceNotFoundError:
-                continue
-            except DeviceDisconnectedError:
-                continue
+            except (DeviceNotFoundError, DeviceDisconnectedError):
+                continue  # not back yet
             log.info("reconnected to the DV stream at %s", self.where)
             return True
         return False
@@ -268,6 +266,8 @@ class DvNetworkSource:
             item = self._get(0.1)
             fault = None
             packet = Packet()
+            if item is not None and item[0] != "fault":
+                last_item = time.monotonic()
             if item is None:
                 if ended is not None and (time.monotonic() - last_item >= self.end_grace_s
                                           or not any(f.thread.is_alive() for f in self._feeds)):
@@ -278,7 +278,6 @@ class DvNetworkSource:
                 else:
                     fault = ended or item[1]
             elif item[0] == "EVTS":
-                last_item = time.monotonic()
                 events = item[1]
                 if len(events) and int(events["t"][0]) < events_to:  # a server that restarted its clock
                     keep = events["t"] >= events_to
@@ -300,8 +299,9 @@ class DvNetworkSource:
                         if abs(skew) > self.max_clock_skew_us:
                             fault = SourceError(f"the DV frames are {skew / 1e6:+.1f} s away from the DV events: "
                                                 f"the --dv-input endpoints do not serve one camera's clock")
-                    held.append((time.monotonic(), frame))
-                    packet.arrival_ns = item[2]
+                    if fault is None:
+                        held.append((time.monotonic(), frame))
+                        packet.arrival_ns = item[2]
             else:
                 if item[0] == "IMUS":
                     packet.imu = item[1]
@@ -315,8 +315,8 @@ class DvNetworkSource:
                 held = [h for h, d in zip(held, due) if not d]
             if len(packet.events) or packet.frames or len(packet.imu) or len(packet.triggers):
                 packet.watermark_us = events_to
-                if self._gap:
-                    packet.gap, self._gap = True, False
+                with self._cv:
+                    packet.gap, self._gap = self._gap, False
                 st.packets += 1
                 st.events += len(packet.events)
                 st.frames += len(packet.frames)

@@ -159,6 +159,9 @@ class DvOutput:
                 raise PublishError(f"{self.name} thread did not stop within {timeout_s} s")
         for sock in (self._wake_r, self._wake_w):
             sock.close()
+        late = f", {self.late} skipped as older than a frame already sent" if self.late else ""
+        log.info("%s: %d packets sent to %d client connection(s), %d dropped for slow clients%s", self.name,
+                 self.sent, self.connections, self.dropped, late)
 
     def _wake(self) -> None:
         try:

@@ -134,7 +134,9 @@ class Node:
         keep = ("events_per_s", "frames_per_s", "c", "c_on", "c_off", "reestimations", "hot_pixels", "drops",
                 "ring_occupancy", "ring_dropped_events", "ring_dropped_frames", "events_in", "events_processed",
                 "aps_frames_in", "frames_deblurred", "frames_latent", "heartbeats", "skipped_max_fps",
-                "source_dropped_events", "source_gaps", "nearest_added_latency_ms_p50", "out_wait_s")
+                "source_dropped_events", "source_gaps", "nearest_added_latency_ms_p50", "out_wait_s",
+                "dv_frames_sent", "dv_frames_dropped", "dv_frames_late", "dv_frames_clients", "dv_events_sent",
+                "dv_events_dropped", "dv_events_clients")
         return {k: s[k] for k in keep if k in s and s[k] is not None}
 
     @property

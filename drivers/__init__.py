@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
-SOURCE_KINDS = ("replay", "davis240", "davis346", "auto")
+SOURCE_KINDS = ("replay", "davis240", "davis346", "auto", "dv")
 
 
 def open_source(kind: str, **options: Any) -> Any:
@@ -17,6 +17,7 @@ def open_source(kind: str, **options: Any) -> Any:
     kind "replay": options `path` (required), `speed` (1.0 = real time, 0 = as fast as possible), `loop`.
     kind "davis240" | "davis346" | "auto": options `serial`, `backend` (a pyusb IBackend, e.g. the emulator's),
     `exposure_us`, `frame_interval_us`, `reconnect`, `policy` (passed to DavisSource).
+    kind "dv": options `endpoints` (required; one per DV network output) and `reconnect` (DvNetworkSource).
     """
     if kind == "replay":
         from drivers.replay import ReplaySource
@@ -27,6 +28,10 @@ def open_source(kind: str, **options: Any) -> Any:
         from drivers.davis.device import DavisSource
 
         return DavisSource(kind, **options)
+    if kind == "dv":
+        from drivers.dv_network import DvNetworkSource
+
+        return DvNetworkSource(options.pop("endpoints"), **options)
     raise ValueError(f"unknown source kind {kind!r} (expected one of {', '.join(SOURCE_KINDS)})")
 
 

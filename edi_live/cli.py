@@ -39,6 +39,15 @@ examples:
   # no camera: the built-in emulator replays a recording through the USB driver
   edi-live --device davis240 --usb-backend drivers.emulator:backend --emulate-from rec.aedat4
 
+  # a camera running in DV (two network TCP server outputs: events, frames); sharp frames back to DV
+  edi-live --dv-input tcp://127.0.0.1:7777 --dv-input tcp://127.0.0.1:7778 --dv-output tcp://127.0.0.1:7779
+
+seeing the frames:
+  python -m tools.viewer        then open http://127.0.0.1:8080 in a browser (live frames and counters)
+  python -m edi_live.client      prints what arrives (any program can subscribe: see edi_live/client.py)
+  --dv-output tcp://HOST:PORT    DV's GUI (network input module) or dv-processing's NetworkReader shows them
+  --out FILE.aedat4              opens in DV (file input), dv-processing, or --replay; one 8-bit frame each
+
 Ctrl-C or SIGTERM stops cleanly (files finalised, exit 0; a second Ctrl-C is ignored while it stops). Exit codes: 0 ok, 1 runtime error, 2 usage error.
 Every flag can also be set in --config FILE.toml with the same name (e.g. `every = 1000`, `c-on = 0.2`).
 """
@@ -58,13 +67,17 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--device", choices=("davis240", "davis346", "auto"),
                      help="a live DAVIS camera over USB ('auto': the first one found)")
     src.add_argument("--replay", metavar="FILE.aedat4", help="replay an AEDAT4 recording as if a camera were attached")
+    src.add_argument("--dv-input", action="append", metavar="[TYPE=]tcp://HOST:PORT",
+                     help="a DV / dv-processing network output, repeatable: one endpoint per stream (events, frames, "
+                          "imu, triggers; the type is read from the stream, a TYPE= prefix asserts it)")
     src.add_argument("--list-devices", action="store_true", help="list attached DAVIS cameras and exit")
     dev = p.add_argument_group("device options")
     dev.add_argument("--serial", metavar="S", help="pick the camera with this serial number")
     dev.add_argument("--exposure-us", type=int, metavar="US", help="APS exposure in µs (default: the camera's)")
     dev.add_argument("--frame-interval-us", type=int, metavar="US",
                      help="time between APS frames in µs (default: the camera's)")
-    dev.add_argument("--reconnect", action="store_true", help="after an unplug, wait for the camera and resume")
+    dev.add_argument("--reconnect", action="store_true", help="after an unplug (or a dropped --dv-input connection), "
+                                                               "wait for the camera and resume")
     dev.add_argument("--usb-backend", metavar="MODULE:CALLABLE",
                      help="pyusb backend factory; CALLABLE() returns a usb.backend.IBackend (default: libusb)")
     dev.add_argument("--emulate-from", metavar="FILE.aedat4",
@@ -107,6 +120,11 @@ def build_parser() -> argparse.ArgumentParser:
                           "(make one: python -m edi_live.publisher --gen-curve-keys DIR)")
     out.add_argument("--stats-interval-s", type=float, metavar="S",
                      help="period of the [b\"stats\", map] message on the socket, seconds (default: 1.0)")
+    out.add_argument("--dv-output", metavar="tcp://HOST:PORT",
+                     help="also serve the sharp frames as a DV network stream (AEDAT4 over TCP, as DV's network TCP "
+                          "server output and dv-processing's NetworkWriter; loopback unless you choose otherwise)")
+    out.add_argument("--dv-output-events", metavar="tcp://HOST:PORT",
+                     help="also serve the input events, passed through, as a second DV network stream")
     out.add_argument("--out", metavar="FILE.aedat4", help="also write every emitted frame (8-bit gray, lossless)")
     out.add_argument("--record", metavar="FILE.aedat4", help="record the raw input as received, for --replay")
     adv = p.add_argument_group("advanced")
@@ -137,8 +155,9 @@ def build_config(flags: dict[str, Any], config_path: Path | None) -> NodeConfig:
     options = merge_options(file_options, flags)
     options.pop("list_devices", None)
     config = NodeConfig.from_options(options)
-    if config.source.device is None and config.source.replay is None:
-        raise ConfigError(f"choose an input: --device davis240|davis346|auto or --replay FILE.aedat4 "
+    if config.source.device is None and config.source.replay is None and not config.source.dv_input:
+        raise ConfigError(f"choose an input: --device davis240|davis346|auto, --replay FILE.aedat4 or --dv-input "
+                          f"tcp://HOST:PORT "
                           f"(see {PROG} --help)")
     return config
 
@@ -204,6 +223,8 @@ def make_source(config: NodeConfig, explicit: set[str] | frozenset = frozenset()
     import drivers
 
     s = config.source
+    if s.dv_input:
+        return drivers.open_source("dv", endpoints=list(s.dv_input), reconnect=s.reconnect)
     if s.replay is not None:
         _existing_file(Path(s.replay), "--replay")
         return drivers.open_source("replay", path=str(s.replay), speed=s.speed, loop=s.loop, decode_process=True)
@@ -268,6 +289,11 @@ _LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "[::1]", "::1")
 
 def _warn_if_exposed(config: NodeConfig) -> None:
     """Loopback is the default; a network endpoint without CURVE is allowed (an explicit choice) but said aloud."""
+    for endpoint in (config.output.dv_output, config.output.dv_output_events):
+        host = (endpoint or "").partition("://")[2].rsplit(":", 1)[0]
+        if endpoint and host not in _LOOPBACK_HOSTS:
+            log.warning("serving DV on %s: anyone who can reach this machine can connect (the DV protocol has no "
+                        "encryption here; use a 127.0.0.1 endpoint unless you mean it)", endpoint)
     if config.publisher.curve_secret_key is not None:
         return
     for endpoint in config.publisher.endpoints:

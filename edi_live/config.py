@@ -58,8 +58,11 @@ class SourceConfig:
     emulate_from: Path | None = None
     speed: float = 1.0  # 1 = real time, 0 = as fast as possible
     loop: bool = False
+    dv_input: tuple[str, ...] = ()  # DV network outputs, one endpoint per stream ([TYPE=]tcp://HOST:PORT)
 
     def __post_init__(self) -> None:
+        _check(not self.dv_input or (self.device is None and self.replay is None),
+               f"choose one input: --dv-input, --device or --replay (got dv-input={list(self.dv_input)!r})")
         _check(self.device is None or self.replay is None,
                f"choose one input: device or replay (got device={self.device!r} and replay={str(self.replay)!r})")
         _check(self.device is None or self.device in DEVICE_MODELS,
@@ -80,7 +83,7 @@ class SourceConfig:
 
     @property
     def kind(self) -> str:
-        return "replay" if self.replay is not None else "device"
+        return "replay" if self.replay is not None else ("dv" if self.dv_input else "device")
 
 
 @dataclass(frozen=True)
@@ -167,6 +170,8 @@ class OutputConfig:
 
     out: Path | None = None
     record: Path | None = None
+    dv_output: str | None = None  # tcp://HOST:PORT: the sharp frames as a DV network stream
+    dv_output_events: str | None = None  # tcp://HOST:PORT: the input events passed through, as a DV stream
     queue_items: int = 256  # bounded writer queues; the producer waits (lossless)
 
     def __post_init__(self) -> None:
@@ -311,6 +316,9 @@ OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
     "no_publish": ("publisher", "-", _bool("no-publish")),
     "curve_secret_key": ("publisher", "curve_secret_key", _path),
     "stats_interval_s": ("publisher", "stats_interval_s", _num),
+    "dv_input": ("source", "dv_input", _endpoints),
+    "dv_output": ("output", "dv_output", lambda v: None if v is None else str(v)),
+    "dv_output_events": ("output", "dv_output_events", lambda v: None if v is None else str(v)),
     "out": ("output", "out", _path),
     "record": ("output", "record", _path),
     "duration": ("node", "duration_s", _num),
@@ -384,10 +392,10 @@ def merge_options(file_options: Mapping[str, Any], flag_options: Mapping[str, An
     """Flags override the file. A device flag replaces a replay from the file and vice versa."""
     merged = {_norm(k): v for k, v in file_options.items()}
     flags = {_norm(k): v for k, v in flag_options.items()}
-    if "device" in flags:
-        merged.pop("replay", None)
-    if "replay" in flags:
-        merged.pop("device", None)
+    for given in ("device", "replay", "dv_input"):  # an input flag replaces the file's input
+        if given in flags:
+            for other in {"device", "replay", "dv_input"} - {given}:
+                merged.pop(other, None)
     if "publish" in flags:
         merged.pop("no_publish", None)
     if flags.get("no_publish"):

@@ -143,7 +143,7 @@ class SourceInfo:
     height: int
     name: str = "unknown"  # e.g. "DAVIS346" or "DAVIS240C"
     serial: str = ""
-    kind: Literal["usb", "replay", "emulator"] = "replay"
+    kind: Literal["usb", "replay", "emulator", "network"] = "replay"
 
     @property
     def label(self) -> str:

@@ -88,6 +88,8 @@ class Node:
         self.publisher: Any = None
         self.out_writer: OutWriter | None = None
         self.record_writer: RecordWriter | None = None
+        self.dv_frames: Any = None  # edi_live.dv_output.DvOutput of the sharp frames (--dv-output)
+        self.dv_events: Any = None  # ... of the input events (--dv-output-events)
         self._pump: threading.Thread | None = None
         self._lock = threading.Lock()
         self._failure: tuple[BaseException, str] | None = None
@@ -124,7 +126,8 @@ class Node:
 
     def stats(self) -> dict[str, Any]:
         """Every counter of every stage (see stats.collect)."""
-        return collect(self.source, self.ring, self.worker, self.publisher, (self.out_writer, self.record_writer))
+        return collect(self.source, self.ring, self.worker, self.publisher,
+                       (self.out_writer, self.record_writer, self.dv_frames, self.dv_events))
 
     def stats_map(self) -> dict[str, Any]:
         """The map for the publisher's once-a-second stats message (it adds its own latency figures)."""
@@ -133,8 +136,10 @@ class Node:
                 "ring_occupancy", "ring_dropped_events", "ring_dropped_frames", "events_in", "events_processed",
                 "aps_frames_in", "frames_deblurred", "frames_latent", "heartbeats", "skipped_max_fps",
                 "source_dropped_events", "source_gaps", "nearest_added_latency_ms_p50", "out_wait_s",
-                "unreliable_pixels", "black_level_dn", "pred_psnr_db", "still_psnr_db", "pred_gain_db", "pred_psnr_active_db",
-                "still_psnr_active_db", "pred_beats_still_frac", "pred_frames_scored")
+                "unreliable_pixels", "black_level_dn", "pred_psnr_db", "still_psnr_db", "pred_gain_db",
+                "pred_psnr_active_db", "still_psnr_active_db", "pred_beats_still_frac", "pred_frames_scored",
+                "dv_frames_sent", "dv_frames_dropped", "dv_frames_late", "dv_frames_clients", "dv_events_sent",
+                "dv_events_dropped", "dv_events_clients")
         return {k: s[k] for k in keep if k in s and s[k] is not None}
 
     @property
@@ -195,6 +200,7 @@ class Node:
             self.publisher.start()
             sinks.append(self.publisher.submit)
             log.info("publishing on %s", ", ".join(self.bound_endpoints))
+        self._start_dv_outputs(sinks)
         if cfg.output.out is not None:
             self.out_writer = OutWriter(cfg.output.out, info.width, info.height, camera_name=info.label,
                                         queue_items=cfg.output.queue_items,
@@ -213,9 +219,26 @@ class Node:
         self._pump = threading.Thread(target=self._pump_loop, name="pump", daemon=True)
         self._pump.start()
 
+    def _start_dv_outputs(self, sinks: list) -> None:
+        """--dv-output / --dv-output-events: DV network servers beside the publisher (bind errors are fatal here)."""
+        from edi_live.dv_output import DvOutput
+
+        info, out = self.source.info, self.config.output
+        for attr, endpoint, stream in (("dv_frames", out.dv_output, "frames"),
+                                       ("dv_events", out.dv_output_events, "events")):
+            if endpoint is None:
+                continue
+            server = DvOutput(endpoint, stream, info.width, info.height, camera_name=info.label,
+                              on_error=lambda e, s=stream: self.fail(e, f"dv-output-{s}"))
+            server.start()
+            setattr(self, attr, server)
+            log.info("serving DV %s on %s", stream, server.bound_endpoint)
+        if self.dv_frames is not None:
+            sinks.append(self.dv_frames.submit)
+
     def _pump_loop(self) -> None:
-        """[pump] thread: source -> ring (and --record)."""
-        ring, record = self.ring, self.record_writer
+        """[pump] thread: source -> ring (and --record, --dv-output-events)."""
+        ring, record, dv_events = self.ring, self.record_writer, self.dv_events
         try:
             for packet in self.source:
                 if self._stop.is_set():
@@ -225,6 +248,8 @@ class Node:
                 packet.events = as_events(packet.events)
                 if record is not None:
                     record.submit(packet)
+                if dv_events is not None:
+                    dv_events.submit(packet)
                 if not ring.push(packet):
                     break  # the ring was closed: we are stopping
         except BaseException as exc:
@@ -280,7 +305,7 @@ class Node:
                     stuck.append("edi-worker")
         if self.publisher is not None:
             guard("publisher", lambda: self.publisher.close(timeout_s=2.0))
-        for writer in (self.out_writer, self.record_writer):
+        for writer in (self.dv_frames, self.dv_events, self.out_writer, self.record_writer):
             if writer is not None:
                 guard(writer.name, lambda w=writer: w.close(timeout_s=10.0))
         if entered:

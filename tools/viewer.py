@@ -87,12 +87,22 @@ class FrameHub:
             return self.version, self._jpeg
 
 
+# The frame fills the window left of the counters, scaled with its aspect ratio kept (object-fit: contain) and
+# with sharp pixels (a 346x260 sensor is small on a screen); on a portrait window the counters go below it.
 PAGE = """<!doctype html>
 <html><head><meta charset="utf-8"><title>edi-live viewer</title>
-<style>body{margin:0;background:#000;color:#ccc;font:13px monospace}img{display:block}</style></head>
-<body><img id="live" src="/stream.mjpg" alt="edi-live stream">
-<pre id="line">@LINE@</pre>
-<details><summary>all counters</summary><pre id="status"></pre></details>
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<style>
+html,body{height:100%;margin:0;background:#000;color:#ccc;font:13px monospace}
+#wrap{display:flex;height:100vh}
+#view{flex:1;min-width:0;min-height:0}
+#live{display:block;width:100%;height:100%;object-fit:contain;image-rendering:pixelated}
+#side{flex:none;width:23em;overflow:auto;padding:0 8px;border-left:1px solid #333}
+@media (max-aspect-ratio:1/1){#wrap{flex-direction:column}#side{width:auto;height:40vh;border:0}}
+</style></head>
+<body><div id="wrap"><div id="view"><img id="live" src="/stream.mjpg" alt="edi-live stream"></div>
+<div id="side"><pre id="line">@LINE@</pre>
+<details><summary>all counters</summary><pre id="status"></pre></details></div></div>
 <script>
 async function update() {
   try { const s = await (await fetch('/status.json')).json();

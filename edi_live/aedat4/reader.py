@@ -15,6 +15,7 @@ id the header does not declare is such damage. Streams the header declares with 
 
 from __future__ import annotations
 
+import io
 import logging
 import os
 import struct
@@ -59,6 +60,10 @@ class Aedat4Reader:
         except BaseException:
             self._file.close()
             raise
+        self._adopt(head)
+
+    def _adopt(self, head) -> None:
+        """Take the parsed file head (header.read_header) as this reader's attributes."""
         self.data_start = head.data_start
         self.compression = head.compression
         self.data_table_position = head.data_table_position
@@ -204,25 +209,42 @@ class Aedat4Reader:
         """Like iteration, with the file offset of each packet: (stream, offset, data); `types` as in packets()."""
         seqs: dict[int, int] = {}
         for stream, pos, payload in self.packets(types):
-            try:
-                t = stream.type
-                if t == "EVTS":
-                    data = decode_events(payload, stream, self.validate)
-                elif t == "FRME":
-                    seq = seqs.get(stream.id, 0)
-                    seqs[stream.id] = seq + 1
-                    data = decode_frame(payload, stream, seq)
-                elif t == "IMUS":
-                    data = decode_imu(payload)
-                else:
-                    data = decode_triggers(payload)
-            except RecordingError as exc:
-                raise self._error(str(exc), pos) from None
-            except S.FlatBufferError as exc:
-                raise self._error(f"corrupt {stream.type} packet: {exc} (payload byte {exc.pos})", pos) from None
-            except Exception as exc:  # anything else a damaged payload provokes (struct, numpy, ...) is the same fault
-                raise self._error(f"corrupt {stream.type} packet ({type(exc).__name__}: {exc})", pos) from exc
-            yield stream, pos, data
+            seq = 0
+            if stream.type == "FRME":
+                seq = seqs.get(stream.id, 0)
+                seqs[stream.id] = seq + 1
+            yield stream, pos, self.decode_payload(stream, pos, payload, seq)
+
+    def decode_payload(self, stream: StreamInfo, pos: int, payload: bytes, seq: int = 0) -> object:
+        """One decompressed packet of `stream` as events, a Frame (numbered `seq`), IMU or triggers; any defect
+        is a RecordingError at byte `pos`. Also used for network streams (see `from_stream_header`)."""
+        try:
+            t = stream.type
+            if t == "EVTS":
+                return decode_events(payload, stream, self.validate)
+            if t == "FRME":
+                return decode_frame(payload, stream, seq)
+            if t == "IMUS":
+                return decode_imu(payload)
+            return decode_triggers(payload)
+        except RecordingError as exc:
+            raise self._error(str(exc), pos) from None
+        except S.FlatBufferError as exc:
+            raise self._error(f"corrupt {stream.type} packet: {exc} (payload byte {exc.pos})", pos) from None
+        except Exception as exc:  # anything else a damaged payload provokes (struct, numpy, ...) is the same fault
+            raise self._error(f"corrupt {stream.type} packet ({type(exc).__name__}: {exc})", pos) from exc
+
+    @classmethod
+    def from_stream_header(cls, header: bytes, where: str) -> "Aedat4Reader":
+        """A reader for an AEDAT4 network stream, which is a file without the magic line and the data table:
+        `header` is the size-prefixed IOHeader the server sends first; `where` names the stream in errors.
+        Only the header attributes and `decode_payload()` are meant for use (there is no file to walk)."""
+        self = cls.__new__(cls)
+        self.path, self.validate = where, True
+        self._file = io.BytesIO(S.MAGIC + bytes(header))
+        self.file_size = len(S.MAGIC) + len(header)
+        self._adopt(read_header(self._read_at, self.file_size, self.path))
+        return self
 
     def events(self) -> Iterator[np.ndarray]:
         """Only the event arrays, in file order (other packets are skipped undecompressed): the fast path."""

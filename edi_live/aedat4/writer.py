@@ -76,31 +76,11 @@ class Aedat4Writer:
 
     # ------------------------------------------------------------------------------------------ header
     def _xml(self) -> bytes:
-        comp = self.compression.upper()
-        parts = ['<dv version="2.0">', '<node name="outInfo" path="/outInfo/">']
-        for name, type_id in _STREAMS:
-            if name not in self._ids:
-                continue
-            sid = self._ids[name]
-            base = f"/outInfo/{sid}/"
-            parts.append(f'<node name="{sid}" path="{base}">')
-            for key, val in (("compression", comp), ("originalModuleName", "edi-live"),
-                             ("originalOutputName", name), ("typeDescription", S.TYPE_DESCRIPTIONS[type_id]),
-                             ("typeIdentifier", type_id)):
-                parts.append(f'<attr key="{key}" type="string">{escape(val)}</attr>')
-            parts.append(f'<node name="info" path="{base}info/">')
-            if type_id in ("EVTS", "FRME"):
-                parts.append(f'<attr key="sizeX" type="int">{self.width}</attr>')
-                parts.append(f'<attr key="sizeY" type="int">{self.height}</attr>')
-            parts.append(f'<attr key="source" type="string">{escape(self.camera_name)}</attr>')
-            parts.append("</node></node>")
-        parts.append("</node></dv>")
-        return "\n".join(parts).encode()
+        streams = [(sid, type_id, name) for name, type_id in _STREAMS if (sid := self._ids.get(name)) is not None]
+        return info_xml(streams, self.width, self.height, self.camera_name, self.compression)
 
     def _header(self, dtp: int) -> tuple[bytes, dict[int, int]]:
-        spec = (S.TableSpec().scalar(S.IOH_COMPRESSION, "i", S.COMPRESSION_CODES[self.compression])
-                .scalar(S.IOH_DATA_TABLE_POSITION, "q", dtp).string(S.IOH_INFO_NODE, self._xml()))
-        return S.build_root(b"IOHE", spec)
+        return io_header(self.compression, dtp, self._xml())
 
     # ------------------------------------------------------------------------------------------ writing
     def _write(self, data: bytes) -> None:
@@ -149,55 +129,31 @@ class Aedat4Writer:
         if not len(events):
             return
         self._check_sorted("events", events["t"])
-        for i in range(0, len(events), MAX_EVENTS_PER_PACKET):
-            chunk = np.ascontiguousarray(events[i:i + MAX_EVENTS_PER_PACKET])
-            raw = chunk.view(np.uint8).reshape(-1, 16).copy()
-            raw[:, 12] = chunk["p"]  # polarity byte 0/1, padding zeroed
-            raw[:, 13:] = 0
-            spec = S.TableSpec().vector_bytes(0, raw.tobytes(), len(chunk), align=8)
-            payload, _ = S.build_root(b"EVTS", spec)
-            self._packet("events", payload, len(chunk), int(chunk["t"][0]), int(chunk["t"][-1]))
+        for payload, n, t0, t1 in events_payloads(events):
+            self._packet("events", payload, n, t0, t1)
 
     def write_frame(self, frame: Frame) -> None:
         """Append one frame (8- or 16-bit gray): timestamp = exposure start, SOE/EOE and exposure set."""
-        img = np.ascontiguousarray(frame.image)
-        if img.dtype == np.uint8:
-            fmt = S.FRAME_FORMAT_GRAY8
-        elif img.dtype == np.uint16:
-            fmt, img = S.FRAME_FORMAT_GRAY16, img.astype("<u2", copy=False)
-        else:
-            raise RecordingError(f"frames must be uint8 or uint16 gray, got {img.dtype}", self.path)
-        h, w = img.shape
-        soe, eoe = int(frame.exposure_start_us), int(frame.exposure_end_us)
+        soe = int(frame.exposure_start_us)
         self._check("frames", soe, soe)
-        spec = (S.TableSpec().scalar(S.FR_TIMESTAMP, "q", soe)
-                .scalar(S.FR_SOF, "q", int(frame.start_us or 0)).scalar(S.FR_EOF, "q", int(frame.end_us or 0))
-                .scalar(S.FR_SOE, "q", soe).scalar(S.FR_EOE, "q", eoe)
-                .scalar(S.FR_FORMAT, "b", fmt).scalar(S.FR_SIZE_X, "h", w).scalar(S.FR_SIZE_Y, "h", h)
-                .scalar(S.FR_POS_X, "h", 0).scalar(S.FR_POS_Y, "h", 0)
-                .vector_bytes(S.FR_PIXELS, img.tobytes(), img.nbytes, align=1)
-                .scalar(S.FR_EXPOSURE, "q", eoe - soe).scalar(S.FR_SOURCE, "b", self._frame_source))
-        payload, _ = S.build_root(b"FRME", spec)
+        try:
+            payload = frame_payload(frame, self._frame_source)
+        except ValueError as exc:
+            raise RecordingError(str(exc), self.path) from None
         self._packet("frames", payload, 1, soe, soe)
 
     def write_imu(self, imu: np.ndarray) -> None:
         """Append IMU samples (IMU_DTYPE, sorted by t) as one packet."""
         if not self._accept("imu", imu, IMU_DTYPE, "IMU_DTYPE"):
             return
-        rec = np.zeros(len(imu), dtype=_IMU_REC)
-        rec["t"] = imu["t"]
-        rec["f"][:, 0] = imu["temperature_c"]
-        rec["f"][:, 1:4], rec["f"][:, 4:7], rec["f"][:, 7:10] = imu["accel_g"], imu["gyro_dps"], imu["mag_ut"]
-        payload = S.build_table_vector_root(b"IMUS", rec, _IMU_SLOTS)
+        payload = imu_payload(imu)
         self._packet("imu", payload, len(imu), int(imu["t"][0]), int(imu["t"][-1]))
 
     def write_triggers(self, triggers: np.ndarray) -> None:
         """Append triggers (TRIGGER_DTYPE, sorted by t) as one packet."""
         if not self._accept("triggers", triggers, TRIGGER_DTYPE, "TRIGGER_DTYPE"):
             return
-        rec = np.zeros(len(triggers), dtype=_TRIG_REC)
-        rec["t"], rec["type"] = triggers["t"], triggers["type"]
-        payload = S.build_table_vector_root(b"TRIG", rec, _TRIG_SLOTS)
+        payload = triggers_payload(triggers)
         self._packet("triggers", payload, len(triggers), int(triggers["t"][0]), int(triggers["t"][-1]))
 
     # ------------------------------------------------------------------------------------------- close
@@ -233,3 +189,85 @@ class Aedat4Writer:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+# ------------------------------------------------------------------------------------- packet encoding
+# Module-level so that every AEDAT4 producer (this file writer, edi_live.dv_output's network server) shares them.
+
+def info_xml(streams: list[tuple[int, str, str]], width: int, height: int, camera_name: str,
+             compression: str) -> bytes:
+    """The IOHeader's infoNode XML for `streams` = [(stream id, type identifier, output name), ...]."""
+    parts = ['<dv version="2.0">', '<node name="outInfo" path="/outInfo/">']
+    for sid, type_id, name in streams:
+        base = f"/outInfo/{sid}/"
+        parts.append(f'<node name="{sid}" path="{base}">')
+        for key, val in (("compression", compression.upper()), ("originalModuleName", "edi-live"),
+                         ("originalOutputName", name), ("typeDescription", S.TYPE_DESCRIPTIONS[type_id]),
+                         ("typeIdentifier", type_id)):
+            parts.append(f'<attr key="{key}" type="string">{escape(val)}</attr>')
+        parts.append(f'<node name="info" path="{base}info/">')
+        if type_id in ("EVTS", "FRME"):
+            parts.append(f'<attr key="sizeX" type="int">{width}</attr>')
+            parts.append(f'<attr key="sizeY" type="int">{height}</attr>')
+        parts.append(f'<attr key="source" type="string">{escape(camera_name)}</attr>')
+        parts.append("</node></node>")
+    parts.append("</node></dv>")
+    return "\n".join(parts).encode()
+
+
+def io_header(compression: str, data_table_position: int, xml: bytes) -> tuple[bytes, dict[int, int]]:
+    """The size-prefixed IOHE buffer (what follows the magic line in a file, and opens a network stream)."""
+    spec = (S.TableSpec().scalar(S.IOH_COMPRESSION, "i", S.COMPRESSION_CODES[compression])
+            .scalar(S.IOH_DATA_TABLE_POSITION, "q", data_table_position).string(S.IOH_INFO_NODE, xml))
+    return S.build_root(b"IOHE", spec)
+
+
+def events_payloads(events: np.ndarray):
+    """(EVTS payload, count, first t, last t) per chunk of at most MAX_EVENTS_PER_PACKET events (EVENT_DTYPE)."""
+    for i in range(0, len(events), MAX_EVENTS_PER_PACKET):
+        chunk = np.ascontiguousarray(events[i:i + MAX_EVENTS_PER_PACKET])
+        raw = chunk.view(np.uint8).reshape(-1, 16).copy()
+        raw[:, 12] = chunk["p"]  # polarity byte 0/1, padding zeroed
+        raw[:, 13:] = 0
+        spec = S.TableSpec().vector_bytes(0, raw.tobytes(), len(chunk), align=8)
+        payload, _ = S.build_root(b"EVTS", spec)
+        yield payload, len(chunk), int(chunk["t"][0]), int(chunk["t"][-1])
+
+
+def frame_payload(frame: Frame, source_code: int) -> bytes:
+    """FRME payload of an 8- or 16-bit gray frame: timestamp = exposure start, SOE/EOE and exposure set.
+    ValueError for another pixel type."""
+    img = np.ascontiguousarray(frame.image)
+    if img.dtype == np.uint8:
+        fmt = S.FRAME_FORMAT_GRAY8
+    elif img.dtype == np.uint16:
+        fmt, img = S.FRAME_FORMAT_GRAY16, img.astype("<u2", copy=False)
+    else:
+        raise ValueError(f"frames must be uint8 or uint16 gray, got {img.dtype}")
+    h, w = img.shape
+    soe, eoe = int(frame.exposure_start_us), int(frame.exposure_end_us)
+    spec = (S.TableSpec().scalar(S.FR_TIMESTAMP, "q", soe)
+            .scalar(S.FR_SOF, "q", int(frame.start_us or 0)).scalar(S.FR_EOF, "q", int(frame.end_us or 0))
+            .scalar(S.FR_SOE, "q", soe).scalar(S.FR_EOE, "q", eoe)
+            .scalar(S.FR_FORMAT, "b", fmt).scalar(S.FR_SIZE_X, "h", w).scalar(S.FR_SIZE_Y, "h", h)
+            .scalar(S.FR_POS_X, "h", 0).scalar(S.FR_POS_Y, "h", 0)
+            .vector_bytes(S.FR_PIXELS, img.tobytes(), img.nbytes, align=1)
+            .scalar(S.FR_EXPOSURE, "q", eoe - soe).scalar(S.FR_SOURCE, "b", source_code))
+    payload, _ = S.build_root(b"FRME", spec)
+    return payload
+
+
+def imu_payload(imu: np.ndarray) -> bytes:
+    """IMUS payload of IMU samples (IMU_DTYPE)."""
+    rec = np.zeros(len(imu), dtype=_IMU_REC)
+    rec["t"] = imu["t"]
+    rec["f"][:, 0] = imu["temperature_c"]
+    rec["f"][:, 1:4], rec["f"][:, 4:7], rec["f"][:, 7:10] = imu["accel_g"], imu["gyro_dps"], imu["mag_ut"]
+    return S.build_table_vector_root(b"IMUS", rec, _IMU_SLOTS)
+
+
+def triggers_payload(triggers: np.ndarray) -> bytes:
+    """TRIG payload of triggers (TRIGGER_DTYPE)."""
+    rec = np.zeros(len(triggers), dtype=_TRIG_REC)
+    rec["t"], rec["type"] = triggers["t"], triggers["type"]
+    return S.build_table_vector_root(b"TRIG", rec, _TRIG_SLOTS)

@@ -53,7 +53,9 @@ def test_help_teaches_groups_units_defaults_and_examples():
         assert flag in out, flag
     assert "tcp://127.0.0.1:5555" in out and "default: 1000" in out and "µs" in out
     examples = [line for line in out.split("examples:")[1].splitlines() if line.strip().startswith("edi-live ")]
-    assert len(examples) == 3
+    assert len(examples) == 4
+    seeing = out.split("seeing the frames:")[1]  # a newcomer learns how to look at the result
+    assert "python -m tools.viewer" in seeing and "http://127.0.0.1:8080" in seeing and "--out" in seeing
 
 
 @pytest.mark.parametrize("args,code,fragment", [

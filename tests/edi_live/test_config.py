@@ -196,3 +196,19 @@ def test_deblur_thread_is_automatic_but_can_be_forced():
     assert forced.effective_edi.deblur_thread is True
     with pytest.raises(ConfigError, match="deblur-thread must be true or false"):
         NodeConfig.from_options({"replay": "x", "deblur_thread": "yes"})
+
+
+def test_dv_keys_come_from_toml_and_dv_input_is_one_of_the_inputs(tmp_path):
+    from edi_live.config import NodeConfig, read_toml
+    from edi_live.errors import ConfigError as _ConfigError
+
+    path = tmp_path / "dv.toml"
+    path.write_text('dv-input = ["tcp://127.0.0.1:7777", "frames=tcp://127.0.0.1:7778"]\n'
+                    'dv-output = "tcp://127.0.0.1:7779"\ndv-output-events = "tcp://127.0.0.1:7780"\n')
+    config = NodeConfig.from_options(read_toml(path))
+    assert config.source.dv_input == ("tcp://127.0.0.1:7777", "frames=tcp://127.0.0.1:7778")
+    assert config.source.kind == "dv" and config.ring_policy == "drop_oldest"  # live: never block the receiver
+    assert (config.output.dv_output, config.output.dv_output_events) == ("tcp://127.0.0.1:7779",
+                                                                          "tcp://127.0.0.1:7780")
+    with pytest.raises(_ConfigError, match="choose one input"):
+        NodeConfig.from_options({"dv_input": ["tcp://127.0.0.1:7777"], "replay": "x.aedat4"})

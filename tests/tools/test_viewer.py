@@ -182,19 +182,27 @@ def test_mjpeg_page_shows_the_frame_in_headless_chromium(feeder, tmp_path):
         shot = tmp_path / "shot.png"
         cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                "--disable-background-networking", "--disable-component-update", "--disable-sync",
-               f"--user-data-dir={tmp_path / 'profile'}", f"--screenshot={shot}", "--window-size=400,300",
+               f"--user-data-dir={tmp_path / 'profile'}", f"--screenshot={shot}", "--window-size=900,400",
                "--hide-scrollbars", "--force-device-scale-factor=1", "--timeout=5000", v.url]
         out = subprocess.run(cmd, capture_output=True, text=True, timeout=50, check=False)
         assert shot.is_file(), f"chromium wrote no screenshot (exit {out.returncode}): {out.stderr[-500:]}"
     finally:
         stop_viewer(v, thread)
     page = cv2.imread(str(shot), cv2.IMREAD_GRAYSCALE)
-    assert page.shape == (300, 400)
-    shown = page[:H, :W].astype(float)  # the <img> sits at the top-left corner at its natural size
-    card = pattern(0).astype(float)
-    assert shown[8:, 8:].std() > 30, "the page shows a blank area where the frame should be"
-    assert np.abs(shown - card)[8:, 8:].mean() < 10
+    assert page.shape == (400, 900)
+    # the frame is scaled to the window, aspect ratio kept: it fills the height (the limiting side here), centred
+    # in the area left of the counters' border line (#333)
+    border = int(np.flatnonzero((np.abs(page.astype(int) - 0x33) <= 3).all(axis=0))[0])
+    assert 450 < border < 800, "no counters column beside the frame"
+    width = round(400 * W / H)
+    left = (border - width) // 2
+    shown = cv2.resize(page[:, left + 2:left + width - 2], (W, H), interpolation=cv2.INTER_AREA).astype(float)
+    card = cv2.resize(pattern(0)[:, 1:-1], (W, H), interpolation=cv2.INTER_AREA).astype(float)
     assert np.corrcoef(shown[8:, 8:].ravel(), card[8:, 8:].ravel())[0, 1] > 0.95
+    assert page[:, :max(left - 2, 1)].max() < 20 and page[:, left + width + 2:border - 1].max() < 20, \
+        "the frame is not centred at the scaled size"
+    # the counters sit beside the frame, not below it
+    assert (page[:, border + 1:] > 100).sum() > 200, "no counters right of the frame"
 
 
 def run_cli(args: list[str], **kwargs) -> subprocess.Popen:

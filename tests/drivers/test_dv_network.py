@@ -1,0 +1,159 @@
+"""drivers.dv_network: the DV network input, fed by dv-processing's real NetworkWriter (tests/dv_peer.py, one process
+per stream, as DV serves them) replaying the real DAVIS346 recordings."""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivers.dv_network import DvNetworkSource, parse_dv_endpoint
+from edi_live.aedat4 import Aedat4Reader
+from edi_live.errors import ConfigError, DeviceDisconnectedError, DeviceNotFoundError, ProtocolError, SourceError
+
+pytest.importorskip("dv_processing")
+REPO = Path(__file__).resolve().parents[2]
+PEER = REPO / "tests" / "dv_peer.py"
+
+
+class Peer:
+    """One dv-processing NetworkWriter process serving one stream of a recording."""
+
+    def __init__(self, kind: str, path: Path, *args: str) -> None:
+        # events paced at 1 ms a packet, like a camera: unpaced, dv-processing's writer drops packets itself
+        pace = ["--pace-s", "0.001"] if kind == "events" else []
+        self.proc = subprocess.Popen([sys.executable, str(PEER), "serve", kind, str(path), *pace, *args],
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        line = self.proc.stdout.readline()
+        assert line, self.proc.stderr.read()[-2000:]
+        self.port = json.loads(line)["port"]
+        self.endpoint = f"tcp://127.0.0.1:{self.port}"
+
+    def finish(self) -> None:
+        try:
+            self.proc.communicate(timeout=60)
+        finally:
+            if self.proc.poll() is None:
+                self.proc.kill()
+
+
+def _drain(source: DvNetworkSource) -> tuple[list, BaseException | None]:
+    packets, error = [], None
+    try:
+        for packet in source:
+            if packet is not None:
+                packets.append(packet)
+    except SourceError as exc:
+        error = exc
+    return packets, error
+
+
+def _file_frames(path: Path) -> list:
+    with Aedat4Reader(path) as reader:
+        return [data for stream, data in reader if stream.type == "FRME"]
+
+
+def test_events_frames_and_imu_from_three_network_writers_arrive_whole_and_in_order(real_recordings):
+    path = real_recordings["emlb_demo-01_davis346.aedat4"]
+    peers = [Peer(kind, path) for kind in ("events", "frames", "imu")]
+    try:
+        source = DvNetworkSource([peers[0].endpoint, f"frames={peers[1].endpoint}", peers[2].endpoint])
+        with source:
+            assert (source.info.width, source.info.height, source.info.label) == (346, 260, "DAVIS346_00000391")
+            packets, error = _drain(source)
+    finally:
+        for peer in peers:
+            peer.finish()
+    # the servers ending is a dropped connection: reported, after everything received was delivered
+    assert isinstance(error, DeviceDisconnectedError) and "--reconnect" in str(error)
+    events = np.concatenate([p.events for p in packets])
+    assert len(events) == 319_512 and bool(np.all(np.diff(events["t"]) >= 0))
+    assert sum(len(p.imu) for p in packets) == 510
+    frames = [f for p in packets for f in p.frames]
+    expected = _file_frames(path)
+    assert [(f.exposure_start_us, f.exposure_end_us) for f in frames] == \
+        [(f.exposure_start_us, f.exposure_end_us) for f in expected]
+    assert all(np.array_equal(a.image, b.image) for a, b in zip(frames, expected))
+    # the ordering contract: a frame comes no earlier than the events up to its exposure end
+    seen_to = -1
+    for p in packets:
+        if len(p.events):
+            seen_to = int(p.events["t"][-1])
+        for f in p.frames:
+            assert seen_to >= f.exposure_end_us or seen_to == int(events["t"][-1])
+    assert source.status().events == 319_512 and source.status().dropped_events == 0
+
+
+def test_connection_refused_is_one_clear_line():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # nothing listens here once closed
+    with pytest.raises(DeviceNotFoundError, match="connection refused") as err:
+        with DvNetworkSource([f"tcp://127.0.0.1:{port}"]):
+            pass
+    assert "\n" not in str(err.value) and f"tcp://127.0.0.1:{port}" in str(err.value)
+
+
+def test_unexpected_stream_types_are_refused(real_recordings):
+    path = real_recordings["evlib_sample_davis346.aedat4"]
+    imu = Peer("imu", path, "--hold-s", "3")
+    try:
+        with pytest.raises(ConfigError, match="no endpoint serves events"):
+            with DvNetworkSource([imu.endpoint]):
+                pass
+        with pytest.raises(ProtocolError, match="serves imu .*not the events"):
+            with DvNetworkSource([f"events={imu.endpoint}"]):
+                pass
+    finally:
+        imu.proc.kill()
+    for bad in ("tcp://127.0.0.1", "pose=tcp://127.0.0.1:1", "udp://127.0.0.1:9"):
+        with pytest.raises(ConfigError, match="--dv-input must look like"):
+            parse_dv_endpoint(bad)
+
+
+def test_reconnect_resumes_with_a_gap_and_a_sensor_size_change_is_refused(real_recordings):
+    first = Peer("events", real_recordings["evlib_sample_davis346.aedat4"])
+    source = DvNetworkSource([first.endpoint], reconnect=True, retry_s=0.05)
+    later, other = None, None
+    with source:
+        it = iter(source)
+        got = 0
+        while got < 6_676:  # the whole first recording, then the server goes away
+            packet = next(it)
+            got += 0 if packet is None else len(packet.events)
+        first.finish()
+        # the same endpoint comes back (a later recording: time goes on), and the stream resumes with a gap mark
+        later = Peer("events", real_recordings["aestream_davis346.aedat4"], "--port", str(first.port))
+        resumed = []
+        while sum(len(p.events) for p in resumed) < 117_667:
+            packet = next(it)
+            if packet is not None:
+                resumed.append(packet)
+        assert resumed[0].gap and source.status().gaps >= 1
+        later.finish()
+        # now it comes back as another sensor: that cannot be followed, and says so
+        other = Peer("events", real_recordings["evlib_sample_davis346.aedat4"], "--port", str(first.port),
+                     "--size", "240x180", "--hold-s", "3")
+        with pytest.raises(ProtocolError, match="came back as events 240x180, it was events 346x260"):
+            for _ in it:
+                pass
+    other.proc.kill()
+
+
+def test_a_consumer_that_falls_behind_costs_counted_drops_and_a_gap(real_recordings):
+    peer = Peer("events", real_recordings["emlb_demo-01_davis346.aedat4"])
+    source = DvNetworkSource([peer.endpoint], max_queued_events=20_000)
+    with source:
+        peer.proc.stdout.readline()  # {"done": ...}: everything was sent while nobody consumed
+        packets, error = _drain(source)
+    peer.finish()
+    status = source.status()
+    received = sum(len(p.events) for p in packets)
+    assert status.dropped_events > 0 and received + status.dropped_events == 319_512
+    assert received <= 20_000 + 2_000 and any(p.gap for p in packets)
+    assert isinstance(error, DeviceDisconnectedError)

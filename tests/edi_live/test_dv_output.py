@@ -1,0 +1,279 @@
+"""edi_live.dv_output: the AEDAT4-over-TCP server, checked against dv-processing 2.0.4 (the reference peer).
+
+The protocol is compared with what dv-processing's own NetworkWriter sends (captured from a real one on
+loopback), and the stream is consumed by dv-processing's NetworkReader in a separate process (tests/dv_peer.py).
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import struct
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from edi_live.aedat4.reader import Aedat4Reader
+from edi_live.datatypes import EVENT_DTYPE, Packet, Reconstruction
+from edi_live.dv_output import DvOutput, parse_tcp_endpoint
+from edi_live.errors import BindError, ConfigError
+
+dv = pytest.importorskip("dv_processing")
+PEER = Path(__file__).resolve().parents[1] / "dv_peer.py"
+T0 = 1_700_000_000_000_000
+
+
+def _rec(t_us: int, value: int, w: int = 346, h: int = 260) -> Reconstruction:
+    img = np.full((h, w), value, np.uint8)
+    img[0, :value] = 255  # a pixel pattern that tells frames apart
+    return Reconstruction(img, t_us, "latent", t_us, t_us, t_us, 0.2, 0.2, 10)
+
+
+def _wait(cond, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        time.sleep(0.005)
+
+
+def _recv_stream(sock: socket.socket, packets: int, timeout_s: float = 5.0) -> tuple[bytes, list[tuple[int, bytes]]]:
+    """(IOHeader bytes, [(stream id, payload)]) read from a raw socket."""
+    sock.settimeout(timeout_s)
+    buf = b""
+
+    def need(n: int) -> None:
+        nonlocal buf
+        while len(buf) < n:
+            chunk = sock.recv(1 << 20)
+            assert chunk, "stream ended early"
+            buf += chunk
+
+    need(4)
+    hlen = 4 + struct.unpack_from("<I", buf)[0]
+    need(hlen)
+    header, pos, out = buf[:hlen], hlen, []
+    for _ in range(packets):
+        need(pos + 8)
+        sid, size = struct.unpack_from("<ii", buf, pos)
+        need(pos + 8 + size)
+        out.append((sid, buf[pos + 8:pos + 8 + size]))
+        pos += 8 + size
+    return header, out
+
+
+def _reference_stream(kind: str) -> tuple[bytes, list[tuple[int, bytes]]]:
+    """What dv-processing's NetworkWriter sends for one frame or one event batch."""
+    if kind == "frames":
+        stream = dv.io.Stream.FrameStream(0, "frames", "DAVIS346_00000391", (346, 260))
+    else:
+        stream = dv.io.Stream.EventStream(0, "events", "DAVIS346_00000391", (346, 260))
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    writer = dv.io.NetworkWriter("127.0.0.1", port, stream)
+    try:
+        with socket.create_connection(("127.0.0.1", port)) as sock:
+            _wait(lambda: writer.getClientCount() == 1)
+            if kind == "frames":
+                writer.writeFrame(dv.Frame(T0, np.full((260, 346), 7, np.uint8)))
+            else:
+                store = dv.EventStore()
+                for i in range(5):
+                    store.push_back(T0 + i, 10 + i, 20, True)
+                writer.writeEvents(store)
+            got = _recv_stream(sock, 1)
+        # dv-processing 2.0.4's NetworkWriter hangs in its destructor when a client has just gone: let it notice
+        _wait(lambda: writer.getClientCount() == 0)
+        return got
+    finally:
+        del writer
+
+
+@pytest.mark.parametrize("kind", ["frames", "events"])
+def test_the_stream_is_laid_out_like_dv_processings_network_writer(kind):
+    ref_header, ref_packets = _reference_stream(kind)
+    out = DvOutput("tcp://127.0.0.1:0", kind, 346, 260, camera_name="DAVIS346_00000391")
+    out.start()
+    try:
+        host, port = parse_tcp_endpoint(out.bound_endpoint)
+        with socket.create_connection((host, port)) as sock:
+            _wait(lambda: out.client_count() == 1)
+            if kind == "frames":
+                out.submit(_rec(T0, 7))
+            else:
+                ev = np.zeros(5, EVENT_DTYPE)
+                ev["t"], ev["x"], ev["y"], ev["p"] = T0 + np.arange(5), 10 + np.arange(5), 20, True
+                out.submit(Packet(events=ev))
+            header, packets = _recv_stream(sock, 1)
+    finally:
+        out.close()
+    ref = Aedat4Reader.from_stream_header(ref_header, "reference")
+    ours = Aedat4Reader.from_stream_header(header, "ours")
+    assert (ours.compression, ours.data_table_position) == (ref.compression, ref.data_table_position) == ("none", -1)
+    strip = lambda s: (s.id, s.type, s.name, s.width, s.height, s.source)  # noqa: E731
+    assert [strip(s) for s in ours.streams] == [strip(s) for s in ref.streams]
+    assert [sid for sid, _ in packets] == [sid for sid, _ in ref_packets] == [0]
+    ours_data = ours.decode_payload(ours.streams[0], 0, packets[0][1])
+    ref_data = ref.decode_payload(ref.streams[0], 0, ref_packets[0][1])
+    if kind == "frames":
+        assert ours_data.image.shape == ref_data.image.shape and ours_data.exposure_start_us == T0
+    else:
+        assert np.array_equal(ours_data, ref_data)
+
+
+def _reader(port: int, n: int) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, str(PEER), "read", "127.0.0.1", str(port), str(n)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _lines(proc: subprocess.Popen) -> list[dict]:
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err[-2000:]
+    return [json.loads(line) for line in out.splitlines()]
+
+
+def test_dv_processing_network_reader_gets_the_frames_and_a_reconnecting_client_resumes():
+    out = DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, camera_name="DAVIS346_00000391")
+    out.start()
+    try:
+        port = parse_tcp_endpoint(out.bound_endpoint)[1]
+        first = _reader(port, 3)
+        _wait(lambda: out.client_count() == 1, 30)
+        times = [T0 + 1000, T0 + 2000, T0 + 1500, T0 + 3000]  # the third goes back in time: skipped
+        for k, t in enumerate(times):
+            out.submit(_rec(t, k + 1))
+        lines = _lines(first)
+        assert lines[0] == {"camera": "DAVIS346_00000391", "frames": True, "events": False,
+                            "resolution": [346, 260]}
+        frames = lines[1:]
+        assert [f["t"] for f in frames] == [T0 + 1000, T0 + 2000, T0 + 3000]
+        assert all(f["shape"] == [260, 346] and f["source"] == "RECONSTRUCTION" and f["exposure_us"] == 0
+                   for f in frames)
+        assert [f["pixel_sum"] for f in frames] == [int(_rec(0, v).image.sum()) for v in (1, 2, 4)]
+        _wait(lambda: out.client_count() == 0)  # the reader exited: the server noticed and carries on
+        out.submit(_rec(T0 + 4000, 5))  # nobody listening: nothing blocks, nothing breaks
+        second = _reader(port, 2)
+        _wait(lambda: out.client_count() == 1, 30)
+        out.submit(_rec(T0 + 5000, 6))
+        out.submit(_rec(T0 + 6000, 7))
+        lines = _lines(second)
+        assert lines[0]["camera"] == "DAVIS346_00000391"
+        assert [f["t"] for f in lines[1:]] == [T0 + 5000, T0 + 6000]
+        assert out.stats()["dv_frames_late"] == 1 and out.stats()["dv_frames_connections"] == 2
+    finally:
+        out.close()
+
+
+def test_dv_processing_network_reader_gets_the_passed_through_events(rng):
+    out = DvOutput("tcp://127.0.0.1:0", "events", 346, 260, camera_name="DAVIS346_00000391")
+    out.start()
+    try:
+        proc = _reader(parse_tcp_endpoint(out.bound_endpoint)[1], 3)
+        _wait(lambda: out.client_count() == 1, 30)
+        sent = []
+        for k in range(3):
+            ev = np.zeros(100, EVENT_DTYPE)
+            ev["t"] = T0 + k * 1000 + np.arange(100)
+            ev["x"], ev["y"] = rng.integers(0, 346, 100), rng.integers(0, 260, 100)
+            out.submit(Packet(events=ev))
+            sent.append({"n": 100, "t0": int(ev["t"][0]), "t1": int(ev["t"][-1]), "xsum": int(ev["x"].sum())})
+        lines = _lines(proc)
+        assert lines[0]["events"] is True and lines[0]["resolution"] == [346, 260]
+        assert lines[1:] == sent
+    finally:
+        out.close()
+
+
+def test_a_client_that_never_reads_costs_drops_not_stalls():
+    out = DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, client_queue=4)
+    out.start()
+    try:
+        host, port = parse_tcp_endpoint(out.bound_endpoint)
+        dead = socket.create_connection((host, port))
+        dead.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        _wait(lambda: out.client_count() == 1)
+        start = time.monotonic()
+        for k in range(400):  # 36 MB of frames into a client that reads nothing
+            out.submit(_rec(T0 + k, k % 200))
+        assert time.monotonic() - start < 2.0, "submit() must never wait for a client"
+        _wait(lambda: out.pending() == 0)
+        assert out.stats()["dv_frames_dropped"] > 200
+        live = socket.create_connection((host, port))  # a healthy client meanwhile gets the newest frames
+        _wait(lambda: out.client_count() == 2)
+        out.submit(_rec(T0 + 10_000, 9))
+        header, packets = _recv_stream(live, 1)
+        reader = Aedat4Reader.from_stream_header(header, "live client")
+        assert reader.decode_payload(reader.streams[0], 0, packets[0][1]).exposure_start_us == T0 + 10_000
+        dead.close()
+        live.close()
+        _wait(lambda: out.client_count() == 0)
+    finally:
+        out.close()
+
+
+def test_bind_errors_are_one_line_and_endpoints_are_checked():
+    holder = socket.socket()
+    holder.bind(("127.0.0.1", 0))
+    holder.listen(1)
+    try:
+        out = DvOutput(f"tcp://127.0.0.1:{holder.getsockname()[1]}", "frames", 8, 8)
+        with pytest.raises(BindError, match="address already in use") as err:
+            out.start()
+        assert "\n" not in str(err.value)
+        out.close()
+    finally:
+        holder.close()
+    for bad in ("127.0.0.1:7777", "udp://127.0.0.1:1", "tcp://127.0.0.1", "tcp://:80"):
+        with pytest.raises(ConfigError, match="tcp://HOST:PORT"):
+            parse_tcp_endpoint(bad)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_the_cli_takes_dv_input_and_serves_dv_output_and_out_is_finalised(real_recordings, tmp_path):
+    """DV in (two real NetworkWriters) -> edi-live -> DV out (a real NetworkReader) and --out, end to end."""
+    path = real_recordings["emlb_demo-01_davis346.aedat4"]
+    go = tmp_path / "go"
+    peers = {}
+    for kind, pace in (("events", ["--pace-s", "0.001"]), ("frames", [])):
+        proc = subprocess.Popen([sys.executable, str(PEER), "serve", kind, str(path), "--go-file", str(go), *pace],
+                                stdout=subprocess.PIPE, text=True)
+        peers[kind] = (proc, json.loads(proc.stdout.readline())["port"])
+    port = _free_port()
+    out = tmp_path / "sharp.aedat4"
+    cli = subprocess.Popen([sys.executable, "-m", "edi_live", "--dv-input", f"tcp://127.0.0.1:{peers['events'][1]}",
+                            "--dv-input", f"tcp://127.0.0.1:{peers['frames'][1]}", "--dv-output",
+                            f"tcp://127.0.0.1:{port}", "--no-publish", "--out", str(out), "--every", "5000"],
+                           cwd=Path(__file__).resolve().parents[2], stderr=subprocess.PIPE, text=True)
+    try:
+        for line in cli.stderr:
+            if "serving DV frames on" in line:
+                break
+        reader = _reader(port, 5)
+        assert json.loads(reader.stdout.readline())["camera"] == "DAVIS346_00000391"
+        go.touch()  # the DV servers start streaming now that every client is connected
+        frames = [json.loads(line) for line in reader.communicate(timeout=60)[0].splitlines()]
+        err = cli.communicate(timeout=60)[1]
+    finally:
+        for proc in [cli] + [p for p, _ in peers.values()]:
+            if proc.poll() is None:
+                proc.kill()
+    # the DV servers went away: exit 1 with one error line, after everything received was processed
+    assert cli.returncode == 1, err[-3000:]
+    errors = [line for line in err.splitlines() if line.startswith("edi-live: error:")]
+    assert len(errors) == 1 and "ended" in errors[0]
+    assert "319512 events" in err
+    assert len(frames) == 5 and all(f["shape"] == [260, 346] and f["source"] == "RECONSTRUCTION" for f in frames)
+    ts = [f["t"] for f in frames]
+    assert ts == sorted(ts) and 1643243628737093 <= ts[0] <= 1643243629248083
+    with Aedat4Reader(out) as reader:  # finalised: the data table is there
+        assert reader.data_table() is not None
+        assert sum(1 for s, _ in reader if s.type == "FRME") >= 5

@@ -301,6 +301,9 @@ def status_line(rates: Rates, skipped: int, stats: dict | None) -> str:
         # all of the node's drops (source, ring, publisher), not only the publisher's
         drops_key = "drops" if "drops" in stats else "publish_dropped"
         parts.append(f"node drops {_num(stats, drops_key, fmt='{:.0f}')}")
+        if isinstance(stats.get("pred_psnr_db"), (int, float)):  # the live quality figure (docs/quality.md)
+            parts.append(f"predicts next APS frame {_num(stats, 'pred_psnr_db', fmt='{:.1f}')} dB "
+                         f"(nothing moved: {_num(stats, 'still_psnr_db', fmt='{:.1f}')} dB)")
     else:
         parts.append("no stats yet")
     parts.append(f"lost {rates.lost}, skipped {skipped}")

@@ -35,7 +35,6 @@ class PolicySettings:
     fit_patience: int = 2
     fit_strong: float = 3.0
     c_history: int = 3
-    estimate_black_level: bool = True  # with c, estimate the APS black level the estimator can see
 
 
 class ContrastPolicy:
@@ -51,8 +50,6 @@ class ContrastPolicy:
         self.ill_conditioned = 0  # estimates that were no information (flat cost curve): c kept
         self.events_ignored = False  # the estimator found that the events carry no signal
         self.last_fit: dict = {}
-        self.black_level = float(estimator.black_level)
-        self._black_history: collections.deque = collections.deque(maxlen=max(1, int(settings.c_history)))
         self._estimated = False
         self._frames_since_estimate = 0
         self._fit_fails = 0
@@ -90,7 +87,6 @@ class ContrastPolicy:
             due = self._fit_test_fails(cur, pairs[-1:], floor, info)
         if due:
             self._estimate(cur, pairs, first, startup, floor, info)
-            self.estimator.black_level = self.black_level  # what was accepted, whatever the searches tried
 
     def _fit_test_fails(self, cur: FrameData, last: Sequence[FramePair], floor: tuple[float, float],
                         info: dict) -> bool:
@@ -107,13 +103,9 @@ class ContrastPolicy:
     def _estimate(self, cur: FrameData, pairs: Sequence[FramePair], first: bool, startup: bool,
                   floor: tuple[float, float], info: dict) -> None:
         est = self.estimator
-        black = self._estimate_black_level(pairs, self.c)
         found = est.estimate(cur, pairs, self.c)
         if found is None:
             return
-        if black is not None:  # once more now that c is known better, then c for that black level
-            black = self._estimate_black_level(pairs, found)
-            found = est.estimate(cur, pairs, found) or found
         info["found"] = float(found[0])
         self._estimated = True
         self.reestimations += 1
@@ -136,23 +128,9 @@ class ContrastPolicy:
         self.events_ignored = False
         if startup:  # this estimate saw more pairs than the first one: it supersedes it
             self._history.clear()
-            self._black_history.clear()
         self._history.append(tuple(min(max(v, C_RANGE[0]), C_RANGE[1]) for v in found))
         self.c_on, self.c_off = (float(np.median(v)) for v in zip(*self._history))
-        if black is not None:
-            self._black_history.append(black)
-            self.black_level = float(np.median(self._black_history))
-            info["black_level"] = black
         info["decision"] = "update"
-
-    def _estimate_black_level(self, pairs: Sequence[FramePair], c: tuple[float, float]) -> float | None:
-        """The estimator's black level for c, left set on the estimator for the c search that follows."""
-        if not self.settings.estimate_black_level:
-            return None
-        black = self.estimator.estimate_black_level(pairs, c)
-        if black is not None:
-            self.estimator.black_level = black
-        return black
 
 
 def _z(z: float | None) -> float:

@@ -105,9 +105,9 @@ def build_parser() -> argparse.ArgumentParser:
                           "(default: on, except for --speed 0 replays where throughput matters)")
     edi.add_argument("--reestimate-every", type=int, metavar="K",
                      help="also re-estimate c every K APS frames (default: 0 = only when it stops fitting)")
-    edi.add_argument("--black-level", metavar="DN|auto",
+    edi.add_argument("--black-level", type=float, metavar="DN",
                      help="APS black level in 8-bit DN, taken off every APS frame so that the output is linear in "
-                          "intensity (default: 0, right for DV's frames); auto estimates it with c (experimental)")
+                          "intensity (default: 0, right for DV's frames)")
     edi.add_argument("--quality-every", type=int, metavar="N",
                      help="score how well the output predicted one APS frame in N (the live quality figure; "
                           "default: 2, 0 = off)")

@@ -120,8 +120,8 @@ class EdiConfig:
     deblur_thread: bool | None = None
     # the live prediction figure (edi_live.quality): score one APS frame in N; 0 = off
     quality_every: int = 2
-    # APS black level (8-bit DN) taken off each frame so the output is linear; "auto" estimates it with c
-    black_level: float | str = 0.0
+    # APS black level (8-bit DN) taken off each frame so the output is linear
+    black_level: float = 0.0
 
     def __post_init__(self) -> None:
         _int_in("every", self.every, 1, 10**12, "events per latent frame")
@@ -138,10 +138,9 @@ class EdiConfig:
         _positive_or_none("heartbeat-s", self.heartbeat_s)
         _int_in("reestimate-every", self.reestimate_every, 0, 10**9, "APS frames; 0 = only when c stops fitting")
         _int_in("quality-every", self.quality_every, 0, 10**6, "score one APS frame in N; 0 = off")
-        _check(self.black_level == "auto" or (isinstance(self.black_level, (int, float))
-                                              and not isinstance(self.black_level, bool)
-                                              and math.isfinite(self.black_level) and 0 <= self.black_level < 128),
-               f"black-level must be a number of DN in [0, 128) or auto (got {self.black_level!r})")
+        _check(isinstance(self.black_level, (int, float)) and not isinstance(self.black_level, bool)
+               and math.isfinite(self.black_level) and 0 <= self.black_level < 128,
+               f"black-level must be a number of DN in [0, 128) (got {self.black_level!r})")
         _check(self.deblur_thread is None or isinstance(self.deblur_thread, bool),
                f"deblur-thread must be true or false (got {self.deblur_thread!r})")
 
@@ -265,18 +264,6 @@ def _num(v: Any) -> Any:
     return float(v) if isinstance(v, int) else v
 
 
-def _black_level(v: Any) -> Any:
-    """A number of DN, or "auto" (also from the command line, where every value comes as text)."""
-    if isinstance(v, str):
-        if v.strip().lower() == "auto":
-            return "auto"
-        try:
-            return float(v)
-        except ValueError:
-            raise ConfigError(f"black-level must be a number of DN in [0, 128) or auto (got {v!r})") from None
-    return _num(v)
-
-
 def _bool(name: str) -> Callable[[Any], bool]:
     """A switch must be true or false: `loop = "false"` in a TOML file is a string, which Python finds true."""
 
@@ -310,7 +297,7 @@ OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
     "heartbeat_s": ("edi", "heartbeat_s", _num),
     "reestimate_every": ("edi", "reestimate_every", None),
     "quality_every": ("edi", "quality_every", None),
-    "black_level": ("edi", "black_level", _black_level),
+    "black_level": ("edi", "black_level", _num),
     "deblur_thread": ("edi", "deblur_thread", None),
     "publish": ("publisher", "endpoints", _endpoints),
     "no_publish": ("publisher", "-", _bool("no-publish")),

@@ -29,6 +29,7 @@ from typing import Any, Callable, TextIO
 
 import numpy as np
 
+import edi_live.edi as edi
 from edi_live.config import EdiConfig, NodeConfig
 from edi_live.datatypes import EVENT_DTYPE, Frame
 from edi_live.errors import EdiLiveError, NodeError, SourceError
@@ -61,7 +62,7 @@ def default_reconstructor(width: int, height: int, edi: EdiConfig) -> Reconstruc
         kwargs["c_on"], kwargs["c_off"] = edi.c_on, edi.c_off
     if edi.reestimate_every:
         kwargs["reestimate_every"] = edi.reestimate_every
-    kwargs["black_level"] = None if edi.black_level == "auto" else float(edi.black_level)
+    kwargs["black_level"] = float(edi.black_level)
     return EdiReconstructor(width, height, **kwargs)
 
 
@@ -348,5 +349,8 @@ def _warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
             rec.on_events(later[-1:])  # one event: its field views count as C-contiguous, another specialisation
             rec.render()
             t_us += 20_000
+        # separate thresholds have their own single-pass divisor kernel: the first estimate with c_on != c_off
+        # must not compile it mid-stream
+        edi.log_divisor_events(events, width, height, t_us - 20_000, t_us - 10_000, None, 0.2, 0.15)
     except Exception:  # noqa: BLE001 - warm-up only; see docstring
         log.debug("kernel warm-up failed", exc_info=True)

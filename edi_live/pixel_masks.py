@@ -112,11 +112,19 @@ class UnreliablePixels:
         return int(self._mask.sum())
 
     def update(self, n_on: np.ndarray, n_off: np.ndarray, log_prev: np.ndarray, log_cur: np.ndarray,
-               informative_prev: np.ndarray, informative_cur: np.ndarray, c: tuple[float, float]) -> None:
+               informative_prev: np.ndarray, informative_cur: np.ndarray, c: tuple[float, float],
+               busy: np.ndarray | None = None) -> None:
         """One pair of frames: counts (flat) between their reference times, their log L(f) and their informative
-        masks (B neither black nor clipped)."""
+        masks (B neither black nor clipped). A marked pixel's events are ignored, so its counts say nothing: while
+        it keeps firing (`busy`, flat: its events in the latest exposure, masked or not, at least min_events), its
+        score is held rather than decayed, so a flickering lamp stays marked instead of blooming again each time
+        the score would have run out."""
         active = np.flatnonzero((n_on + n_off) >= self.min_events)
-        self._score *= self.decay
+        if busy is None:
+            self._score *= self.decay
+        else:
+            held = self._own.reshape(-1) & (busy.reshape(-1) >= self.min_events)
+            self._score *= np.where(held, np.float32(1.0), np.float32(self.decay))
         if active.size:
             pred = c[0] * n_on[active] - c[1] * n_off[active]
             both = informative_prev.reshape(-1)[active] & informative_cur.reshape(-1)[active]

@@ -50,9 +50,9 @@ class ReconstructorSettings:
     hot_rel_factor: float = 10.0
     hot_decay: float = 0.8
     saturation: float | None = None  # APS value at or above which a pixel is clipped (default: full scale)
-    # APS value of no light (8-bit scale), taken off B so that frames are linear; None = estimated with c (biased:
-    # see docs/calibration.md). DV's 8-bit frames reach 0 DN, hence the default.
-    black_level: float | None = 0.0
+    # APS value of no light (8-bit scale), taken off B so that frames are linear. DV's 8-bit frames reach 0 DN,
+    # hence the default; it is not estimated from the stream (see docs/calibration.md).
+    black_level: float = 0.0
     denoise_us: int = 0  # background-activity filter window; 0 = off
     mask_unreliable_pixels: bool = True  # ignore events that contradict the APS frames (needs c estimation)
 
@@ -105,16 +105,15 @@ class EdiReconstructor:
                 estimator = contrast.make_estimator(settings.estimator, **options)
             except (ValueError, TypeError) as exc:
                 raise ConfigError(str(exc)) from None
-        if settings.black_level is not None:
-            if not (math.isfinite(settings.black_level) and 0.0 <= settings.black_level < 128.0):
-                raise ConfigError(f"black level must be in [0, 128) DN on the 8-bit scale "
-                                  f"(got {settings.black_level!r})")
-            estimator.black_level = float(settings.black_level)
+        if not (isinstance(settings.black_level, (int, float)) and math.isfinite(settings.black_level)
+                and 0.0 <= settings.black_level < 128.0):
+            raise ConfigError(f"black level must be in [0, 128) DN on the 8-bit scale (got {settings.black_level!r})")
+        estimator.black_level = float(settings.black_level)
         self._policy = ContrastPolicy(estimator, self.c_on, self.c_off, PolicySettings(
             reestimate_every=int(settings.reestimate_every), startup_estimates=settings.history_pairs,
             fit_patience=int(settings.fit_patience), fit_strong=float(settings.fit_strong),
-            c_history=int(settings.c_history), estimate_black_level=settings.black_level is None))
-        self.black_level = self._policy.black_level
+            c_history=int(settings.c_history)))
+        self.black_level = float(settings.black_level)
         if not self._fixed:
             self._tracker = ContrastTracker(self.width, self.height, self._policy,
                                             history_pairs=settings.history_pairs, sample_pixels=settings.sample_pixels)
@@ -236,7 +235,6 @@ class EdiReconstructor:
             self._pair = self._tracker.step(events, b, informative, (ts, te, f), mask, self._latent.acc, self._t_last,
                                       self.has_reference)
             self.c_on, self.c_off = self._policy.c
-            self.black_level = self._policy.black_level
             self.events_ignored = self._policy.events_ignored
             self.last_estimate_ms = (time.perf_counter() - t0) * 1e3
             self._latent.reset_counts()  # the accumulators are used (and written) only when c is estimated
@@ -251,9 +249,13 @@ class EdiReconstructor:
                                                                 self._c(), self.black_level)
         pair, self._pair = self._pair, None
         if pair is not None and self._unreliable is not None and not self.events_ignored:
-            # judged on this deblur; the mask holds from here on (the latent image continues from L(f))
-            self._unreliable.update(pair.n_on, pair.n_off, log_prev, self._latent.log_ref, pair.prev.informative,
-                                    pair.cur.informative, self._c())
+            # judged on this deblur; the mask holds from here on (the latent image continues from L(f)). Pixels at
+            # or below the black level carry no information, like clipped ones.
+            black = self.black_level
+            self._unreliable.update(pair.n_on, pair.n_off, log_prev, self._latent.log_ref,
+                                    pair.prev.informative & (pair.prev.blurry > black),
+                                    pair.cur.informative & (pair.cur.blurry > black), self._c(),
+                                    busy=frame_counts)
             self._mask = self._combined_mask()
             if self._unreliable.count:
                 self._latent.fall_back_to_aps(self._unreliable.mask, img, self.settings.saturation, deblurred,

@@ -36,8 +36,7 @@ class ConsistencyContrast:
     spread_weight: float = 0.5
     separate: bool = False
     separate_z: float = 3.0  # separate thresholds only when they beat one c by this many standard errors
-    black_level: float = 0.0  # APS value of no light (8-bit scale) taken off B in the residuals; set by the policy
-    black_max: float = 30.0  # search range of estimate_black_level
+    black_level: float = 0.0  # APS value of no light (8-bit scale) taken off B in the residuals
     name: str = "consistency"
     needs_pair: bool = True
     needs_full_image: bool = False
@@ -121,7 +120,7 @@ class ConsistencyContrast:
             return weight * np.sqrt(delta2 + r * r)
 
         cost = fast_cost if edi.have_numba() else (lambda c_on, c_off: float(np.sum(terms(c_on, c_off))))
-        return Cost(cost, terms, (raw_p, raw_c, weight, predict))
+        return Cost(cost, terms)
 
     def estimate(self, cur, pairs, c_init):
         cost = self._problem(pairs)
@@ -141,42 +140,6 @@ class ConsistencyContrast:
                 c_on = c_off = c
         self.last_evaluations = n
         return c_on, c_off
-
-    def estimate_black_level(self, pairs: Sequence[FramePair], c: tuple[float, float]) -> float | None:
-        """The black level b (8-bit scale) that makes the pairs most consistent at thresholds c: the residual
-        log(B_cur - b) - log(B_prev - b) - predicted, whose dark pixels depend strongly on b while bright ones
-        hardly do, which is what separates b from c. Mean robust cost over the pixels at least 2 DN above b, on a
-        1-DN grid over [0, black_max], refined by a parabola. None without data."""
-        problems = [p for p in (self._cached_pair_problem(pair) for pair in pairs) if p is not None]
-        if not problems:
-            return None
-        parts = [(raw_p, raw_c, w, predict(*c)) for raw_p, raw_c, w, predict in (p.extra for p in problems)]
-        delta2 = self.delta ** 2
-
-        def cost(b: float) -> float:
-            total, n = 0.0, 0
-            for raw_p, raw_c, w, pred in parts:
-                ok = np.minimum(raw_p, raw_c) - b >= 2.0
-                if not ok.any():
-                    continue
-                r = np.log(raw_c[ok] - b) - np.log(raw_p[ok] - b) - pred[ok]
-                total += float(np.sum(w[ok] * np.sqrt(delta2 + r * r)))
-                n += int(ok.sum())
-            return total / n if n >= self.min_pixels else math.inf
-
-        base = float(self.black_level)
-        grid = np.arange(0.0, self.black_max + 0.5, 1.0) - base  # candidates relative to the B the pairs hold
-        grid = grid[grid > -base - 1e-9]
-        values = np.array([cost(float(g)) for g in grid])
-        if not np.isfinite(values).any():
-            return None
-        i = int(np.argmin(values))
-        best = float(grid[i])
-        if 0 < i < grid.size - 1 and np.isfinite(values[i - 1]) and np.isfinite(values[i + 1]):
-            curve = values[i - 1] - 2 * values[i] + values[i + 1]
-            if curve > 0:
-                best += 0.5 * (values[i - 1] - values[i + 1]) / curve
-        return base + best
 
     def fit_score(self, pairs: Sequence[FramePair], c: tuple[float, float]) -> float | None:
         """How clearly a neighbour c*(1 -+ fit_step) beats c, in standard errors of the cost difference (paired

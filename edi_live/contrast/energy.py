@@ -90,7 +90,4 @@ class EnergyContrast:
     def information(self, pairs, c):
         return None
 
-    def estimate_black_level(self, pairs, c):
-        return None
-
 

@@ -47,7 +47,7 @@ class ContrastEstimator(Protocol):
     c_min: float  # bottom of the search range; an estimate there means "the events explain nothing"
     fit_z: float  # misfit z at which the cached c fails the fit test
     info_z: float  # information z below which an estimate is judged flat (no information about c)
-    black_level: float  # APS black level (8-bit scale) the residuals take off B; the policy sets it
+    black_level: float  # APS black level (8-bit scale) the residuals take off B (given by the user)
 
     def estimate(self, cur: FrameData, pairs: Sequence[FramePair], c_init: tuple[float, float]) \
             -> tuple[float, float] | None:
@@ -74,10 +74,6 @@ class ContrastEstimator(Protocol):
         """How clearly an estimate c beats c*(1 -+ step), in standard errors; None when not measurable."""
         ...
 
-    def estimate_black_level(self, pairs: Sequence[FramePair], c: tuple[float, float]) -> float | None:
-        """The APS black level that makes the pairs most consistent at c; None when the estimator cannot tell."""
-        ...
-
 
 @dataclass
 class FixedContrast:
@@ -94,9 +90,6 @@ class FixedContrast:
 
     def estimate(self, cur, pairs, c_init):
         return self.c_on, self.c_off
-
-    def estimate_black_level(self, pairs, c):
-        return None
 
     def misfit(self, cur, pairs, c):
         return None

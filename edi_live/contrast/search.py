@@ -54,13 +54,11 @@ def three_point_fit(fn: Callable[[float], float], c: float, step: float) -> bool
 class Cost:
     """cost(c_on, c_off) -> float, plus .terms(c_on, c_off) -> the per-pixel terms that sum to it."""
 
-    __slots__ = ("_fn", "terms", "extra")
+    __slots__ = ("_fn", "terms")
 
-    def __init__(self, fn: Callable[[float, float], float], terms: Callable[[float, float], np.ndarray],
-                 extra: object = None):
+    def __init__(self, fn: Callable[[float, float], float], terms: Callable[[float, float], np.ndarray]):
         self._fn = fn
         self.terms = terms
-        self.extra = extra  # what an estimator keeps about the pixels behind the cost (consistency: B and pred)
 
     def __call__(self, c_on: float, c_off: float) -> float:
         return self._fn(c_on, c_off)

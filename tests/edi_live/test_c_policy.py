@@ -51,9 +51,6 @@ class Scripted:
     def information(self, pairs, c):
         return self.info
 
-    def estimate_black_level(self, pairs, c):
-        return None
-
 
 def run(policy, frames, pairs=2):
     for _ in range(frames):

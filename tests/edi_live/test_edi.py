@@ -152,39 +152,71 @@ def test_latent_propagation_forward_back_and_against_formula(backend, rng):
 
 
 @pytest.mark.parametrize("polarity", [True, False])
-@pytest.mark.parametrize("c", [0.01, 0.3, 2.0])
-def test_ten_thousand_events_at_one_pixel(backend, polarity, c):
+@pytest.mark.parametrize("c,c_off", [(0.01, None), (0.3, None), (2.0, None), (0.3, 0.1), (0.1, 2.0)])
+def test_ten_thousand_events_at_one_pixel(backend, polarity, c, c_off):
+    # with two thresholds the single-pass kernel's weight leaves [1e-150, 1e150] within a few hundred events:
+    # its slow path (exponent from the counts, rebase) must give the same exact value
     ev = np.zeros(10_000, EVENT_DTYPE)
     ev["t"] = np.linspace(0, 20_000, 10_000).astype(np.int64)
     ev["p"] = polarity
+    step = c if polarity or c_off is None else c_off
     table = edi.build_level_table(ev, 1, 1, 0, 20_000)
-    ld = edi.log_divisor(table, c)
-    pix, ld_fast, _ = edi.log_divisor_events(ev, 1, 1, 0, 20_000, None, c)
+    ld = edi.log_divisor(table, c, c_off)
+    pix, ld_fast, _ = edi.log_divisor_events(ev, 1, 1, 0, 20_000, None, c, c_off)
     # analytic: levels k - 5000 for ~2 µs each -> log D = log mean_k exp(c (k - n_f)); n_f = events <= f
     n_f = int(np.count_nonzero(ev["t"] <= 10_000))
     seg = np.diff(np.r_[0, ev["t"], 20_000]).astype(float)
     levels = np.arange(10_001) - n_f if polarity else n_f - np.arange(10_001)
-    a = c * levels
+    a = step * levels
     want = a.max() + np.log(np.sum(seg * np.exp(a - a.max())) / 20_000)
     assert np.isfinite(ld).all() and ld[0] == pytest.approx(want, rel=1e-9)
     assert ld_fast[0] == pytest.approx(want, rel=1e-9)
     b, informative = edi.blurry_to_float(np.array([[128]], np.uint8))
-    out = edi.deblur(b, table, c, informative=informative)
+    out = edi.deblur(b, table, c, c_off, informative=informative)
     assert np.isfinite(out).all() and (out >= 0).all()
 
 
 @pytest.mark.parametrize("polarity", [True, False])
-def test_bursts_with_zero_dwell_at_the_exposure_edges(polarity):
+@pytest.mark.parametrize("c_off", [2.0, 0.5])
+def test_bursts_with_zero_dwell_at_the_exposure_edges(polarity, c_off):
     # 5000 events at ts and 5000 at te: the pixel sits at one level for the whole exposure (D = 1 at f)
     ev = np.zeros(10_000, EVENT_DTYPE)
     ev["t"][5000:] = 7
     ev["p"] = polarity
     table = edi.build_level_table(ev, 1, 1, 0, 7, 3)
-    _, ld_fast, delta = edi.log_divisor_events(ev, 1, 1, 0, 7, 3, 2.0)
-    assert edi.log_divisor(table, 2.0)[0] == pytest.approx(0.0, abs=1e-12)
+    _, ld_fast, delta = edi.log_divisor_events(ev, 1, 1, 0, 7, 3, 2.0, c_off)
+    assert edi.log_divisor(table, 2.0, c_off)[0] == pytest.approx(0.0, abs=1e-12)
     assert ld_fast[0] == pytest.approx(0.0, abs=1e-12)
     if delta is not None:
-        assert delta[0] == pytest.approx(2.0 * 5000 * (1 if polarity else -1))
+        assert delta[0] == pytest.approx(5000 * (2.0 if polarity else -c_off))
+
+
+@pytest.mark.parametrize("black", [0.0, 10.0, 37.5])
+def test_black_level_is_taken_off_b_in_every_path(black, rng):
+    image = rng.integers(0, 256, (6, 9)).astype(np.uint8)
+    b, informative = edi.blurry_to_float(image, black_level=black)
+    np.testing.assert_array_equal(b, np.maximum(image.astype(np.float32) - np.float32(black), 0))
+    np.testing.assert_array_equal(informative, (image > black) & (image < 255))
+    # the fused finish (kernel) against its numpy reference, with events at a few pixels
+    pixels = np.array([0, 5, 17, 40, 53], np.int64)
+    divisor = (pixels, rng.uniform(-2, 2, pixels.size), rng.uniform(-1, 1, pixels.size).astype(np.float32))
+    results = []
+    for reference in (False, True):
+        out = [np.empty((6, 9), np.float32), np.empty((6, 9), np.uint8), np.empty((6, 9), np.float32),
+               np.empty((6, 9), np.uint8)]
+        if reference:
+            with edi.numpy_reference():
+                edi.finish_frame_u8(image, 255.0, divisor, *out, black_level=black)
+        else:
+            edi.finish_frame_u8(image, 255.0, divisor, *out, black_level=black)
+        results.append(out)
+    for kernel, numpy_ref in zip(*results):
+        tolerance = 1e-5 if kernel.dtype == np.float32 else 1
+        np.testing.assert_allclose(kernel.astype(float), numpy_ref.astype(float), atol=tolerance)
+    # pixels without events: log L(f) = log(max(B - black, floor)) exactly
+    quiet = np.setdiff1d(np.arange(54), pixels)
+    want = np.clip(np.log(np.maximum(b.reshape(-1)[quiet], edi.DARK_FLOOR)), edi.LOG_MIN, edi.LOG_MAX)
+    np.testing.assert_allclose(results[0][0].reshape(-1)[quiet], want, rtol=1e-6)
 
 
 def test_take_restricts_rows(rng):

@@ -268,6 +268,14 @@ if __name__ == "__main__":
         main(["--replay", sys.argv[1], "--no-publish", "--speed", "8", "--every", "7", "--log-level", "error"])
     except SystemExit as exc:
         assert not exc.code, exc.code
+    # separate thresholds (the default estimator fits them when the data call for it) use their own kernel
+    import numpy as np
+    from edi_live.datatypes import EVENT_DTYPE
+    from edi_live.edi import log_divisor_events
+    ev = np.zeros(50, EVENT_DTYPE)
+    ev["t"], ev["x"], ev["y"], ev["p"] = np.arange(50) * 10, np.arange(50) % 7, 3, np.arange(50) % 3 == 0
+    log_divisor_events(ev, 8, 6, 0, 500, None, 0.25, 0.2, counts_after_f=(np.zeros(48, np.int64),
+                                                                          np.zeros(48, np.int64)))
     after = kernels()
     new = {name: sorted(after[name] - before.get(name, set())) for name in after}
     print({name: sigs for name, sigs in new.items() if sigs})

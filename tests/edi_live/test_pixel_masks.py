@@ -59,3 +59,15 @@ def test_grow_marks_the_halo_around_a_contradicted_pixel():
     mask = u.mask
     assert mask[3, 3] and mask[1, 3] and mask[3, 5] and mask[2, 2]  # within 2 px
     assert not mask[0, 0] and not mask[3, 0]  # beyond
+
+
+def test_a_marked_pixel_that_keeps_firing_stays_marked():
+    # while marked, its events are ignored and its counts between frames are 0: only its firing in the exposure
+    # (busy) says it is still the flickering lamp; a quiet one is released as its score decays
+    u = UnreliablePixels(2, 1, decay=0.5, release=0.2)
+    u.update(*pair([30, 30], [0, 0], [3, 3], [3, 3]), c=(0.2, 0.2))
+    assert u.mask.reshape(-1).tolist() == [True, True]
+    masked_counts = pair([0, 0], [0, 0], [3, 3], [3, 3])
+    for _ in range(10):
+        u.update(*masked_counts, c=(0.2, 0.2), busy=np.array([12, 0]))
+    assert u.mask.reshape(-1).tolist() == [True, False]

@@ -29,7 +29,6 @@ from typing import Any, Callable, TextIO
 
 import numpy as np
 
-import edi_live.edi as edi
 from edi_live.config import EdiConfig, NodeConfig
 from edi_live.datatypes import EVENT_DTYPE, Frame
 from edi_live.errors import EdiLiveError, NodeError, SourceError
@@ -351,6 +350,8 @@ def _warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
             t_us += 20_000
         # separate thresholds have their own single-pass divisor kernel: the first estimate with c_on != c_off
         # must not compile it mid-stream
-        edi.log_divisor_events(events, width, height, t_us - 20_000, t_us - 10_000, None, 0.2, 0.15)
+        from edi_live.edi import log_divisor_events
+
+        log_divisor_events(events, width, height, t_us - 20_000, t_us - 10_000, None, 0.2, 0.15)
     except Exception:  # noqa: BLE001 - warm-up only; see docstring
         log.debug("kernel warm-up failed", exc_info=True)

@@ -7,7 +7,6 @@ Runs on the worker thread; plain numpy state, the math is edi_live.edi's.
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 import edi_live.edi as edi
@@ -94,8 +93,8 @@ class UnreliablePixels:
                  relative: float = 0.75, saturated_limit: float = 4.0, decay: float = 0.8,
                  release: float = 0.2, grow_px: int = 0) -> None:
         self._shape = (height, width)
-        self._grow = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow_px + 1, 2 * grow_px + 1)) \
-            if grow_px > 0 else None
+        self._grow = [(dy, dx) for dy in range(-grow_px, grow_px + 1) for dx in range(-grow_px, grow_px + 1)
+                      if dy * dy + dx * dx <= grow_px * grow_px + grow_px]  # a disk of that radius
         self.min_events, self.min_change, self.relative = min_events, min_change, relative
         self.saturated_limit, self.decay, self.release = saturated_limit, decay, release
         self._score = np.zeros(width * height, np.float32)
@@ -136,7 +135,17 @@ class UnreliablePixels:
         marked = self._own.reshape(-1)
         own = np.where(marked, self._score >= self.release, self._score >= 1.0).reshape(self._shape)
         self._own = own
-        if self._grow is not None and own.any():
+        if len(self._grow) > 1 and own.any():
             # a lamp's halo contradicts the frames less clearly than its core, but just as surely
-            own = cv2.dilate(own.view(np.uint8), self._grow).view(bool)
+            own = _dilate(own, self._grow)
         self._mask = own
+
+
+def _dilate(mask: np.ndarray, offsets: list[tuple[int, int]]) -> np.ndarray:
+    """mask OR-ed with itself shifted by every (dy, dx) offset (no wrap-around at the borders)."""
+    out = mask.copy()
+    h, w = mask.shape
+    for dy, dx in offsets:
+        out[max(dy, 0):h + min(dy, 0), max(dx, 0):w + min(dx, 0)] |= \
+            mask[max(-dy, 0):h + min(-dy, 0), max(-dx, 0):w + min(-dx, 0)]
+    return out

@@ -6,7 +6,6 @@ All inputs are time-ordered events of EVENT_DTYPE; masks are (H, W) bool or flat
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from edi_live.edi import _backend, _kernels_pixels
@@ -68,6 +67,7 @@ def isolated_event_mask(events: np.ndarray, width: int, height: int) -> np.ndarr
 
     A background-activity filter at window granularity: such lone events are most likely noise.
     """
+    import cv2  # local: only this optional filter needs it, and importing cv2 costs ~25 ms
 
     idx, _, _ = select(events, width, height, None, None, None)
     counts = np.bincount(idx, minlength=width * height).reshape(height, width).astype(np.float32)

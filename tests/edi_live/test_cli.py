@@ -41,6 +41,20 @@ def needs_reconstructor():
     import edi_live.reconstructor  # noqa: F401
 
 
+def _wait_for_a_frame(proc: subprocess.Popen) -> None:
+    """Read the node's stderr up to its "publishing on ENDPOINT" line, then receive one frame from it."""
+    from edi_live.client import Subscriber
+
+    endpoint = None
+    while endpoint is None:
+        line = proc.stderr.readline()
+        assert line, "the node never reported its endpoint"
+        m = re.search(r"publishing on (tcp://\S+)", line)
+        endpoint = m.group(1) if m else None
+    with Subscriber(endpoint) as sub:
+        assert sub.recv(timeout_s=20) is not None, "no frame before the signal"
+
+
 def test_help_teaches_groups_units_defaults_and_examples():
     proc = run_cli("--help")
     assert proc.returncode == 0
@@ -167,19 +181,7 @@ def test_signals_stop_cleanly_and_finalise_out(real_recordings, tmp_path, sig, n
                             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=_env(), start_new_session=True)
     try:
-        endpoint = None
-        deadline = time.monotonic() + 30
-        while endpoint is None and time.monotonic() < deadline:
-            line = proc.stderr.readline()
-            if not line:
-                break
-            m = re.search(r"publishing on (tcp://\S+)", line)
-            endpoint = m.group(1) if m else None
-        assert endpoint, "the node never reported its endpoint"
-        from edi_live.client import Subscriber
-
-        with Subscriber(endpoint) as sub:
-            assert sub.recv(timeout_s=20) is not None, "no frame before the signal"
+        _wait_for_a_frame(proc)
         # to the whole process group, as Ctrl-C in a terminal does: the replay's decoding child gets it too
         os.killpg(proc.pid, sig)
         _, err = proc.communicate(timeout=30)
@@ -370,16 +372,7 @@ def test_a_second_ctrl_c_is_ignored_and_the_summary_matches_out(real_recordings,
                              "--every", "500", "--publish", "tcp://127.0.0.1:*", "--out", str(out)],
                             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
     try:
-        endpoint = None
-        while endpoint is None:
-            line = proc.stderr.readline()
-            assert line, "the node never reported its endpoint"
-            m = re.search(r"publishing on (tcp://\S+)", line)
-            endpoint = m.group(1) if m else None
-        from edi_live.client import Subscriber
-
-        with Subscriber(endpoint) as sub:
-            assert sub.recv(timeout_s=20) is not None, "no frame before the signal"
+        _wait_for_a_frame(proc)
         proc.send_signal(signal.SIGINT)
         time.sleep(gap_s)  # the test's input: the gap between the two Ctrl-Cs (not a synchronisation)
         proc.send_signal(signal.SIGINT)

@@ -108,6 +108,11 @@ def build_parser() -> argparse.ArgumentParser:
     edi.add_argument("--black-level", type=float, metavar="DN",
                      help="APS black level in 8-bit DN, taken off every APS frame so that the output is linear in "
                           "intensity (default: 0, right for DV's frames)")
+    edi.add_argument("--calibration", metavar="FILE",
+                     help="start from a saved calibration of this camera (c_on, c_off, black level); a live camera "
+                          "loads its own from ~/.config/edi-live/calibration/ without this flag")
+    edi.add_argument("--save-calibration", metavar="FILE",
+                     help="save the calibration in use at the end of the run (a live camera also saves its own)")
     edi.add_argument("--quality-every", type=int, metavar="N",
                      help="score how well the output predicted one APS frame in N (the live quality figure; "
                           "default: 2, 0 = off)")

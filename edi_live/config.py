@@ -118,10 +118,11 @@ class EdiConfig:
     # causal mode: deblur APS frames on a helper thread while latent frames keep flowing (lower latency, ~25 %
     # less throughput). None = automatic: on for a live camera and paced replay, off for --speed 0.
     deblur_thread: bool | None = None
+    c_start: tuple[float, float] | None = None  # (c_on, c_off) from a saved calibration (set by the node)
     # the live prediction figure (edi_live.quality): score one APS frame in N; 0 = off
     quality_every: int = 2
-    # APS black level (8-bit DN) taken off each frame so the output is linear
-    black_level: float = 0.0
+    # APS black level (8-bit DN) taken off each frame so the output is linear; None: 0, or a loaded calibration's
+    black_level: float | None = None
 
     def __post_init__(self) -> None:
         _int_in("every", self.every, 1, 10**12, "events per latent frame")
@@ -138,8 +139,9 @@ class EdiConfig:
         _positive_or_none("heartbeat-s", self.heartbeat_s)
         _int_in("reestimate-every", self.reestimate_every, 0, 10**9, "APS frames; 0 = only when c stops fitting")
         _int_in("quality-every", self.quality_every, 0, 10**6, "score one APS frame in N; 0 = off")
-        _check(isinstance(self.black_level, (int, float)) and not isinstance(self.black_level, bool)
-               and math.isfinite(self.black_level) and 0 <= self.black_level < 128,
+        _check(self.black_level is None or (isinstance(self.black_level, (int, float))
+                                            and not isinstance(self.black_level, bool)
+                                            and math.isfinite(self.black_level) and 0 <= self.black_level < 128),
                f"black-level must be a number of DN in [0, 128) (got {self.black_level!r})")
         _check(self.deblur_thread is None or isinstance(self.deblur_thread, bool),
                f"deblur-thread must be true or false (got {self.deblur_thread!r})")
@@ -190,6 +192,8 @@ class NodeConfig:
     duration_s: float | None = None
     log_level: str = "info"
     status_interval_s: float | None = None  # None: 0.5 s live line on a TTY, 5 s plain lines otherwise
+    calibration: Path | None = None  # a saved calibration to start from (edi_live.calibration)
+    save_calibration: Path | None = None  # where to save the calibration in use at the end
 
     def __post_init__(self) -> None:
         for flag, written in (("out", self.output.out), ("record", self.output.record)):
@@ -311,6 +315,8 @@ OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
     "duration": ("node", "duration_s", _num),
     "log_level": ("node", "log_level", lambda v: str(v).lower()),
     "status_interval_s": ("node", "status_interval_s", _num),
+    "calibration": ("node", "calibration", _path),
+    "save_calibration": ("node", "save_calibration", _path),
 }
 
 

@@ -25,13 +25,14 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from pathlib import Path
 from typing import Any, Callable, TextIO
 
 import numpy as np
 
 from edi_live.config import EdiConfig, NodeConfig
 from edi_live.datatypes import EVENT_DTYPE, Frame
-from edi_live.errors import EdiLiveError, NodeError, SourceError
+from edi_live.errors import ConfigError, EdiLiveError, NodeError, SourceError
 from edi_live.reconstruction import Reconstructor
 from edi_live.ring import EventRing, as_events
 from edi_live.source import Source
@@ -61,7 +62,9 @@ def default_reconstructor(width: int, height: int, edi: EdiConfig) -> Reconstruc
         kwargs["c_on"], kwargs["c_off"] = edi.c_on, edi.c_off
     if edi.reestimate_every:
         kwargs["reestimate_every"] = edi.reestimate_every
-    kwargs["black_level"] = float(edi.black_level)
+    kwargs["black_level"] = float(edi.black_level or 0.0)
+    if edi.c_start is not None:
+        kwargs["c_start"] = edi.c_start
     return EdiReconstructor(width, height, **kwargs)
 
 
@@ -86,6 +89,7 @@ class Node:
         self.ring: EventRing | None = None
         self.worker: EdiWorker | None = None
         self.publisher: Any = None
+        self._calibration_to: Path | None = None  # where the calibration in use is saved at the end
         self.out_writer: OutWriter | None = None
         self.record_writer: RecordWriter | None = None
         self.dv_frames: Any = None  # edi_live.dv_output.DvOutput of the sharp frames (--dv-output)
@@ -179,6 +183,7 @@ class Node:
                 self.fail(exc, "main")
             self.elapsed_s = time.monotonic() - self.t_start
             self.final_stats = self.stats()
+            self._save_calibration()
         if self._failure is not None:
             exc, thread = self._failure
             if isinstance(exc, EdiLiveError):
@@ -190,7 +195,10 @@ class Node:
         cfg = self.config
         info = self.source.info
         self.ring = EventRing(cfg.ring.capacity_events, cfg.ring.capacity_frames, cfg.ring_policy)
-        reconstructor = self._make_reconstructor(info.width, info.height, cfg.edi)
+        from edi_live import calibration
+
+        edi_cfg, self._calibration_to = calibration.prepare(cfg.edi, info, cfg.calibration, cfg.save_calibration)
+        reconstructor = self._make_reconstructor(info.width, info.height, edi_cfg)
         sinks = []
         if cfg.publisher.enabled:
             self.publisher = self._make_publisher(
@@ -218,6 +226,23 @@ class Node:
         self.worker.start()
         self._pump = threading.Thread(target=self._pump_loop, name="pump", daemon=True)
         self._pump.start()
+
+    def _save_calibration(self) -> None:
+        """--save-calibration (a failure is the run's error), or a live camera's own file (a failure is a warning)."""
+        from edi_live import calibration
+
+        target = self._calibration_to
+        cal = calibration.from_stats(self.source.info, self.final_stats) if target is not None else None
+        if cal is None:
+            return
+        try:
+            calibration.save(cal, target)
+            log.info("calibration saved to %s", target)
+        except ConfigError as exc:
+            if self.config.save_calibration is not None:
+                self.fail(exc, "calibration", input_fault=True)
+            else:
+                log.warning("%s", exc)
 
     def _start_dv_outputs(self, sinks: list) -> None:
         """--dv-output / --dv-output-events: DV network servers beside the publisher (bind errors are fatal here)."""

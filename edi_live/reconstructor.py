@@ -39,6 +39,7 @@ class ReconstructorSettings:
     estimator_options: dict = field(default_factory=dict)
     separate_thresholds: bool = True  # estimate c_on and c_off apart (one c when the data cannot separate them)
     c_init: float = 0.2
+    c_start: tuple[float, float] | None = None  # (c_on, c_off) to start estimating from, e.g. a saved calibration
     reestimate_every: int = 0  # frames; 0 = only when the fit test fails
     history_pairs: int = 2  # consecutive-frame pairs the estimator sees
     fit_patience: int = 2
@@ -62,8 +63,10 @@ class ReconstructorSettings:
         if (c_on is None) != (c_off is None) and c is None:
             raise ConfigError("give both c_on and c_off (or a single c)")
         fixed = c is not None or c_on is not None
-        on = c_on if c_on is not None else (c if c is not None else _check_c("c_init", self.c_init))
-        off = c_off if c_off is not None else (c if c is not None else on)
+        start = (None, None) if self.c_start is None else (_check_c("c_start", self.c_start[0]),
+                                                            _check_c("c_start", self.c_start[1]))
+        on = c_on if c_on is not None else (c if c is not None else start[0] or _check_c("c_init", self.c_init))
+        off = c_off if c_off is not None else (c if c is not None else start[1] or on)
         return on, off, fixed
 
 

@@ -1,0 +1,122 @@
+"""Saved camera calibrations: what the node learned about one camera (c_on, c_off, the APS black level), stored as
+a small JSON file keyed by camera model, serial and sensor size, so that the next run starts from it.
+
+`--calibration FILE` loads one, `--save-calibration FILE` writes the values in use at the end of a run. A live
+camera (USB) picks up its own without flags: it is loaded from, and saved to, `calibration_dir()/LABEL.json`
+(LABEL is the camera name and serial, e.g. DAVIS346_00000391). A calibration of another camera or sensor size is
+refused with one line. Loaded values are starting points: c is still re-estimated from the stream; a black level
+given on the command line wins over the file's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from edi_live.config import EdiConfig
+from edi_live.datatypes import SourceInfo
+from edi_live.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+FORMAT = "edi-live calibration"
+VERSION = 1
+
+
+@dataclass(frozen=True)
+class Calibration:
+    camera: str  # SourceInfo.label: name and serial
+    width: int
+    height: int
+    c_on: float
+    c_off: float
+    black_level: float = 0.0  # 8-bit DN
+    saved: str = ""  # UTC time of saving, for the person reading the file
+
+    def check_for(self, info: SourceInfo, path: Path | str) -> None:
+        """ConfigError unless this calibration belongs to the camera `info` describes."""
+        if (self.camera, self.width, self.height) != (info.label, info.width, info.height):
+            raise ConfigError(f"calibration {path} is for {self.camera} ({self.width}x{self.height}), but this camera "
+                              f"is {info.label} ({info.width}x{info.height}); leave --calibration out or save one "
+                              f"for this camera with --save-calibration")
+
+
+def calibration_dir() -> Path:
+    """Where live cameras keep their calibrations: $XDG_CONFIG_HOME/edi-live/calibration (~/.config/...)."""
+    base = os.environ.get("XDG_CONFIG_HOME") or str(Path.home() / ".config")
+    return Path(base) / "edi-live" / "calibration"
+
+
+def default_path(info: SourceInfo) -> Path:
+    return calibration_dir() / f"{info.label}.json"
+
+
+def load(path: Path | str) -> Calibration:
+    """Read and check a calibration file; any defect is one ConfigError naming the file."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except OSError as exc:
+        raise ConfigError(f"cannot read calibration {path} ({exc.strerror or exc})") from None
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"calibration {path} is not a JSON file ({exc})") from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT or data.get("version") != VERSION:
+        raise ConfigError(f"calibration {path} is not an {FORMAT} file of version {VERSION}")
+    try:
+        values = {f.name: data[f.name] for f in dataclasses.fields(Calibration) if f.name in data}
+        cal = Calibration(**values)
+        numbers = (cal.c_on, cal.c_off, cal.black_level)
+        ok = (isinstance(cal.camera, str) and isinstance(cal.width, int) and isinstance(cal.height, int)
+              and cal.width > 0 and cal.height > 0
+              and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in numbers)
+              and 0.01 <= cal.c_on <= 2.0 and 0.01 <= cal.c_off <= 2.0 and 0 <= cal.black_level < 128)
+    except TypeError as exc:
+        raise ConfigError(f"calibration {path} lacks a field ({exc})") from None
+    if not ok:
+        raise ConfigError(f"calibration {path} holds values out of range (c in [0.01, 2], black level in [0, 128))")
+    return cal
+
+
+def save(cal: Calibration, path: Path | str) -> None:
+    """Write atomically (a temporary file renamed over the target), creating the folder."""
+    path = Path(path)
+    data: dict[str, Any] = {"format": FORMAT, "version": VERSION, **dataclasses.asdict(cal)}
+    data["saved"] = data["saved"] or time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(json.dumps(data, indent=1) + "\n")
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise ConfigError(f"cannot write calibration {path} ({exc.strerror or exc})") from None
+
+
+def prepare(edi: EdiConfig, info: SourceInfo, given: Path | None, save_to: Path | None) -> tuple[EdiConfig, Path | None]:
+    """The EDI settings to start with (a loaded calibration's c and black level as starting values), and where to
+    save the calibration at the end. A live camera without --calibration loads its own file if there is one, and
+    saves to it."""
+    live = info.kind in ("usb", "emulator")
+    path = given if given is not None else (default_path(info) if live and default_path(info).is_file() else None)
+    if path is not None:
+        cal = load(path)
+        cal.check_for(info, path)
+        log.info("starting from the calibration %s (c_on=%.3f c_off=%.3f, black level %g DN)", path, cal.c_on,
+                 cal.c_off, cal.black_level)
+        edi = dataclasses.replace(edi, c_start=(cal.c_on, cal.c_off),
+                                  black_level=cal.black_level if edi.black_level is None else edi.black_level)
+    return edi, save_to if save_to is not None else (default_path(info) if live else None)
+
+
+def from_stats(info: SourceInfo, stats: dict) -> Calibration | None:
+    """The calibration a finished run used last (its stats), or None when it never had thresholds."""
+    c_on, c_off = stats.get("c_on"), stats.get("c_off")
+    if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in (c_on, c_off)):
+        return None
+    return Calibration(info.label, info.width, info.height, float(c_on), float(c_off),
+                       float(stats.get("black_level_dn") or 0.0))

@@ -1,0 +1,82 @@
+"""Saved calibrations: round trip, refusal of another camera's or a damaged file, and the node's use of them
+(--save-calibration / --calibration on a replay; a live camera, here the emulated one, picks up its own)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from edi_live import calibration
+from edi_live.datatypes import SourceInfo
+from edi_live.errors import ConfigError
+
+REPO = Path(__file__).resolve().parents[2]
+CAM = SourceInfo(346, 260, "DAVIS346", "00000391", "usb")
+
+
+def test_a_saved_calibration_reads_back_equal(tmp_path):
+    cal = calibration.Calibration(CAM.label, 346, 260, 0.31, 0.27, 4.5)
+    calibration.save(cal, tmp_path / "sub" / "cam.json")
+    back = calibration.load(tmp_path / "sub" / "cam.json")
+    assert (back.camera, back.width, back.height, back.c_on, back.c_off, back.black_level) == \
+           (CAM.label, 346, 260, 0.31, 0.27, 4.5)
+    back.check_for(CAM, "cam.json")  # its own camera: accepted
+
+
+@pytest.mark.parametrize("other", [SourceInfo(346, 260, "DAVIS346", "00000104"), SourceInfo(240, 180, "DAVIS346",
+                                                                                            "00000391")])
+def test_another_cameras_calibration_is_refused_in_one_line(tmp_path, other):
+    calibration.save(calibration.Calibration(CAM.label, 346, 260, 0.3, 0.3), tmp_path / "cam.json")
+    with pytest.raises(ConfigError) as info:
+        calibration.load(tmp_path / "cam.json").check_for(other, tmp_path / "cam.json")
+    text = str(info.value)
+    assert "\n" not in text and CAM.label in text and other.label in text and f"{other.width}x{other.height}" in text
+
+
+@pytest.mark.parametrize("content", ["not json", "[]", '{"format": "edi-live calibration", "version": 1}',
+                                     json.dumps({"format": "edi-live calibration", "version": 1, "camera": "X",
+                                                 "width": 4, "height": 3, "c_on": 9.0, "c_off": 0.2}),
+                                     json.dumps({"format": "something else", "version": 1})])
+def test_a_damaged_calibration_is_one_config_error(tmp_path, content):
+    path = tmp_path / "bad.json"
+    path.write_text(content)
+    with pytest.raises(ConfigError, match="calibration"):
+        calibration.load(path)
+    with pytest.raises(ConfigError, match="cannot read"):
+        calibration.load(tmp_path / "missing.json")
+
+
+def _node(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "edi_live", *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=90, env={**os.environ, "PYTHONPATH": str(REPO), **(env or {})})
+
+
+def test_the_node_saves_and_starts_from_a_calibration(real_recordings, tmp_path):
+    emlb = str(real_recordings["emlb_demo-01_davis346.aedat4"])
+    saved = tmp_path / "emlb.json"
+    first = _node("--replay", emlb, "--speed", "0", "--no-publish", "--save-calibration", str(saved))
+    assert first.returncode == 0, first.stderr
+    cal = calibration.load(saved)
+    assert cal.camera == "DAVIS346_00000391" and f"c_on={cal.c_on:.4f}" in first.stderr
+    second = _node("--replay", emlb, "--speed", "0", "--no-publish", "--calibration", str(saved))
+    assert second.returncode == 0 and "starting from the calibration" in second.stderr
+    other = _node("--replay", str(real_recordings["aestream_davis346.aedat4"]), "--speed", "0", "--no-publish",
+                  "--calibration", str(saved))
+    errors = [line for line in other.stderr.splitlines() if line.startswith("edi-live: error:")]
+    assert other.returncode == 2 and len(errors) == 1 and "DAVIS346_00000391" in errors[0], other.stderr
+
+
+def test_a_live_camera_picks_up_its_own_calibration(tmp_path):
+    env = {"XDG_CONFIG_HOME": str(tmp_path)}
+    args = ("--device", "davis240", "--usb-backend", "drivers.emulator:backend", "--duration", "1.5", "--no-publish")
+    first = _node(*args, env=env)
+    assert first.returncode == 0, first.stderr
+    files = list((tmp_path / "edi-live" / "calibration").glob("*.json"))
+    assert len(files) == 1 and "starting from the calibration" not in first.stderr
+    second = _node(*args, env=env)
+    assert second.returncode == 0 and f"starting from the calibration {files[0]}" in second.stderr, second.stderr

@@ -1,5 +1,6 @@
-"""Saved camera calibrations: what the node learned about one camera (c_on, c_off, the APS black level), stored as
-a small JSON file keyed by camera model, serial and sensor size, so that the next run starts from it.
+"""Saved camera calibrations: what the node learned about one camera (c_on, c_off, the APS black level, the event
+clock offset), stored as a small JSON file keyed by camera model, serial and sensor size, so that the next run
+starts from it.
 
 `--calibration FILE` loads one, `--save-calibration FILE` writes the values in use at the end of a run. A live
 camera (USB) picks up its own without flags: it is loaded from, and saved to, `calibration_dir()/LABEL.json`
@@ -38,6 +39,7 @@ class Calibration:
     c_on: float
     c_off: float
     black_level: float = 0.0  # 8-bit DN
+    clock_offset_us: int = 0  # events arrive this much later than the APS exposure
     saved: str = ""  # UTC time of saving, for the person reading the file
 
     def check_for(self, info: SourceInfo, path: Path | str) -> None:
@@ -71,11 +73,12 @@ def load(path: Path | str) -> Calibration:
     try:
         values = {f.name: data[f.name] for f in dataclasses.fields(Calibration) if f.name in data}
         cal = Calibration(**values)
-        numbers = (cal.c_on, cal.c_off, cal.black_level)
+        numbers = (cal.c_on, cal.c_off, cal.black_level, cal.clock_offset_us)
         ok = (isinstance(cal.camera, str) and isinstance(cal.width, int) and isinstance(cal.height, int)
               and cal.width > 0 and cal.height > 0
               and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in numbers)
-              and 0.01 <= cal.c_on <= 2.0 and 0.01 <= cal.c_off <= 2.0 and 0 <= cal.black_level < 128)
+              and 0.01 <= cal.c_on <= 2.0 and 0.01 <= cal.c_off <= 2.0 and 0 <= cal.black_level < 128
+              and isinstance(cal.clock_offset_us, int) and abs(cal.clock_offset_us) <= 100_000)
     except TypeError as exc:
         raise ConfigError(f"calibration {path} lacks a field ({exc})") from None
     if not ok:
@@ -106,10 +109,12 @@ def prepare(edi: EdiConfig, info: SourceInfo, given: Path | None, save_to: Path 
     if path is not None:
         cal = load(path)
         cal.check_for(info, path)
-        log.info("starting from the calibration %s (c_on=%.3f c_off=%.3f, black level %g DN)", path, cal.c_on,
-                 cal.c_off, cal.black_level)
-        edi = dataclasses.replace(edi, c_start=(cal.c_on, cal.c_off),
-                                  black_level=cal.black_level if edi.black_level is None else edi.black_level)
+        log.info("starting from the calibration %s (c_on=%.3f c_off=%.3f, black level %g DN, clock offset %d µs)",
+                 path, cal.c_on, cal.c_off, cal.black_level, cal.clock_offset_us)
+        edi = dataclasses.replace(
+            edi, c_start=(cal.c_on, cal.c_off),
+            black_level=cal.black_level if edi.black_level is None else edi.black_level,
+            clock_offset_us=cal.clock_offset_us if edi.clock_offset_us is None else edi.clock_offset_us)
     return edi, save_to if save_to is not None else (default_path(info) if live else None)
 
 
@@ -119,4 +124,4 @@ def from_stats(info: SourceInfo, stats: dict) -> Calibration | None:
     if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in (c_on, c_off)):
         return None
     return Calibration(info.label, info.width, info.height, float(c_on), float(c_off),
-                       float(stats.get("black_level_dn") or 0.0))
+                       float(stats.get("black_level_dn") or 0.0), int(stats.get("clock_offset_us") or 0))

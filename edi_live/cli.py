@@ -108,6 +108,9 @@ def build_parser() -> argparse.ArgumentParser:
     edi.add_argument("--black-level", type=float, metavar="DN",
                      help="APS black level in 8-bit DN, taken off every APS frame so that the output is linear in "
                           "intensity (default: 0, right for DV's frames)")
+    edi.add_argument("--clock-offset-us", type=int, metavar="US",
+                     help="events arrive this much later than the APS exposure they belong to (pixel latency; the "
+                          "EDI authors set it by hand); the exposure window moves into the event clock (default: 0)")
     edi.add_argument("--calibration", metavar="FILE",
                      help="start from a saved calibration of this camera (c_on, c_off, black level); a live camera "
                           "loads its own from ~/.config/edi-live/calibration/ without this flag")

@@ -20,19 +20,15 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
+from edi_live import config_file
 from edi_live.checks import check as _check
 from edi_live.checks import check_endpoint, fits_memory, int_in as _int_in, positive_or_none as _positive_or_none
+from edi_live.config_file import merge_options, norm_key
 from edi_live.errors import ConfigError
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover - Python 3.10 only
-    import tomli as tomllib
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
 POLICIES = ("drop_oldest", "wait")
@@ -119,6 +115,8 @@ class EdiConfig:
     # less throughput). None = automatic: on for a live camera and paced replay, off for --speed 0.
     deblur_thread: bool | None = None
     c_start: tuple[float, float] | None = None  # (c_on, c_off) from a saved calibration (set by the node)
+    # events arrive this many µs later than the APS exposure they belong to; None: 0, or a loaded calibration's
+    clock_offset_us: int | None = None
     # the live prediction figure (edi_live.quality): score one APS frame in N; 0 = off
     quality_every: int = 2
     # APS black level (8-bit DN) taken off each frame so the output is linear; None: 0, or a loaded calibration's
@@ -139,6 +137,8 @@ class EdiConfig:
         _positive_or_none("heartbeat-s", self.heartbeat_s)
         _int_in("reestimate-every", self.reestimate_every, 0, 10**9, "APS frames; 0 = only when c stops fitting")
         _int_in("quality-every", self.quality_every, 0, 10**6, "score one APS frame in N; 0 = off")
+        if self.clock_offset_us is not None:
+            _int_in("clock-offset-us", self.clock_offset_us, -100_000, 100_000, "µs the events lag the APS clock")
         _check(self.black_level is None or (isinstance(self.black_level, (int, float))
                                             and not isinstance(self.black_level, bool)
                                             and math.isfinite(self.black_level) and 0 <= self.black_level < 128),
@@ -227,7 +227,7 @@ class NodeConfig:
     @classmethod
     def from_options(cls, options: Mapping[str, Any]) -> "NodeConfig":
         """Build from a flat mapping of flag names (as in the TOML file) to values."""
-        opts = {_norm(k): v for k, v in options.items()}
+        opts = {norm_key(k): v for k, v in options.items()}
         unknown = sorted(set(opts) - set(OPTION_KEYS))
         _check(not unknown, f"unknown option(s) {', '.join(unknown)} (valid keys: {', '.join(sorted(OPTION_KEYS))})")
         try:
@@ -302,6 +302,7 @@ OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
     "reestimate_every": ("edi", "reestimate_every", None),
     "quality_every": ("edi", "quality_every", None),
     "black_level": ("edi", "black_level", _num),
+    "clock_offset_us": ("edi", "clock_offset_us", None),
     "deblur_thread": ("edi", "deblur_thread", None),
     "publish": ("publisher", "endpoints", _endpoints),
     "no_publish": ("publisher", "-", _bool("no-publish")),
@@ -318,10 +319,6 @@ OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
     "calibration": ("node", "calibration", _path),
     "save_calibration": ("node", "save_calibration", _path),
 }
-
-
-def _norm(key: str) -> str:
-    return key.strip().lstrip("-").replace("-", "_")
 
 
 def _build(opts: dict[str, Any]) -> NodeConfig:
@@ -351,48 +348,10 @@ def _build(opts: dict[str, Any]) -> NodeConfig:
     )
 
 
+
 def read_toml(path: str | Path) -> dict[str, Any]:
-    """The flat key -> value mapping of a TOML config file; ConfigError naming the file on any problem."""
-    path = Path(path)
-    try:
-        with path.open("rb") as fh:
-            data = tomllib.load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"config file {path} not found") from None
-    except OSError as exc:
-        raise ConfigError(f"cannot read config file {path}: {exc.strerror}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"config file {path} is not valid TOML: {exc}") from None
-    except UnicodeDecodeError as exc:  # a binary file: TOML is UTF-8 text
-        raise ConfigError(f"config file {path} is not a TOML text file (not UTF-8 at byte {exc.start}); give "
-                          f"--config a .toml file") from None
-    except (ValueError, RecursionError) as exc:  # anything else the parser trips over is still the file's fault
-        raise ConfigError(f"config file {path} is not valid TOML ({type(exc).__name__}: {exc})") from None
-    nested = [k for k, v in data.items() if isinstance(v, dict)]
-    _check(not nested, f"config file {path}: keys go at the top level, like the flags (got table(s) {nested})")
-    normalized = {_norm(k): v for k, v in data.items()}
-    unknown = sorted(set(normalized) - set(OPTION_KEYS))
-    _check(not unknown, f"config file {path}: unknown key(s) {', '.join(unknown)}")
-    base = path.parent
-    for key in ("replay", "out", "record", "emulate_from", "curve_secret_key"):
-        # relative paths in a config file are relative to the file, not to the working directory
-        if isinstance(normalized.get(key), str) and not Path(normalized[key]).is_absolute():
-            normalized[key] = str(base / normalized[key])
-    return normalized
+    """The flat option mapping of a TOML config file (edi_live.config_file), checked against OPTION_KEYS."""
+    return config_file.read_toml(path, OPTION_KEYS)
 
-
-def merge_options(file_options: Mapping[str, Any], flag_options: Mapping[str, Any]) -> dict[str, Any]:
-    """Flags override the file. A device flag replaces a replay from the file and vice versa."""
-    merged = {_norm(k): v for k, v in file_options.items()}
-    flags = {_norm(k): v for k, v in flag_options.items()}
-    for given in ("device", "replay", "dv_input"):  # an input flag replaces the file's input
-        if given in flags:
-            for other in {"device", "replay", "dv_input"} - {given}:
-                merged.pop(other, None)
-    if "publish" in flags:
-        merged.pop("no_publish", None)
-    if flags.get("no_publish"):
-        merged.pop("publish", None)
-    merged.update(flags)
-    return merged
-
+__all__ = ["DEFAULT_ENDPOINT", "LOG_LEVELS", "MODES", "OPTION_KEYS", "EdiConfig", "NodeConfig", "merge_options",
+           "read_toml"]

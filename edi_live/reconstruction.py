@@ -21,6 +21,7 @@ class Reconstructor(Protocol):
     c_on: float
     c_off: float
     black_level: float  # APS black level (8-bit DN) taken off the frames
+    clock_offset_us: int  # events arrive this much later than the APS exposure they belong to
 
     @property
     def reestimations(self) -> int: ...

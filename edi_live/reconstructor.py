@@ -2,7 +2,8 @@
 
 Per APS frame it filters the events it trusts (pixel_masks), lets the c policy decide c on the frame's data
 (contrast_tracking, c_policy), deblurs L(f) and restarts the latent image there (latent_state); between frames it
-advances the latent image event by event. Tuning knobs are one frozen ReconstructorSettings. Runs on the worker
+advances the latent image event by event. Tuning knobs are one frozen ReconstructorSettings
+(reconstructor_settings.py). Runs on the worker
 thread (not thread-safe). Time contract: see edi_live.reconstruction.
 """
 
@@ -12,71 +13,19 @@ import copy
 import dataclasses
 import math
 import time
-from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
 
 import edi_live.contrast as contrast
 import edi_live.edi as edi
-from edi_live.c_policy import C_RANGE, ContrastPolicy, PolicySettings
+from edi_live.c_policy import ContrastPolicy, PolicySettings
 from edi_live.contrast_tracking import ContrastTracker
 from edi_live.datatypes import Frame, Reconstruction
 from edi_live.errors import ConfigError, NodeError
 from edi_live.latent_state import LatentState
 from edi_live.pixel_masks import HotPixels, NoiseFilter, UnreliablePixels
-
-
-@dataclass(frozen=True)
-class ReconstructorSettings:
-    """Thresholds and tuning of the reconstructor. c (or c_on and c_off) fixes the thresholds; otherwise they are
-    estimated (`estimator`, starting at c_init) and cached by the c policy."""
-
-    c: float | None = None
-    c_on: float | None = None
-    c_off: float | None = None
-    estimator: str = contrast.DEFAULT_ESTIMATOR
-    estimator_options: dict = field(default_factory=dict)
-    separate_thresholds: bool = True  # estimate c_on and c_off apart (one c when the data cannot separate them)
-    c_init: float = 0.2
-    c_start: tuple[float, float] | None = None  # (c_on, c_off) to start estimating from, e.g. a saved calibration
-    reestimate_every: int = 0  # frames; 0 = only when the fit test fails
-    history_pairs: int = 2  # consecutive-frame pairs the estimator sees
-    fit_patience: int = 2
-    fit_strong: float = 3.0
-    c_history: int = 3  # accepted estimates whose median is c
-    sample_pixels: int = 4000  # pixels on which c is estimated
-    mask_hot_pixels: bool = True
-    hot_min_rate_hz: float = 300.0
-    hot_rel_factor: float = 10.0
-    hot_decay: float = 0.8
-    saturation: float | None = None  # APS value at or above which a pixel is clipped (default: full scale)
-    # APS value of no light (8-bit scale), taken off B so that frames are linear. DV's 8-bit frames reach 0 DN,
-    # hence the default; it is not estimated from the stream (see docs/calibration.md).
-    black_level: float = 0.0
-    denoise_us: int = 0  # background-activity filter window; 0 = off
-    mask_unreliable_pixels: bool = True  # ignore events that contradict the APS frames (needs c estimation)
-
-    def thresholds(self) -> tuple[float, float, bool]:
-        """(c_on, c_off, fixed), checked."""
-        c, c_on, c_off = _check_c("c", self.c), _check_c("c_on", self.c_on), _check_c("c_off", self.c_off)
-        if (c_on is None) != (c_off is None) and c is None:
-            raise ConfigError("give both c_on and c_off (or a single c)")
-        fixed = c is not None or c_on is not None
-        start = (None, None) if self.c_start is None else (_check_c("c_start", self.c_start[0]),
-                                                            _check_c("c_start", self.c_start[1]))
-        on = c_on if c_on is not None else (c if c is not None else start[0] or _check_c("c_init", self.c_init))
-        off = c_off if c_off is not None else (c if c is not None else start[1] or on)
-        return on, off, fixed
-
-
-def _check_c(name: str, value: float | None) -> float | None:
-    if value is None:
-        return None
-    v = float(value)
-    if not (math.isfinite(v) and C_RANGE[0] <= v <= C_RANGE[1]):
-        raise ConfigError(f"{name} must be a contrast threshold in [{C_RANGE[0]}, {C_RANGE[1]}] (got {value!r})")
-    return v
+from edi_live.reconstructor_settings import ReconstructorSettings
 
 
 class EdiReconstructor:
@@ -112,6 +61,9 @@ class EdiReconstructor:
                 and 0.0 <= settings.black_level < 128.0):
             raise ConfigError(f"black level must be in [0, 128) DN on the 8-bit scale (got {settings.black_level!r})")
         estimator.black_level = float(settings.black_level)
+        if not (isinstance(settings.clock_offset_us, int) and abs(settings.clock_offset_us) <= 100_000):
+            raise ConfigError(f"clock offset must be whole µs within +-100 ms (got {settings.clock_offset_us!r})")
+        self.clock_offset_us = int(settings.clock_offset_us)
         self._policy = ContrastPolicy(estimator, self.c_on, self.c_off, PolicySettings(
             reestimate_every=int(settings.reestimate_every), startup_estimates=settings.history_pairs,
             fit_patience=int(settings.fit_patience), fit_strong=float(settings.fit_strong),
@@ -222,8 +174,9 @@ class EdiReconstructor:
         if img.shape != (self.height, self.width):
             raise ConfigError(f"APS frame is {img.shape[1]}x{img.shape[0]} but the reconstructor was set up for "
                               f"{self.width}x{self.height}; check the source resolution")
-        ts, te = int(frame.exposure_start_us), int(frame.exposure_end_us)
-        f = frame.mid_exposure_us
+        off = self.clock_offset_us  # the exposure window in the event clock
+        ts, te = int(frame.exposure_start_us) + off, int(frame.exposure_end_us) + off
+        f = frame.mid_exposure_us + off
         if self.has_reference and f <= self._ref_t:
             self.mark_gap()  # time went backwards (new recording, loop without offset): start over
         mask = self._mask

@@ -118,7 +118,8 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         f"({s.get('frames_deblurred', 0)} deblurred, {s.get('frames_latent', 0)} latent, "
         f"{s.get('heartbeats', 0)} heartbeats; {frames / el:.0f} fps)",
         f"  c_on={s.get('c_on', float('nan')):.4f} c_off={s.get('c_off', float('nan')):.4f}, "
-        f"re-estimated {s.get('reestimations', 0)} times, black level {s.get('black_level_dn', 0):g} DN; "
+        f"re-estimated {s.get('reestimations', 0)} times, black level {s.get('black_level_dn', 0):g} DN, "
+        f"clock offset {s.get('clock_offset_us', 0)} µs; "
         f"ignored pixels: hot {s.get('hot_pixels', 0)}, "
         f"unreliable {s.get('unreliable_pixels', 0)}; drops {s.get('drops', 0)} "
         f"(ring events {s.get('ring_dropped_events', 0)}, ring frames {s.get('ring_dropped_frames', 0)}, "

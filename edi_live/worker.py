@@ -42,6 +42,7 @@ import numpy as np
 from edi_live.config import EdiConfig
 from edi_live.datatypes import Reconstruction, concat_events
 from edi_live.deblur_handover import PendingDeblur
+from edi_live.frame_gate import FrameGate, in_event_clock
 from edi_live.nearest_mode import NearestHoldBack
 from edi_live.quality import PredictionScore
 from edi_live.reconstruction import Reconstructor
@@ -82,6 +83,7 @@ class EdiWorker:
         self._last_arrival_ns = 0
         self._ref_f_us: int | None = None
         self._nearest = NearestHoldBack()
+        self._gate = FrameGate()  # whether an APS frame's late events are in
         self._deblur_ms: collections.deque[float] = collections.deque(maxlen=256)  # on_frame wall time
         self._pending: PendingDeblur | None = None  # causal mode with deblur_thread
         # how well the output predicted each APS frame (scored on this thread; stats() reads a copy)
@@ -157,11 +159,15 @@ class EdiWorker:
             self._adopt(wait=False)
             return True
         entry = self.ring.peek_frame()
+        limit = entry.end_index if entry is not None else None
         if entry is not None and self.ring.read_index >= entry.end_index:
-            self.ring.pop_frame()
-            self._on_frame(entry)
-            return True
-        chunk = self.ring.read_events(_CHUNK_EVENTS, entry.end_index if entry is not None else None)
+            done = self.ring.closed and not self.ring.unread_events
+            if self._gate.ready(entry.frame, self.rec.clock_offset_us, done):
+                self.ring.pop_frame()
+                self._on_frame(entry)
+                return True
+            limit = None  # the events of its (late) event-clock window are still to come
+        chunk = self.ring.read_events(_CHUNK_EVENTS, limit)
         if len(chunk.events) == 0:
             return False
         self._on_chunk(chunk)
@@ -170,6 +176,7 @@ class EdiWorker:
     def _on_chunk(self, chunk: EventChunk) -> None:
         n = len(chunk.events)
         self.events_in += n
+        self._gate.events_read(int(chunk.events["t"][-1]))
         if self.quality is not None:
             self.quality.on_events(chunk.events)
         self._last_arrival_ns = chunk.arrival_ns_at(n)
@@ -239,14 +246,15 @@ class EdiWorker:
         frame = entry.frame
         self.frames_in += 1
         if self.quality is not None:
-            self.quality.on_aps_frame(frame)
+            self.quality.on_aps_frame(in_event_clock(frame, self.rec.clock_offset_us))
         t0 = time.perf_counter()
-        events = self.ring.window(frame.exposure_start_us, _T_MAX)  # exposure start .. read cursor
+        # exposure start (in the event clock: clock_offset_us later) .. read cursor
+        events = self.ring.window(frame.exposure_start_us + self.rec.clock_offset_us, _T_MAX)
         if self._static_frame(len(events)):
             self.skipped_static_deblur += 1
             return
         self._last_deblur_s = time.monotonic()
-        f_us = frame.mid_exposure_us
+        f_us = frame.mid_exposure_us + self.rec.clock_offset_us
         arrival = max(entry.arrival_ns, self._last_arrival_ns)
         if self._pending is not None:
             # one deblur at a time (APS frames are far apart compared to a deblur), and never on the streaming
@@ -386,5 +394,6 @@ class EdiWorker:
             "nearest_added_latency_ms_p50": self._nearest.waited_ms_p50(),
             "unreliable_pixels": int(rec.unreliable_pixels),
             "black_level_dn": round(float(rec.black_level), 2),
+            "clock_offset_us": int(rec.clock_offset_us),
             **(self.quality.stats() if self.quality is not None else {}),
         }

@@ -32,6 +32,7 @@ class StandIn:
         self.hot_pixels = 0
         self.unreliable_pixels = 0
         self.black_level = 0.0
+        self.clock_offset_us = 0
         self.gaps_marked = 0
         self.ref_f = None
         self.t = None
@@ -132,6 +133,22 @@ def test_deblur_gets_every_event_of_the_exposure_and_latent_frames_follow_every_
     assert rec.events_applied == after
     assert sum(r.kind == "latent" for r in out) == after // 500
     assert all(a.t_us <= b.t_us for a, b in zip(out, out[1:])), "frames leave in time order"
+
+
+def test_with_a_clock_offset_the_deblur_waits_for_the_late_events_of_the_exposure():
+    # events lag the APS clock by 2 ms: the exposure [1000, 3000] is [3000, 5000] in the event clock, and the
+    # frame (queued after its stated end) must wait until an event past 5000 was read
+    t = np.arange(0, 20_000, 4)
+    ev = events_at(t)
+    rec = StandIn()
+    rec.clock_offset_us = 2000
+    packets = [Packet(events=ev[:600]), Packet(events=ev[600:900], frames=[aps(1000, 3000)]),
+               Packet(events=ev[900:1300]), Packet(events=ev[1300:])]
+    worker, rec, out, errors = run_worker(packets, EdiConfig(every=500), rec=rec)
+    assert not errors
+    (frame, given), = rec.frames_given
+    assert given["t"].min() >= 3000 and given["t"].max() > 5000, "the window in the event clock is complete"
+    assert np.all(np.isin(ev["t"][(ev["t"] >= 3000) & (ev["t"] <= 5000)], given["t"]))
 
 
 def test_no_frames_before_the_first_aps_frame():

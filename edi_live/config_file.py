@@ -1,0 +1,69 @@
+"""The TOML config file: reading it into the flat option mapping (one key per flag, paths relative to the file)
+and merging the command line's flags over it. Every problem is one ConfigError naming the file."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+from edi_live.checks import check as _check
+from edi_live.errors import ConfigError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10 only
+    import tomli as tomllib
+
+
+def norm_key(key: str) -> str:
+    """An option's key as the config uses it: `--stats-interval-s` and `stats-interval-s` are `stats_interval_s`."""
+    return key.strip().lstrip("-").replace("-", "_")
+
+
+def read_toml(path: str | Path, known: Iterable[str]) -> dict[str, Any]:
+    """The flat key -> value mapping of a TOML config file, whose keys must be among `known`; ConfigError naming
+    the file on any problem."""
+    path = Path(path)
+    try:
+        with path.open("rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError(f"config file {path} not found") from None
+    except OSError as exc:
+        raise ConfigError(f"cannot read config file {path}: {exc.strerror}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"config file {path} is not valid TOML: {exc}") from None
+    except UnicodeDecodeError as exc:  # a binary file: TOML is UTF-8 text
+        raise ConfigError(f"config file {path} is not a TOML text file (not UTF-8 at byte {exc.start}); give "
+                          f"--config a .toml file") from None
+    except (ValueError, RecursionError) as exc:  # anything else the parser trips over is still the file's fault
+        raise ConfigError(f"config file {path} is not valid TOML ({type(exc).__name__}: {exc})") from None
+    nested = [k for k, v in data.items() if isinstance(v, dict)]
+    _check(not nested, f"config file {path}: keys go at the top level, like the flags (got table(s) {nested})")
+    normalized = {norm_key(k): v for k, v in data.items()}
+    unknown = sorted(set(normalized) - set(known))
+    _check(not unknown, f"config file {path}: unknown key(s) {', '.join(unknown)}")
+    base = path.parent
+    for key in ("replay", "out", "record", "emulate_from", "curve_secret_key"):
+        # relative paths in a config file are relative to the file, not to the working directory
+        if isinstance(normalized.get(key), str) and not Path(normalized[key]).is_absolute():
+            normalized[key] = str(base / normalized[key])
+    return normalized
+
+
+def merge_options(file_options: Mapping[str, Any], flag_options: Mapping[str, Any]) -> dict[str, Any]:
+    """Flags override the file. A device flag replaces a replay from the file and vice versa."""
+    merged = {norm_key(k): v for k, v in file_options.items()}
+    flags = {norm_key(k): v for k, v in flag_options.items()}
+    for given in ("device", "replay", "dv_input"):  # an input flag replaces the file's input
+        if given in flags:
+            for other in {"device", "replay", "dv_input"} - {given}:
+                merged.pop(other, None)
+    if "publish" in flags:
+        merged.pop("no_publish", None)
+    if flags.get("no_publish"):
+        merged.pop("publish", None)
+    merged.update(flags)
+    return merged
+

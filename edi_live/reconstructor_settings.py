@@ -1,0 +1,66 @@
+"""The reconstructor's tuning knobs, one frozen dataclass: thresholds (given, or estimated and how), pixel masks,
+the APS black level and the event clock offset. Checked where they are combined (thresholds())."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import edi_live.contrast as contrast
+from edi_live.c_policy import C_RANGE
+from edi_live.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class ReconstructorSettings:
+    """Thresholds and tuning of the reconstructor. c (or c_on and c_off) fixes the thresholds; otherwise they are
+    estimated (`estimator`, starting at c_init) and cached by the c policy."""
+
+    c: float | None = None
+    c_on: float | None = None
+    c_off: float | None = None
+    estimator: str = contrast.DEFAULT_ESTIMATOR
+    estimator_options: dict = field(default_factory=dict)
+    separate_thresholds: bool = True  # estimate c_on and c_off apart (one c when the data cannot separate them)
+    c_init: float = 0.2
+    c_start: tuple[float, float] | None = None  # (c_on, c_off) to start estimating from, e.g. a saved calibration
+    reestimate_every: int = 0  # frames; 0 = only when the fit test fails
+    history_pairs: int = 2  # consecutive-frame pairs the estimator sees
+    fit_patience: int = 2
+    fit_strong: float = 3.0
+    c_history: int = 3  # accepted estimates whose median is c
+    sample_pixels: int = 4000  # pixels on which c is estimated
+    mask_hot_pixels: bool = True
+    hot_min_rate_hz: float = 300.0
+    hot_rel_factor: float = 10.0
+    hot_decay: float = 0.8
+    saturation: float | None = None  # APS value at or above which a pixel is clipped (default: full scale)
+    # APS value of no light (8-bit scale), taken off B so that frames are linear. DV's 8-bit frames reach 0 DN,
+    # hence the default; it is not estimated from the stream (see docs/calibration.md).
+    black_level: float = 0.0
+    # events arrive this much later than the APS exposure they belong to (event time = APS time + offset), µs;
+    # the frame's exposure window and reference time are moved into the event clock by it
+    clock_offset_us: int = 0
+    denoise_us: int = 0  # background-activity filter window; 0 = off
+    mask_unreliable_pixels: bool = True  # ignore events that contradict the APS frames (needs c estimation)
+
+    def thresholds(self) -> tuple[float, float, bool]:
+        """(c_on, c_off, fixed), checked."""
+        c, c_on, c_off = _check_c("c", self.c), _check_c("c_on", self.c_on), _check_c("c_off", self.c_off)
+        if (c_on is None) != (c_off is None) and c is None:
+            raise ConfigError("give both c_on and c_off (or a single c)")
+        fixed = c is not None or c_on is not None
+        start = (None, None) if self.c_start is None else (_check_c("c_start", self.c_start[0]),
+                                                            _check_c("c_start", self.c_start[1]))
+        on = c_on if c_on is not None else (c if c is not None else start[0] or _check_c("c_init", self.c_init))
+        off = c_off if c_off is not None else (c if c is not None else start[1] or on)
+        return on, off, fixed
+
+
+def _check_c(name: str, value: float | None) -> float | None:
+    if value is None:
+        return None
+    v = float(value)
+    if not (math.isfinite(v) and C_RANGE[0] <= v <= C_RANGE[1]):
+        raise ConfigError(f"{name} must be a contrast threshold in [{C_RANGE[0]}, {C_RANGE[1]}] (got {value!r})")
+    return v

@@ -40,6 +40,7 @@ class Calibration:
     c_off: float
     black_level: float = 0.0  # 8-bit DN
     clock_offset_us: int = 0  # events arrive this much later than the APS exposure
+    aps_gamma: float = 1.0  # APS response exponent
     saved: str = ""  # UTC time of saving, for the person reading the file
 
     def check_for(self, info: SourceInfo, path: Path | str) -> None:
@@ -73,12 +74,13 @@ def load(path: Path | str) -> Calibration:
     try:
         values = {f.name: data[f.name] for f in dataclasses.fields(Calibration) if f.name in data}
         cal = Calibration(**values)
-        numbers = (cal.c_on, cal.c_off, cal.black_level, cal.clock_offset_us)
+        numbers = (cal.c_on, cal.c_off, cal.black_level, cal.clock_offset_us, cal.aps_gamma)
         ok = (isinstance(cal.camera, str) and isinstance(cal.width, int) and isinstance(cal.height, int)
               and cal.width > 0 and cal.height > 0
               and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in numbers)
               and 0.01 <= cal.c_on <= 2.0 and 0.01 <= cal.c_off <= 2.0 and 0 <= cal.black_level < 128
-              and isinstance(cal.clock_offset_us, int) and abs(cal.clock_offset_us) <= 100_000)
+              and isinstance(cal.clock_offset_us, int) and abs(cal.clock_offset_us) <= 100_000
+              and 0.2 <= cal.aps_gamma <= 5)
     except TypeError as exc:
         raise ConfigError(f"calibration {path} lacks a field ({exc})") from None
     if not ok:
@@ -114,7 +116,8 @@ def prepare(edi: EdiConfig, info: SourceInfo, given: Path | None, save_to: Path 
         edi = dataclasses.replace(
             edi, c_start=(cal.c_on, cal.c_off),
             black_level=cal.black_level if edi.black_level is None else edi.black_level,
-            clock_offset_us=cal.clock_offset_us if edi.clock_offset_us is None else edi.clock_offset_us)
+            clock_offset_us=cal.clock_offset_us if edi.clock_offset_us is None else edi.clock_offset_us,
+            aps_gamma=cal.aps_gamma if edi.aps_gamma is None else edi.aps_gamma)
     return edi, save_to if save_to is not None else (default_path(info) if live else None)
 
 
@@ -124,4 +127,5 @@ def from_stats(info: SourceInfo, stats: dict) -> Calibration | None:
     if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in (c_on, c_off)):
         return None
     return Calibration(info.label, info.width, info.height, float(c_on), float(c_off),
-                       float(stats.get("black_level_dn") or 0.0), int(stats.get("clock_offset_us") or 0))
+                       float(stats.get("black_level_dn") or 0.0), int(stats.get("clock_offset_us") or 0),
+                       float(stats.get("aps_gamma") or 1.0))

@@ -1,6 +1,6 @@
 """The `edi-live` command line: flags (and --config TOML) -> NodeConfig -> a source -> Node.run().
 
-Owns: the flag definitions and help text, logging set-up, resolving `--usb-backend MODULE:CALLABLE`, signal
+Owns (the flags and their help are in cli_parser.py): logging set-up, resolving `--usb-backend MODULE:CALLABLE`, signal
 handling (SIGINT/SIGTERM stop the node cleanly, also during start-up; repeated ones are ignored while the stop
 finishes), the summary, and mapping errors to exit codes: 0 success (also after Ctrl-C/SIGTERM), 2 usage error,
 1 runtime error; every error is one line
@@ -9,7 +9,6 @@ finishes), the summary, and mapping errors to exit codes: 0 success (also after 
 
 from __future__ import annotations
 
-import argparse
 import importlib
 import inspect
 import logging
@@ -20,136 +19,12 @@ import warnings
 from pathlib import Path
 from typing import Any, Sequence
 
-from edi_live import __version__
-from edi_live.config import DEFAULT_ENDPOINT, LOG_LEVELS, NodeConfig, merge_options, read_toml
+from edi_live.cli_parser import PROG, build_parser
+from edi_live.config import NodeConfig, merge_options, read_toml
 from edi_live.errors import ConfigError, EdiLiveError, RecordingError, SourceError
 from edi_live.stop_signals import StopSignals
 
-PROG = "edi-live"
 log = logging.getLogger("edi_live")
-
-EXAMPLES = f"""\
-examples:
-  # replay a recording as fast as possible, publish on {DEFAULT_ENDPOINT}, save the sharp frames
-  edi-live --replay rec.aedat4 --speed 0 --every 1000 --out sharp.aedat4
-
-  # a live DAVIS346 with a fixed contrast threshold, 500 latent frames/s at most, raw input recorded
-  edi-live --device davis346 --c 0.2 --max-fps 500 --record raw.aedat4
-
-  # no camera: the built-in emulator replays a recording through the USB driver
-  edi-live --device davis240 --usb-backend drivers.emulator:backend --emulate-from rec.aedat4
-
-  # a camera running in DV (two network TCP server outputs: events, frames); sharp frames back to DV
-  edi-live --dv-input tcp://127.0.0.1:7777 --dv-input tcp://127.0.0.1:7778 --dv-output tcp://127.0.0.1:7779
-
-seeing the frames:
-  python -m tools.viewer        then open http://127.0.0.1:8080 in a browser (live frames and counters)
-  python -m edi_live.client      prints what arrives (any program can subscribe: see edi_live/client.py)
-  --dv-output tcp://HOST:PORT    DV's GUI (network input module) or dv-processing's NetworkReader shows them
-  --out FILE.aedat4              opens in DV (file input), dv-processing, or --replay; one 8-bit frame each
-
-Ctrl-C or SIGTERM stops cleanly (files finalised, exit 0; a second Ctrl-C is ignored while it stops). Exit codes: 0 ok, 1 runtime error, 2 usage error.
-Every flag can also be set in --config FILE.toml with the same name (e.g. `every = 1000`, `c-on = 0.2`).
-"""
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # one line, exit 2 (argparse would print the usage block too)
-        raise ConfigError(f"{message} (see {PROG} --help)")
-
-
-def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog=PROG, argument_default=argparse.SUPPRESS, formatter_class=argparse.RawDescriptionHelpFormatter,
-                description="Real-time EDI deblurring for DAVIS event cameras: one blurry APS frame plus its events "
-                            "become sharp video, streamed over ZeroMQ.",
-                epilog=EXAMPLES)
-    src = p.add_argument_group("input (one of)")
-    src.add_argument("--device", choices=("davis240", "davis346", "auto"),
-                     help="a live DAVIS camera over USB ('auto': the first one found)")
-    src.add_argument("--replay", metavar="FILE.aedat4", help="replay an AEDAT4 recording as if a camera were attached")
-    src.add_argument("--dv-input", action="append", metavar="[TYPE=]tcp://HOST:PORT",
-                     help="a DV / dv-processing network output, repeatable: one endpoint per stream (events, frames, "
-                          "imu, triggers; the type is read from the stream, a TYPE= prefix asserts it)")
-    src.add_argument("--list-devices", action="store_true", help="list attached DAVIS cameras and exit")
-    dev = p.add_argument_group("device options")
-    dev.add_argument("--serial", metavar="S", help="pick the camera with this serial number")
-    dev.add_argument("--exposure-us", type=int, metavar="US", help="APS exposure in µs (default: the camera's)")
-    dev.add_argument("--frame-interval-us", type=int, metavar="US",
-                     help="time between APS frames in µs (default: the camera's)")
-    dev.add_argument("--reconnect", action="store_true", help="after an unplug (or a dropped --dv-input connection), "
-                                                               "wait for the camera and resume")
-    dev.add_argument("--usb-backend", metavar="MODULE:CALLABLE",
-                     help="pyusb backend factory; CALLABLE() returns a usb.backend.IBackend (default: libusb)")
-    dev.add_argument("--emulate-from", metavar="FILE.aedat4",
-                     help="with --usb-backend drivers.emulator:backend: the recording the emulated camera streams")
-    pace = p.add_argument_group("pacing")
-    pace.add_argument("--speed", type=float, metavar="X",
-                      help="replay speed: 1 = real time (default), 4 = 4x faster, 0 = as fast as possible")
-    pace.add_argument("--loop", action="store_true", help="restart the replay at its end (time keeps increasing)")
-    pace.add_argument("--duration", type=float, metavar="SECONDS", help="stop after this many seconds (default: run "
-                                                                         "until the input ends or Ctrl-C)")
-    edi = p.add_argument_group("EDI reconstruction")
-    edi.add_argument("--every", type=int, metavar="N", help="emit a latent frame every N events (default: 1000)")
-    edi.add_argument("--c", type=float, metavar="C", help="fixed contrast threshold for both polarities "
-                                                          "(default: estimated, re-estimated when it stops fitting)")
-    edi.add_argument("--c-on", type=float, metavar="C", help="fixed ON threshold (with --c-off)")
-    edi.add_argument("--c-off", type=float, metavar="C", help="fixed OFF threshold (with --c-on)")
-    edi.add_argument("--mode", choices=("causal", "nearest"),
-                     help="causal (default): latent frames from the latest deblurred APS frame, lowest latency; "
-                          "nearest: wait for the next APS frame when it is nearer (adds latency, reported)")
-    edi.add_argument("--max-fps", type=float, metavar="FPS", help="cap on latent frames per second (default: none)")
-    edi.add_argument("--heartbeat-s", type=float, metavar="S",
-                     help="keyframe interval on a static scene, seconds (default: 1.0)")
-    edi.add_argument("--deblur-thread", action=argparse.BooleanOptionalAction,
-                     help="causal mode: deblur APS frames on a helper thread so latent frames are not held up "
-                          "(default: on, except for --speed 0 replays where throughput matters)")
-    edi.add_argument("--reestimate-every", type=int, metavar="K",
-                     help="also re-estimate c every K APS frames (default: 0 = only when it stops fitting)")
-    edi.add_argument("--black-level", type=float, metavar="DN",
-                     help="APS black level in 8-bit DN, taken off every APS frame so that the output is linear in "
-                          "intensity (default: 0, right for DV's frames)")
-    edi.add_argument("--clock-offset-us", type=int, metavar="US",
-                     help="events arrive this much later than the APS exposure they belong to (pixel latency; the "
-                          "EDI authors set it by hand); the exposure window moves into the event clock (default: 0)")
-    edi.add_argument("--calibration", metavar="FILE",
-                     help="start from a saved calibration of this camera (c_on, c_off, black level); a live camera "
-                          "loads its own from ~/.config/edi-live/calibration/ without this flag")
-    edi.add_argument("--save-calibration", metavar="FILE",
-                     help="save the calibration in use at the end of the run (a live camera also saves its own)")
-    edi.add_argument("--quality-every", type=int, metavar="N",
-                     help="score how well the output predicted one APS frame in N (the live quality figure; "
-                          "default: 2, 0 = off)")
-    out = p.add_argument_group("output")
-    out.add_argument("--publish", action="append", metavar="ENDPOINT",
-                     help=f"ZeroMQ PUB endpoint, repeatable (default: {DEFAULT_ENDPOINT}; loopback only)")
-    out.add_argument("--no-publish", action="store_true", help="do not publish (e.g. only write --out)")
-    out.add_argument("--curve-secret-key", metavar="FILE",
-                     help="encrypt with CURVE using this server secret key file "
-                          "(make one: python -m edi_live.publisher --gen-curve-keys DIR)")
-    out.add_argument("--stats-interval-s", type=float, metavar="S",
-                     help="period of the [b\"stats\", map] message on the socket, seconds (default: 1.0)")
-    out.add_argument("--dv-output", metavar="tcp://HOST:PORT",
-                     help="also serve the sharp frames as a DV network stream (AEDAT4 over TCP, as DV's network TCP "
-                          "server output and dv-processing's NetworkWriter; loopback unless you choose otherwise)")
-    out.add_argument("--dv-output-events", metavar="tcp://HOST:PORT",
-                     help="also serve the input events, passed through, as a second DV network stream")
-    out.add_argument("--out", metavar="FILE.aedat4", help="also write every emitted frame (8-bit gray, lossless)")
-    out.add_argument("--record", metavar="FILE.aedat4", help="record the raw input as received, for --replay")
-    adv = p.add_argument_group("advanced")
-    adv.add_argument("--ring-events", type=int, metavar="N",
-                     help="ring capacity in events, half kept as exposure history (default: 4194304 = 64 MiB)")
-    adv.add_argument("--ring-frames", type=int, metavar="N", help="APS frames the ring holds (default: 16)")
-    adv.add_argument("--ring-policy", choices=("drop_oldest", "wait"),
-                     help="overflow policy (default: wait for replay/emulation, drop_oldest for a live camera)")
-    other = p.add_argument_group("other")
-    other.add_argument("--config", metavar="FILE.toml", help="read options from a TOML file; flags override it")
-    other.add_argument("--log-level", choices=LOG_LEVELS, help="log verbosity on stderr (default: info; debug "
-                                                               "also prints tracebacks)")
-    other.add_argument("--status-interval-s", type=float, metavar="S",
-                       help="status line period (default: 0.5 s live line on a terminal, 5 s plain lines otherwise)")
-    other.add_argument("--version", action="version", version=f"{PROG} {__version__}")
-    return p
-
 
 def options_from_args(argv: Sequence[str] | None) -> tuple[dict[str, Any], Path | None]:
     """Explicitly given flags (flag name -> value) and the --config path."""

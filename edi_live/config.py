@@ -115,6 +115,7 @@ class EdiConfig:
     # less throughput). None = automatic: on for a live camera and paced replay, off for --speed 0.
     deblur_thread: bool | None = None
     c_start: tuple[float, float] | None = None  # (c_on, c_off) from a saved calibration (set by the node)
+    aps_gamma: float | None = None  # APS response exponent; None: 1, or a loaded calibration's
     # events arrive this many µs later than the APS exposure they belong to; None: 0, or a loaded calibration's
     clock_offset_us: int | None = None
     # the live prediction figure (edi_live.quality): score one APS frame in N; 0 = off
@@ -137,6 +138,10 @@ class EdiConfig:
         _positive_or_none("heartbeat-s", self.heartbeat_s)
         _int_in("reestimate-every", self.reestimate_every, 0, 10**9, "APS frames; 0 = only when c stops fitting")
         _int_in("quality-every", self.quality_every, 0, 10**6, "score one APS frame in N; 0 = off")
+        _check(self.aps_gamma is None or (isinstance(self.aps_gamma, (int, float))
+                                          and not isinstance(self.aps_gamma, bool)
+                                          and math.isfinite(self.aps_gamma) and 0.2 <= self.aps_gamma <= 5),
+               f"aps-gamma must be a number in [0.2, 5] (got {self.aps_gamma!r})")
         if self.clock_offset_us is not None:
             _int_in("clock-offset-us", self.clock_offset_us, -100_000, 100_000, "µs the events lag the APS clock")
         _check(self.black_level is None or (isinstance(self.black_level, (int, float))
@@ -303,6 +308,7 @@ OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
     "quality_every": ("edi", "quality_every", None),
     "black_level": ("edi", "black_level", _num),
     "clock_offset_us": ("edi", "clock_offset_us", None),
+    "aps_gamma": ("edi", "aps_gamma", _num),
     "deblur_thread": ("edi", "deblur_thread", None),
     "publish": ("publisher", "endpoints", _endpoints),
     "no_publish": ("publisher", "-", _bool("no-publish")),

@@ -173,9 +173,9 @@ class Reconstruction:
 
     `image` is (height, width) uint8 gray, display-ready and owned by the receiver (a copy, never a view
     of reconstructor state); linear intensity on the 8-bit APS scale, above the APS black level (an APS frame of
-    this scene would read image + black_level). `t_us` the latent time, `ref_t_us` the reference time f of the APS
-    frame it derives from, `exposure_*` that APS frame's exposure window. `c_on`/`c_off` are the thresholds used
-    (equal when a single c is used). `n_events` counts events since the previous emitted reconstruction.
+    this scene would read black_level + 255 * (image / 255) ** (1 / aps_gamma)). `t_us` the latent time,
+    `ref_t_us` the reference time f of the APS frame it derives from, `exposure_*` that APS frame's exposure
+    window (in the event clock). `c_on`/`c_off` are the thresholds used (equal when a single c is used). `n_events` counts events since the previous emitted reconstruction.
     `arrival_ns` is the host arrival time of the last event included (for latency).
     """
 
@@ -190,3 +190,4 @@ class Reconstruction:
     n_events: int
     arrival_ns: int = 0
     black_level: float = 0.0
+    aps_gamma: float = 1.0

@@ -61,9 +61,9 @@ class LatentState:
             prop.apply(x[i0:], y[i0:], p[i0:])
         return out
 
-    def set_reference(self, image: np.ndarray, saturation: float | None,
+    def set_reference(self, image: np.ndarray, aps: edi.ApsResponse,
                       divisor: tuple[np.ndarray, np.ndarray, np.ndarray | None],
-                      c: tuple[float, float], black_level: float = 0.0) -> tuple[np.ndarray, bool]:
+                      c: tuple[float, float]) -> tuple[np.ndarray, bool]:
         """Deblur: log L(f) from B and the divisor; the latent image restarts there, moved on to te when the
         divisor carries the f -> te exponent. Returns (L(f) as uint8, whether the display is current: the fused
         pass of a uint8 frame also renders it; otherwise the caller refreshes it)."""
@@ -71,11 +71,11 @@ class LatentState:
         if edi.have_numba() and image.dtype == np.uint8 and delta_end is not None:
             deblurred = np.empty((self.height, self.width), np.uint8)
             self.log_ref = np.empty((self.height, self.width), np.float32)
-            sat = 255.0 if saturation is None else float(saturation)
+            sat = 255.0 if aps.saturation is None else float(aps.saturation)
             edi.finish_frame_u8(image, sat, divisor, self.log_ref, deblurred, self.log_lat, self.display,
-                                black_level=black_level)
+                                black_level=aps.black_level, gamma=aps.gamma)
             return deblurred, True
-        b, informative = edi.blurry_to_float(image, saturation=saturation, black_level=black_level)
+        b, informative = aps.to_float(image)
         self.log_ref = edi.deblur_log(b, None, c[0], c[1], informative=informative, divisor=divisor)
         np.copyto(self.log_lat, self.log_ref)
         if delta_end is not None:
@@ -84,11 +84,11 @@ class LatentState:
             np.clip(lat, edi.LOG_MIN, edi.LOG_MAX, out=lat)
         return edi.to_uint8(self.log_ref), False
 
-    def fall_back_to_aps(self, pixels: np.ndarray, image: np.ndarray, saturation: float | None,
-                         deblurred: np.ndarray, black_level: float = 0.0) -> None:
+    def fall_back_to_aps(self, pixels: np.ndarray, image: np.ndarray, aps: edi.ApsResponse,
+                         deblurred: np.ndarray) -> None:
         """At `pixels` ((H, W) bool), undo the events: L(f) = B and the latent image restarts there (the reference
         of this frame only; it is this state's own array until the next frame)."""
-        b, _ = edi.blurry_to_float(image, saturation=saturation, black_level=black_level)
+        b, _ = aps.to_float(image)
         idx = np.flatnonzero(pixels)
         log_b = np.clip(np.log(np.maximum(b.reshape(-1)[idx], edi.DARK_FLOOR)), edi.LOG_MIN, edi.LOG_MAX)
         self.log_ref.reshape(-1)[idx] = log_b

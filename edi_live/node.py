@@ -64,6 +64,7 @@ def default_reconstructor(width: int, height: int, edi: EdiConfig) -> Reconstruc
         kwargs["reestimate_every"] = edi.reestimate_every
     kwargs["black_level"] = float(edi.black_level or 0.0)
     kwargs["clock_offset_us"] = int(edi.clock_offset_us or 0)
+    kwargs["aps_gamma"] = float(edi.aps_gamma or 1.0)
     if edi.c_start is not None:
         kwargs["c_start"] = edi.c_start
     return EdiReconstructor(width, height, **kwargs)
@@ -141,7 +142,7 @@ class Node:
                 "ring_occupancy", "ring_dropped_events", "ring_dropped_frames", "events_in", "events_processed",
                 "aps_frames_in", "frames_deblurred", "frames_latent", "heartbeats", "skipped_max_fps",
                 "source_dropped_events", "source_gaps", "nearest_added_latency_ms_p50", "out_wait_s",
-                "unreliable_pixels", "black_level_dn", "clock_offset_us", "pred_psnr_db", "still_psnr_db", "pred_gain_db",
+                "unreliable_pixels", "black_level_dn", "clock_offset_us", "aps_gamma", "pred_psnr_db", "still_psnr_db", "pred_gain_db",
                 "pred_psnr_active_db", "still_psnr_active_db", "pred_beats_still_frac", "pred_frames_scored",
                 "dv_frames_sent", "dv_frames_dropped", "dv_frames_late", "dv_frames_clients", "dv_events_sent",
                 "dv_events_dropped", "dv_events_clients")

@@ -175,7 +175,7 @@ class PredictionScore:
         self._prev_mid: int | None = None
         self._exposures: collections.deque[int] = collections.deque(maxlen=8)
         self._shape: tuple[int, int] | None = None
-        self._black = 0.0  # black level of the latest frame sent (added back to predict APS values)
+        self._black, self._gamma = 0.0, 1.0  # the APS response of the latest frame sent (undone in the frames)
         self._events_map: np.ndarray | None = None  # flat bool: pixels with events since the last APS frame
         self._events_fed = False
         self._last_ref = self._last_t = self._t_max = -(2**63)
@@ -232,7 +232,7 @@ class PredictionScore:
         self._t.insert(i, t)
         self._ref.insert(i, ref)
         self._img.insert(i, rec.image)
-        self._black = float(rec.black_level)
+        self._black, self._gamma = float(rec.black_level), float(rec.aps_gamma)
         self._last_ref, self._last_t = ref, t
         self._t_max = max(self._t_max, t)
         out = self._complete(ref, t)
@@ -301,8 +301,9 @@ class PredictionScore:
         active_px = 0 if active_idx is None else int(active_idx.size)
         pred = still = pred_a = still_a = None
         if prediction is not None and valid_px:
-            if self._black:  # the frames are above the APS black level: the APS would read that much more
-                prediction = prediction + np.float32(self._black)
+            if self._black or self._gamma != 1.0:  # the frames are linear: encode them as the APS would
+                prediction = np.float32(self._black) + np.float32(255.0) * (
+                    prediction / np.float32(255.0)) ** np.float32(1.0 / self._gamma)
             pred, pred_a = _psnr_pair(prediction, w.target, w.valid, valid_px, active_idx)
             still, still_a = _psnr_pair(w.still, w.target, w.valid, valid_px, active_idx)
             self.last_prediction = prediction

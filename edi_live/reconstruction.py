@@ -22,6 +22,7 @@ class Reconstructor(Protocol):
     c_off: float
     black_level: float  # APS black level (8-bit DN) taken off the frames
     clock_offset_us: int  # events arrive this much later than the APS exposure they belong to
+    aps_gamma: float  # APS response exponent undone before the deblur
 
     @property
     def reestimations(self) -> int: ...

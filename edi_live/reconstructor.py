@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import math
 import time
 from typing import Any, Sequence
 
@@ -57,10 +56,10 @@ class EdiReconstructor:
                 estimator = contrast.make_estimator(settings.estimator, **options)
             except (ValueError, TypeError) as exc:
                 raise ConfigError(str(exc)) from None
-        if not (isinstance(settings.black_level, (int, float)) and math.isfinite(settings.black_level)
-                and 0.0 <= settings.black_level < 128.0):
-            raise ConfigError(f"black level must be in [0, 128) DN on the 8-bit scale (got {settings.black_level!r})")
-        estimator.black_level = float(settings.black_level)
+        try:
+            self._aps = edi.ApsResponse(settings.saturation, float(settings.black_level), float(settings.aps_gamma))
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(str(exc)) from None
         if not (isinstance(settings.clock_offset_us, int) and abs(settings.clock_offset_us) <= 100_000):
             raise ConfigError(f"clock offset must be whole µs within +-100 ms (got {settings.clock_offset_us!r})")
         self.clock_offset_us = int(settings.clock_offset_us)
@@ -69,6 +68,7 @@ class EdiReconstructor:
             fit_patience=int(settings.fit_patience), fit_strong=float(settings.fit_strong),
             c_history=int(settings.c_history)))
         self.black_level = float(settings.black_level)
+        self.aps_gamma = float(settings.aps_gamma)
         if not self._fixed:
             self._tracker = ContrastTracker(self.width, self.height, self._policy,
                                             history_pairs=settings.history_pairs, sample_pixels=settings.sample_pixels)
@@ -187,7 +187,7 @@ class EdiReconstructor:
             events = self._noise.exposure(events, self._t_last)
         if self._tracker is not None:
             t0 = time.perf_counter()
-            b, informative = edi.blurry_to_float(img, saturation=self.settings.saturation)
+            b, informative = self._aps.to_float(img)
             self._pair = self._tracker.step(events, b, informative, (ts, te, f), mask, self._latent.acc, self._t_last,
                                       self.has_reference)
             self.c_on, self.c_off = self._policy.c
@@ -201,21 +201,15 @@ class EdiReconstructor:
         if self.events_ignored:  # still scene: L(f) = B and the latent image stays there
             divisor = (divisor[0][:0], divisor[1][:0], divisor[2][:0] if divisor[2] is not None else None)
         log_prev = self._latent.log_ref
-        deblurred, display_current = self._latent.set_reference(img, self.settings.saturation, divisor,
-                                                                self._c(), self.black_level)
+        deblurred, display_current = self._latent.set_reference(img, self._aps, divisor, self._c())
         pair, self._pair = self._pair, None
         if pair is not None and self._unreliable is not None and not self.events_ignored:
-            # judged on this deblur; the mask holds from here on (the latent image continues from L(f)). Pixels at
-            # or below the black level carry no information, like clipped ones.
-            black = self.black_level
-            self._unreliable.update(pair.n_on, pair.n_off, log_prev, self._latent.log_ref,
-                                    pair.prev.informative & (pair.prev.blurry > black),
-                                    pair.cur.informative & (pair.cur.blurry > black), self._c(),
-                                    busy=frame_counts)
+            # judged on this deblur; the mask holds from here on (the latent image continues from L(f))
+            self._unreliable.update(pair.n_on, pair.n_off, log_prev, self._latent.log_ref, pair.prev.informative,
+                                    pair.cur.informative, self._c(), busy=frame_counts)
             self._mask = self._combined_mask()
             if self._unreliable.count:
-                self._latent.fall_back_to_aps(self._unreliable.mask, img, self.settings.saturation, deblurred,
-                                              self.black_level)
+                self._latent.fall_back_to_aps(self._unreliable.mask, img, self._aps, deblurred)
                 mask = self._mask
         t = events["t"]
         # the events after the point the latent image has reached (te with the f -> te jump, else f); with the
@@ -345,4 +339,5 @@ class EdiReconstructor:
         return Reconstruction(image=image, t_us=int(t_us), kind=kind, ref_t_us=int(self._ref_t),
                               exposure_start_us=self._exposure[0], exposure_end_us=self._exposure[1],
                               c_on=float(self.c_on), c_off=float(self.c_off), n_events=int(n_events),
-                              arrival_ns=int(self._arrival_ns), black_level=float(self.black_level))
+                              arrival_ns=int(self._arrival_ns), black_level=float(self.black_level),
+                              aps_gamma=float(self._aps.gamma))

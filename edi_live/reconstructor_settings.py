@@ -38,6 +38,7 @@ class ReconstructorSettings:
     # APS value of no light (8-bit scale), taken off B so that frames are linear. DV's 8-bit frames reach 0 DN,
     # hence the default; it is not estimated from the stream (see docs/calibration.md).
     black_level: float = 0.0
+    aps_gamma: float = 1.0  # APS response: value = black + 255 (I/255)^(1/gamma); undone before the deblur
     # events arrive this much later than the APS exposure they belong to (event time = APS time + offset), µs;
     # the frame's exposure window and reference time are moved into the event clock by it
     clock_offset_us: int = 0

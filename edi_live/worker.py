@@ -394,6 +394,6 @@ class EdiWorker:
             "nearest_added_latency_ms_p50": self._nearest.waited_ms_p50(),
             "unreliable_pixels": int(rec.unreliable_pixels),
             "black_level_dn": round(float(rec.black_level), 2),
-            "clock_offset_us": int(rec.clock_offset_us),
+            "clock_offset_us": int(rec.clock_offset_us), "aps_gamma": float(rec.aps_gamma),
             **(self.quality.stats() if self.quality is not None else {}),
         }

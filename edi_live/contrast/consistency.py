@@ -36,7 +36,6 @@ class ConsistencyContrast:
     spread_weight: float = 0.5
     separate: bool = False
     separate_z: float = 3.0  # separate thresholds only when they beat one c by this many standard errors
-    black_level: float = 0.0  # APS value of no light (8-bit scale) taken off B in the residuals
     name: str = "consistency"
     needs_pair: bool = True
     needs_full_image: bool = False
@@ -54,7 +53,7 @@ class ConsistencyContrast:
 
     def _cached_pair_problem(self, pair: FramePair):
         key = ("consistency-v3", self.max_pixels, self.min_pixels, self.b_low, self.b_high, self.delta,
-               self.spread_weight, self.black_level)
+               self.spread_weight)
         if key not in pair.cache:
             pair.cache[key] = self._pair_problem(pair)
         return pair.cache[key]
@@ -64,15 +63,13 @@ class ConsistencyContrast:
         prev, cur = pair.prev, pair.cur
         bp = prev.blurry.reshape(-1)
         bc = cur.blurry.reshape(-1)
-        black = float(self.black_level)
-        cand = edi.pair_candidates(prev.informative, cur.informative, bp, bc, self.b_low + black, self.b_high,
-                                   pair.mask, pair.n_on, pair.n_off, prev.table.pixels, cur.table.pixels)
+        cand = edi.pair_candidates(prev.informative, cur.informative, bp, bc, self.b_low, self.b_high, pair.mask,
+                                   pair.n_on, pair.n_off, prev.table.pixels, cur.table.pixels)
         if cand.size < self.min_pixels:
             return None
         if cand.size > self.max_pixels:
             cand = cand[np.linspace(0, cand.size - 1, self.max_pixels).astype(np.int64)]
-        raw_p, raw_c = bp[cand].astype(np.float64), bc[cand].astype(np.float64)
-        dlog_b = np.log(raw_c - black) - np.log(raw_p - black)
+        dlog_b = np.log(bc[cand].astype(np.float64)) - np.log(bp[cand].astype(np.float64))
         n_on = pair.n_on[cand].astype(np.float64)
         n_off = pair.n_off[cand].astype(np.float64)
         parts = []

@@ -53,7 +53,6 @@ class EnergyContrast:
     needs_full_image: bool = True
     fit_z: float = 1.0  # misfit() is all or nothing: 0 (three-point fit holds) or inf
     info_z: float = 0.0
-    black_level: float = 0.0  # not used: the energy works on B as it is
 
     def _energy_fn(self, cur: FrameData) -> Callable[[float], float] | None:
         if cur.event_map is None or cur.table.n_active == 0:

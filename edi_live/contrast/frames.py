@@ -47,7 +47,6 @@ class ContrastEstimator(Protocol):
     c_min: float  # bottom of the search range; an estimate there means "the events explain nothing"
     fit_z: float  # misfit z at which the cached c fails the fit test
     info_z: float  # information z below which an estimate is judged flat (no information about c)
-    black_level: float  # APS black level (8-bit scale) the residuals take off B (given by the user)
 
     def estimate(self, cur: FrameData, pairs: Sequence[FramePair], c_init: tuple[float, float]) \
             -> tuple[float, float] | None:
@@ -86,7 +85,6 @@ class FixedContrast:
     c_min: float = 0.0
     fit_z: float = math.inf
     info_z: float = 0.0
-    black_level: float = 0.0
 
     def estimate(self, cur, pairs, c_init):
         return self.c_on, self.c_off

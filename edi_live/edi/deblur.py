@@ -5,6 +5,9 @@ Intensities are on the 8-bit APS scale (0..255, linear); times are int64 µs.
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import numpy as np
 
 from edi_live.edi import _backend, _kernels_stream
@@ -14,21 +17,46 @@ from edi_live.edi.levels import LevelTable, build_level_table, log_divisor
 from edi_live.edi.selection import window
 
 
-def blurry_to_float(image: np.ndarray, *, saturation: float | None = None,
-                    black_level: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+@dataclass(frozen=True)
+class ApsResponse:
+    """How APS values relate to light: value = black_level + 255 * (I / 255) ** (1 / gamma), clipped at
+    `saturation` (default: full scale of the image's dtype), on the 8-bit scale. EDI needs B linear in I."""
+
+    saturation: float | None = None
+    black_level: float = 0.0
+    gamma: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.black_level) and 0.0 <= self.black_level < 128.0):
+            raise ValueError(f"black level must be in [0, 128) DN on the 8-bit scale (got {self.black_level!r})")
+        if not (math.isfinite(self.gamma) and 0.2 <= self.gamma <= 5.0):
+            raise ValueError(f"APS gamma must be in [0.2, 5] (got {self.gamma!r})")
+
+    @property
+    def linear(self) -> bool:
+        return self.black_level == 0.0 and self.gamma == 1.0
+
+    def to_float(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return blurry_to_float(image, saturation=self.saturation, black_level=self.black_level, gamma=self.gamma)
+
+
+def blurry_to_float(image: np.ndarray, *, saturation: float | None = None, black_level: float = 0.0,
+                    gamma: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """APS image (uint8/uint16/float) -> (B on the 8-bit scale as float32, informative mask).
 
-    `black_level` (8-bit scale) is the APS value of no light: it is subtracted, so B is linear in intensity.
-    A pixel is uninformative when it is at or below the black level or at/above `saturation` (default: full
-    scale of the dtype): a clipped value does not equal the mean of the latent intensity, so dividing it would
-    be wrong.
+    `black_level` (8-bit scale) is the APS value of no light and `gamma` the response's exponent (see ApsResponse):
+    both are undone, so that B is linear in intensity. A pixel is uninformative when it is at or below the black
+    level or at/above `saturation` (default: full scale of the dtype): a clipped value does not equal the mean of
+    the latent intensity, so dividing it would be wrong.
     """
     img = np.asarray(image)
-    if black_level:
+    if black_level or gamma != 1.0:
         b, informative = blurry_to_float(img, saturation=saturation)
         informative &= b > black_level
         b -= np.float32(black_level)
         np.maximum(b, 0.0, out=b)
+        if gamma != 1.0:
+            b = (np.float32(255.0) * (b / np.float32(255.0)) ** np.float32(gamma)).astype(np.float32)
         return b, informative
     if img.dtype == np.uint8:
         # the general path below gives exactly this: B = img (scale 1), always finite and >= 0
@@ -124,21 +152,21 @@ def log_divisor_events(events: np.ndarray, width: int, height: int, exposure_sta
 
 def finish_frame_u8(image: np.ndarray, saturation: float, divisor: tuple[np.ndarray, np.ndarray, np.ndarray],
                     log_ref: np.ndarray, deblurred: np.ndarray, log_lat: np.ndarray, display: np.ndarray, *,
-                    black_level: float = 0.0) -> None:
+                    black_level: float = 0.0, gamma: float = 1.0) -> None:
     """What follows the divisor of a uint8 APS frame, into the given (H, W) arrays: log L(f) (log B minus log D
     at the active informative pixels, clipped) and its uint8 image; the latent log image at te (L(f) plus the
-    f -> te exponent of `divisor`, from log_divisor_events) and its uint8 image, B taken above `black_level`
-    (see blurry_to_float). One pass with the kernels."""
+    f -> te exponent of `divisor`, from log_divisor_events) and its uint8 image, B linearised with `black_level`
+    and `gamma` (see blurry_to_float). One pass with the kernels."""
     pixels, log_d, delta_end = divisor
     if _backend.have_numba():
-        lut_log, lut_u8 = u8_tables(float(black_level))
+        lut_log, lut_u8 = u8_tables(float(black_level), float(gamma))
         _kernels_stream.finish_frame_u8(np.ascontiguousarray(image).reshape(-1), float(saturation),
                                         float(black_level), lut_log, lut_u8,
                                         pixels, log_d, delta_end, np.float32(LOG_MIN), np.float32(LOG_MAX),
                                         log_ref.reshape(-1), deblurred.reshape(-1), log_lat.reshape(-1),
                                         display.reshape(-1), *render_buckets())
         return
-    b, informative = blurry_to_float(image, saturation=saturation, black_level=black_level)
+    b, informative = blurry_to_float(image, saturation=saturation, black_level=black_level, gamma=gamma)
     ref = deblur_log(b, None, 1.0, informative=informative, divisor=(pixels, log_d))
     log_ref[...] = ref
     deblurred[...] = to_uint8(ref)

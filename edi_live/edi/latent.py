@@ -116,10 +116,12 @@ def to_uint8(log_values: np.ndarray, gain: float = 1.0) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=64)
-def u8_tables(black_level: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """For every uint8 B: log L(f) where no event moved it (clipped log(max(B - black_level, floor))), and its
-    uint8 image."""
+def u8_tables(black_level: float = 0.0, gamma: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """For every uint8 B: log L(f) where no event moved it (clipped log(max(B linearised, floor)), see
+    blurry_to_float), and its uint8 image."""
     b = np.maximum(np.arange(256, dtype=np.float32) - np.float32(black_level), np.float32(0.0))
+    if gamma != 1.0:
+        b = (np.float32(255.0) * (b / np.float32(255.0)) ** np.float32(gamma)).astype(np.float32)
     log_b = np.clip(np.log(np.maximum(b, DARK_FLOOR)), LOG_MIN, LOG_MAX).astype(np.float32)
     return log_b, to_uint8(log_b)
 

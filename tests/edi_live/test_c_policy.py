@@ -29,7 +29,6 @@ class Scripted:
     c_min: float = 0.02
     fit_z: float = 3.0
     info_z: float = 2.0
-    black_level: float = 0.0
     asked: dict = field(default_factory=lambda: {"estimate": 0, "misfit": 0, "still": 0, "confirm": 0})
 
     def estimate(self, cur, pairs, c_init):

@@ -144,3 +144,18 @@ def test_a_given_clock_offset_moves_the_exposure_window_into_the_event_clock():
                         for o, fr in zip(outs[1:], sim.frames[1:])])
 
     assert error(clock_offset_us=1500) < 0.8 * error()
+
+
+def test_a_given_aps_response_makes_the_frames_linear():
+    # APS value = 255 (I/255)^(1/1.15): undoing it before the deblur brings the output onto the linear scale
+    cfg = SceneConfig(width=120, height=90, duration_s=0.4, texture="camera", velocity_px_s=(150.0, 40.0),
+                      aps_gamma=1.15, seed=3)
+    sim = simulate(cfg)
+    plain, _ = stream(sim, EdiReconstructor(cfg.width, cfg.height))
+    given, _ = stream(sim, EdiReconstructor(cfg.width, cfg.height, aps_gamma=1.15))
+    assert all(o.aps_gamma == 1.15 for o in given)
+
+    def error(outs):
+        return np.mean([np.abs(o.image.astype(float) - sim.gt_at(o.t_us)).mean() for o in outs[2:]])
+
+    assert error(given) < 0.6 * error(plain), (error(given), error(plain))

@@ -33,6 +33,7 @@ class StandIn:
         self.unreliable_pixels = 0
         self.black_level = 0.0
         self.clock_offset_us = 0
+        self.aps_gamma = 1.0
         self.gaps_marked = 0
         self.ref_f = None
         self.t = None

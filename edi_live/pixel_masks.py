@@ -90,7 +90,7 @@ class UnreliablePixels:
     frames (the residual of a correct c is small next to the change itself), so they stay."""
 
     def __init__(self, width: int, height: int, *, min_events: int = 3, min_change: float = 2.5,
-                 relative: float = 0.75, saturated_limit: float = 4.0, decay: float = 0.8,
+                 relative: float = 0.9, saturated_limit: float = 4.0, decay: float = 0.8,
                  release: float = 0.2, grow_px: int = 0) -> None:
         self._shape = (height, width)
         self._grow = [(dy, dx) for dy in range(-grow_px, grow_px + 1) for dx in range(-grow_px, grow_px + 1)

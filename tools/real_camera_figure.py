@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from drivers.replay import merged_packets
@@ -63,6 +64,21 @@ def row(path: Path, index: int, height: int) -> np.ndarray:
     return np.hstack(_fit(tiles, height))
 
 
+def lamp_detail(height: int) -> np.ndarray:
+    """aestream's ceiling lamp at 3x: the APS frame, and the latent frame 10 ms later before and now."""
+    events, frames = load(REAL / "aestream_davis346.aedat4")
+
+    def zoom(image: np.ndarray) -> np.ndarray:
+        part = image[0:60, 150:270].astype(np.uint8)
+        return cv2.resize(part, (part.shape[1] * 3, part.shape[0] * 3), interpolation=cv2.INTER_NEAREST)
+
+    tiles = [_label(zoom(frames[2].image), "aestream lamp, 3x: APS frame 2")]
+    for name, settings in (("before", BEFORE), ("now", {})):
+        _, latent, _ = reconstruct(events, frames, 2, settings)
+        tiles.append(_label(zoom(latent.image), f"{name}: latent +10 ms"))
+    return np.hstack(_fit(tiles, height))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("out", type=Path, help="PNG to write")
@@ -70,7 +86,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--height", type=int, default=180)
     args = ap.parse_args(argv)
     wanted = [(p, 3) for p in args.recordings] or DEFAULT
-    write_rows([row(p, i, args.height) for p, i in wanted], args.out)
+    rows = [row(p, i, args.height) for p, i in wanted]
+    if not args.recordings:
+        rows.append(lamp_detail(args.height))
+    write_rows(rows, args.out)
     return 0
 
 

@@ -367,5 +367,11 @@ def _warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
         from edi_live.edi import log_divisor_events
 
         log_divisor_events(events, width, height, t_us - 20_000, t_us - 10_000, None, 0.2, 0.15)
+        # the worker's noise-or-activity test: its filter kernel over ring slices (strided fields) and one event
+        from edi_live.activity import SceneActivity
+
+        activity = SceneActivity(width, height)
+        activity.update(events[:10])
+        activity.update(events[10:11])
     except Exception:  # noqa: BLE001 - warm-up only; see docstring
         log.debug("kernel warm-up failed", exc_info=True)

@@ -104,7 +104,8 @@ class Node:
         self._started = threading.Event()
         self._rates = Rates()
         self.t_start = 0.0
-        self.elapsed_s = 0.0
+        self.warm_up_s = 0.0  # the one-off kernel compile (cold cache) or load, before the source is opened
+        self.elapsed_s = 0.0  # the run itself, after the warm-up: the summary's rates divide by this
         self.final_stats: dict[str, Any] = {}
 
     # ---------------------------------------------------------------- any thread
@@ -132,13 +133,15 @@ class Node:
 
     def stats(self) -> dict[str, Any]:
         """Every counter of every stage (see stats.collect)."""
-        return collect(self.source, self.ring, self.worker, self.publisher,
-                       (self.out_writer, self.record_writer, self.dv_frames, self.dv_events))
+        out = collect(self.source, self.ring, self.worker, self.publisher,
+                      (self.out_writer, self.record_writer, self.dv_frames, self.dv_events))
+        out["warm_up_s"] = round(self.warm_up_s, 3)
+        return out
 
     def stats_map(self) -> dict[str, Any]:
         """The map for the publisher's once-a-second stats message (it adds its own latency figures)."""
         s = with_rates(self.stats(), self._rates)
-        keep = ("events_per_s", "frames_per_s", "c", "c_on", "c_off", "reestimations", "hot_pixels", "drops",
+        keep = ("warm_up_s", "events_per_s", "frames_per_s", "c", "c_on", "c_off", "reestimations", "hot_pixels", "drops",
                 "ring_occupancy", "ring_dropped_events", "ring_dropped_frames", "events_in", "events_processed",
                 "aps_frames_in", "frames_deblurred", "frames_latent", "heartbeats", "skipped_max_fps",
                 "source_dropped_events", "source_gaps", "nearest_added_latency_ms_p50", "out_wait_s",
@@ -166,6 +169,10 @@ class Node:
         entered = False
         try:
             _warm_up(self._make_reconstructor, self.config.edi)
+            # the run's clock starts after the warm-up: a cold numba cache compiles for seconds once, which must
+            # not be folded into the rates of the summary (it is reported on its own line)
+            self.warm_up_s = time.monotonic() - self.t_start
+            self.t_start += self.warm_up_s
             if self._stop.is_set():  # stopped during start-up (SIGTERM, Ctrl-C): open nothing, create no file
                 return self.final_stats
             self.source.__enter__()
@@ -375,10 +382,23 @@ def _warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
             rec.on_events(later[-1:])  # one event: its field views count as C-contiguous, another specialisation
             rec.render()
             t_us += 20_000
+        # exposures without events (a dark or still scene), first and later: empty field views count as
+        # C-contiguous, another specialisation
+        empty = np.zeros(0, EVENT_DTYPE)
+        rec.on_frame(Frame(image, t_us, t_us + 10_000), empty)
+        first = make_reconstructor(width, height, edi_config)
+        for k in range(3):
+            first.on_frame(Frame(image, k * 20_000, k * 20_000 + 10_000), empty)
         # separate thresholds have their own single-pass divisor kernel: the first estimate with c_on != c_off
         # must not compile it mid-stream
         from edi_live.edi import log_divisor_events
 
         log_divisor_events(events, width, height, t_us - 20_000, t_us - 10_000, None, 0.2, 0.15)
+        # the worker's noise-or-activity test: its filter kernel over ring slices (strided fields) and one event
+        from edi_live.activity import SceneActivity
+
+        activity = SceneActivity(width, height)
+        activity.update(events[:10])
+        activity.update(events[10:11])
     except Exception:  # noqa: BLE001 - warm-up only; see docstring
         log.debug("kernel warm-up failed", exc_info=True)

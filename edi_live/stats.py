@@ -108,7 +108,8 @@ def _prediction_line(s: dict[str, Any]) -> str | None:
 
 
 def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
-    """The end-of-run report: totals, rates over the whole run, c and its re-estimations, drops."""
+    """The end-of-run report: totals, rates over the run (`elapsed_s`, without the kernel warm-up: that is the
+    stats' warm_up_s, on a line of its own), c and its re-estimations, drops."""
     events = s.get("events_processed", 0)
     frames = s.get("frames_out", 0)
     el = max(elapsed_s, 1e-9)
@@ -126,6 +127,9 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         f"publish {s.get('publish_dropped', 0)}, source events {s.get('source_dropped_events', 0)}); "
         f"skipped: static {s.get('skipped_static', 0)}, max-fps {s.get('skipped_max_fps', 0)}",
     ]
+    if s.get("warm_up_s"):
+        lines.append(f"  start-up: EDI kernels compiled or loaded in {s['warm_up_s']:.2f} s (once per process, "
+                     f"before the input opened; not counted in the time and rates above)")
     if "frames_sent" in s:
         latency = ""
         if s.get("latency_p99_us") is not None:

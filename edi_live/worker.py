@@ -12,10 +12,11 @@ Policy:
   every event up to its exposure end is in; the events from its exposure start come from the ring's history.
 - Then a latent frame (kind "latent") every `every` events, updated incrementally (`on_events`), at most
   `max_fps` per second (frames over the cap are skipped and counted, their events roll into the next frame).
-- Frames follow events: a deblurred frame is sent when at least min(every/10, 100) events arrived since its exposure
-  start or since the last sent frame (or none was sent yet); otherwise the scene is static: the frame still
-  becomes the reference, and only the keyframe heartbeat (the current latent image, every `heartbeat_s`)
-  goes out. With (almost) no events at all, APS frames are not even deblurred, except one per `heartbeat_s`.
+- Frames follow activity, not noise (edi_live.activity): events that show only background noise make no latent
+  frames (they still move the latent image); an onset makes one at once. An APS frame is deblurred only if the
+  scene was active since the previous deblurred frame, and sent if also min(every/10, 100) events came since its
+  exposure start or the last sent frame; otherwise only the keyframe heartbeat (the current latent image, every
+  `heartbeat_s`) goes out, and one APS frame per `heartbeat_s` is deblurred to bound drift.
   Between wake-ups the thread blocks on the ring's condition (no polling loop).
 - mode "causal": each latent frame is rendered from the latest deblurred frame, immediately.
   mode "nearest": a latent time past the midpoint to the next APS frame (predicted from the last interval) is
@@ -39,6 +40,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from edi_live.activity import StaticScene
 from edi_live.config import EdiConfig
 from edi_live.datatypes import Reconstruction, concat_events
 from edi_live.deblur_handover import PendingDeblur
@@ -57,8 +59,6 @@ _BATCH_FRAMES = 32  # latent frames made per reconstructor call (bounds the imag
 _IDLE_WAIT_S = 0.25
 _MOVING_EVENTS_CAP = 100  # the threshold at the default --every 1000; larger --every values do not raise it
 _STATIC_EVENTS = 16  # fewer events than this in an exposure (and since the last frame) = a static scene
-
-
 
 
 class EdiWorker:
@@ -86,6 +86,7 @@ class EdiWorker:
         self._gate = FrameGate()  # whether an APS frame's late events are in
         self._deblur_ms: collections.deque[float] = collections.deque(maxlen=256)  # on_frame wall time
         self._pending: PendingDeblur | None = None  # causal mode with deblur_thread
+        self._scene = StaticScene()  # events that show only background noise make no frames
         # how well the output predicted each APS frame (scored on this thread; stats() reads a copy)
         self.quality = (PredictionScore(config.mode, score_every=config.quality_every)
                         if config.quality_every else None)
@@ -195,6 +196,10 @@ class EdiWorker:
             return  # nothing to update before the first (or next, after a gap) APS frame
         every = self.config.every
         t0 = time.perf_counter()
+        if self._only_noise(chunk.events):
+            self.rec.on_events(chunk.events, chunk.arrival_ns_at(n))  # the latent image stays right; no frame
+            self.busy_s += time.perf_counter() - t0
+            return
         if self._batch_frames():
             # up to _BATCH_FRAMES frames per reconstructor call (same frames as the loop below); the cap bounds
             # the frames held before they are sent (a 64k-event chunk at --every 1 would be 64k images)
@@ -253,6 +258,7 @@ class EdiWorker:
         if self._static_frame(len(events)):
             self.skipped_static_deblur += 1
             return
+        self._scene.new_reference(frame, anchor=self._await_reference)
         self._last_deblur_s = time.monotonic()
         f_us = frame.mid_exposure_us + self.rec.clock_offset_us
         arrival = max(entry.arrival_ns, self._last_arrival_ns)
@@ -288,11 +294,10 @@ class EdiWorker:
             self._emit(rec)
 
     def _moving(self, n_exposure_events: int) -> bool:
-        """Whether a deblurred frame is worth sending: the scene moved, i.e. at least a tenth of a latent
-        frame's events (capped, so a huge --every cannot hide moving frames) arrived during its exposure or
-        since the last frame sent (not just sensor noise)."""
+        """Whether a deblurred frame is worth sending: the scene was active, and a tenth of a latent frame's events
+        (capped: a huge --every cannot hide moving frames) came during its exposure or since the last frame."""
         threshold = max(_STATIC_EVENTS, min(self.config.every // 10, _MOVING_EVENTS_CAP))
-        return n_exposure_events >= threshold or self._since >= threshold
+        return (n_exposure_events >= threshold or self._since >= threshold) and self._scene.changed
 
     def _use_deblur_thread(self) -> bool:
         return bool(self.config.deblur_thread and self.config.mode == "causal" and self.rec.has_reference
@@ -326,14 +331,23 @@ class EdiWorker:
             self.skipped_static += 1
 
     def _static_frame(self, n_events: int) -> bool:
-        """A static scene: (almost) no events since this exposure began, so L(f) would be the current reference
-        up to sensor noise. The events keep the latent image right; a real deblur is still forced every
-        heartbeat_s to bound drift. This is what keeps a still camera near zero CPU."""
+        """A static scene: (almost) no events, or only noise, since the previous deblur, so L(f) would be the
+        current reference up to sensor noise. The events keep the latent image right; a real deblur is still
+        forced every heartbeat_s to bound drift. This is what keeps a still camera near zero CPU."""
         if not self.rec.has_reference or self._await_reference:
             return False
-        if n_events >= _STATIC_EVENTS or self._since >= _STATIC_EVENTS:
+        if (n_events >= _STATIC_EVENTS or self._since >= _STATIC_EVENTS) and self._scene.active_since_reference():
             return False
         return time.monotonic() - self._last_deblur_s < self.config.heartbeat_s
+
+    def _only_noise(self, events: np.ndarray) -> bool:
+        """True while the events show only noise (no latent frame for them); an onset makes one at the latest."""
+        state = self._scene.observe(events)
+        if state == "onset":
+            self._since = max(self._since, self.config.every - len(events))
+        elif state == "noise":
+            self._since = 0
+        return state == "noise"
 
     def _render_at(self, t_us: int, arrival_ns: int) -> Reconstruction:
         """nearest mode: the latent image at t_us from the current reference, with the held-back latency."""
@@ -381,6 +395,7 @@ class EdiWorker:
             "heartbeats": self.heartbeats,
             "skipped_static": self.skipped_static,
             "skipped_static_deblur": self.skipped_static_deblur,
+            "noise_only_events": self._scene.noise_only_events,
             "skipped_max_fps": self.skipped_max_fps,
             "worker_gaps": self.gaps,
             "c": round((c_on + c_off) / 2, 4),

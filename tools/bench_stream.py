@@ -5,6 +5,7 @@
     python -m tools.bench_stream latency      # paced replay at ~1 M events/s: latency p50/p99, arrival -> sent
     python -m tools.bench_stream memory       # PSS over a looped replay (--seconds 60; 600 for the 10-minute run)
     python -m tools.bench_stream static       # CPU of the node on a static scene (APS frames, no events)
+    python -m tools.bench_stream noise        # static scene with sensor noise: CPU, frames out, motion-onset delay
     python -m tools.bench_stream scaling      # worker cost per latent frame vs changed pixels and resolution
     python -m tools.bench_stream all
 
@@ -556,6 +557,140 @@ def bench_static(seconds: float) -> None:
           f"worker wake-ups {node.worker.wakeups}")
 
 
+def noisy_scene(seconds: float, onset_s: float | None = None, noise_hz: float = 0.5, width: int = 240,
+                height: int = 180, speed_px_s: float = 100.0) -> tuple[np.ndarray, list, int | None]:
+    """A still camera with `noise_hz` background events per pixel and APS frames at 20 fps (simulated), and,
+    with `onset_s`, the scene starts moving (`speed_px_s`) at that time. Returns (events, frames, the sensor
+    time of the first event caused by motion or None)."""
+    from edi_live.simulation import SceneConfig, simulate
+
+    base = dict(width=width, height=height, noise_rate_hz=noise_hz, frame_interval_us=50_000, exposure_us=10_000,
+                ground_truth=False, texture="blocks")
+    still = simulate(SceneConfig(duration_s=onset_s or seconds, velocity_px_s=(0.0, 0.0), **base))
+    if onset_s is None:
+        return still.events, still.frames, None
+    # the moving part starts from the same picture (position = v * t from its own t0), one frame period later
+    moving = simulate(SceneConfig(duration_s=seconds - onset_s, velocity_px_s=(speed_px_s, 0.0),
+                                  t0_us=still.config.t0_us + int(onset_s * 1e6), **base))
+    events = np.concatenate([still.events, moving.events])
+    return events, still.frames + moving.frames, int(moving.events["t"][~moving.is_noise][0])
+
+
+def scene_packets(events: np.ndarray, frames: list, packet_us: int = 1000) -> list[Packet]:
+    """1 ms packets as a camera delivers them; each APS frame in the packet that holds its exposure end."""
+    t0, t1 = int(events["t"][0]), int(events["t"][-1])
+    bounds = np.arange(t0, t1 + packet_us, packet_us)
+    cuts = np.searchsorted(events["t"], bounds, side="right")
+    packets, k = [], 0
+    for i in range(len(bounds)):
+        lo = cuts[i - 1] if i else 0
+        mine = []
+        while k < len(frames) and frames[k].exposure_end_us <= bounds[i]:
+            mine.append(frames[k])
+            k += 1
+        packets.append(Packet(events=events[lo:cuts[i]], frames=mine, watermark_us=int(bounds[i])))
+    return packets
+
+
+class CountOnlyPolicy:
+    """The static-scene policy before the noise test (every event counts as activity), for A/B runs."""
+
+    def __enter__(self):
+        from edi_live.activity import StaticScene
+
+        self._saved = StaticScene.observe, StaticScene.active_since_reference
+        StaticScene.observe = lambda scene, events: "active"
+        StaticScene.active_since_reference = lambda scene: True
+        return self
+
+    def __exit__(self, *exc):
+        from edi_live.activity import StaticScene
+
+        StaticScene.observe, StaticScene.active_since_reference = self._saved
+
+
+def bench_noise(seconds: float, repeat: int) -> None:
+    print(f"\n## static 240x180 scene with 0.5 events/s per pixel of noise, APS at 20 fps: paced replay (speed 1) "
+          f"with the publisher, {seconds:.0f} s measured after 2 s; node process CPU (the decoding child, the same in "
+          f"both, not counted); A/B interleaved, {repeat} repeats")
+
+    cache = Path(tempfile.gettempdir()) / "edi-live-bench"
+    cache.mkdir(exist_ok=True)
+    path = cache / f"noise_static_{seconds + 4:.0f}s.aedat4"
+    if not path.exists():
+        from edi_live.aedat4 import Aedat4Writer
+
+        events, frames, _ = noisy_scene(seconds + 4)
+        with Aedat4Writer(path, 240, 180) as writer:
+            for p in scene_packets(events, frames, packet_us=10_000):
+                writer.write_events(p.events)
+                for f in p.frames:
+                    writer.write_frame(f)
+    results: dict[str, list] = {"count-only (before)": [], "noise-aware": []}
+    for _ in range(repeat):
+        for name in results:
+            with (CountOnlyPolicy() if name.startswith("count") else _Nothing()):
+                cfg = NodeConfig.from_options({"replay": str(path), "publish": ["tcp://127.0.0.1:*"]})
+                node = Node(cfg, _replay(path, 1.0))
+                thread = threading.Thread(target=node.run, daemon=True)
+                thread.start()
+                node.started.wait(30)
+                time.sleep(2.0)
+                s0, cpu0, wall0 = node.stats(), time.process_time(), time.monotonic()
+                with ThreadCpu() as threads:
+                    time.sleep(seconds)
+                cpu, wall, s1 = time.process_time() - cpu0, time.monotonic() - wall0, node.stats()
+                node_cpu = threads.cpu_s.get("edi-worker", 0.0) + threads.cpu_s.get("publisher", 0.0)
+                node.stop()
+                thread.join(30)
+            d = {k: s1[k] - s0[k] for k in ("frames_out", "heartbeats", "aps_frames_in", "skipped_static_deblur")}
+            results[name].append((100 * node_cpu / wall, 100 * cpu / wall, (d["frames_out"] - d["heartbeats"]) / wall,
+                                  d["heartbeats"] / wall, (d["aps_frames_in"] - d["skipped_static_deblur"]) / wall))
+    print("| policy | worker + publisher, % of one core, median (min-max) | whole process (with the replay's pump) | "
+          "non-heartbeat frames/s | heartbeats/s | deblurs/s |\n|---|---|---|---|---|---|")
+    for name, rows in results.items():
+        a = np.array(rows)
+        print(f"| {name} | {np.median(a[:, 0]):.1f} ({a[:, 0].min():.1f}-{a[:, 0].max():.1f}) | "
+              f"{np.median(a[:, 1]):.1f} ({a[:, 1].min():.1f}-{a[:, 1].max():.1f}) | "
+              f"{np.median(a[:, 2]):.1f} | {np.median(a[:, 3]):.2f} | {np.median(a[:, 4]):.2f} |")
+    print("\nmotion onset (the scene starts moving at 100 px/s after 1 s): first moving event -> first frame that "
+          "is not a heartbeat, sensor time")
+    for k in range(repeat):
+        delay = onset_delay_us(seed_shift=k)
+        print(f"  run {k}: {delay / 1000:.1f} ms (APS frame period 50 ms)")
+
+
+class _Nothing:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return None
+
+
+def onset_delay_us(seed_shift: int = 0, every: int = 1000) -> float:
+    """Worker alone (real reconstructor), 1 ms packets: sensor time from the first event caused by motion to
+    the first frame sent that is not the first deblurred frame or a heartbeat."""
+    from edi_live.config import EdiConfig
+    from edi_live.ring import EventRing
+    from edi_live.worker import EdiWorker
+
+    events, frames, onset = noisy_scene(1.0 + 0.3, onset_s=1.0 + 0.01 * seed_shift)
+    ring = EventRing(capacity_events=1 << 22, capacity_frames=256, policy="wait")
+    for p in scene_packets(events, frames):
+        ring.push(p)
+    ring.close()
+    sent: list = []
+    worker = EdiWorker(ring, default_reconstructor(240, 180, EdiConfig()), EdiConfig(every=every, heartbeat_s=3600),
+                       [lambda r: sent.append((r.t_us, worker.heartbeats))])
+    worker.start()
+    worker.done.wait(60)
+    later = [t for t, _ in sent[1:] if t >= onset]
+    early = [t for t, _ in sent[1:] if t < onset]
+    assert not early, f"frames on the static part: {early}"
+    return (later[0] - onset) if later else float("inf")
+
+
 def bench_scaling(every: int, repeat: int) -> None:
     print(f"\n## scaling: one latent frame (on_events of {every} events + render) vs changed pixels and resolution")
     from edi_live.config import EdiConfig
@@ -601,7 +736,8 @@ def _extra(args: argparse.Namespace) -> dict:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m tools.bench_stream", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("mode", choices=("throughput", "stages", "latency", "memory", "static", "scaling", "all"))
+    ap.add_argument("mode", choices=("throughput", "stages", "latency", "memory", "static", "noise", "scaling",
+                                     "all"))
     ap.add_argument("--input", type=Path, help="an .aedat4 recording (default: simulated 240x180, cached)")
     ap.add_argument("--every", type=int, default=1000, help="events per latent frame (default 1000)")
     ap.add_argument("--repeat", type=int, default=3, help="runs for medians (default 3)")
@@ -626,6 +762,8 @@ def main(argv: list[str] | None = None) -> int:
         bench_latency(path, args.every, args.rate, args.seconds or 10.0, extra=_extra(args))
     if args.mode in ("static", "all"):
         bench_static(args.seconds or 10.0)
+    if args.mode in ("noise", "all"):
+        bench_noise(args.seconds or 20.0, args.repeat)
     if args.mode in ("scaling", "all"):
         bench_scaling(args.every, args.repeat)
     if args.mode in ("memory", "all"):

@@ -71,3 +71,11 @@ def test_collect_sums_drops_of_every_stage():
 
     s = collect(ring=Ring(), publisher=Pub())
     assert s["drops"] == 7 and s["frames_sent"] == 7 and s["events_in"] == 5
+
+
+def test_summary_reports_the_warm_up_on_its_own_line_and_not_in_the_rate():
+    summary = format_summary({**STATS, "warm_up_s": 6.5}, 2.0)
+    first, rest = summary.split("\n", 1)
+    assert "done in 2.00 s" in first and "(500 ev/s)" in first  # 1000 events over the run alone
+    assert "compiled or loaded in 6.50 s" in rest
+    assert "compiled or loaded" not in format_summary(STATS, 2.0)  # a node that has not run: no such line

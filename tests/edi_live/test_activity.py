@@ -1,0 +1,52 @@
+"""The static-scene policy against sensor noise (edi_live.activity, used by the worker): a simulated still
+camera with 0.5 events/s per pixel of background noise and APS frames at 20 fps, through the real worker and
+reconstructor in 1 ms packets. Oracles: the simulator's own labels (which events are noise, when motion starts)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from edi_live.activity import SceneActivity
+from edi_live.config import EdiConfig
+from edi_live.datatypes import EVENT_DTYPE
+from edi_live.node import default_reconstructor
+from edi_live.ring import EventRing
+from edi_live.worker import EdiWorker
+from tools.bench_stream import noisy_scene, onset_delay_us, scene_packets
+
+
+def test_a_still_noisy_scene_makes_no_frames_and_no_deblurs_beyond_the_first():
+    events, frames, _ = noisy_scene(2.0)
+    ring = EventRing(capacity_events=1 << 20, capacity_frames=256, policy="wait")
+    for p in scene_packets(events, frames):
+        ring.push(p)
+    ring.close()
+    sent = []
+    worker = EdiWorker(ring, default_reconstructor(240, 180, EdiConfig()), EdiConfig(every=1000, heartbeat_s=3600),
+                       [sent.append])
+    worker.start()
+    assert worker.done.wait(60) and worker.error is None
+    assert len(events) > 30_000  # the noise is really there (0.5 Hz x 43200 pixels x 2 s)
+    assert [r.kind for r in sent] == ["deblurred"]  # the first reference; the heartbeat would be the rest
+    assert worker.skipped_static_deblur == len(frames) - 1
+    assert worker.stats()["noise_only_events"] > 0.9 * len(events)
+
+
+def test_the_first_frame_after_a_motion_onset_comes_within_one_aps_period():
+    # onset_delay_us also checks that nothing but the first deblurred frame came before the onset
+    assert onset_delay_us() < 50_000
+    assert onset_delay_us(seed_shift=3, every=5000) < 50_000  # a large --every does not delay it
+
+
+def test_noise_alone_is_quiet_and_an_edge_is_active():
+    rng = np.random.default_rng(0)
+    act = SceneActivity(240, 180)
+    noise = np.zeros(20_000, EVENT_DTYPE)
+    noise["t"] = np.sort(rng.integers(0, 1_000_000, noise.size))  # ~0.46 Hz per pixel over 1 s
+    noise["x"], noise["y"] = rng.integers(0, 240, noise.size), rng.integers(0, 180, noise.size)
+    for k in range(0, noise.size, 20):  # ~1 ms chunks
+        assert not act.update(noise[k:k + 20])
+    edge = np.zeros(180, noise.dtype)  # a vertical edge crossing one column: every row fires within 1 ms
+    edge["t"] = 1_000_000 + np.arange(180) * 5
+    edge["x"], edge["y"] = 100, np.arange(180)
+    assert act.update(edge) and act.active_since(1_000_000)

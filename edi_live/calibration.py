@@ -110,7 +110,13 @@ def prepare(edi: EdiConfig, info: SourceInfo, given: Path | None, save_to: Path 
     path = given if given is not None else (default_path(info) if live and default_path(info).is_file() else None)
     if path is not None:
         cal = load(path)
-        cal.check_for(info, path)
+        try:
+            cal.check_for(info, path)
+        except ConfigError as exc:
+            if given is not None:
+                raise
+            log.warning("%s; not using it", exc)  # the camera's own file, but of another sensor set-up
+            return edi, save_to if save_to is not None else default_path(info)
         log.info("starting from the calibration %s (c_on=%.3f c_off=%.3f, black level %g DN, clock offset %d µs)",
                  path, cal.c_on, cal.c_off, cal.black_level, cal.clock_offset_us)
         edi = dataclasses.replace(

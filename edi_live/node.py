@@ -28,15 +28,14 @@ import time
 from pathlib import Path
 from typing import Any, Callable, TextIO
 
-import numpy as np
 
 from edi_live.config import EdiConfig, NodeConfig
-from edi_live.datatypes import EVENT_DTYPE, Frame
 from edi_live.errors import ConfigError, EdiLiveError, NodeError, SourceError
 from edi_live.reconstruction import Reconstructor
 from edi_live.ring import EventRing, as_events
 from edi_live.source import Source
 from edi_live.stats import Rates, StatusLine, collect, with_rates
+from edi_live.warm_up import warm_up
 from edi_live.worker import EdiWorker
 from edi_live.writers import OutWriter, RecordWriter
 
@@ -168,7 +167,7 @@ class Node:
         self.t_start = time.monotonic()
         entered = False
         try:
-            _warm_up(self._make_reconstructor, self.config.edi)
+            warm_up(self._make_reconstructor, self.config.edi)
             # the run's clock starts after the warm-up: a cold numba cache compiles for seconds once, which must
             # not be folded into the rates of the summary (it is reported on its own line)
             self.warm_up_s = time.monotonic() - self.t_start
@@ -352,53 +351,3 @@ class Node:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
-
-
-def _warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
-    """Run a throwaway reconstructor over a tiny synthetic scene before the source starts.
-
-    The EDI kernels are numba functions: compiled on first use (seconds, with a cold cache) or loaded from the
-    on-disk cache (~0.4 s). Paying that here, before a camera streams or the replay clock starts, keeps the first
-    APS frames from stalling the worker while the ring fills (a live camera would drop data). A failure here is
-    not fatal: the real run reports it where it happens.
-    """
-    width, height = 16, 12
-    rng = np.random.default_rng(0)
-    image = np.full((height, width), 100, np.uint8)
-    frozen = image.copy()
-    frozen.setflags(write=False)  # numba compiles read-only arrays separately (a decoded frame can be one)
-    try:
-        rec = make_reconstructor(width, height, edi_config)
-        t_us = 0
-        for k in range(3):  # three frames: the c estimator needs frame pairs
-            events = np.zeros(200, EVENT_DTYPE)
-            events["t"] = np.sort(rng.integers(t_us, t_us + 20_000, events.size))
-            events["x"] = rng.integers(0, width, events.size)
-            events["y"] = rng.integers(0, height, events.size)
-            events["p"] = rng.integers(0, 2, events.size).astype(bool)
-            rec.on_frame(Frame(image if k % 2 == 0 else frozen, t_us, t_us + 10_000), events)
-            later = events[events["t"] > t_us + 10_000]
-            rec.on_events(later[:-1])
-            rec.on_events(later[-1:])  # one event: its field views count as C-contiguous, another specialisation
-            rec.render()
-            t_us += 20_000
-        # exposures without events (a dark or still scene), first and later: empty field views count as
-        # C-contiguous, another specialisation
-        empty = np.zeros(0, EVENT_DTYPE)
-        rec.on_frame(Frame(image, t_us, t_us + 10_000), empty)
-        first = make_reconstructor(width, height, edi_config)
-        for k in range(3):
-            first.on_frame(Frame(image, k * 20_000, k * 20_000 + 10_000), empty)
-        # separate thresholds have their own single-pass divisor kernel: the first estimate with c_on != c_off
-        # must not compile it mid-stream
-        from edi_live.edi import log_divisor_events
-
-        log_divisor_events(events, width, height, t_us - 20_000, t_us - 10_000, None, 0.2, 0.15)
-        # the worker's noise-or-activity test: its filter kernel over ring slices (strided fields) and one event
-        from edi_live.activity import SceneActivity
-
-        activity = SceneActivity(width, height)
-        activity.update(events[:10])
-        activity.update(events[10:11])
-    except Exception:  # noqa: BLE001 - warm-up only; see docstring
-        log.debug("kernel warm-up failed", exc_info=True)

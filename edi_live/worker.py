@@ -1,33 +1,19 @@
 """The EDI worker thread: reads the ring in order and turns APS frames and events into sharp frames.
 
-Accepts: an `EventRing` (events in time order; each APS frame queued at the index just past its exposure end)
-and a `Reconstructor` (edi_live.reconstruction). Yields: `Reconstruction`s handed to each
-sink (publisher.submit, the --out writer) as they are made: t increases, except that in causal mode a deblurred
-frame (t = mid-exposure f) follows the latent frames up to its exposure end (with the deblur thread: up to
-wherever the stream was when its deblur finished, at most the next APS frame's exposure end). Times are µs on the sensor clock;
-host times (latency, pacing of --max-fps and the heartbeat) are time.monotonic.
-
-Policy:
-- An APS frame is deblurred (L(f), kind "deblurred") as soon as the read cursor reaches its end index, i.e.
-  every event up to its exposure end is in; the events from its exposure start come from the ring's history.
-- Then a latent frame (kind "latent") every `every` events, updated incrementally (`on_events`), at most
-  `max_fps` per second (frames over the cap are skipped and counted, their events roll into the next frame).
-- Frames follow activity, not noise (edi_live.activity): events that show only background noise make no latent
-  frames (they still move the latent image); an onset makes one at once. An APS frame is deblurred only if the
-  scene was active since the previous deblurred frame, and sent if also min(every/10, 100) events came since its
-  exposure start or the last sent frame; otherwise only the keyframe heartbeat (the current latent image, every
-  `heartbeat_s`) goes out, and one APS frame per `heartbeat_s` is deblurred to bound drift.
-  Between wake-ups the thread blocks on the ring's condition (no polling loop).
-- mode "causal": each latent frame is rendered from the latest deblurred frame, immediately.
-  mode "nearest": a latent time past the midpoint to the next APS frame (predicted from the last interval) is
-  held back until that frame is deblurred and rendered from it instead; the extra wait is measured
-  (`nearest_added_latency_ms_p50`) and included in the frames' latency stamps.
-- A gap (data lost upstream) suspends latent frames until the next APS frame re-anchors the state.
-- deblur_thread (causal mode; the node turns it on except for --speed 0 replays): each APS frame after the first
-  is deblurred on a helper thread ("edi-deblur") while latent frames keep coming from a copy holding the
-  previous reference; then the events the copy applied meanwhile are replayed into the reconstructor, which
-  takes over again, and the deblurred frame is sent (edi_live.deblur_handover).
+Accepts an `EventRing` (events in time order, each APS frame queued just past its exposure end) and a
+`Reconstructor`; hands each `Reconstruction` to the sinks as it is made (t increases, except that in causal mode a
+deblurred frame at f follows the latent frames up to its exposure end). Times are µs on the sensor clock; host
+times (latency, --max-fps, the heartbeat) are time.monotonic. The policy, in full in docs/node.md:
+- an APS frame is deblurred once every event of its exposure (in the event clock: frame_gate) has been read;
+- then a latent frame every `every` events, at most `max_fps` per second (the skipped ones are counted);
+- frames follow activity, not noise (edi_live.activity): noise-only events move the latent image but make no
+  frame, an onset makes one at once; APS frames of a still scene are deblurred once per `heartbeat_s` only;
+- "nearest" holds latent times past the midpoint to the next APS frame back and renders them from it
+  (nearest_mode); a gap suspends latent frames until the next APS frame;
+- with deblur_thread, each APS frame after the first is deblurred on a helper thread while a copy keeps the
+  latent frames coming (deblur_handover). The thread blocks on the ring's condition between wake-ups.
 """
+
 
 from __future__ import annotations
 

@@ -55,16 +55,22 @@ def test_the_jit_warm_up_commands_run(tmp_path):
     assert runs, "the Dockerfile no longer warms the JIT cache"
     env_lines = [line for line in _instructions() if line.startswith("ENV NUMBA_CACHE_DIR=")]
     assert env_lines, "NUMBA_CACHE_DIR must point at a folder the image keeps"
+    ran = 0
     for step in re.split(r"\s*&&\s*", runs[0]):
-        argv = shlex.split(step)
-        if argv[0] != "edi-live":
+        argv = [a.replace("/tmp/", f"{tmp_path}/") for a in shlex.split(step)]
+        assigned = {}
+        while argv and re.fullmatch(r"[A-Z_]+=\S*", argv[0]):  # VAR=value before the command, as sh reads it
+            name, _, value = argv.pop(0).partition("=")
+            assigned[name] = value
+        if not argv or argv[0] != "edi-live":
             continue
-        argv = [a.replace("/tmp/", f"{tmp_path}/") for a in argv[1:]]
-        proc = subprocess.run([sys.executable, "-m", "edi_live", *argv], cwd=REPO, capture_output=True,
+        proc = subprocess.run([sys.executable, "-m", "edi_live", *argv[1:]], cwd=REPO, capture_output=True,
                               text=True, timeout=120,
                               env={**os.environ, "PYTHONPATH": str(REPO),
-                                   "NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")})
+                                   "NUMBA_CACHE_DIR": str(tmp_path / "numba-cache"), **assigned})
         assert proc.returncode == 0, f"{step}: {proc.stderr[-800:]}"
+        ran += 1
+    assert ran == 2, "the warm-up runs the emulated camera and a replay"
 
 
 @pytest.mark.parametrize("args,publishes", [

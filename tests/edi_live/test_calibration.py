@@ -80,3 +80,16 @@ def test_a_live_camera_picks_up_its_own_calibration(tmp_path):
     assert len(files) == 1 and "starting from the calibration" not in first.stderr
     second = _node(*args, env=env)
     assert second.returncode == 0 and f"starting from the calibration {files[0]}" in second.stderr, second.stderr
+
+
+def test_a_live_cameras_own_file_of_another_sensor_set_up_is_ignored_with_a_warning(tmp_path):
+    env = {"XDG_CONFIG_HOME": str(tmp_path)}
+    args = ("--device", "davis240", "--usb-backend", "drivers.emulator:backend", "--duration", "1.0", "--no-publish")
+    first = _node(*args, env=env)
+    own, = (tmp_path / "edi-live" / "calibration").glob("*.json")
+    cal = calibration.load(own)
+    calibration.save(calibration.Calibration(cal.camera, 346, 260, 0.3, 0.3), own)  # another size, same serial
+    second = _node(*args, env=env)
+    assert first.returncode == 0 and second.returncode == 0, second.stderr
+    assert "not using it" in second.stderr and "starting from the calibration" not in second.stderr
+    assert calibration.load(own).width == cal.width, "the run saved its own calibration over the stale one"

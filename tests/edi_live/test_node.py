@@ -256,13 +256,14 @@ import sys
 from edi_live.cli import main
 from edi_live.edi import compiled_signatures
 from edi_live.config import EdiConfig
-from edi_live.node import _warm_up, default_reconstructor
+from edi_live.node import default_reconstructor
+from edi_live.warm_up import warm_up
 
 def kernels():
     return compiled_signatures()
 
 if __name__ == "__main__":
-    _warm_up(default_reconstructor, EdiConfig())
+    warm_up(default_reconstructor, EdiConfig())
     before = kernels()
     try:  # the CLI's replay: frames decoded in the child arrive read-only; 1 ms packets give 1-event slices
         main(["--replay", sys.argv[1], "--no-publish", "--speed", "8", "--every", "7", "--log-level", "error"])

@@ -79,7 +79,8 @@ def test_oracle_camera_is_plain_edi_on_an_ideal_camera_and_wins_on_a_real_one():
 def test_realistic_section_runs_quick(capsys):
     assert ba.main(["--realistic", "--quick"]) == 0
     out = capsys.readouterr().out
-    assert "default - oracle f (dB)" in out and "mean of the 2 mixed scenes" in out and "all effects" in out
+    assert "default - oracle f / lat (dB)" in out and "given - oracle f / lat (dB)" in out
+    assert "mean of the 2 mixed scenes" in out and "all effects" in out
     assert len([ln for ln in out.splitlines() if ln.startswith("| ") and "PSNR" not in ln]) == 4
     full = ba.realistic_suite()
     from edi_live.simulation import EFFECTS

@@ -181,7 +181,7 @@ class EdiWorker:
         if chunk.gap:
             self.gaps += 1
             self._await_reference = True
-            self._nearest.take_all()
+            self._nearest.gap()
             self.rec.mark_gap()  # lets the c estimator skip pairs across the gap
         if self._await_reference or not self.rec.has_reference:
             self._since += n

@@ -36,7 +36,7 @@ else:  # pragma: no cover - Python 3.10 only
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
 POLICIES = ("drop_oldest", "wait")
-MODES = ("causal", "nearest")
+MODES = ("causal", "nearest", "fused")
 DEVICE_MODELS = ("davis240", "davis346", "auto")
 LOG_LEVELS = ("debug", "info", "warning", "error")
 

@@ -42,6 +42,7 @@ import numpy as np
 from edi_live.config import EdiConfig
 from edi_live.datatypes import Reconstruction, concat_events
 from edi_live.deblur_handover import PendingDeblur
+from edi_live.fused_mode import FusedHoldBack
 from edi_live.nearest_mode import NearestHoldBack
 from edi_live.quality import PredictionScore
 from edi_live.reconstruction import Reconstructor
@@ -81,7 +82,7 @@ class EdiWorker:
         self._last_emit_s = 0.0
         self._last_arrival_ns = 0
         self._ref_f_us: int | None = None
-        self._nearest = NearestHoldBack()
+        self._nearest = FusedHoldBack() if config.mode == "fused" else NearestHoldBack()  # latent times held back
         self._deblur_ms: collections.deque[float] = collections.deque(maxlen=256)  # on_frame wall time
         self._pending: PendingDeblur | None = None  # causal mode with deblur_thread
         # how well the output predicted each APS frame (scored on this thread; stats() reads a copy)
@@ -230,7 +231,7 @@ class EdiWorker:
         if self.config.max_fps is not None and now - self._last_emit_s < 1.0 / self.config.max_fps:
             self.skipped_max_fps += 1
             return
-        if self.config.mode == "nearest" and self._nearest.should_hold(t_us, self._ref_f_us):
+        if self.config.mode != "causal" and self._nearest.should_hold(t_us, self._ref_f_us):
             self._nearest.held.append((t_us, arrival_ns))
             return
         self._emit(self.rec.render())
@@ -269,8 +270,11 @@ class EdiWorker:
         self._nearest.new_reference(self._ref_f_us, f_us)
         self._ref_f_us = f_us
         self._await_reference = False
-        late = self._nearest.take_all()
-        out.extend(self._render_at(t, a) for t, a in late)  # from the new, nearer reference
+        if self.config.mode == "fused":
+            out.extend(self._render_fused(frame))
+        else:
+            late = self._nearest.take_all()
+            out.extend(self._render_at(t, a) for t, a in late)  # from the new, nearer reference
         if first or out or self._moving(len(events)):
             out.append(deblurred)
         else:
@@ -337,6 +341,22 @@ class EdiWorker:
             self._nearest.waited(arrival_ns)
         return dataclasses.replace(rec, arrival_ns=arrival_ns)
 
+    def _render_fused(self, frame) -> list[Reconstruction]:
+        """fused mode: the held times up to the new reference, from it and the previous one (forward from the new
+        one when there is no previous: the first frame, after a gap); the new reference is kept for the next."""
+        hold = self._nearest
+        done = hold.take_until(self._ref_f_us)
+        previous, hold.previous = hold.previous, (self.rec.reference_log(), frame.image)
+        if previous is None or not done:
+            return [self._render_at(t, a) for t, a in done]
+        (log0, f0), image0 = previous
+        events = self.ring.window(f0 + 1, self._ref_f_us + 1, end_index=self.ring.read_index)
+        recs = self.rec.render_fused((log0, f0), image0, frame.image, [t for t, _ in done], events)
+        for _, a in done:
+            if a:
+                hold.waited(a)
+        return [dataclasses.replace(r, arrival_ns=a) for r, (_, a) in zip(recs, done)]
+
     def _flush_deferred(self) -> None:
         if not self._nearest.held or not self.rec.has_reference:
             return
@@ -383,7 +403,8 @@ class EdiWorker:
             "worker_busy_s": round(self.busy_s, 3),
             "deblur_ms_p50": round(float(np.median(deblur)), 3) if deblur else None,
             "deblur_ms_max": round(float(np.max(deblur)), 3) if deblur else None,
-            "nearest_added_latency_ms_p50": self._nearest.waited_ms_p50(),
+            "nearest_added_latency_ms_p50": self._nearest.waited_ms_p50() if self.config.mode == "nearest" else None,
+            "fused_added_latency_ms_p50": self._nearest.waited_ms_p50() if self.config.mode == "fused" else None,
             "unreliable_pixels": int(rec.unreliable_pixels),
             "black_level_dn": round(float(rec.black_level), 2),
             **(self.quality.stats() if self.quality is not None else {}),

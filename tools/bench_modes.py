@@ -39,6 +39,7 @@ class ModeRun:
     images: list[np.ndarray]  # uint8
     waited_ms: float | None
     wall_ms_per_latent: float
+    cpu_ms_per_latent: float  # the worker thread's CPU time (deblurs included) per latent frame
 
 
 def feed_worker(sim: Simulation, mode: str, every: int, c: tuple[float, float]) -> ModeRun:
@@ -73,7 +74,7 @@ def feed_worker(sim: Simulation, mode: str, every: int, c: tuple[float, float]) 
     lat = [r for r in out if r.kind == "latent"]
     return ModeRun(np.array([r.t_us for r in lat], np.int64), np.array([r.ref_t_us for r in lat], np.int64),
                    [r.image for r in lat], worker.stats()[f"{mode}_added_latency_ms_p50"] if mode != "causal" else None,
-                   wall * 1e3 / max(1, len(lat)))
+                   wall * 1e3 / max(1, len(lat)), worker.cpu_s * 1e3 / max(1, len(lat)))
 
 
 class Oracle:
@@ -189,6 +190,16 @@ def score_scene(label: str, sim: Simulation, *, every: int, modes=MODES_RUN, c: 
     return res
 
 
+def cost_ratio(sim: Simulation, every: int, repeats: int = 5) -> dict[str, list[float]]:
+    """Worker CPU ms per latent frame, causal / nearest / fused run alternately `repeats` times (A/B in one run)."""
+    c = true_c(sim)
+    out: dict[str, list[float]] = {m: [] for m in MODES_RUN}
+    for _ in range(repeats):
+        for m in MODES_RUN:
+            out[m].append(feed_worker(sim, m, every, c).cpu_ms_per_latent)
+    return out
+
+
 def modes_suite(quick: bool, realistic: bool):
     from tools.bench_accuracy import realistic_suite, scene_suite
 
@@ -225,7 +236,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--realistic", action="store_true", help="the realistic-camera scenes (c: the true means)")
     ap.add_argument("--every", type=int, default=2000)
     ap.add_argument("--modes", default=",".join(MODES_RUN))
+    ap.add_argument("--cost", action="store_true", help="only the CPU cost per latent frame of each mode, A/B")
     args = ap.parse_args(argv)
+    if args.cost:
+        label, cfg = modes_suite(True, False)[0]
+        sim = simulate(cfg)
+        cpu = cost_ratio(sim, args.every)
+        print(f"worker CPU ms per latent frame on '{label}' (--every {args.every}), median [min, max] of 5 alternating runs")
+        for m, v in cpu.items():
+            ratios = [a / b for a, b in zip(v, cpu["causal"])]
+            print(f"  {m}: {np.median(v):.3f} [{min(v):.3f}, {max(v):.3f}] ms, x{np.median(ratios):.2f} causal "
+                  f"[{min(ratios):.2f}, {max(ratios):.2f}]")
+        return 0
     t0 = time.perf_counter()
     results = {}
     for label, cfg in modes_suite(args.quick, args.realistic):

@@ -29,3 +29,20 @@ def propagate_steps(x, y, p, width, height, mask, use_mask, flat, step_on, step_
         if z > 255.0:
             z = 255.0
         disp[q] = np.uint8(z)
+
+
+@njit(cache=True, nogil=True)
+def pair_sums(x, y, p, width, height, mask, use_mask, c_on, c_off, delta, mass):
+    """delta += c_on (ON) / -c_off (OFF) and mass += c_on / c_off per event, flat float32 per pixel."""
+    for i in range(x.size):
+        if x[i] >= width or y[i] >= height:
+            continue
+        q = np.int64(y[i]) * width + x[i]
+        if use_mask and mask[q]:
+            continue
+        if p[i]:
+            delta[q] += c_on
+            mass[q] += c_on
+        else:
+            delta[q] -= c_off
+            mass[q] += c_off

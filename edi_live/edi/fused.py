@@ -106,20 +106,37 @@ def fusion_plan(log_ref0: np.ndarray, log_ref1: np.ndarray, events: np.ndarray, 
     """The plan of the fused frames in (f0, f1) from the two references and the events between them (the events
     with f0 < t <= f1 are used; masked pixels' events are ignored, as in the references' own propagation)."""
     h, w = log_ref0.shape
-    e01 = event_delta(events, w, h, c_on, c_off, t0=f0_us + 1, t1=f1_us, mask=mask).astype(np.float64)
-    mass = event_mass(events, w, h, c_on, c_off, t0=f0_us + 1, t1=f1_us, mask=mask)
-    r0 = np.asarray(log_ref0, np.float64)
-    d = np.asarray(log_ref1, np.float64) - r0 - e01
+    e01, mass = _pair_sums(events, w, h, c_on, c_off, f0_us, f1_us, mask)
+    r0 = np.asarray(log_ref0, np.float32)
+    d = np.asarray(log_ref1, np.float32) - r0 - e01
     inf0, inf1 = np.asarray(informative0, bool), np.asarray(informative1, bool)
     one_sided = inf0 != inf1
     a = float(reference_mass)
-    share = np.where(one_sided, 0.0, d / (mass + a))
-    const = np.where(inf1 & ~inf0, 1.0, 0.0)  # weight of the one-sided pixels
-    start = np.clip(r0 + const * d, LOG_MIN, LOG_MAX).astype(np.float32)
+    share = d / (mass + np.float32(a))
+    share[one_sided] = 0.0
+    start = r0.copy()
+    only1 = inf1 & ~inf0  # the one-sided pixels take frame k+1 whole (frame k's only: weight 0, nothing to add)
+    start[only1] += d[only1]
+    np.clip(start, LOG_MIN, LOG_MAX, out=start)
     share = share.reshape(-1)
-    step_on = (c_on * (1.0 + share)).astype(np.float32)
-    step_off = (-c_off * (1.0 - share)).astype(np.float32)
-    return FusionPlan(int(f0_us), int(f1_us), start, step_on, step_off, (a * share).astype(np.float32))
+    step_on = np.float32(c_on) * (np.float32(1.0) + share)
+    step_off = np.float32(-c_off) * (np.float32(1.0) - share)
+    return FusionPlan(int(f0_us), int(f1_us), start, step_on, step_off, np.float32(a) * share)
+
+
+def _pair_sums(events: np.ndarray, w: int, h: int, c_on: float, c_off: float, f0_us: int, f1_us: int,
+               mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(E(f0 -> f1), event mass over (f0, f1]) per pixel, (H, W) float32."""
+    if _backend.have_numba():
+        ev = window(events, int(f0_us) + 1, int(f1_us))
+        m, use_m = _backend.mask_arg(mask)
+        delta, mass = np.zeros(w * h, np.float32), np.zeros(w * h, np.float32)
+        _kernels_fused.pair_sums(ev["x"], ev["y"], ev["p"], w, h, m, use_m, np.float32(c_on), np.float32(c_off),
+                                 delta, mass)
+        return delta.reshape(h, w), mass.reshape(h, w)
+    e01 = event_delta(events, w, h, c_on, c_off, t0=f0_us + 1, t1=f1_us, mask=mask)
+    mass = event_mass(events, w, h, c_on, c_off, t0=f0_us + 1, t1=f1_us, mask=mask).astype(np.float32)
+    return e01, mass
 
 
 class FusedPropagator:

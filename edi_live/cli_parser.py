@@ -77,9 +77,11 @@ def build_parser() -> argparse.ArgumentParser:
                                                           "(default: estimated, re-estimated when it stops fitting)")
     edi.add_argument("--c-on", type=float, metavar="C", help="fixed ON threshold (with --c-off)")
     edi.add_argument("--c-off", type=float, metavar="C", help="fixed OFF threshold (with --c-on)")
-    edi.add_argument("--mode", choices=("causal", "nearest"),
+    edi.add_argument("--mode", choices=("causal", "nearest", "fused"),
                      help="causal (default): latent frames from the latest deblurred APS frame, lowest latency; "
-                          "nearest: wait for the next APS frame when it is nearer (adds latency, reported)")
+                          "nearest: wait for the next APS frame when it is nearer (adds latency, reported); "
+                          "fused: every latent frame from both APS frames around it, best quality (waits for "
+                          "the next APS frame: up to one frame interval, reported)")
     edi.add_argument("--max-fps", type=float, metavar="FPS", help="cap on latent frames per second (default: none)")
     edi.add_argument("--heartbeat-s", type=float, metavar="S",
                      help="keyframe interval on a static scene, seconds (default: 1.0)")

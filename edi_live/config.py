@@ -32,7 +32,7 @@ from edi_live.errors import ConfigError
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
 POLICIES = ("drop_oldest", "wait")
-MODES = ("causal", "nearest")
+MODES = ("causal", "nearest", "fused")
 DEVICE_MODELS = ("davis240", "davis346", "auto")
 LOG_LEVELS = ("debug", "info", "warning", "error")
 

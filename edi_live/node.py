@@ -143,8 +143,10 @@ class Node:
         keep = ("warm_up_s", "events_per_s", "frames_per_s", "c", "c_on", "c_off", "reestimations", "hot_pixels", "drops",
                 "ring_occupancy", "ring_dropped_events", "ring_dropped_frames", "events_in", "events_processed",
                 "aps_frames_in", "frames_deblurred", "frames_latent", "heartbeats", "skipped_max_fps",
-                "source_dropped_events", "source_gaps", "nearest_added_latency_ms_p50", "out_wait_s",
-                "unreliable_pixels", "black_level_dn", "clock_offset_us", "aps_gamma", "pred_psnr_db", "still_psnr_db", "pred_gain_db",
+                "source_dropped_events", "source_gaps", "nearest_added_latency_ms_p50",
+                "fused_added_latency_ms_p50", "out_wait_s",
+                "unreliable_pixels", "black_level_dn", "clock_offset_us", "aps_gamma", "pred_psnr_db", "still_psnr_db",
+                "pred_gain_db",
                 "pred_psnr_active_db", "still_psnr_active_db", "pred_beats_still_frac", "pred_frames_scored",
                 "dv_frames_sent", "dv_frames_dropped", "dv_frames_late", "dv_frames_clients", "dv_events_sent",
                 "dv_events_dropped", "dv_events_clients")

@@ -30,8 +30,8 @@ Definition, for every APS frame k+1 (window W = [exposure_start, exposure_end] o
   are compared on the same fair set. None when no event was fed or no active pixel is informative.
 - Modes: on in "causal" only. In "nearest" the frames inside k+1's exposure are rendered from k+1 itself,
   so the honest subset would be a stale held frame that is not what the node sent: the figure is off
-  (stats report pred_enabled False and no values). The planned "fused" mode is off likewise until its
-  frames' references are defined.
+  (stats report pred_enabled False and no values). "fused" is off likewise: each of its frames is fitted on
+  the next APS frame as well.
 - Completion: frame k+1 is scored when the node sends a frame with ref_t_us >= its mid-exposure or with
   t_us > its exposure end (in causal order no honest frame for it can follow), when the next APS frame
   arrives, or at finish(). So calling on_aps_frame before or after the frame's own deblur is both fine.

@@ -56,6 +56,15 @@ class Reconstructor(Protocol):
         """The latent image at t from the reference, using the events between t and f (t may be before f)."""
         ...
 
+    def reference_log(self) -> tuple[np.ndarray, int]:
+        """(log L(f) of the current reference, f): kept by fused mode for the next pair."""
+        ...
+
+    def render_fused(self, previous: tuple[np.ndarray, int], previous_image: np.ndarray, current_image: np.ndarray,
+                     times: Sequence[int], events: np.ndarray) -> list[Reconstruction]:
+        """Latent frames at `times` between the previous reference and the current one, from both."""
+        ...
+
     def mark_gap(self) -> None:
         """Data were lost upstream: do not relate the next frame to the previous one."""
         ...

@@ -296,6 +296,43 @@ class EdiReconstructor:
             delta = 0.0
         return self._reconstruction(self._latent.from_reference(delta), t_us, "latent", int(events.size))
 
+    def reference_log(self) -> tuple[np.ndarray, int]:
+        """(log L(f) of the current reference, f): the array is replaced at the next frame, never changed, so
+        holding it costs nothing (fused mode keeps the previous one)."""
+        self._need_reference("reference_log()")
+        return self._latent.log_ref, int(self._ref_t)
+
+    def render_fused(self, previous: tuple[np.ndarray, int], previous_image: np.ndarray, current_image: np.ndarray,
+                     times: Sequence[int], events: np.ndarray) -> list[Reconstruction]:
+        """Latent frames at `times` (ascending, between the previous reference f0 and the current one f1) from both
+        references (edi.fusion_plan); `events` hold at least those with f0 < t <= f1. Frames carry ref_t_us = f1."""
+        self._need_reference("render_fused()")
+        log0, f0 = previous
+        f1 = int(self._ref_t)
+        sat, black = self.settings.saturation, self.black_level
+        inf0 = edi.blurry_to_float(previous_image, saturation=sat, black_level=black)[1]
+        inf1 = edi.blurry_to_float(current_image, saturation=sat, black_level=black)[1]
+        if self.events_ignored:
+            events = events[:0]
+        plan = edi.fusion_plan(log0, self._latent.log_ref, events, f0, f1, self.c_on, self.c_off, inf0, inf1,
+                               mask=self._mask)
+        prop = edi.FusedPropagator(plan, self._mask)
+        t = events["t"]
+        pos = edi.time_index(t, f0, "right")
+        out = []
+        for t_us in times:
+            t_us = int(t_us)
+            if t_us >= f1 or t_us <= f0:  # the fused video passes through both deblurred frames
+                image = edi.to_uint8(self._latent.log_ref if t_us >= f1 else log0)
+                out.append(self._reconstruction(image, t_us, "latent", 0))
+                continue
+            end = edi.time_index(t, t_us, "right")
+            prop.apply(events[pos:end])
+            prop.set_time(edi.time_share((t_us - f0) / (f1 - f0)))
+            out.append(self._reconstruction(prop.display.copy(), t_us, "latent", max(0, end - pos)))
+            pos = max(pos, end)
+        return out
+
     def stats(self) -> dict:
         return {
             "c_on": self.c_on, "c_off": self.c_off, "c_fixed": self._fixed, "black_level": self.black_level,

@@ -140,6 +140,8 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         lines.append(prediction)
     if s.get("nearest_added_latency_ms_p50") is not None:
         lines.append(f"  mode nearest: held-back frames waited {s['nearest_added_latency_ms_p50']:.2f} ms (p50)")
+    if s.get("fused_added_latency_ms_p50") is not None:
+        lines.append(f"  mode fused: frames waited {s['fused_added_latency_ms_p50']:.2f} ms (p50) for the next APS frame")
     if "out_frames" in s:
         late = f" ({s['out_late']} arrived too late for time order and were skipped)" if s.get("out_late") else ""
         lines.append(f"  --out frames written: {s['out_frames']}{late}")

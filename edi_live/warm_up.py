@@ -42,6 +42,16 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
             rec.on_events(later[-1:])  # one event: its field views count as C-contiguous, another specialisation
             rec.render()
             t_us += 20_000
+        if edi_config.mode == "fused":  # its plan and propagation kernels, from two references
+            from edi_live.datatypes import concat_events
+
+            previous = rec.reference_log()
+            later = events.copy()
+            later["t"] += 20_000
+            rec.on_frame(Frame(image, t_us, t_us + 10_000), later)
+            rec.render_fused(previous, image, image, [previous[1] + 5_000, t_us + 4_000],
+                             concat_events([events, later]))
+            t_us += 20_000
         # exposures without events (a dark or still scene), first and later: empty field views count as
         # C-contiguous, another specialisation
         empty = np.zeros(0, EVENT_DTYPE)

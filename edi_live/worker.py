@@ -18,7 +18,6 @@ times (latency, --max-fps, the heartbeat) are time.monotonic. The policy, in ful
 from __future__ import annotations
 
 import collections
-import dataclasses
 import logging
 import threading
 import time
@@ -30,7 +29,9 @@ from edi_live.activity import StaticScene
 from edi_live.config import EdiConfig
 from edi_live.datatypes import Reconstruction, concat_events
 from edi_live.deblur_handover import PendingDeblur
+from edi_live import held_frames
 from edi_live.frame_gate import FrameGate, in_event_clock
+from edi_live.fused_mode import FusedHoldBack
 from edi_live.nearest_mode import NearestHoldBack
 from edi_live.quality import PredictionScore
 from edi_live.reconstruction import Reconstructor
@@ -68,7 +69,7 @@ class EdiWorker:
         self._last_emit_s = 0.0
         self._last_arrival_ns = 0
         self._ref_f_us: int | None = None
-        self._nearest = NearestHoldBack()
+        self._nearest = FusedHoldBack() if config.mode == "fused" else NearestHoldBack()  # latent times held back
         self._gate = FrameGate()  # whether an APS frame's late events are in
         self._deblur_ms: collections.deque[float] = collections.deque(maxlen=256)  # on_frame wall time
         self._pending: PendingDeblur | None = None  # causal mode with deblur_thread
@@ -175,7 +176,7 @@ class EdiWorker:
         if chunk.gap:
             self.gaps += 1
             self._await_reference = True
-            self._nearest.take_all()
+            self._nearest.gap()
             self.rec.mark_gap()  # lets the c estimator skip pairs across the gap
         if self._await_reference or not self.rec.has_reference:
             self._since += n
@@ -228,7 +229,7 @@ class EdiWorker:
         if self.config.max_fps is not None and now - self._last_emit_s < 1.0 / self.config.max_fps:
             self.skipped_max_fps += 1
             return
-        if self.config.mode == "nearest" and self._nearest.should_hold(t_us, self._ref_f_us):
+        if self.config.mode != "causal" and self._nearest.should_hold(t_us, self._ref_f_us):
             self._nearest.held.append((t_us, arrival_ns))
             return
         self._emit(self.rec.render())
@@ -269,8 +270,11 @@ class EdiWorker:
         self._nearest.new_reference(self._ref_f_us, f_us)
         self._ref_f_us = f_us
         self._await_reference = False
-        late = self._nearest.take_all()
-        out.extend(self._render_at(t, a) for t, a in late)  # from the new, nearer reference
+        if self.config.mode == "fused":
+            out.extend(held_frames.render_fused(self.rec, self.ring, self._nearest, self._ref_f_us, frame))
+        else:
+            late = self._nearest.take_all()
+            out.extend(self._render_at(t, a) for t, a in late)  # from the new, nearer reference
         if first or out or self._moving(len(events)):
             out.append(deblurred)
         else:
@@ -336,14 +340,7 @@ class EdiWorker:
         return state == "noise"
 
     def _render_at(self, t_us: int, arrival_ns: int) -> Reconstruction:
-        """nearest mode: the latent image at t_us from the current reference, with the held-back latency."""
-        f_us = self._ref_f_us if self._ref_f_us is not None else t_us
-        lo, hi = min(t_us, f_us), max(t_us, f_us)
-        events = self.ring.window(lo, hi + 1, end_index=self.ring.read_index)
-        rec = self.rec.render_from_reference(t_us, events)
-        if arrival_ns:
-            self._nearest.waited(arrival_ns)
-        return dataclasses.replace(rec, arrival_ns=arrival_ns)
+        return held_frames.render_held(self.rec, self.ring, self._nearest, self._ref_f_us, t_us, arrival_ns)
 
     def _flush_deferred(self) -> None:
         if not self._nearest.held or not self.rec.has_reference:
@@ -392,7 +389,8 @@ class EdiWorker:
             "worker_busy_s": round(self.busy_s, 3),
             "deblur_ms_p50": round(float(np.median(deblur)), 3) if deblur else None,
             "deblur_ms_max": round(float(np.max(deblur)), 3) if deblur else None,
-            "nearest_added_latency_ms_p50": self._nearest.waited_ms_p50(),
+            "nearest_added_latency_ms_p50": self._nearest.waited_ms_p50() if self.config.mode == "nearest" else None,
+            "fused_added_latency_ms_p50": self._nearest.waited_ms_p50() if self.config.mode == "fused" else None,
             "unreliable_pixels": int(rec.unreliable_pixels),
             "black_level_dn": round(float(rec.black_level), 2),
             "clock_offset_us": int(rec.clock_offset_us), "aps_gamma": float(rec.aps_gamma),

@@ -48,7 +48,7 @@ STAGES = (
     ("worker", ("edi_live.worker", "edi_live.deblur_handover", "edi_live.reconstructor", "edi_live.reconstruction",
                 "edi_live.edi", "edi_live.contrast", "edi_live.c_policy", "edi_live.contrast_tracking",
                 "edi_live.latent_state", "edi_live.pixel_masks", "edi_live.quality", "edi_live.nearest_mode",
-                "edi_live.frame_gate",
+                "edi_live.frame_gate", "edi_live.held_frames", "edi_live.fused_mode",
                 "edi_live.reconstructor_settings")),
     ("publisher", ("edi_live.publisher", "edi_live.writers")),
 )

@@ -17,6 +17,8 @@ level and response, hot pixels masked) on scenes with mixes of camera effects an
     python -m tools.bench_accuracy                       # full suite, a few minutes on one core
     python -m tools.bench_accuracy --quick               # 4 short scenes
     python -m tools.bench_accuracy --realistic [--quick] # the realistic-camera section
+    python -m tools.bench_accuracy --modes [--realistic] [--quick]  # the node's causal/nearest/fused latent frames
+                                                         # against the true-c oracles (tools/bench_modes.py)
 """
 
 from __future__ import annotations
@@ -817,7 +819,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--realistic", action="store_true",
                     help="only the realistic-camera section: blurry frame, default node and an EDI that knows the "
                          "true camera, on scenes with mixes of camera effects and each effect alone")
+    ap.add_argument("--modes", action="store_true",
+                    help="only the modes section: the node's causal, nearest and fused latent frames against EDI "
+                         "with the true c from each reference rule (tools/bench_modes.py)")
     args = ap.parse_args(argv)
+    if args.modes:
+        from tools import bench_modes
+
+        return bench_modes.main((["--quick"] if args.quick else []) + (["--realistic"] if args.realistic else []))
     if args.realistic:
         t0 = time.perf_counter()
         rows = run_realistic(args.quick)

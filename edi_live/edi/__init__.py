@@ -25,12 +25,14 @@ below; its underscored modules (the numba kernels) are private. Every function r
 numpy reference of the same contract (`numpy_reference()`, see _backend).
 
 Modules: selection (time windows, pixel picks, counts), levels (level table, log D), deblur (log L(f)), latent
-(propagation, rendering), pixels (hot pixels, noise filters, sampling), pairs (the consistency estimator's sums).
+(propagation, rendering), fused (two-frame latent images), pixels (hot pixels, noise filters, sampling), pairs (the consistency estimator's sums).
 """
 
-from edi_live.edi import _kernels_levels, _kernels_pixels, _kernels_stream
+from edi_live.edi import _kernels_fused, _kernels_levels, _kernels_pixels, _kernels_stream
 from edi_live.edi._backend import (DARK_FLOOR, LEVEL_CAP, LOG_MAX, LOG_MIN, have_numba, numpy_reference)
 from edi_live.edi.deblur import ApsResponse, blurry_to_float, deblur, deblur_log, finish_frame_u8, log_divisor_events
+from edi_live.edi.fused import (FusedPropagator, FusionPlan, event_mass, fused_log, fusion_plan, fusion_weights,
+                                time_share)
 from edi_live.edi.latent import (Propagator, event_delta, propagate_log, render_buckets, to_uint8, u8_tables)
 from edi_live.edi.levels import LevelTable, build_level_table, empty_table, log_divisor
 from edi_live.edi.pairs import consistency_cost, pair_candidates
@@ -45,7 +47,7 @@ def compiled_signatures() -> dict[str, set[str]]:
     """Each kernel's compiled argument-type signatures so far (to check that a warm-up covered what a run needs:
     a kernel met with new argument types compiles on the spot, which stalls a stream)."""
     found = {}
-    for module in (_kernels_levels, _kernels_pixels, _kernels_stream):
+    for module in (_kernels_fused, _kernels_levels, _kernels_pixels, _kernels_stream):
         for name, fn in vars(module).items():
             signatures = getattr(fn, "signatures", None)
             if signatures is not None:
@@ -54,8 +56,9 @@ def compiled_signatures() -> dict[str, set[str]]:
 
 
 __all__ = [
-    "ApsResponse", "DARK_FLOOR", "LEVEL_CAP", "compiled_signatures", "LOG_MAX", "LOG_MIN", "LevelTable",
-    "Propagator", "add_counts",
+    "ApsResponse", "DARK_FLOOR", "FusedPropagator", "FusionPlan", "LEVEL_CAP", "LOG_MAX", "LOG_MIN", "LevelTable",
+    "Propagator", "add_counts", "compiled_signatures", "event_mass", "fused_log", "fusion_plan", "fusion_weights",
+    "time_share",
     "background_activity_keep", "blurry_to_float", "build_level_table", "consistency_cost", "deblur", "deblur_log",
     "decay_hot_counts", "empty_table", "event_delta", "events_at_pixels", "finish_frame_u8", "flat_index",
     "have_numba", "hot_pixel_mask", "isolated_event_mask", "log_divisor", "log_divisor_events", "new_activity_map",

@@ -77,6 +77,12 @@ class StandIn:
     def mark_gap(self):
         self.gaps_marked += 1
 
+    def reference_log(self):
+        return np.zeros((2, 2), np.float32), self.ref_f
+
+    def render_fused(self, previous, previous_image, current_image, times, events):
+        return [self._rec(t, "latent") for t in times]
+
     def streaming_copy(self):
         return copy.copy(self)
 

@@ -1,0 +1,40 @@
+"""Rendering the latent frames that `--mode nearest` and `--mode fused` held back until the next APS frame was
+deblurred: from the nearest reference, or from both references around them. Runs on the worker thread; the
+bookkeeping of what is held is in nearest_mode.py and fused_mode.py."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from edi_live.datatypes import Frame, Reconstruction
+from edi_live.nearest_mode import NearestHoldBack
+from edi_live.reconstruction import Reconstructor
+from edi_live.ring import EventRing
+
+
+def render_held(rec: Reconstructor, ring: EventRing, hold: NearestHoldBack, ref_f_us: int | None, t_us: int,
+                arrival_ns: int) -> Reconstruction:
+    """The latent image at t_us from the current reference, stamped with its arrival (the wait is recorded)."""
+    f_us = ref_f_us if ref_f_us is not None else t_us
+    lo, hi = min(t_us, f_us), max(t_us, f_us)
+    events = ring.window(lo, hi + 1, end_index=ring.read_index)
+    out = rec.render_from_reference(t_us, events)
+    if arrival_ns:
+        hold.waited(arrival_ns)
+    return dataclasses.replace(out, arrival_ns=arrival_ns)
+
+
+def render_fused(rec: Reconstructor, ring: EventRing, hold, ref_f_us: int, frame: Frame) -> list[Reconstruction]:
+    """The held times up to the new reference, from it and the previous one (forward from the new one when there
+    is no previous: the first frame, after a gap); the new reference is kept for the next pair."""
+    done = hold.take_until(ref_f_us)
+    previous, hold.previous = hold.previous, (rec.reference_log(), frame.image)
+    if previous is None or not done:
+        return [render_held(rec, ring, hold, ref_f_us, t, a) for t, a in done]
+    (log0, f0), image0 = previous
+    events = ring.window(f0 + 1, ref_f_us + 1, end_index=ring.read_index)
+    recs = rec.render_fused((log0, f0), image0, frame.image, [t for t, _ in done], events)
+    for _, a in done:
+        if a:
+            hold.waited(a)
+    return [dataclasses.replace(r, arrival_ns=a) for r, (_, a) in zip(recs, done)]

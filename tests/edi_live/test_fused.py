@@ -1,0 +1,139 @@
+"""Fused (two-frame) latent images: the weights (edi_live.edi.fused) and the reconstructor's render_fused.
+
+Oracles: the forward and backward EDI images from edi_live.edi's propagation functions; the simulator's ground
+truth for the quality check."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+import edi_live.edi as edi
+from edi_live.reconstructor import EdiReconstructor
+from edi_live.simulation import SceneConfig, simulate
+
+_FLOATS = st.floats(allow_nan=True, allow_infinity=True, width=64)
+
+
+@settings(max_examples=200, deadline=None)
+@given(crossed=hnp.arrays(np.float64, 12, elements=_FLOATS), total=hnp.arrays(np.float64, 12, elements=_FLOATS),
+       tau=_FLOATS, inf0=hnp.arrays(bool, 12), inf1=hnp.arrays(bool, 12))
+def test_weights_are_finite_and_sum_to_one_for_every_input(crossed, total, tau, inf0, inf1):
+    wf, wb = edi.fusion_weights(crossed, total, tau, inf0, inf1)
+    assert np.all(np.isfinite(wf)) and np.all(np.isfinite(wb))
+    assert np.all((wb >= 0) & (wb <= 1))
+    np.testing.assert_allclose(wf + wb, 1.0, atol=1e-6)
+
+
+def test_weights_no_events_and_saturated_pixels():
+    zero = np.zeros(4)
+    inf0 = np.array([True, True, False, False])
+    inf1 = np.array([True, False, True, False])  # both / only k / only k+1 / neither informative
+    _, wb = edi.fusion_weights(zero, zero, 0.6, inf0, inf1)
+    assert wb[1] == 0.0 and wb[2] == 1.0  # the clipped side gets no weight
+    assert 0.0 < wb[0] < 1.0 and wb[0] == wb[3]  # no events: time alone shares the two looks at one value
+
+
+def _scene(**kw):
+    cfg = SceneConfig(width=96, height=72, duration_s=0.22, texture="blocks", velocity_px_s=(150.0, 30.0),
+                      noise_rate_hz=0.1, seed=3, **kw)
+    return simulate(cfg)
+
+
+def _references(sim, c_on, c_off):
+    """Deblurred frames k=1, 2 from the reconstructor (true c given) and the events between them."""
+    cfg = sim.config
+    rec = EdiReconstructor(cfg.width, cfg.height, c_on=c_on, c_off=c_off)
+    ev = sim.events
+    logs = []
+    for f in sim.frames[:3]:
+        i0, i1 = np.searchsorted(ev["t"], [f.exposure_start_us, f.exposure_end_us + 1])
+        rec.on_frame(f, ev[i0:i1])
+        logs.append(rec.reference_log())
+    return rec, logs
+
+
+@pytest.mark.parametrize("numpy_ref", [False, True])
+def test_fused_equals_forward_at_f_k_and_backward_at_f_k1_and_the_weights_between(numpy_ref):
+    sim = _scene(c_on=0.2, c_off=0.16)
+    cfg = sim.config
+    rec, logs = _references(sim, 0.2, 0.16)
+    (log1, f1), (log2, f2) = logs[1], logs[2]
+    ev = sim.events
+    times = [f1, f1 + (f2 - f1) // 3, f1 + (f2 - f1) * 2 // 3, f2 - 1, f2]
+    import contextlib
+    with edi.numpy_reference() if numpy_ref else contextlib.nullcontext():
+        out = rec.render_fused((log1, f1), sim.frames[1].image, sim.frames[2].image, times, ev)
+    assert np.array_equal(out[0].image, edi.to_uint8(log1))  # forward at f_k: L_k(f_k) itself
+    assert np.array_equal(out[-1].image, edi.to_uint8(log2))  # backward at f_{k+1}
+    inf1 = edi.blurry_to_float(sim.frames[1].image)[1]
+    inf2 = edi.blurry_to_float(sim.frames[2].image)[1]
+    for t, r in zip(times[1:-1], out[1:-1]):
+        fwd = log1 + edi.event_delta(ev, cfg.width, cfg.height, 0.2, 0.16, t0=f1 + 1, t1=t)
+        bwd = log2 - edi.event_delta(ev, cfg.width, cfg.height, 0.2, 0.16, t0=t + 1, t1=f2)
+        m = edi.event_mass(ev, cfg.width, cfg.height, 0.2, 0.16, t0=f1 + 1, t1=t)
+        mt = edi.event_mass(ev, cfg.width, cfg.height, 0.2, 0.16, t0=f1 + 1, t1=f2)
+        _, wb = edi.fusion_weights(m, mt, (t - f1) / (f2 - f1), inf1, inf2)
+        want = edi.to_uint8(edi.fused_log(fwd, bwd, wb))
+        assert np.mean(np.abs(r.image.astype(int) - want)) < 0.05  # float32 rounding at a few pixels
+        assert np.max(np.abs(r.image.astype(int) - want)) <= 1
+
+
+def test_fused_beats_the_best_single_reference_with_threshold_mismatch():
+    sim = _scene(c_on=0.2, c_off=0.16, c_sigma=0.04)
+    cfg = sim.config
+    c_on = c_off = 0.18  # one c for both polarities: the mismatch EDI meets when it cannot tell them apart
+    rec = EdiReconstructor(cfg.width, cfg.height, c_on=c_on, c_off=c_off)
+    ev = sim.events
+    err = {"forward": [], "backward": [], "nearest": [], "fused": []}
+    prev = None
+    for k, f in enumerate(sim.frames):
+        i0, i1 = np.searchsorted(ev["t"], [f.exposure_start_us, f.exposure_end_us + 1])
+        rec.on_frame(f, ev[i0:i1])
+        cur = rec.reference_log()
+        if prev is not None:
+            gts = [g for g in np.flatnonzero(sim.gt_kind == 1) if sim.gt_frame[g] == k - 1]
+            times = [int(sim.gt_t_us[g]) for g in gts]
+            fused = rec.render_fused(prev, sim.frames[k - 1].image, f.image, times, ev)
+            for g, t, r in zip(gts, times, fused):
+                fwd = prev[0] + edi.event_delta(ev, cfg.width, cfg.height, c_on, c_off, t0=prev[1] + 1, t1=t)
+                bwd = cur[0] - edi.event_delta(ev, cfg.width, cfg.height, c_on, c_off, t0=t + 1, t1=cur[1])
+                gt = np.clip(sim.gt_images[g], 0, 255)
+                mse = {"forward": edi.to_uint8(fwd), "backward": edi.to_uint8(bwd), "fused": r.image,
+                       "nearest": edi.to_uint8(fwd if t - prev[1] <= cur[1] - t else bwd)}
+                for name, img in mse.items():
+                    err[name].append(np.mean((img.astype(np.float64) - gt) ** 2))
+        prev = cur
+    psnr = {name: float(np.mean(10 * np.log10(255.0 ** 2 / np.array(v)))) for name, v in err.items()}
+    best_single = max(psnr["forward"], psnr["backward"], psnr["nearest"])
+    assert psnr["fused"] > best_single + 0.3, psnr
+
+
+def test_worker_in_fused_mode_renders_every_latent_frame_between_two_frames_in_time_order():
+    from edi_live.config import EdiConfig
+    from edi_live.datatypes import Packet
+    from tests.edi_live.test_worker import run_worker
+
+    sim = _scene()
+    cfg = sim.config
+    ev = sim.events
+    packets, cut = [], 0
+    for f in sim.frames:
+        end = int(np.searchsorted(ev["t"], f.exposure_end_us, side="right"))
+        packets.append(Packet(events=ev[cut:end], frames=[f]))
+        cut = end
+    packets.append(Packet(events=ev[cut:]))
+    rec = EdiReconstructor(cfg.width, cfg.height, c=0.2)
+    worker, _, out, errors = run_worker(packets, EdiConfig(every=300, mode="fused"), rec=rec, timeout_s=60)
+    assert not errors
+    mids = sim.mid_exposure_us
+    latent = [r for r in out if r.kind == "latent" and r.t_us <= mids[-1]]
+    assert len(latent) > 10
+    for r in latent:  # stamped with the later of its two frames
+        assert r.ref_t_us == mids[np.searchsorted(mids, r.t_us)], (r.t_us, r.ref_t_us)
+    assert all(a.t_us <= b.t_us for a, b in zip(out, out[1:]))
+    stats = worker.stats()
+    assert stats["fused_added_latency_ms_p50"] is not None and stats["nearest_added_latency_ms_p50"] is None

@@ -4,6 +4,7 @@ files in the same run, plus the replay merge (merged_packets) and the writer.
     python -m tools.bench_aedat4                 # the real recordings + a generated 10 M-event file
     python -m tools.bench_aedat4 --events 20000000 --repeat 7
     python -m tools.bench_aedat4 --memory 100000000   # peak memory while replaying 10^8 events
+    python -m tools.bench_aedat4 --ab ../main --repeat 6   # A/B: this checkout's reader against another's
 
 Readers take turns: in each round every reader (order rotated per round) makes a few consecutive passes (8 on
 the small real files, 1 on the generated one), so each runs warm while the shared machine's slow phases hit all of
@@ -17,6 +18,8 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -139,6 +142,40 @@ def bench(path: Path, readers: dict, repeat: int, inner: int) -> dict[str, float
     return out
 
 
+_AB_PASSES = """
+import sys, time
+from edi_live.aedat4 import Aedat4Reader
+def run():
+    with Aedat4Reader(sys.argv[1]) as reader:
+        return sum(len(ev) for ev in reader.events())
+n = run(); run()
+ts = []
+for _ in range(int(sys.argv[2])):
+    start = time.perf_counter(); run(); ts.append(time.perf_counter() - start)
+print(n / sorted(ts)[len(ts) // 2] / 1e6)
+"""
+
+
+def ab_run(other: Path, files: list[Path], repeat: int) -> None:
+    """Old vs new code path on the same files: alternating child processes (pinned to one core), each importing
+    edi_live from its own checkout and reporting its median pass; prints median/min/max over the runs."""
+    here = Path(__file__).resolve().parent.parent
+    for path in files:
+        rates: dict[str, list[float]] = {"this": [], "other": []}
+        inner = "5" if path.stat().st_size > 10e6 else "15"
+        for k in range(repeat):
+            order = [("this", here), ("other", other)]
+            for name, cwd in order if k % 2 == 0 else order[::-1]:
+                cmd = [sys.executable, "-c", _AB_PASSES, str(path.resolve()), inner]
+                if hasattr(os, "sched_setaffinity"):
+                    cmd = ["taskset", "-c", str(min(os.sched_getaffinity(0)))] + cmd
+                out = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, check=True)
+                rates[name].append(float(out.stdout))
+        cells = [f"{name} {statistics.median(v):.1f} (min {min(v):.1f}, max {max(v):.1f})" for name, v in rates.items()]
+        ratio = statistics.median(rates["this"]) / statistics.median(rates["other"])
+        print(f"{path.name}: M events/s over {repeat} alternating runs: {'; '.join(cells)}; this/other {ratio:.3f}")
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--events", type=int, default=10_000_000, help="events in the generated file (default 10 M)")
@@ -147,7 +184,15 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--no-aedat", action="store_true", help="skip the aedat package")
     ap.add_argument("--memory", type=int, metavar="N", default=0,
                     help="instead: stream a generated N-event file through the replay merge and report peak memory")
+    ap.add_argument("--ab", type=Path, metavar="CHECKOUT",
+                    help="instead: A/B this checkout's reader against the one in CHECKOUT (another worktree)")
     args = ap.parse_args(argv)
+    if args.ab:
+        with tempfile.TemporaryDirectory() as tmp:
+            gen = Path(tmp) / "generated.aedat4"
+            generate(gen, args.events)
+            ab_run(args.ab.resolve(), [REAL / n for n in REAL_FILES if (REAL / n).is_file()] + [gen], args.repeat)
+        return
     if args.memory:
         with tempfile.TemporaryDirectory() as tmp:
             memory_run(args.memory, tmp)

@@ -25,8 +25,8 @@ _VT3 = struct.Struct("<HHH")
 
 _T_MIN = -(2**62)  # "no floor" (a smaller Python int makes numba dispatch 20x slower)
 _WHY = {1: "goes back in time", 2: "lies outside the {w}x{h} sensor", 3: "has a polarity byte other than 0/1"}
-_NO_EVENTS = np.zeros(0, dtype=EVENT_DTYPE)
-_NO_EVENTS.flags.writeable = False
+NO_EVENTS = np.zeros(0, dtype=EVENT_DTYPE)
+NO_EVENTS.flags.writeable = False
 
 
 def _bad_event(stream: StreamInfo, first: int, count: int, why: int) -> RecordingError:
@@ -42,10 +42,10 @@ def decode_events(payload: bytes, stream: StreamInfo, validate: bool = True) -> 
         if start >= 0:
             if why:
                 raise _bad_event(stream, first, count, why)
-            return np.frombuffer(payload, dtype=EVENT_DTYPE, count=count, offset=start) if count else _NO_EVENTS
+            return np.frombuffer(payload, dtype=EVENT_DTYPE, count=count, offset=start) if count else NO_EVENTS
     start, count = _events_vector(payload)
     if not count:
-        return _NO_EVENTS
+        return NO_EVENTS
     if validate:
         first, why = check_events(np.frombuffer(payload, np.uint8, count * 16, start), stream.width, stream.height,
                                   _T_MIN)

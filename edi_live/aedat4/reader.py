@@ -15,6 +15,7 @@ id the header does not declare is such damage. Streams the header declares with 
 
 from __future__ import annotations
 
+import array
 import io
 import logging
 import os
@@ -26,9 +27,11 @@ import numpy as np
 from edi_live.aedat4 import schema as S
 from edi_live.aedat4.compression import decompressor
 from edi_live.aedat4.datatable import DATA_TABLE_DTYPE, parse_data_table
-from edi_live.aedat4.decode import decode_events, decode_frame
+from edi_live.aedat4._check import parse_check_evts
+from edi_live.aedat4.decode import NO_EVENTS, decode_events, decode_frame
 from edi_live.aedat4.header import SUPPORTED_TYPES, StreamInfo, read_header, split_camera_label
 from edi_live.aedat4.payloads import decode_imu, decode_triggers
+from edi_live.datatypes import EVENT_DTYPE
 from edi_live.errors import RecordingError
 
 __all__ = ["Aedat4Reader", "StreamInfo", "DATA_TABLE_DTYPE", "SUPPORTED_TYPES", "split_camera_label", "READ_CHUNK"]
@@ -100,7 +103,7 @@ class Aedat4Reader:
             memoryview(bytearray(max(8, min(READ_CHUNK, end - pos))))
         if shared:
             self._buffer, self._buffer_busy = view, True
-        walked: list[tuple[int, int]] = []  # (offset, size) of every packet, for the table check
+        walked = array.array("q")  # offset, size of every packet, flat, for the table check (cheaper than tuples)
         try:
             yield from self._walk(view, pos, end, types, shared, walked)
         finally:
@@ -111,14 +114,14 @@ class Aedat4Reader:
                               f"at byte {self.file_size} (truncated)", self.file_size)
         self._check_table(walked)
 
-    def _check_table(self, walked: list[tuple[int, int]]) -> None:
+    def _check_table(self, walked: array.array) -> None:
         """Damage in the FileDataTable is reported like damage anywhere else: it must parse and list exactly the
         packets the file holds (DV, aestream, evlib and our writer all list every packet in file order). Stream
         ids are not compared: a wrong one in a packet header is caught by its payload's FlatBuffer identifier."""
         table = self.data_table()
         if table is None:
             return
-        found = np.array(walked, dtype=np.int64).reshape(-1, 2)
+        found = np.frombuffer(walked, dtype=np.int64).reshape(-1, 2) if walked else np.zeros((0, 2), np.int64)
         listed = np.stack([table["byte_offset"] - 8, table["size"]], axis=1).astype(np.int64)
         if found.shape != listed.shape or not np.array_equal(found, listed):
             n = min(len(found), len(listed))
@@ -128,8 +131,9 @@ class Aedat4Reader:
                               f"first differ at packet {k} (a damaged table)", self.data_table_position)
 
     def _walk(self, view: memoryview, pos: int, end: int, types: Iterable[str] | None, shared: bool,
-              walked: list[tuple[int, int]]) -> Iterator[tuple[StreamInfo, int, bytes]]:
+              walked: array.array) -> Iterator[tuple[StreamInfo, int, bytes]]:
         unpack_from = _PH.unpack_from
+        note = walked.extend
         decompress = decompressor(self.compression)
         by_id = self._by_id
         wanted = None if types is None else {s.id for s in self.streams if s.type in set(types)}
@@ -150,7 +154,7 @@ class Aedat4Reader:
                 what = "the FileDataTable" if end == self.data_table_position else "the end of the file"
                 why = "corrupt size or table position" if end == self.data_table_position else "truncated"
                 raise self._error(f"packet of {size} bytes runs past {what}, which is at byte {end} ({why})", pos)
-            walked.append((pos, size))
+            note((pos, size))
             stream = by_id.get(sid)
             if stream is None:
                 raise self._error(f"packet of {size} bytes belongs to stream {sid}, which the header does not "
@@ -247,9 +251,20 @@ class Aedat4Reader:
         return self
 
     def events(self) -> Iterator[np.ndarray]:
-        """Only the event arrays, in file order (other packets are skipped undecompressed): the fast path."""
+        """Only the event arrays, in file order (other packets are skipped undecompressed): the fast path.
+
+        The plain, valid EVTS layout is parsed and checked in one compiled call inline here (DV's 1 ms packets are
+        small, so per-packet Python calls are a large share of the time); anything else goes to `decode_events`,
+        which yields the same arrays or produces the precise error."""
         validate = self.validate
+        frombuffer, u8, dtype, none = np.frombuffer, np.uint8, EVENT_DTYPE, NO_EVENTS
+        parse_check = parse_check_evts
         for stream, pos, payload in self.packets(("EVTS",)):
+            if validate:
+                start, count, _, why = parse_check(frombuffer(payload, u8), stream.width, stream.height)
+                if start >= 0 and not why:
+                    yield frombuffer(payload, dtype, count, start) if count else none
+                    continue
             try:
                 ev = decode_events(payload, stream, validate)
             except RecordingError as exc:

@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any, Callable, TextIO
 
 
+from edi_live import calibration
 from edi_live.config import EdiConfig, NodeConfig
 from edi_live.errors import ConfigError, EdiLiveError, NodeError, SourceError
 from edi_live.reconstruction import Reconstructor
@@ -205,8 +206,6 @@ class Node:
         cfg = self.config
         info = self.source.info
         self.ring = EventRing(cfg.ring.capacity_events, cfg.ring.capacity_frames, cfg.ring_policy)
-        from edi_live import calibration
-
         edi_cfg, self._calibration_to = calibration.prepare(cfg.edi, info, cfg.calibration, cfg.save_calibration)
         reconstructor = self._make_reconstructor(info.width, info.height, edi_cfg)
         sinks = []
@@ -239,8 +238,6 @@ class Node:
 
     def _save_calibration(self) -> None:
         """--save-calibration (a failure is the run's error), or a live camera's own file (a failure is a warning)."""
-        from edi_live import calibration
-
         target = self._calibration_to
         cal = calibration.from_stats(self.source.info, self.final_stats) if target is not None else None
         if cal is None:

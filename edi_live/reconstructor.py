@@ -67,8 +67,6 @@ class EdiReconstructor:
             reestimate_every=int(settings.reestimate_every), startup_estimates=settings.history_pairs,
             fit_patience=int(settings.fit_patience), fit_strong=float(settings.fit_strong),
             c_history=int(settings.c_history)))
-        self.black_level = float(settings.black_level)
-        self.aps_gamma = float(settings.aps_gamma)
         if not self._fixed:
             self._tracker = ContrastTracker(self.width, self.height, self._policy,
                                             history_pairs=settings.history_pairs, sample_pixels=settings.sample_pixels)
@@ -95,6 +93,16 @@ class EdiReconstructor:
         self.last_estimate_ms = 0.0
 
     # ---- state for stats, tools and tests ----
+
+    @property
+    def black_level(self) -> float:
+        """APS black level (8-bit DN) taken off the frames."""
+        return self._aps.black_level
+
+    @property
+    def aps_gamma(self) -> float:
+        """APS response exponent undone before the deblur."""
+        return self._aps.gamma
 
     @property
     def reestimations(self) -> int:
@@ -309,9 +317,8 @@ class EdiReconstructor:
         self._need_reference("render_fused()")
         log0, f0 = previous
         f1 = int(self._ref_t)
-        sat, black = self.settings.saturation, self.black_level
-        inf0 = edi.blurry_to_float(previous_image, saturation=sat, black_level=black)[1]
-        inf1 = edi.blurry_to_float(current_image, saturation=sat, black_level=black)[1]
+        inf0 = self._aps.to_float(previous_image)[1]
+        inf1 = self._aps.to_float(current_image)[1]
         if self.events_ignored:
             events = events[:0]
         plan = edi.fusion_plan(log0, self._latent.log_ref, events, f0, f1, self.c_on, self.c_off, inf0, inf1,
@@ -376,5 +383,5 @@ class EdiReconstructor:
         return Reconstruction(image=image, t_us=int(t_us), kind=kind, ref_t_us=int(self._ref_t),
                               exposure_start_us=self._exposure[0], exposure_end_us=self._exposure[1],
                               c_on=float(self.c_on), c_off=float(self.c_off), n_events=int(n_events),
-                              arrival_ns=int(self._arrival_ns), black_level=float(self.black_level),
-                              aps_gamma=float(self._aps.gamma))
+                              arrival_ns=int(self._arrival_ns), black_level=self.black_level,
+                              aps_gamma=self.aps_gamma)

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from drivers.replay import merged_packets
-from edi_live.datatypes import EVENT_DTYPE
+from edi_live.datatypes import EVENT_DTYPE, concat_events
 from edi_live.reconstructor import EdiReconstructor
 from tools.simulate import preset, simulate
 
@@ -57,12 +57,18 @@ def simulated_row(height: int) -> list[np.ndarray]:
     return _fit(tiles, height)
 
 
-def real_row(path: Path, height: int, frame_index: int = 3) -> list[np.ndarray]:
+def load_recording(path: Path) -> tuple[np.ndarray, list]:
+    """All events (time-ordered, EVENT_DTYPE) and APS frames of a recording, through the replay's merge."""
     events, frames = [], []
     for packet in merged_packets(path):
-        events.append(np.asarray(packet.events, dtype=EVENT_DTYPE))
+        if len(packet.events):
+            events.append(np.asarray(packet.events, dtype=EVENT_DTYPE))
         frames.extend(packet.frames)
-    ev = np.concatenate(events).astype(EVENT_DTYPE) if events else np.zeros(0, EVENT_DTYPE)
+    return (concat_events(events) if events else np.zeros(0, EVENT_DTYPE)), frames
+
+
+def real_row(path: Path, height: int, frame_index: int = 3) -> list[np.ndarray]:
+    ev, frames = load_recording(path)
     rec, out = _deblur_through(frames[: frame_index + 1], ev)
     frame = frames[frame_index]
     after = np.searchsorted(ev["t"], [frame.exposure_end_us, frame.exposure_end_us + 10_000], side="right")

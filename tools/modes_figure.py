@@ -17,8 +17,8 @@ import numpy as np
 
 from edi_live.aedat4 import Aedat4Reader
 from edi_live.datatypes import Frame
-from tools.figure import _fit, _label, write_rows
-from tools.real_camera_figure import REAL, load
+from tools.figure import _fit, _label, load_recording, write_rows
+from tools.real_camera_figure import REAL
 
 
 def frames_of(path: Path) -> list[Frame]:
@@ -32,7 +32,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--recording", type=Path, default=REAL / "emlb_demo-01_davis346.aedat4")
     ap.add_argument("--between", type=int, default=6, help="show the time halfway between APS frames K and K+1")
     args = ap.parse_args(argv)
-    _, aps = load(args.recording)
+    _, aps = load_recording(args.recording)
     k = min(args.between, len(aps) - 2)
     t = (aps[k].mid_exposure_us + aps[k + 1].mid_exposure_us) // 2
     gain = 255.0 / max(1.0, float(np.percentile(aps[k].image, 99.5)))

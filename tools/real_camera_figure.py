@@ -14,24 +14,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drivers.replay import merged_packets
-from edi_live.datatypes import EVENT_DTYPE, concat_events
 from edi_live.reconstructor import EdiReconstructor
-from tools.figure import _fit, _label, write_rows
+from tools.figure import _fit, _label, load_recording, write_rows
 
 REAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
 DEFAULT = [(REAL / "emlb_demo-01_davis346.aedat4", 6), (REAL / "aestream_davis346.aedat4", 2),
            (REAL / "evlib_sample_davis346.aedat4", 2)]
 BEFORE = {"separate_thresholds": False, "mask_unreliable_pixels": False}
-
-
-def load(path: Path) -> tuple[np.ndarray, list]:
-    events, frames = [], []
-    for packet in merged_packets(path):
-        if len(packet.events):
-            events.append(np.asarray(packet.events, dtype=EVENT_DTYPE))
-        frames.extend(packet.frames)
-    return concat_events(events), frames
 
 
 def reconstruct(events: np.ndarray, frames: list, index: int, settings: dict) -> tuple:
@@ -51,7 +40,7 @@ def reconstruct(events: np.ndarray, frames: list, index: int, settings: dict) ->
 
 
 def row(path: Path, index: int, height: int) -> np.ndarray:
-    events, frames = load(path)
+    events, frames = load_recording(path)
     index = min(index, len(frames) - 1)
     frame = frames[index]
     gain = 255.0 / max(1.0, float(np.percentile(frame.image, 99.5)))  # dark recordings: one gain for the row
@@ -66,7 +55,7 @@ def row(path: Path, index: int, height: int) -> np.ndarray:
 
 def lamp_detail(height: int) -> np.ndarray:
     """aestream's ceiling lamp at 3x: the APS frame, and the latent frame 10 ms later before and now."""
-    events, frames = load(REAL / "aestream_davis346.aedat4")
+    events, frames = load_recording(REAL / "aestream_davis346.aedat4")
 
     def zoom(image: np.ndarray) -> np.ndarray:
         part = image[0:60, 150:270].astype(np.uint8)

@@ -37,6 +37,12 @@ TRIGGER_DTYPE = np.dtype([("t", "<i8"), ("type", "i1")])
 """One trigger. `type` follows AEDAT4's TriggerType enum (6/7 = APS frame start/end, 8/9 = exposure start/end)."""
 
 
+ColorFilter = Literal["RGGB", "GRBG", "GBRG", "BGGR"]
+"""A Bayer colour-filter pattern, named by its top-left 2x2 block read row by row (so "RGGB": R at (0, 0), G at
+(0, 1) and (1, 0), B at (1, 1)). None stands for a monochrome sensor."""
+COLOR_FILTERS: tuple[ColorFilter, ...] = ("RGGB", "GRBG", "GBRG", "BGGR")
+
+
 def empty_events(n: int = 0) -> np.ndarray:
     return np.zeros(n, dtype=EVENT_DTYPE)
 
@@ -78,8 +84,10 @@ def empty_triggers(n: int = 0) -> np.ndarray:
 class Frame:
     """One APS (intensity) frame with its exposure window.
 
-    `image` is (height, width), row-major, uint8 or uint16 gray. B is the mean of the latent image over
-    [exposure_start_us, exposure_end_us]. `start_us`/`end_us` are the readout start/end when known.
+    `image` is (height, width), row-major, uint8 or uint16: gray, or a raw Bayer mosaic when `color_filter` names
+    its pattern; or (height, width, 3) uint8/uint16 BGR when the source delivers demosaiced colour. B is the mean of
+    the latent image over [exposure_start_us, exposure_end_us]. `start_us`/`end_us` are the readout start/end when
+    known.
     """
 
     image: np.ndarray
@@ -88,10 +96,13 @@ class Frame:
     start_us: int | None = None
     end_us: int | None = None
     seq: int = 0
+    color_filter: ColorFilter | None = None
 
     def __post_init__(self) -> None:
-        if self.image.ndim != 2:
-            raise ValueError(f"Frame.image must be 2-D (got shape {self.image.shape})")
+        if not (self.image.ndim == 2 or (self.image.ndim == 3 and self.image.shape[2] == 3)):
+            raise ValueError(f"Frame.image must be (h, w) or (h, w, 3) BGR (got shape {self.image.shape})")
+        if self.color_filter is not None and self.image.ndim != 2:
+            raise ValueError("a Frame with a colour-filter pattern holds the raw 2-D mosaic, not BGR")
         if self.exposure_end_us < self.exposure_start_us:
             raise ValueError(
                 f"Frame exposure ends before it starts (got {self.exposure_start_us}..{self.exposure_end_us} µs)"
@@ -144,6 +155,12 @@ class SourceInfo:
     name: str = "unknown"  # e.g. "DAVIS346" or "DAVIS240C"
     serial: str = ""
     kind: Literal["usb", "replay", "emulator", "network"] = "replay"
+    color_filter: ColorFilter | None = None
+    """The sensor's Bayer pattern for a colour camera (e.g. a colour DAVIS346), None for monochrome."""
+
+    @property
+    def is_color(self) -> bool:
+        return self.color_filter is not None
 
     @property
     def label(self) -> str:
@@ -171,7 +188,8 @@ Kind = Literal["deblurred", "latent"]
 class Reconstruction:
     """One sharp frame produced by the EDI worker.
 
-    `image` is (height, width) uint8 gray, display-ready and owned by the receiver (a copy, never a view
+    `image` is (height, width) uint8 gray or (height, width, 3) uint8 BGR (a colour camera's output, demosaiced),
+    display-ready and owned by the receiver (a copy, never a view
     of reconstructor state); linear intensity on the 8-bit APS scale, above the APS black level (an APS frame of
     this scene would read black_level + 255 * (image / 255) ** (1 / aps_gamma)). `t_us` the latent time,
     `ref_t_us` the reference time f of the APS frame it derives from, `exposure_*` that APS frame's exposure

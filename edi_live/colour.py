@@ -1,0 +1,58 @@
+"""Bayer mosaics: which colour each pixel of a colour DAVIS sees, and conversion between mosaic and BGR images.
+
+Plain functions on numpy arrays (no state). A pattern is a `datatypes.ColorFilter`, named by its top-left 2x2 block
+read row by row. Channel indices follow OpenCV's BGR order: 0 = blue, 1 = green, 2 = red.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from edi_live.datatypes import COLOR_FILTERS, ColorFilter
+
+_LETTER_TO_CHANNEL = {"B": 0, "G": 1, "R": 2}
+
+# OpenCV names its Bayer conversions after the second row's second and third pixels, which is the top-left
+# block's bottom-right and the next column: a sensor whose top-left block is RGGB uses COLOR_BayerBG2BGR.
+_TO_BGR = {
+    "RGGB": cv2.COLOR_BayerBG2BGR,
+    "BGGR": cv2.COLOR_BayerRG2BGR,
+    "GRBG": cv2.COLOR_BayerGB2BGR,
+    "GBRG": cv2.COLOR_BayerGR2BGR,
+}
+
+
+def check_pattern(pattern: str) -> ColorFilter:
+    """`pattern` as a ColorFilter, or ValueError naming the known ones."""
+    if pattern not in COLOR_FILTERS:
+        raise ValueError(f"unknown Bayer pattern {pattern!r} (known: {', '.join(COLOR_FILTERS)})")
+    return pattern  # type: ignore[return-value]
+
+
+def channel_of_block(pattern: ColorFilter) -> np.ndarray:
+    """(2, 2) int array: the BGR channel index of each position of the pattern's 2x2 block."""
+    letters = check_pattern(pattern)
+    return np.array([[_LETTER_TO_CHANNEL[letters[0]], _LETTER_TO_CHANNEL[letters[1]]],
+                     [_LETTER_TO_CHANNEL[letters[2]], _LETTER_TO_CHANNEL[letters[3]]]], dtype=np.int8)
+
+
+def channel_map(pattern: ColorFilter, height: int, width: int) -> np.ndarray:
+    """(height, width) int8: the BGR channel index each pixel of the mosaic sees."""
+    block = channel_of_block(pattern)
+    return np.tile(block, ((height + 1) // 2, (width + 1) // 2))[:height, :width]
+
+
+def mosaic(bgr: np.ndarray, pattern: ColorFilter) -> np.ndarray:
+    """The raw mosaic a sensor with `pattern` would read of the (h, w, 3) BGR image (same dtype)."""
+    if bgr.ndim != 3 or bgr.shape[2] != 3:
+        raise ValueError(f"mosaic needs an (h, w, 3) BGR image (got shape {bgr.shape})")
+    chan = channel_map(pattern, bgr.shape[0], bgr.shape[1])
+    return np.take_along_axis(bgr, chan[..., None].astype(np.intp), axis=2)[..., 0].copy()
+
+
+def demosaic(raw: np.ndarray, pattern: ColorFilter) -> np.ndarray:
+    """(h, w, 3) BGR of the raw (h, w) uint8/uint16 mosaic, by OpenCV's bilinear Bayer interpolation."""
+    if raw.ndim != 2:
+        raise ValueError(f"demosaic needs a 2-D raw mosaic (got shape {raw.shape})")
+    return cv2.cvtColor(np.ascontiguousarray(raw), _TO_BGR[check_pattern(pattern)])

@@ -51,8 +51,20 @@ def mosaic(bgr: np.ndarray, pattern: ColorFilter) -> np.ndarray:
     return np.take_along_axis(bgr, chan[..., None].astype(np.intp), axis=2)[..., 0].copy()
 
 
-def demosaic(raw: np.ndarray, pattern: ColorFilter) -> np.ndarray:
-    """(h, w, 3) BGR of the raw (h, w) uint8/uint16 mosaic, by OpenCV's bilinear Bayer interpolation."""
+# OpenCV's other demosaicing methods, by the same shifted names: variable number of gradients, edge-aware
+_VNG = {"RGGB": cv2.COLOR_BayerBG2BGR_VNG, "BGGR": cv2.COLOR_BayerRG2BGR_VNG,
+        "GRBG": cv2.COLOR_BayerGB2BGR_VNG, "GBRG": cv2.COLOR_BayerGR2BGR_VNG}
+_EA = {"RGGB": cv2.COLOR_BayerBG2BGR_EA, "BGGR": cv2.COLOR_BayerRG2BGR_EA,
+       "GRBG": cv2.COLOR_BayerGB2BGR_EA, "GBRG": cv2.COLOR_BayerGR2BGR_EA}
+DEMOSAIC_METHODS = {"bilinear": _TO_BGR, "vng": _VNG, "ea": _EA}
+DEFAULT_DEMOSAIC = "ea"  # chosen by CPSNR and cost on the simulator (docs/colour.md)
+
+
+def demosaic(raw: np.ndarray, pattern: ColorFilter, method: str = "bilinear") -> np.ndarray:
+    """(h, w, 3) BGR of the raw (h, w) uint8/uint16 mosaic by one of OpenCV's Bayer interpolations
+    (DEMOSAIC_METHODS: "bilinear", "vng" (uint8 only), "ea" edge-aware)."""
     if raw.ndim != 2:
         raise ValueError(f"demosaic needs a 2-D raw mosaic (got shape {raw.shape})")
-    return cv2.cvtColor(np.ascontiguousarray(raw), _TO_BGR[check_pattern(pattern)])
+    if method not in DEMOSAIC_METHODS:
+        raise ValueError(f"unknown demosaicing method {method!r} (known: {', '.join(DEMOSAIC_METHODS)})")
+    return cv2.cvtColor(np.ascontiguousarray(raw), DEMOSAIC_METHODS[method][check_pattern(pattern)])

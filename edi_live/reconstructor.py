@@ -16,6 +16,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+import edi_live.colour_edi as colour_edi
 import edi_live.contrast as contrast
 import edi_live.edi as edi
 from edi_live.c_policy import ContrastPolicy, PolicySettings
@@ -53,6 +54,8 @@ class EdiReconstructor:
                 options = dict(settings.estimator_options)
                 if settings.estimator == "consistency":
                     options.setdefault("separate", settings.separate_thresholds)
+                elif settings.estimator == "energy":  # its TV/Sobel terms per same-channel sub-image in colour
+                    options.setdefault("mosaic", settings.color_filter is not None)
                 estimator = contrast.make_estimator(settings.estimator, **options)
             except (ValueError, TypeError) as exc:
                 raise ConfigError(str(exc)) from None
@@ -78,6 +81,7 @@ class EdiReconstructor:
                             if settings.mask_unreliable_pixels and self._tracker is not None else None)
         self._mask: np.ndarray | None = self._hot.mask  # events at these pixels are ignored; replaced, not changed
         self._latent = LatentState(self.width, self.height)
+        self._colour: colour_edi.ColourPlan | None = None  # colour: EDI on the Bayer mosaic, demosaiced for output
         self._pair: contrast.FramePair | None = None  # formed on this frame, judged after its deblur
         self.has_reference = False
         self.events_ignored = False  # set when the c policy finds that the events carry no signal
@@ -178,7 +182,7 @@ class EdiReconstructor:
         if self._streamer:
             raise NodeError("on_frame() on a streaming_copy(): deblur on the original reconstructor")
         t_start = time.perf_counter()
-        img = frame.image
+        self._colour, img = colour_edi.read_frame(self._colour, frame, self.settings)
         if img.shape != (self.height, self.width):
             raise ConfigError(f"APS frame is {img.shape[1]}x{img.shape[0]} but the reconstructor was set up for "
                               f"{self.width}x{self.height}; check the source resolution")
@@ -317,8 +321,8 @@ class EdiReconstructor:
         self._need_reference("render_fused()")
         log0, f0 = previous
         f1 = int(self._ref_t)
-        inf0 = self._aps.to_float(previous_image)[1]
-        inf1 = self._aps.to_float(current_image)[1]
+        inf0 = self._aps.to_float(colour_edi.as_mosaic(self._colour, previous_image))[1]
+        inf1 = self._aps.to_float(colour_edi.as_mosaic(self._colour, current_image))[1]
         if self.events_ignored:
             events = events[:0]
         plan = edi.fusion_plan(log0, self._latent.log_ref, events, f0, f1, self.c_on, self.c_off, inf0, inf1,
@@ -380,8 +384,8 @@ class EdiReconstructor:
             raise NodeError(f"{what} called before the first APS frame was deblurred (check has_reference first)")
 
     def _reconstruction(self, image: np.ndarray, t_us: int, kind: str, n_events: int) -> Reconstruction:
-        return Reconstruction(image=image, t_us=int(t_us), kind=kind, ref_t_us=int(self._ref_t),
-                              exposure_start_us=self._exposure[0], exposure_end_us=self._exposure[1],
-                              c_on=float(self.c_on), c_off=float(self.c_off), n_events=int(n_events),
-                              arrival_ns=int(self._arrival_ns), black_level=self.black_level,
+        return Reconstruction(image=image if self._colour is None else self._colour.output(image), t_us=int(t_us),
+                              kind=kind, ref_t_us=int(self._ref_t), exposure_start_us=self._exposure[0],
+                              exposure_end_us=self._exposure[1], c_on=float(self.c_on), c_off=float(self.c_off),
+                              n_events=int(n_events), arrival_ns=int(self._arrival_ns), black_level=self.black_level,
                               aps_gamma=self.aps_gamma)

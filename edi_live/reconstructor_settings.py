@@ -8,6 +8,8 @@ from dataclasses import dataclass, field
 
 import edi_live.contrast as contrast
 from edi_live.c_policy import C_RANGE
+from edi_live.colour import DEFAULT_DEMOSAIC
+from edi_live.datatypes import ColorFilter
 from edi_live.errors import ConfigError
 
 
@@ -44,6 +46,11 @@ class ReconstructorSettings:
     clock_offset_us: int = 0
     denoise_us: int = 0  # background-activity filter window; 0 = off
     mask_unreliable_pixels: bool = True  # ignore events that contradict the APS frames (needs c estimation)
+    # colour sensor (edi_live.colour_edi): the source's Bayer pattern (None: grey, unless a frame says otherwise);
+    # EDI runs on the mosaic, output is demosaiced BGR (`demosaic`: colour.DEMOSAIC_METHODS), or grey with `gray`
+    color_filter: ColorFilter | None = None
+    gray: bool = False
+    demosaic: str = DEFAULT_DEMOSAIC
 
     def thresholds(self) -> tuple[float, float, bool]:
         """(c_on, c_off, fixed), checked."""

@@ -32,6 +32,14 @@ def _grad_mag(img: np.ndarray) -> np.ndarray:
     return cv2.magnitude(gx, gy)
 
 
+def _phases(img: np.ndarray, mosaic: bool) -> list[np.ndarray]:
+    """The image, or on a Bayer mosaic its four same-channel sub-images (every other row and column), so that the
+    spatial terms never difference two colour channels."""
+    if not mosaic:
+        return [img]
+    return [np.ascontiguousarray(img[dy::2, dx::2]) for dy in (0, 1) for dx in (0, 1)]
+
+
 def _tv(img: np.ndarray) -> float:
     dx = np.abs(np.diff(img, axis=1)).sum()
     dy = np.abs(np.diff(img, axis=0)).sum()
@@ -53,19 +61,23 @@ class EnergyContrast:
     needs_full_image: bool = True
     fit_z: float = 1.0  # misfit() is all or nothing: 0 (three-point fit holds) or inf
     info_z: float = 0.0
+    mosaic: bool = False  # the frames are Bayer mosaics (a colour sensor): spatial terms per channel phase
 
     def _energy_fn(self, cur: FrameData) -> Callable[[float], float] | None:
         if cur.event_map is None or cur.table.n_active == 0:
             return None
-        em = _grad_mag(cur.event_map)
+        ems = [_grad_mag(p) for p in _phases(cur.event_map, self.mosaic)]
         b = np.maximum(cur.blurry, edi.DARK_FLOOR)
-        tv_b = max(_tv(b), 1e-6)
-        xc_b = max(float((_grad_mag(b) * em).sum()), 1e-6)
+        phases = lambda img: _phases(img, self.mosaic)  # noqa: E731
+        tv = lambda img: sum(_tv(p) for p in phases(img))  # noqa: E731
+        xc = lambda img: sum(float((_grad_mag(p) * e).sum()) for p, e in zip(phases(img), ems))  # noqa: E731
+        tv_b = max(tv(b), 1e-6)
+        xc_b = max(xc(b), 1e-6)
 
         def energy(c: float) -> float:
             lat = np.exp(edi.deblur_log(b, cur.table, c, informative=cur.informative))
             np.clip(lat, 0.0, 4 * 255.0, out=lat)
-            return _tv(lat) / tv_b - self.lam * float((_grad_mag(lat) * em).sum()) / xc_b
+            return tv(lat) / tv_b - self.lam * xc(lat) / xc_b
 
         return energy
 

@@ -20,6 +20,6 @@ from edi_live.simulation.engine import Simulation, simulate
 from edi_live.simulation.output import load_ground_truth, save_ground_truth, write_aedat4
 from edi_live.simulation.texture import PROCEDURAL_TEXTURES, SKIMAGE_TEXTURES, make_texture
 
-__all__ = ["DAVIS346_COLOR_FILTER", "EFFECTS", "PRESETS", "PROCEDURAL_TEXTURES", "RESOLUTIONS", "SKIMAGE_TEXTURES", "SceneConfig",
-           "Simulation", "linearise_aps", "load_ground_truth", "make_colour_texture", "make_texture", "preset", "save_ground_truth",
-           "simulate", "true_camera", "with_effects", "write_aedat4"]
+__all__ = ["DAVIS346_COLOR_FILTER", "EFFECTS", "PRESETS", "PROCEDURAL_TEXTURES", "RESOLUTIONS", "SKIMAGE_TEXTURES",
+           "SceneConfig", "Simulation", "linearise_aps", "load_ground_truth", "make_colour_texture", "make_texture",
+           "preset", "save_ground_truth", "simulate", "true_camera", "with_effects", "write_aedat4"]

@@ -104,6 +104,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "loads its own from ~/.config/edi-live/calibration/ without this flag")
     edi.add_argument("--save-calibration", metavar="FILE",
                      help="save the calibration in use at the end of the run (a live camera also saves its own)")
+    edi.add_argument("--gray", action="store_true",
+                     help="a colour camera's frames as grey images (default: colour BGR for a colour camera)")
     edi.add_argument("--quality-every", type=int, metavar="N",
                      help="score how well the output predicted one APS frame in N (the live quality figure; "
                           "default: 2, 0 = off)")

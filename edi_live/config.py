@@ -122,6 +122,8 @@ class EdiConfig:
     quality_every: int = 2
     # APS black level (8-bit DN) taken off each frame so the output is linear; None: 0, or a loaded calibration's
     black_level: float | None = None
+    gray: bool = False  # a colour source's frames as grey (h, w) images
+    color_filter: str | None = None  # the source's Bayer pattern (set by the node from SourceInfo.color_filter)
 
     def __post_init__(self) -> None:
         _int_in("every", self.every, 1, 10**12, "events per latent frame")
@@ -310,6 +312,7 @@ OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
     "clock_offset_us": ("edi", "clock_offset_us", None),
     "aps_gamma": ("edi", "aps_gamma", _num),
     "deblur_thread": ("edi", "deblur_thread", None),
+    "gray": ("edi", "gray", _bool("gray")),
     "publish": ("publisher", "endpoints", _endpoints),
     "no_publish": ("publisher", "-", _bool("no-publish")),
     "curve_secret_key": ("publisher", "curve_secret_key", _path),

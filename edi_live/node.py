@@ -22,6 +22,7 @@ stop is named in a NodeError.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -67,6 +68,7 @@ def default_reconstructor(width: int, height: int, edi: EdiConfig) -> Reconstruc
     kwargs["aps_gamma"] = float(edi.aps_gamma or 1.0)
     if edi.c_start is not None:
         kwargs["c_start"] = edi.c_start
+    kwargs["color_filter"], kwargs["gray"] = edi.color_filter, bool(edi.gray)
     return EdiReconstructor(width, height, **kwargs)
 
 
@@ -207,6 +209,7 @@ class Node:
         info = self.source.info
         self.ring = EventRing(cfg.ring.capacity_events, cfg.ring.capacity_frames, cfg.ring_policy)
         edi_cfg, self._calibration_to = calibration.prepare(cfg.edi, info, cfg.calibration, cfg.save_calibration)
+        edi_cfg = dataclasses.replace(edi_cfg, color_filter=info.color_filter)  # colour: EDI on the Bayer mosaic
         reconstructor = self._make_reconstructor(info.width, info.height, edi_cfg)
         sinks = []
         if cfg.publisher.enabled:

@@ -1,0 +1,43 @@
+"""The node hands a colour source's Bayer pattern to the reconstructor, and --gray through to it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from edi_live.config import NodeConfig
+from edi_live.datatypes import Packet, SourceInfo
+from edi_live.node import Node, default_reconstructor
+from edi_live.simulation import SceneConfig, simulate
+from tests.edi_live.test_node import BurstSource
+
+
+def _packets(sim) -> list[Packet]:
+    out, lo = [], -1
+    for f in sim.frames:
+        ev = sim.events[(sim.events["t"] > lo) & (sim.events["t"] <= f.exposure_end_us)]
+        out.append(Packet(events=ev, frames=[f]))
+        lo = f.exposure_end_us
+    return out
+
+
+@pytest.mark.parametrize("gray", [False, True])
+def test_a_colour_source_gives_colour_frames_unless_gray(gray):
+    sim = simulate(SceneConfig(width=32, height=24, duration_s=0.2, color_filter="GBRG", velocity_px_s=(100.0, 20.0)))
+    # the source says colour; its frames here carry no pattern, so only the node's hand-over can make them colour
+    frames_plain = [type(f)(f.image, f.exposure_start_us, f.exposure_end_us) for f in sim.frames]
+    sim.frames[:] = frames_plain
+    source = BurstSource(_packets(sim), width=32, height=24)
+    source.info = SourceInfo(32, 24, "colour burst", kind="usb", color_filter="GBRG")
+    made = []
+
+    def factory(w, h, edi):
+        made.append(default_reconstructor(w, h, edi))
+        return made[-1]
+
+    options = {"device": "auto", "no_publish": True, "every": 200, **({"gray": True} if gray else {})}
+    Node(NodeConfig.from_options(options), source, reconstructor_factory=factory).run()
+    rec = made[-1]
+    assert rec.settings.color_filter == "GBRG" and rec.settings.gray == gray
+    assert rec.render().image.shape == ((24, 32) if gray else (24, 32, 3))
+    assert np.asarray(rec.render().image).dtype == np.uint8

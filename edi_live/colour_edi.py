@@ -86,22 +86,26 @@ def _restricted(pair: FramePair, keep: np.ndarray) -> FramePair:
 
 
 def channel_contrast(estimator: ConsistencyContrast, pairs: Sequence[FramePair], pattern: ColorFilter,
-                     height: int, width: int, c_shared: tuple[float, float], *, z_separate: float = 3.0) -> dict:
+                     height: int, width: int, c_init: tuple[float, float], *, z_separate: float = 3.0) -> dict:
     """c per Bayer channel on the consecutive-frame pairs, and whether the data support it over one shared c.
 
-    Each channel is estimated on its own pixels (the other channels masked) and compared with `c_shared` on those
-    pixels: z = the cost decrease over its standard error (the consistency estimator's rule for c_on vs c_off).
-    Per-channel c is supported when some channel beats the shared c by `z_separate`. Returns {"channels":
-    {"B": (c_on, c_off) or None, "G": ..., "R": ...}, "z": {"B": z or None, ...}, "per_channel": bool}."""
+    The shared c is estimated on all the pairs' pixels, each channel's on its own pixels (the others masked), and
+    each channel's is compared with the shared one on that channel's pixels: z = the cost decrease over its
+    standard error (the consistency estimator's rule for c_on vs c_off). Per-channel c is supported when some
+    channel beats the shared c by `z_separate`. Returns {"shared": (c_on, c_off) or None, "channels": {"B":
+    (c_on, c_off) or None, "G": ..., "R": ...}, "z": {"B": z or None, ...}, "per_channel": bool}."""
     chan = channel_map(pattern, height, width).reshape(-1)
-    out: dict = {"channels": {}, "z": {}, "per_channel": False}
+    shared = estimator.estimate(None, pairs, c_init)
+    out: dict = {"shared": shared, "channels": {}, "z": {}, "per_channel": False}
+    if shared is None:
+        return out
     # like for like: a channel's c_on and c_off are separate only where the shared estimate's are, so z measures
     # the channels' difference and not the ON/OFF one
-    estimator = replace(estimator, separate=c_shared[0] != c_shared[1])
+    estimator = replace(estimator, separate=shared[0] != shared[1])
     for k, name in enumerate(CHANNEL_NAMES):
         sub = [_restricted(p, chan == k) for p in pairs]
-        est = estimator.estimate(None, sub, c_shared)
-        z = None if est is None else estimator.compare(sub, c_shared, [est])
+        est = estimator.estimate(None, sub, shared)
+        z = None if est is None else estimator.compare(sub, shared, [est])
         out["channels"][name], out["z"][name] = est, z
         if z is not None and z >= z_separate:
             out["per_channel"] = True

@@ -183,7 +183,7 @@ def speed(sim: Simulation, repeats: int, every: int = 1000) -> dict[str, tuple[f
     ratios: dict[str, list[float]] = {"deblur": [], "latent": [], "latent, --gray": []}
     run(grey_frames, False), run(sim.frames, True)  # warm-up: numba kernels, caches
     for _ in range(repeats):
-        g_deblur, g_latent, n = run(grey_frames, False)
+        g_deblur, g_latent, _ = run(grey_frames, False)
         c_deblur, c_latent, _ = run(sim.frames, True)
         _, gray_latent, _ = run(sim.frames, True, gray=True)
         ratios["deblur"].append(c_deblur / g_deblur)
@@ -214,9 +214,9 @@ def main(argv: list[str] | None = None) -> None:
                          f"{_mean_row(res['scores']['node']['latent'])[3]:.2f}")
         print(f"| {m} | " + " | ".join(cells) + f" | {costs[m] / costs['bilinear']:.2f} |")
     sharp = {name: channel_psnr(demosaic(mosaic(np.clip(sim.gt_images[0], 0, 255).astype(np.uint8),
-                                                sim.config.color_filter), sim.config.color_filter, m),
-                                sim.gt_images[0])[1] for name, sim in sims.items() for m in ("bilinear",)}
-    print(f"\n(demosaicing alone, sharp ground truth through bilinear: "
+                                                sim.config.color_filter), sim.config.color_filter, "bilinear"),
+                                sim.gt_images[0])[1] for name, sim in sims.items()}
+    print("\n(demosaicing alone, sharp ground truth through bilinear: "
           + ", ".join(f"{k} {v:.2f} dB" for k, v in sharp.items()) + ")\n")
 
     from edi_live.colour import DEFAULT_DEMOSAIC

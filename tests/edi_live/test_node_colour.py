@@ -21,8 +21,8 @@ def _packets(sim) -> list[Packet]:
     return out
 
 
-@pytest.mark.parametrize("gray", [False, True])
-def test_a_colour_source_gives_colour_frames_unless_gray(gray):
+@pytest.mark.parametrize("gray, mode", [(False, "causal"), (True, "causal"), (False, "nearest"), (False, "fused")])
+def test_a_colour_source_gives_colour_frames_unless_gray(gray, mode):
     sim = simulate(SceneConfig(width=32, height=24, duration_s=0.2, color_filter="GBRG", velocity_px_s=(100.0, 20.0)))
     # the source says colour; its frames here carry no pattern, so only the node's hand-over can make them colour
     frames_plain = [type(f)(f.image, f.exposure_start_us, f.exposure_end_us) for f in sim.frames]
@@ -35,7 +35,7 @@ def test_a_colour_source_gives_colour_frames_unless_gray(gray):
         made.append(default_reconstructor(w, h, edi))
         return made[-1]
 
-    options = {"device": "auto", "no_publish": True, "every": 200, **({"gray": True} if gray else {})}
+    options = {"device": "auto", "no_publish": True, "every": 200, "mode": mode, **({"gray": True} if gray else {})}
     Node(NodeConfig.from_options(options), source, reconstructor_factory=factory).run()
     rec = made[-1]
     assert rec.settings.color_filter == "GBRG" and rec.settings.gray == gray

@@ -51,3 +51,10 @@ def test_grey_scene_has_no_colour_fields_and_bad_pattern_is_refused():
     assert preset("colour").color_filter == "RGGB"
     with pytest.raises(ValueError, match="color_filter"):
         simulate(SceneConfig(duration_s=0.05, color_filter="RGBG"))
+
+
+@pytest.mark.parametrize("pattern", ["RGGB", "GRBG", "GBRG", "BGGR"])
+def test_the_simulator_reads_pattern_names_as_the_node_does(pattern):
+    from edi_live.simulation.colour_scene import sensor_channels
+
+    assert (sensor_channels(pattern, 5, 7) == channel_map(pattern, 5, 7)).all()

@@ -19,10 +19,9 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Sequence
 
-import cv2
 import numpy as np
 
-from edi_live.colour import DEFAULT_DEMOSAIC, channel_map, check_pattern, demosaic, mosaic
+from edi_live.colour import DEFAULT_DEMOSAIC, channel_map, check_pattern, demosaic, mosaic, mosaic_to_gray
 from edi_live.contrast.consistency import ConsistencyContrast
 from edi_live.contrast.frames import FramePair
 from edi_live.datatypes import ColorFilter, Frame
@@ -45,8 +44,8 @@ def resolve_pattern(configured: ColorFilter | None, frame: Frame) -> ColorFilter
 
 @dataclass(frozen=True)
 class ColourPlan:
-    """How a colour reconstructor reads frames and writes images. `gray`: output grey (h, w) images (demosaic,
-    then BGR -> grey with OpenCV's BT.601 weights), e.g. for a grey-only consumer."""
+    """How a colour reconstructor reads frames and writes images. `gray`: output grey (h, w) images (OpenCV's
+    Bayer -> grey, BT.601 luma, in one pass), e.g. for a grey-only consumer."""
 
     pattern: ColorFilter
     gray: bool = False
@@ -59,8 +58,9 @@ class ColourPlan:
 
     def output(self, mosaic_u8: np.ndarray) -> np.ndarray:
         """(h, w, 3) uint8 BGR of the reconstructed uint8 mosaic, or (h, w) grey with `gray`."""
-        bgr = demosaic(mosaic_u8, self.pattern, self.method)
-        return cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY) if self.gray else bgr
+        if self.gray:
+            return mosaic_to_gray(mosaic_u8, self.pattern)
+        return demosaic(mosaic_u8, self.pattern, self.method)
 
 
 def read_frame(plan: ColourPlan | None, frame: Frame, settings) -> tuple[ColourPlan | None, np.ndarray]:

@@ -37,3 +37,21 @@ def test_unknown_patterns_and_colour_frames_are_refused_clearly():
     with pytest.raises(ValueError, match="raw 2-D mosaic"):
         Frame(np.zeros((4, 4, 3), np.uint8), 0, 10, color_filter="RGGB")
     assert Frame(np.zeros((4, 4, 3), np.uint8), 0, 10).image.ndim == 3
+
+
+@pytest.mark.parametrize("pattern", COLOR_FILTERS)
+def test_mosaic_to_gray_gives_the_luma_of_a_flat_colour_field(pattern):
+    from edi_live.colour import mosaic_to_gray
+
+    bgr = np.empty((12, 14, 3), np.uint8)
+    bgr[...] = (25, 140, 230)
+    luma = 0.114 * 25 + 0.587 * 140 + 0.299 * 230  # BT.601
+    assert np.abs(mosaic_to_gray(mosaic(bgr, pattern), pattern)[2:-2, 2:-2].astype(float) - luma).max() <= 1.0
+
+
+@pytest.mark.parametrize("method", ["bilinear", "vng", "ea"])
+def test_every_demosaicing_method_keeps_a_flat_field(method):
+    bgr = np.empty((12, 14, 3), np.uint8)
+    bgr[...] = (25, 140, 230)
+    out = demosaic(mosaic(bgr, "GBRG"), "GBRG", method)
+    assert (out[3:-3, 3:-3] == bgr[3:-3, 3:-3]).all()

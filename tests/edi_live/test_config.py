@@ -212,3 +212,16 @@ def test_dv_keys_come_from_toml_and_dv_input_is_one_of_the_inputs(tmp_path):
                                                                           "tcp://127.0.0.1:7780")
     with pytest.raises(_ConfigError, match="choose one input"):
         NodeConfig.from_options({"dv_input": ["tcp://127.0.0.1:7777"], "replay": "x.aedat4"})
+
+
+def test_gray_is_a_switch_from_the_flag_or_the_config_file(tmp_path: Path):
+    from edi_live.cli import options_from_args
+
+    toml = tmp_path / "c.toml"
+    toml.write_text('replay = "x.aedat4"\ngray = true\n')
+    assert NodeConfig.from_toml(toml).edi.gray is True
+    assert NodeConfig.from_options({"replay": "x.aedat4"}).edi.gray is False
+    assert options_from_args(["--replay", "x.aedat4", "--gray"])[0]["gray"] is True
+    assert "gray" not in options_from_args(["--replay", "x.aedat4"])[0]  # the file's value stands
+    with pytest.raises(ConfigError, match="gray must be true or false"):
+        NodeConfig.from_options({"replay": "x.aedat4", "gray": "yes"})

@@ -25,6 +25,7 @@ from edi_live.colour import DEFAULT_DEMOSAIC, channel_map, check_pattern, demosa
 from edi_live.contrast.consistency import ConsistencyContrast
 from edi_live.contrast.frames import FramePair
 from edi_live.datatypes import ColorFilter, Frame
+from edi_live.reconstructor_settings import ReconstructorSettings
 
 DAVIS346_COLOR_FILTER: ColorFilter = "RGGB"  # assumed for BGR input whose source names no pattern
 CHANNEL_NAMES = ("B", "G", "R")
@@ -63,10 +64,10 @@ class ColourPlan:
         return demosaic(mosaic_u8, self.pattern, self.method)
 
 
-def read_frame(plan: ColourPlan | None, frame: Frame, settings) -> tuple[ColourPlan | None, np.ndarray]:
+def read_frame(plan: ColourPlan | None, frame: Frame, settings: ReconstructorSettings) \
+        -> tuple[ColourPlan | None, np.ndarray]:
     """(the plan in force once `frame` is seen, the 2-D image EDI runs on). A grey source's first colour frame
-    starts a plan for the frame's pattern, so that a colour frame is never silently read as grey. `settings`: the
-    reconstructor's (color_filter, gray, demosaic)."""
+    starts a plan for the frame's pattern, so that a colour frame is never silently read as grey."""
     if plan is None:
         pattern = resolve_pattern(settings.color_filter, frame)
         if pattern is not None:

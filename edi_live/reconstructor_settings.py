@@ -8,8 +8,8 @@ from dataclasses import dataclass, field
 
 import edi_live.contrast as contrast
 from edi_live.c_policy import C_RANGE
-from edi_live.colour import DEFAULT_DEMOSAIC
-from edi_live.datatypes import ColorFilter
+from edi_live.colour import DEFAULT_DEMOSAIC, DEMOSAIC_METHODS
+from edi_live.datatypes import COLOR_FILTERS, ColorFilter
 from edi_live.errors import ConfigError
 
 
@@ -51,6 +51,12 @@ class ReconstructorSettings:
     color_filter: ColorFilter | None = None
     gray: bool = False
     demosaic: str = DEFAULT_DEMOSAIC
+
+    def __post_init__(self) -> None:
+        if self.color_filter is not None and self.color_filter not in COLOR_FILTERS:
+            raise ConfigError(f"unknown Bayer pattern {self.color_filter!r} (known: {', '.join(COLOR_FILTERS)})")
+        if self.demosaic not in DEMOSAIC_METHODS:
+            raise ConfigError(f"unknown demosaicing method {self.demosaic!r} (known: {', '.join(DEMOSAIC_METHODS)})")
 
     def thresholds(self) -> tuple[float, float, bool]:
         """(c_on, c_off, fixed), checked."""

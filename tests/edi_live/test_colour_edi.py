@@ -101,3 +101,12 @@ def test_energy_estimator_on_a_mosaic_never_differences_two_channels():
     assert EnergyContrast(mosaic=True).mosaic and not EnergyContrast().mosaic
     rec = EdiReconstructor(8, 8, estimator="energy", color_filter="RGGB")
     assert rec.estimator.mosaic
+
+
+def test_bad_colour_settings_are_config_errors_at_construction():
+    from edi_live.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="demosaicing method"):
+        EdiReconstructor(W, H, color_filter="RGGB", demosaic="fancy")
+    with pytest.raises(ConfigError, match="Bayer pattern"):
+        EdiReconstructor(W, H, color_filter="RGBW")

@@ -52,7 +52,8 @@ from typing import Any
 
 import numpy as np
 
-from edi_live.datatypes import Frame, Reconstruction
+from edi_live.colour_edi import ColourPlan, resolve_pattern
+from edi_live.datatypes import ColorFilter, Frame, Reconstruction
 
 PSNR_CAP_DB = 100.0
 SCORED_MODES = ("causal",)
@@ -146,8 +147,11 @@ class PredictionScore:
     """Scores each APS frame by how well the node's earlier output predicted it (module docstring)."""
 
     def __init__(self, mode: str = "causal", *, window: int = 100, saturation: float | None = None,
-                 max_frames: int = 2000, score_every: int = 1) -> None:
+                 max_frames: int = 2000, score_every: int = 1, color_filter: ColorFilter | None = None,
+                 gray: bool = False) -> None:
         self.enabled = mode in SCORED_MODES
+        # a colour source's APS frames are compared as the node shows them (demosaiced, or grey with `gray`)
+        self._color_filter, self._gray = color_filter, gray
         self._score_every = max(1, int(score_every))  # score one APS frame in N (the others cost nothing)
         self._aps_seen = 0
         self.mode = mode
@@ -174,7 +178,7 @@ class PredictionScore:
         self._prev_end: int | None = None
         self._prev_mid: int | None = None
         self._exposures: collections.deque[int] = collections.deque(maxlen=8)
-        self._shape: tuple[int, int] | None = None
+        self._shape: tuple[int, ...] | None = None
         self._black, self._gamma = 0.0, 1.0  # the APS response of the latest frame sent (undone in the frames)
         self._events_map: np.ndarray | None = None  # flat bool: pixels with events since the last APS frame
         self._events_fed = False
@@ -185,7 +189,7 @@ class PredictionScore:
         """Events as the worker reads them (time order). Before the first APS frame they are ignored."""
         if not self.enabled or self._events_map is None or len(events) == 0:
             return
-        h, w = self._shape
+        h, w = self._shape[:2]
         x, y = events["x"], events["y"]
         idx = y.astype(np.intp)
         idx *= w
@@ -199,7 +203,8 @@ class PredictionScore:
         """An APS frame taken by the worker. Returns the results this completes (earlier frames' scores)."""
         if not self.enabled:
             return []
-        shape = frame.image.shape
+        image = self._as_output_layout(frame)
+        shape = image.shape
         mid = frame.mid_exposure_us
         if self._shape != shape or (self._prev_mid is not None and mid <= self._prev_mid):
             out = self._complete_all()
@@ -207,12 +212,14 @@ class PredictionScore:
             self._shape = shape
         else:
             out = self._complete_all()  # every earlier window is complete once a later APS frame is taken
-        target, valid = to_8bit_scale(frame.image, self._saturation)
+        target, valid = to_8bit_scale(image, self._saturation)
         self._aps_seen += 1
         if self._prev_b is not None and self._aps_seen % self._score_every == 0:
             active = None
             if self._events_fed:
-                active = self._events_map.reshape(shape)
+                active = self._events_map.reshape(shape[:2])
+                if len(shape) == 3:  # an event marks all three colours of its pixel in the demosaiced frame
+                    active = np.repeat(active[..., None], shape[2], axis=2)
             self._pending.append(_Window(frame.seq, frame.exposure_start_us, frame.exposure_end_us, mid, target,
                                          self._prev_b, valid, active))
         self._events_map = np.zeros(shape[0] * shape[1], bool)
@@ -222,6 +229,15 @@ class PredictionScore:
         out.extend(self._complete(self._last_ref, self._last_t))  # the node may already have moved past it
         self._prune()
         return out
+
+    def _as_output_layout(self, frame: Frame) -> np.ndarray:
+        """The APS frame in the layout of the node's output: as it is for a grey sensor; for a colour one
+        demosaiced to BGR, or grey with `gray`, as the reconstructor shows its mosaic."""
+        pattern = resolve_pattern(self._color_filter, frame)
+        if pattern is None:
+            return frame.image
+        plan = ColourPlan(pattern, self._gray)
+        return plan.output(plan.input_mosaic(frame.image))
 
     def on_emitted(self, rec: Reconstruction) -> list[PredictionResult]:
         """A frame the node sent, in emission order. Returns the results it completes."""

@@ -75,7 +75,8 @@ class EdiWorker:
         self._pending: PendingDeblur | None = None  # causal mode with deblur_thread
         self._scene = StaticScene()  # events that show only background noise make no frames
         # how well the output predicted each APS frame (scored on this thread; stats() reads a copy)
-        self.quality = (PredictionScore(config.mode, score_every=config.quality_every)
+        self.quality = (PredictionScore(config.mode, score_every=config.quality_every,
+                                        color_filter=config.color_filter, gray=config.gray)  # type: ignore[arg-type]
                         if config.quality_every else None)
         self.events_in = 0
         self.frames_in = 0

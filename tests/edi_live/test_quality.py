@@ -310,3 +310,29 @@ def test_frames_of_another_shape_are_ignored_not_fatal():
     score.on_aps_frame(Frame(aps, 2000, 3000, 2000, 3000, 1))
     score.finish()
     assert score.stats()["pred_psnr_db"] is None  # nothing of the right shape was sent: unscored, not an error
+
+
+@pytest.mark.parametrize("gray", [False, True])
+def test_a_colour_source_is_scored_in_the_layout_of_its_output(gray):
+    """A colour sensor's APS frames are raw mosaics and its output is demosaiced BGR (or grey): the figure compares
+    the output against the APS frame as the node shows it, instead of skipping every frame as another shape."""
+    from edi_live.colour import demosaic, mosaic_to_gray
+
+    score = PredictionScore("causal", color_filter="RGGB", gray=gray)
+    shown = (lambda m: mosaic_to_gray(m, "RGGB")) if gray else (lambda m: demosaic(m, "RGGB"))
+    rng = np.random.default_rng(5)
+    results, prev = [], None
+    for k in range(4):
+        raw = rng.integers(20, 230, (8, 10), dtype=np.uint8)
+        start = k * PERIOD
+        if prev is not None:  # a "nothing moved" prediction: the previous APS frame as shown, held
+            results += score.on_emitted(rec(shown(prev), start - 500, (k - 1) * PERIOD + STEP))
+            score.on_events(events_at([(1, 2)], start - 400))
+        results += score.on_aps_frame(Frame(raw, start, start + 2 * STEP, seq=k, color_filter="RGGB"))
+        results += score.on_emitted(rec(shown(raw), start + STEP, start + STEP, kind="deblurred"))
+        prev = raw
+    results += score.finish()
+    assert len(results) == 3 and all(r.scored for r in results)
+    for r in results:
+        assert r.psnr_pred_db == r.psnr_still_db  # the held previous frame is exactly the baseline
+        assert r.active_px == (1 if gray else 3)  # the one pixel with events, in each of its colours

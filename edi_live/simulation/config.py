@@ -61,11 +61,15 @@ class SceneConfig:
     texture_stretch: tuple[float, float] = (0.0, 100.0)  # texture percentiles mapped onto intensity_range
     ref_jitter: float = 0.0  # initial reference level offset, uniform +/- ref_jitter * min(c_on, c_off) per pixel
     effects: tuple[str, ...] = ()  # the named camera effects switched on (camera.EFFECTS), for the record
+    # colour (colour_scene.py): a Bayer pattern ("RGGB" = DAVIS346 colour) makes an RGB scene seen through it
+    color_filter: str | None = None
+    color_c_scale: tuple[float, float, float] = (1.0, 1.0, 1.0)  # (B, G, R) factors on each channel's thresholds
 
 
 # fields that the ground-truth file leaves out while they hold their default (files stay as they were)
 LATER_FIELDS = ("shot_noise_hz", "shot_noise_dark", "flicker_hz", "flicker_depth", "flicker_level",
-                "flicker_region", "texture_anchor", "texture_stretch", "ref_jitter", "effects")
+                "flicker_region", "texture_anchor", "texture_stretch", "ref_jitter", "effects", "color_filter",
+                "color_c_scale")
 
 PRESETS: dict[str, dict] = {
     # README's first command: short, blurry, DAVIS240-sized, a few seconds of CPU
@@ -83,6 +87,9 @@ PRESETS: dict[str, dict] = {
                      rotation_deg_s=20.0, oscillation_period_s=1.0),
     # every realistic camera effect of camera.EFFECTS at its documented DAVIS value
     "realistic": dict(duration_s=0.6, texture="blocks", velocity_px_s=(200.0, 50.0), effects=("all",)),
+    # a colour DAVIS346 (RGGB mosaic) looking at coloured blocks, with every realistic effect
+    "colour": dict(width=346, height=260, duration_s=0.6, texture="blocks", velocity_px_s=(200.0, 50.0),
+                   color_filter="RGGB", effects=("all",)),
 }
 
 
@@ -100,6 +107,10 @@ def validate(cfg: SceneConfig) -> None:
             raise ValueError(f"{name} must be >= 0 (got {getattr(cfg, name)})")
     if cfg.texture_anchor not in ("top-left", "centre"):
         raise ValueError(f"texture_anchor must be 'top-left' or 'centre' (got {cfg.texture_anchor!r})")
+    if cfg.color_filter is not None and cfg.color_filter not in ("RGGB", "GRBG", "GBRG", "BGGR"):
+        raise ValueError(f"color_filter must be a Bayer pattern RGGB/GRBG/GBRG/BGGR or None (got {cfg.color_filter!r})")
+    if len(cfg.color_c_scale) != 3 or not min(cfg.color_c_scale) > 0:
+        raise ValueError(f"color_c_scale must be three positive factors (B, G, R) (got {cfg.color_c_scale})")
     if not cfg.aps_gamma > 0:
         raise ValueError(f"aps_gamma must be > 0 (got {cfg.aps_gamma})")
     if not 0 < cfg.shot_noise_dark <= 1:

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from edi_live.datatypes import IMU_DTYPE, Frame
-from edi_live.simulation import camera, events
+from edi_live.simulation import camera, colour_scene, events
 from edi_live.simulation.config import SceneConfig, validate
 from edi_live.simulation.motion import Renderer, choose_step_us
 
@@ -39,7 +39,7 @@ class Simulation:
     frames: list[Frame]  # APS frames (uint8), exposure windows on the grid
     aps_linear: np.ndarray  # (n_frames, H, W) float32: exact exposure means on 0..255, before the camera model
     gt_t_us: np.ndarray  # (n_gt,) int64 ground-truth times
-    gt_images: np.ndarray  # (n_gt, H, W) float32 sharp linear intensity on 0..255
+    gt_images: np.ndarray  # (n_gt, H, W) float32 sharp linear intensity on 0..255; (n_gt, H, W, 3) BGR in colour
     gt_kind: np.ndarray  # (n_gt,) int8: 0 = mid-exposure of frame gt_frame[i], 1 = latent after it, 2 = extra
     gt_frame: np.ndarray  # (n_gt,) int32: index of the APS frame whose mid-exposure precedes (or is) t; -1 none
     c_on_map: np.ndarray  # (H, W) float32 per-pixel ON thresholds actually used
@@ -103,12 +103,14 @@ def simulate(cfg: SceneConfig) -> Simulation:
     n_steps = duration_us // step_us
     duration_us = n_steps * step_us
     con, coff = camera.threshold_maps(cfg, rng)
+    if renderer.channels is not None and tuple(cfg.color_c_scale) != (1.0, 1.0, 1.0):
+        con, coff = colour_scene.scale_thresholds(con, coff, renderer.channels, cfg.color_c_scale)
 
     # APS exposure windows (relative µs) fully inside the simulated time
     starts = np.arange(cfg.first_exposure_us, duration_us - cfg.exposure_us + 1, cfg.frame_interval_us, dtype=np.int64)
     ends = starts + cfg.exposure_us
     gt_t, gt_kind, gt_frame = _gt_schedule(cfg, (starts + ends) // 2, duration_us)
-    gt_images = np.zeros((gt_t.size, h, w), np.float32)
+    gt_images = np.zeros((gt_t.size, h, w) + (() if renderer.channels is None else (3,)), np.float32)
     aps_linear = np.zeros((starts.size, h, w), np.float32)
     aps_acc: dict[int, np.ndarray] = {}  # only the exposures open right now (float64 accumulators)
     n_seg = cfg.exposure_us // step_us
@@ -148,7 +150,11 @@ def simulate(cfg: SceneConfig) -> Simulation:
             aps_linear[a] = (255.0 * aps_acc.pop(int(a)) / n_seg).reshape(h, w)
         while gt_pos < gt_t.size and gt_t[gt_pos] <= tb:  # sorted, so each is rendered in its segment
             a = (gt_t[gt_pos] - ta) / step_us
-            gt_images[gt_pos] = (255.0 * np.exp(l0 + a * (l1 - l0))).reshape(h, w)
+            if renderer.channels is None:
+                gt_images[gt_pos] = (255.0 * np.exp(l0 + a * (l1 - l0))).reshape(h, w)
+            else:  # every channel, log-linear between the same grid samples as the mosaic
+                la, lb = renderer.log_frame_bgr(ta * 1e-6), renderer.log_frame_bgr(tb * 1e-6)
+                gt_images[gt_pos] = 255.0 * np.exp(la + a * (lb - la))
             gt_pos += 1
         l0, e0 = l1, e1
 
@@ -168,7 +174,8 @@ def simulate(cfg: SceneConfig) -> Simulation:
 
     frames = [Frame(image=camera.aps_values(cfg, aps_linear[i], rng), exposure_start_us=int(starts[i] + cfg.t0_us),
                     exposure_end_us=int(ends[i] + cfg.t0_us), start_us=int(starts[i] + cfg.t0_us),
-                    end_us=int(ends[i] + cfg.t0_us), seq=i) for i in range(starts.size)]
+                    end_us=int(ends[i] + cfg.t0_us), seq=i, color_filter=cfg.color_filter)
+              for i in range(starts.size)]
     imu = imu_samples(cfg, duration_us) if cfg.imu else np.zeros(0, IMU_DTYPE)
     return Simulation(config=cfg, events=evs, is_noise=is_noise, frames=frames, aps_linear=aps_linear,
                       gt_t_us=gt_t + cfg.t0_us, gt_images=gt_images, gt_kind=gt_kind, gt_frame=gt_frame,

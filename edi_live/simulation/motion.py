@@ -12,6 +12,7 @@ import math
 import cv2
 import numpy as np
 
+from edi_live.simulation import colour_scene
 from edi_live.simulation.config import SceneConfig
 from edi_live.simulation.texture import make_texture
 
@@ -28,13 +29,16 @@ class Renderer:
         reach = v * (cfg.oscillation_period_s / math.pi if cfg.oscillation_period_s > 0 else cfg.duration_s)
         margin = int(min(reach, 4 * max(w, h))) + max(w, h) // 2 + 8
         self.canvas_w, self.canvas_h = w + 2 * margin, h + 2 * margin
-        self.texture = make_texture(cfg.texture, self.canvas_h, self.canvas_w, seed=cfg.seed,
-                                    intensity_range=cfg.intensity_range, anchor=cfg.texture_anchor,
-                                    stretch=cfg.texture_stretch)
+        # a colour scene (cfg.color_filter set) warps a BGR texture; each sensor pixel sees its own channel
+        self.channels = None if cfg.color_filter is None else colour_scene.sensor_channels(cfg.color_filter, h, w)
+        make = make_texture if self.channels is None else colour_scene.make_colour_texture
+        self.texture = make(cfg.texture, self.canvas_h, self.canvas_w, seed=cfg.seed,
+                            intensity_range=cfg.intensity_range, anchor=cfg.texture_anchor, stretch=cfg.texture_stretch)
         self.lamp = None  # canvas weight in [0, 1] of the flickering lamp (None: no lamp)
         if cfg.flicker_hz > 0:
             self.lamp = self._lamp_mask()
-            self.texture = (self.texture * (1 - self.lamp) + cfg.flicker_level * self.lamp).astype(np.float32)
+            lamp = self.lamp if self.channels is None else self.lamp[..., None]  # a white lamp
+            self.texture = (self.texture * (1 - lamp) + cfg.flicker_level * lamp).astype(np.float32)
         self.log_texture = np.log(self.texture)
 
     def _lamp_mask(self) -> np.ndarray:
@@ -77,9 +81,19 @@ class Renderer:
         return math.log1p(cfg.flicker_depth * math.sin(2 * math.pi * cfg.flicker_hz * t_s))
 
     def log_frame(self, t_s: float) -> np.ndarray:
+        """(H, W) log intensity each sensor pixel sees (its own channel's in a colour scene)."""
         out = self._warp(self.log_texture, t_s)  # float32: per-step work is float32, accumulators float64
+        if self.channels is not None:
+            out = colour_scene.mosaic_log(out, self.channels)
         if self.lamp is not None:
             out += np.float32(self.lamp_gain(t_s)) * self._warp(self.lamp, t_s)
+        return out
+
+    def log_frame_bgr(self, t_s: float) -> np.ndarray:
+        """(H, W, 3) BGR log intensity of a colour scene at t_s: every channel at every pixel."""
+        out = self._warp(self.log_texture, t_s)
+        if self.lamp is not None:
+            out += np.float32(self.lamp_gain(t_s)) * self._warp(self.lamp, t_s)[..., None]
         return out
 
     def lamp_image(self, t_s: float) -> np.ndarray | None:

@@ -22,10 +22,12 @@ STEP_US = 2000  # render grid: the scene moves at most ~0.2 px per step
 PACKET_US = 10_000
 
 
-def stream_config(width: int, height: int, seed: int) -> SceneConfig:
-    """The emulator's scene: blocks drifting back and forth at up to ~85 px/s, a DAVIS-like c of 0.2."""
+def stream_config(width: int, height: int, seed: int, color_filter: str | None = None) -> SceneConfig:
+    """The emulator's scene: blocks drifting back and forth at up to ~85 px/s, a DAVIS-like c of 0.2; coloured
+    blocks seen through a Bayer mosaic when `color_filter` names one (e.g. "RGGB", a colour DAVIS346)."""
     return SceneConfig(width=width, height=height, texture="blocks", seed=seed, velocity_px_s=(80.0, 25.0),
-                       oscillation_period_s=4.0, duration_s=4.0, c_on=0.2, c_off=0.2, noise_rate_hz=0.1)
+                       oscillation_period_s=4.0, duration_s=4.0, c_on=0.2, c_off=0.2, noise_rate_hz=0.1,
+                       color_filter=color_filter)
 
 
 class _Exposure:
@@ -42,10 +44,11 @@ class _Exposure:
 
 
 def generated_scene(width: int = 240, height: int = 180, *, epoch_us: int | None = None, seed: int = 7,
-                    timing: dict[str, int] | None = None) -> Iterator[Packet]:
+                    timing: dict[str, int] | None = None, color_filter: str | None = None) -> Iterator[Packet]:
     """Endless packets of the simulated scene. `timing` ({"exposure_us", "interval_us"}, read before each
-    frame) defaults to libcaer's 4 ms every 40 ms."""
-    cfg = stream_config(width, height, seed)
+    frame) defaults to libcaer's 4 ms every 40 ms. `color_filter`: a colour sensor's Bayer pattern (frames are
+    raw mosaics carrying it), None for a grey one."""
+    cfg = stream_config(width, height, seed, color_filter)
     rng = np.random.default_rng(seed + 1)
     t0 = time.time_ns() // 1000 if epoch_us is None else epoch_us
     timing = timing if timing is not None else {"exposure_us": 4000, "interval_us": 40000}
@@ -77,7 +80,7 @@ def generated_scene(width: int = 240, height: int = 180, *, epoch_us: int | None
                 linear = (255.0 * ex.acc / (ex.end - ex.start)).reshape(height, width)
                 start = t0 + ex.start
                 pending.append(Frame(camera.aps_values(cfg, linear, rng), start, start + ex.end - ex.start,
-                                     start, start + ex.end - ex.start, seq))
+                                     start, start + ex.end - ex.start, seq, color_filter=color_filter))
                 seq += 1
             l0, e0 = l1, np.exp(l1)
             now = tb

@@ -39,13 +39,22 @@ def test_raw_bayer_stream_written_by_dv_processing_is_recognised(tmp_path, rng):
     assert frame.color_filter == "BGGR" and np.array_equal(frame.image, raw)
 
 
-def test_replay_source_reports_the_files_pattern(tmp_path, rng):
+def test_replay_delivers_the_files_pattern_and_colour_frames(tmp_path, rng):
     from drivers.replay import ReplaySource
+    from edi_live.datatypes import EVENT_DTYPE
 
-    path = tmp_path / "ours.aedat4"
-    with Aedat4Writer(path, 16, 12, color_filter="GRBG") as w:
-        w.write_frame(Frame(rng.integers(0, 256, (12, 16), dtype=np.uint8), T0, T0 + 900))
-    assert ReplaySource(path, speed=0).info.color_filter == "GRBG"
+    events = np.zeros(10, EVENT_DTYPE)
+    events["t"] = T0 + 1000 * np.arange(10)
+    for pattern, image in (("GRBG", rng.integers(0, 256, (12, 16), dtype=np.uint8)),
+                           (None, rng.integers(0, 256, (12, 16, 3), dtype=np.uint8))):
+        path = tmp_path / f"{pattern}.aedat4"
+        with Aedat4Writer(path, 16, 12, color_filter=pattern) as w:
+            w.write_events(events)
+            w.write_frame(Frame(image, T0 + 1000, T0 + 2000))
+        with ReplaySource(path, speed=0) as src:  # through the decoding child process
+            frames = [f for p in src if p is not None for f in p.frames]
+        assert src.info.color_filter == pattern
+        assert [f.color_filter for f in frames] == [pattern] and np.array_equal(frames[0].image, image)
 
 
 def test_our_colour_frames_and_mosaic_metadata_read_as_colour_by_dv_processing_and_aedat(tmp_path, rng):

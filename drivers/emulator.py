@@ -35,8 +35,7 @@ from drivers.davis import models, protocol as P
 from drivers.davis.encoder import WordEncoder
 from drivers.davis.wordstream import WordStream
 from drivers.emulator_recording import as_sensor_frames, is_path, recording_color_filter, recording_factory, recording_size
-from edi_live.colour import check_pattern
-from edi_live.datatypes import ColorFilter
+from edi_live.datatypes import COLOR_FILTERS, ColorFilter
 from edi_live.errors import RecordingError
 from edi_live.simulation.stream import generated_scene
 
@@ -75,7 +74,9 @@ class EmulatorBackend(usb.backend.IBackend):
             recording = list(recording)  # in-memory packets: read twice (size, then stream)
         size = recording_size(recording) if recording is not None else None
         pattern = faults.get("color_filter") or (recording_color_filter(recording) if recording is not None else None)
-        self.color_filter: ColorFilter | None = check_pattern(pattern) if pattern else None
+        if pattern and pattern not in COLOR_FILTERS:
+            raise ValueError(f"unknown Bayer pattern {pattern!r} (known: {', '.join(COLOR_FILTERS)})")
+        self.color_filter: ColorFilter | None = pattern or None
         mdl = models.get_model(model) if model else (models.DAVIS240 if size is None or size == (240, 180)
                                                       else models.DAVIS346)
         self.model = mdl

@@ -9,8 +9,8 @@ from __future__ import annotations
 from typing import Any, Callable, Iterable, Iterator
 
 import cv2
+import numpy as np
 
-from edi_live.colour import mosaic
 from edi_live.datatypes import ColorFilter, Frame, Packet
 from edi_live.errors import RecordingError
 
@@ -32,8 +32,17 @@ def as_sensor_frames(packets: Iterable[Packet], pattern: ColorFilter | None) -> 
 def _sensor_frame(f: Frame, pattern: ColorFilter | None) -> Frame:
     img = f.image
     if img.ndim == 3:
-        img = mosaic(img, pattern) if pattern else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        img = _mosaic(img, pattern) if pattern else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     return Frame(img, f.exposure_start_us, f.exposure_end_us, f.start_us, f.end_us, f.seq, color_filter=pattern)
+
+
+def _mosaic(bgr: np.ndarray, pattern: ColorFilter) -> np.ndarray:
+    """What a sensor with `pattern` reads of a BGR image: each pixel its own channel. The simulator's reading of
+    the pattern name (drivers stay apart from the EDI core's edi_live.colour)."""
+    from edi_live.simulation.colour_scene import sensor_channels
+
+    chan = sensor_channels(pattern, bgr.shape[0], bgr.shape[1]).astype(np.intp)
+    return np.ascontiguousarray(np.take_along_axis(bgr, chan[..., None], axis=2)[..., 0])
 
 
 def recording_color_filter(recording: Any) -> ColorFilter | None:

@@ -17,7 +17,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from edi_live.colour import channel_map, check_pattern
 from edi_live.datatypes import ColorFilter
 
 DAVIS346_COLOR_FILTER: ColorFilter = "RGGB"  # the DAVIS346 colour's top-left block (BayerBG in OpenCV's naming)
@@ -85,8 +84,13 @@ def mosaic_log(log_bgr: np.ndarray, channels: np.ndarray) -> np.ndarray:
 
 
 def sensor_channels(pattern: str, height: int, width: int) -> np.ndarray:
-    """(H, W) int8 BGR channel index of each sensor pixel (ValueError for an unknown pattern)."""
-    return channel_map(check_pattern(pattern), height, width)
+    """(H, W) int8 BGR channel index (0 = B, 1 = G, 2 = R) of each sensor pixel: the pattern names the top-left
+    2x2 block row by row. The simulator's own reading of the name (it is the ground truth, so it does not borrow
+    edi_live.colour's; a test checks that the two agree)."""
+    if pattern not in ("RGGB", "GRBG", "GBRG", "BGGR"):
+        raise ValueError(f"unknown Bayer pattern {pattern!r} (known: RGGB, GRBG, GBRG, BGGR)")
+    block = np.array(["BGR".index(letter) for letter in pattern], np.int8).reshape(2, 2)
+    return np.tile(block, ((height + 1) // 2, (width + 1) // 2))[:height, :width]
 
 
 def scale_thresholds(con: np.ndarray, coff: np.ndarray, channels: np.ndarray,

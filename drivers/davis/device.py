@@ -198,6 +198,8 @@ class DavisSource:
         w, h = (info["dvs_rows"], info["dvs_columns"]) if dvs_swap else (info["dvs_columns"], info["dvs_rows"])
         self.info = SourceInfo(w, h, name=models.camera_name(info["chip_id"]), serial=serial or "", kind=self._kind(),
                                color_filter=info["color_filter"])
+        if self.info.is_color:
+            log.info("%s is a colour %s: %s Bayer mosaic", t.where, self.info.name, self.info.color_filter)
         self._configure(t, model, info)
         _warm_up_decoder(info)
         self._start(t, model, info)

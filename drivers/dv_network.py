@@ -289,7 +289,7 @@ class DvNetworkSource:
                     packet.events, packet.arrival_ns = events, item[2]
             elif item[0] == "FRME":
                 frame: Frame = item[1]
-                if frame.image.shape != (self.info.height, self.info.width):
+                if frame.image.shape[:2] != (self.info.height, self.info.width):
                     fault = ProtocolError(f"a DV frame of {frame.width}x{frame.height} arrived on a "
                                           f"{self.info.width}x{self.info.height} sensor (sensor size changed?)")
                 else:
@@ -345,7 +345,8 @@ class DvNetworkSource:
             log.warning("the DV streams name different cameras (%s); using the events stream's", ", ".join(cameras))
         events_camera = next((s.source for s in streams if s.type == "EVTS" and s.source), "")
         name, serial = split_camera_label(events_camera or "DV")
-        return SourceInfo(w, h, name=name, serial=serial, kind="network")
+        return SourceInfo(w, h, name=name, serial=serial, kind="network",
+                          color_filter=next((s.color_filter for s in streams if s.color_filter), None))
 
     def _put(self, item: tuple) -> None:
         with self._cv:

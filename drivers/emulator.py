@@ -7,14 +7,16 @@ through `drivers.replay.merged_packets`, or any iterable of `Packet`s) or, with 
 scene. Pacing maps device time to host time (`speed`, 0 = as fast as read). Faults are injected by keyword:
 no_device, permission_denied, busy, logic_version/logic_patch/firmware, unplug_after_bytes (+ replug_after_s),
 garbage_words (random words inserted), drop_words (words removed: truncated columns, lost rows), reset_at_us
-(timestamp reset mid-stream). Options: serial, width/height, dvs_orientation,
+(timestamp reset mid-stream). Options: serial, width/height, color_filter (a colour DAVIS346: the APS
+colour-filter register answers libcaer's code of this Bayer pattern and APS frames are sent as its mosaic;
+default: the recording's pattern, or mono), dvs_orientation,
 aps_orientation, imu_orientation, chip_id, seed, holdback_us (how far events are held back so that a frame,
 which arrives after the events of its exposure, can still be sent at its exposure start; default 200 ms).
 Data is released in ~1 ms parts of device time, like a camera's 1 ms early-packet delay. On unplug the part in
 flight is lost; after `replug_after_s` the device reappears and its clock restarts at 0.
 
-Usable as `edi-live --usb-backend drivers.emulator:backend` (generated scene); `--emulate-from FILE` makes the
-CLI call `backend(recording=FILE, model=...)`.
+Usable as `edi-live --usb-backend drivers.emulator:backend` (generated scene; `drivers.emulator:colour_backend`
+for a colour DAVIS346); `--emulate-from FILE` makes the CLI call `backend(recording=FILE, model=...)`.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import errno
 import threading
 import time
 from array import array
-from typing import Any, Callable, Iterable, Iterator
+from typing import Any
 
 import numpy as np
 import usb.backend
@@ -32,13 +34,14 @@ import usb.core
 from drivers.davis import models, protocol as P
 from drivers.davis.encoder import WordEncoder
 from drivers.davis.wordstream import WordStream
-from edi_live.datatypes import Packet
+from drivers.emulator_recording import as_sensor_frames, is_path, recording_color_filter, recording_factory, recording_size
+from edi_live.datatypes import COLOR_FILTERS, ColorFilter
 from edi_live.errors import RecordingError
 from edi_live.simulation.stream import generated_scene
 
 _FAULTS = {"no_device", "permission_denied", "busy", "logic_version", "logic_patch", "firmware",
            "unplug_after_bytes", "replug_after_s", "garbage_words", "drop_words", "reset_at_us", "serial", "width",
-           "height", "dvs_orientation", "aps_orientation", "imu_orientation", "chip_id", "seed", "holdback_us"}
+           "height", "color_filter", "dvs_orientation", "aps_orientation", "imu_orientation", "chip_id", "seed", "holdback_us"}
 
 
 class _Desc:
@@ -49,41 +52,6 @@ class _Desc:
 
 def _usb_error(msg: str, code: int, backend_code: int) -> usb.core.USBError:
     return usb.core.USBError(msg, backend_code, code)
-
-
-def _recording_factory(recording: Any, on_fault: Callable[[RecordingError], None]) -> Callable[[], Iterable[Packet]]:
-    if isinstance(recording, (str, bytes)) or hasattr(recording, "__fspath__"):
-        from drivers.replay import merged_packets  # the replay engineer's reader: time-ordered packets
-
-        def packets() -> Iterator[Packet]:
-            # A damaged file ends the stream like its end would, so the word stream still sends everything
-            # before the fault (held back until then); the camera then reports the fault (bulk_read).
-            try:
-                yield from merged_packets(recording)
-            except RecordingError as exc:
-                on_fault(exc)
-
-        return packets
-    packets = list(recording)
-    return lambda: packets
-
-
-def _recording_size(recording: Any) -> tuple[int, int] | None:
-    """(width, height): from the file header, or for in-memory packets from a frame or the event extent."""
-    if isinstance(recording, (str, bytes)) or hasattr(recording, "__fspath__"):
-        from edi_live.aedat4.reader import Aedat4Reader
-        with Aedat4Reader(recording) as r:
-            return r.source_info.width, r.source_info.height
-    packets = [p for p in recording if isinstance(p, Packet)]
-    for p in packets:
-        if p.frames:
-            return p.frames[0].width, p.frames[0].height
-    xs = [int(p.events["x"].max()) for p in packets if len(p.events)]
-    ys = [int(p.events["y"].max()) for p in packets if len(p.events)]
-    if not xs:
-        return None
-    fits240 = max(xs) < 240 and max(ys) < 180
-    return (240, 180) if fits240 else (max(346, max(xs) + 1), max(260, max(ys) + 1))
 
 
 # ---- the pyusb backend ---------------------------------------------------------------------------------
@@ -102,9 +70,13 @@ class EmulatorBackend(usb.backend.IBackend):
         self.faults = faults
         self.speed = float(speed)
         self.aps_timing = {"exposure_us": 4000, "interval_us": 40000}  # the generated scene follows APS/12, 13
-        if recording is not None and not (isinstance(recording, (str, bytes)) or hasattr(recording, "__fspath__")):
+        if recording is not None and not is_path(recording):
             recording = list(recording)  # in-memory packets: read twice (size, then stream)
-        size = _recording_size(recording) if recording is not None else None
+        size = recording_size(recording) if recording is not None else None
+        pattern = faults.get("color_filter") or (recording_color_filter(recording) if recording is not None else None)
+        if pattern and pattern not in COLOR_FILTERS:
+            raise ValueError(f"unknown Bayer pattern {pattern!r} (known: {', '.join(COLOR_FILTERS)})")
+        self.color_filter: ColorFilter | None = pattern or None
         mdl = models.get_model(model) if model else (models.DAVIS240 if size is None or size == (240, 180)
                                                       else models.DAVIS346)
         self.model = mdl
@@ -118,9 +90,11 @@ class EmulatorBackend(usb.backend.IBackend):
         if recording is None:
             epoch = time.time_ns() // 1000
             seed = int(faults.get("seed", 7))
-            factory = lambda: generated_scene(w, h, epoch_us=epoch, seed=seed, timing=self.aps_timing)  # noqa: E731
+            factory = lambda: generated_scene(w, h, epoch_us=epoch, seed=seed, timing=self.aps_timing,  # noqa: E731
+                                              color_filter=self.color_filter)
         else:
-            factory = _recording_factory(recording, self._recording_fault)
+            packets = recording_factory(recording, self._recording_fault)
+            factory = lambda: as_sensor_frames(packets(), self.color_filter)  # noqa: E731
         self.stream = WordStream(factory, self.encoder, loop, int(faults.get("holdback_us", 200_000)),
                                   faults.get("reset_at_us"))
         self.regs = self._register_file(mdl, w, h, dvs_o, aps_o, imu_o)
@@ -162,7 +136,8 @@ class EmulatorBackend(usb.backend.IBackend):
             (P.SYSINFO, P.SYS_CLOCK_DEVIATION): 1000,
             (P.DVS, P.DVS_SIZE_COLUMNS): dcols, (P.DVS, P.DVS_SIZE_ROWS): drows, (P.DVS, P.DVS_ORIENTATION): dvs_o & 4,
             (P.APS, P.APS_SIZE_COLUMNS): acols, (P.APS, P.APS_SIZE_ROWS): arows, (P.APS, P.APS_ORIENTATION): aps_o & 7,
-            (P.APS, P.APS_HAS_GLOBAL_SHUTTER): 1, (P.IMU, P.IMU_TYPE): 1, (P.IMU, P.IMU_ORIENTATION): imu_o & 7,
+            (P.APS, P.APS_HAS_GLOBAL_SHUTTER): 1,
+            (P.APS, P.APS_COLOR_FILTER): models.code_of_color_filter(self.color_filter), (P.IMU, P.IMU_TYPE): 1, (P.IMU, P.IMU_ORIENTATION): imu_o & 7,
             (P.MUX, P.MUX_HAS_STATISTICS): 0, (P.DVS, P.DVS_HAS_BA_FILTER): 1, (P.DVS, P.DVS_HAS_ROI_FILTER): 1,
         }
         return regs
@@ -375,3 +350,10 @@ def backend(recording: Any = None, *, model: str | None = None, speed: float = 1
     recording's size); speed: 1.0 real time, 0 unpaced; loop: replay the recording forever; faults: see module doc.
     """
     return EmulatorBackend(recording, model=model, speed=speed, loop=loop, **faults)
+
+
+def colour_backend(recording: Any = None, **options: Any) -> usb.backend.IBackend:
+    """An emulated colour DAVIS346 (RGGB, the DAVIS346 colour's pattern, unless `color_filter` says otherwise)."""
+    options.setdefault("model", "davis346")
+    options.setdefault("color_filter", "RGGB")
+    return EmulatorBackend(recording, **options)

@@ -21,6 +21,7 @@ from typing import Any, Sequence
 
 from edi_live.cli_parser import PROG, build_parser
 from edi_live.config import NodeConfig, merge_options, read_toml
+from edi_live.datatypes import SourceInfo
 from edi_live.errors import ConfigError, EdiLiveError, RecordingError, SourceError
 from edi_live.stop_signals import StopSignals
 
@@ -127,6 +128,11 @@ def make_source(config: NodeConfig, explicit: set[str] | frozenset = frozenset()
     return drivers.open_source(s.device, serial=s.serial, backend=backend, exposure_us=s.exposure_us,
                                frame_interval_us=s.frame_interval_us, reconnect=s.reconnect,
                                policy=config.ring_policy)
+
+
+def colour_line(info: SourceInfo) -> str:
+    """The summary's line for a colour camera (mono cameras need none)."""
+    return f"  camera: {info.label} {info.width}x{info.height}, colour ({info.color_filter} Bayer mosaic)"
 
 
 def list_devices_command(flags: dict[str, Any]) -> int:
@@ -251,6 +257,8 @@ def _main(argv: Sequence[str] | None, signals: StopSignals) -> int:
                 from edi_live.stats import format_summary
 
                 print(format_summary(node.final_stats, node.elapsed_s), file=sys.stderr)
+                if source.info.is_color:
+                    print(colour_line(source.info), file=sys.stderr)
         return 0
     except SystemExit as exc:  # --help / --version
         return int(exc.code or 0)

@@ -2,7 +2,7 @@
 
     from edi_live.client import subscribe
     for header, image in subscribe("tcp://127.0.0.1:5555"):
-        print(header["seq"], header["t"], image.shape)
+        print(header["seq"], header["t"], image.shape)  # (h, w) gray, or (h, w, 3) BGR from a colour camera
 
 With `newest_only=True` (the default) each receive drains the socket and keeps the newest complete frame, so
 a viewer that falls behind skips to the present instead of lagging (ZMQ_CONFLATE cannot be used: it keeps
@@ -167,7 +167,8 @@ class Subscriber:
     def recv(self, timeout_s: float | None = None) -> tuple[dict, np.ndarray] | None:
         """The next frame as (header, image), or None if none arrived within timeout_s (None = wait).
 
-        The image is read-only and shares the message buffer. Raises ClientError on a bad message."""
+        The image is (h, w) gray or (h, w, 3) BGR (header "layout"), read-only, and shares the message buffer.
+        Raises ClientError on a bad message."""
         parts, skipped = self._recv_parts(self._frames, timeout_s, self.newest_only)
         if parts is None:
             return None

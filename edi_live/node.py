@@ -228,7 +228,7 @@ class Node:
             self.out_writer.start()
         if cfg.output.record is not None:
             self.record_writer = RecordWriter(cfg.output.record, info.width, info.height, camera_name=info.label,
-                                              queue_items=cfg.output.queue_items,
+                                              queue_items=cfg.output.queue_items, color_filter=info.color_filter,
                                               on_error=lambda e: self.fail(e, "record-writer"))
             self.record_writer.start()
         if self.out_writer is not None:

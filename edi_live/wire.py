@@ -1,12 +1,17 @@
-"""Wire protocol v1: how reconstructions and stats look on the ZeroMQ socket (a public contract).
+"""Wire protocol v1/v2: how reconstructions and stats look on the ZeroMQ socket (a public contract).
 
 A frame is 3 parts: ``[b"frame", msgpack header, raw row-major pixels]``; stats are 2 parts:
 ``[b"stats", msgpack map]``. All wire times are µs on the sensor clock. This module is the only importer of
 msgpack and the only place that maps code names (``t_us``, ``exposure_start_us``, ...) to the contract's
 short wire keys (``t``, ``exp_start``, ...). It knows nothing about sockets or threads: parts in, parts out.
 
-Decoding never trusts the peer: part count, topic, size limit, header types, known dtype and
-``w * h * itemsize == len(pixels)`` are all checked, and any failure is a `ClientError` with one line that
+A message's ``v`` is the lowest protocol version that decodes it: gray frames and stats are v1, unchanged, so a
+v1 client keeps working on gray streams; colour frames ((h, w, 3) BGR, ``layout`` "bgr", ``channels`` 3) are v2,
+which a v1 client refuses with its one-line version error. Every frame since v2 says its ``layout``; a frame
+without one is gray (a v1 sender).
+
+Decoding never trusts the peer: part count, topic, size limit, header types, known dtype and layout, and
+``w * h * channels * itemsize == len(pixels)`` are all checked, and any failure is a `ClientError` with one line that
 says what was wrong, never a numpy or msgpack exception.
 """
 
@@ -22,7 +27,12 @@ import numpy as np
 from edi_live.datatypes import Reconstruction
 from edi_live.errors import ClientError
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
+"""The newest version this module speaks (and decodes, with every older one)."""
+GRAY_VERSION = 1
+"""The version of gray frames and stats: what a v1 client can decode."""
+LAYOUTS = {"gray": 1, "bgr": 3}
+"""Pixel layout on the wire -> channels: "gray" (h, w) or "bgr" (h, w, 3), row-major, channels interleaved."""
 FRAME_TOPIC = b"frame"
 STATS_TOPIC = b"stats"
 
@@ -78,11 +88,13 @@ def dtype_name(dtype: np.dtype) -> str:
 
 
 def frame_header(rec: Reconstruction, seq: int, source: str) -> dict[str, Any]:
-    """The v1 header map for one reconstruction (wire keys; FRAME_KEYS lists the renames)."""
-    height, width = rec.image.shape
+    """The header map for one reconstruction (wire keys; FRAME_KEYS lists the renames); v1 for gray, v2 for BGR."""
+    height, width = rec.image.shape[:2]
+    colour = rec.image.ndim == 3
     dtype = "u1" if rec.image.dtype == np.uint8 else dtype_name(rec.image.dtype)
     header: dict[str, Any] = {
-        "v": PROTOCOL_VERSION, "seq": int(seq), "t": int(rec.t_us), "w": int(width), "h": int(height),
+        "v": PROTOCOL_VERSION if colour else GRAY_VERSION, "layout": "bgr" if colour else "gray",
+        "channels": 3 if colour else 1, "seq": int(seq), "t": int(rec.t_us), "w": int(width), "h": int(height),
         "dtype": dtype, "kind": str(rec.kind), "ref_t": int(rec.ref_t_us),
         "exp_start": int(rec.exposure_start_us), "exp_end": int(rec.exposure_end_us),
         "n_events": int(rec.n_events), "source": str(source)}
@@ -140,7 +152,7 @@ def _check_header(header: dict) -> None:
     version = header.get("v")
     if type(version) is not int:  # `type() is int` also refuses bool, which msgpack keeps apart
         raise ClientError(f"frame header has no integer protocol version 'v' (got {version!r})")
-    if version != PROTOCOL_VERSION:
+    if not GRAY_VERSION <= version <= PROTOCOL_VERSION:
         raise ClientError(f"frame uses wire protocol v{version}; this client speaks v{PROTOCOL_VERSION}: "
                           "upgrade edi-live on the subscriber side")
     bad = [key for key in _INT_KEYS if type(header.get(key)) is not int]
@@ -153,6 +165,10 @@ def _check_header(header: dict) -> None:
         raise ClientError(f"frame size must be positive (got w={header['w']}, h={header['h']})")
     if header.get("dtype") not in DTYPES:
         raise ClientError(f"frame dtype {header.get('dtype')!r} is unknown (known: {sorted(DTYPES)})")
+    layout = header.setdefault("layout", "gray")  # a v1 sender's frames are gray
+    if layout not in LAYOUTS or header.setdefault("channels", LAYOUTS.get(layout)) != LAYOUTS.get(layout):
+        raise ClientError(f"frame layout {layout!r} with {header.get('channels')!r} channels is unknown "
+                          f"(known: {', '.join(f'{k} ({n})' for k, n in LAYOUTS.items())})")
     if header.get("kind") not in KINDS:
         raise ClientError(f"frame kind {header.get('kind')!r} is unknown (known: {list(KINDS)})")
     if type(header.get("source")) is not str:
@@ -164,19 +180,19 @@ def _check_header(header: dict) -> None:
 
 
 def decode_frame(parts: Sequence[object], max_bytes: int = DEFAULT_MAX_BYTES) -> tuple[dict, np.ndarray]:
-    """Validate and decode a frame message into (header with wire keys, image of shape (h, w)).
+    """Validate and decode a frame message into (header with wire keys, image of shape (h, w) or (h, w, 3) BGR).
 
     The image is a read-only view of the received pixel buffer (no copy). Raises ClientError."""
     bufs = _check_parts(parts, FRAME_TOPIC, 3, max_bytes)
     header = _unpack_map(bufs[1], "frame header")
     _check_header(header)
     dtype = DTYPES[header["dtype"]]
-    w, h = header["w"], header["h"]
-    expected = w * h * dtype.itemsize
+    w, h, channels = header["w"], header["h"], header["channels"]
+    expected = w * h * channels * dtype.itemsize
     if expected != len(bufs[2]):
-        raise ClientError(f"frame {header['seq']}: header says {w}x{h} {header['dtype']} = {expected} bytes, "
-                          f"pixel part has {len(bufs[2])} bytes")
-    image = np.frombuffer(bufs[2], dtype=dtype).reshape(h, w)
+        raise ClientError(f"frame {header['seq']}: header says {w}x{h}x{channels} {header['dtype']} = {expected} "
+                          f"bytes, pixel part has {len(bufs[2])} bytes")
+    image = np.frombuffer(bufs[2], dtype=dtype).reshape((h, w, channels) if channels > 1 else (h, w))
     image.flags.writeable = False  # it shares the message buffer; copy it to modify
     return header, image
 
@@ -204,7 +220,7 @@ def _plain(value: object) -> object:
 def stats_map(stats: Mapping[str, Any]) -> dict[str, Any]:
     """Stats with wire keys and plain values, plus `v`."""
     out = {STATS_KEYS.get(str(k), str(k)): _plain(v) for k, v in stats.items()}
-    out["v"] = PROTOCOL_VERSION
+    out["v"] = GRAY_VERSION  # stats are unchanged since v1
     return out
 
 
@@ -217,7 +233,7 @@ def decode_stats(parts: Sequence[object], max_bytes: int = MAX_HEADER_BYTES + 16
     """Validate and decode a stats message into a map with wire keys. Raises ClientError."""
     bufs = _check_parts(parts, STATS_TOPIC, 2, max_bytes)
     stats = _unpack_map(bufs[1], "stats map")
-    if type(stats.get("v")) is not int or stats["v"] != PROTOCOL_VERSION:
+    if type(stats.get("v")) is not int or not GRAY_VERSION <= stats["v"] <= PROTOCOL_VERSION:
         raise ClientError(f"stats message uses wire protocol v{stats.get('v')!r}; this client speaks "
                           f"v{PROTOCOL_VERSION}")
     return stats

@@ -1,6 +1,7 @@
 """The `--out` and `--record` sink threads: AEDAT4 files written beside the live pipeline.
 
-- `OutWriter` ("out-writer"): every reconstruction the worker emits, as an 8-bit gray AEDAT4 frame whose
+- `OutWriter` ("out-writer"): every reconstruction the worker emits, as an 8-bit gray (or, from a colour camera,
+  BGR: DV's colour frame format) AEDAT4 frame whose
   timestamp and exposure start/end all equal the latent time t, frame source "reconstruction". AEDAT4 streams
   must be in time order, but in causal mode a deblurred frame (t = mid-exposure f) is emitted after latent
   frames that are newer than f; with the deblur thread, and more so in an unpaced run, those can reach far
@@ -9,7 +10,8 @@
   (`ref_t_us`): references only move forward, so no later deblurred frame can be older than that. A frame
   older than one already written (possible only past the bound on held frames) is counted (`out_late`).
 - `RecordWriter` ("record-writer"): the raw input packets as received (events, APS frames, IMU, triggers),
-  for later `--replay`. Items that would go back in time in their stream are skipped and counted.
+  for later `--replay`; a colour camera's raw mosaics keep their Bayer pattern (frame-stream metadata).
+  Items that would go back in time in their stream are skipped and counted.
 
 Both are lossless: `submit()` waits when the bounded queue is full (the wait is counted in `wait_s`), they are
 finalised (FileDataTable written) by `close()`, on stop and after faults alike, and a failure is handed to
@@ -26,7 +28,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from edi_live.datatypes import Frame, Packet, Reconstruction
+from edi_live.datatypes import ColorFilter, Frame, Packet, Reconstruction
 from edi_live.errors import NodeError
 from edi_live.ring import as_events
 
@@ -118,7 +120,7 @@ class _SinkThread:
 
 
 class OutWriter(_SinkThread):
-    """`--out FILE.aedat4`: every emitted reconstruction as a gray frame at its latent time."""
+    """`--out FILE.aedat4`: every emitted reconstruction as a gray or BGR frame at its latent time."""
 
     def __init__(self, path: str | Path, width: int, height: int, *, camera_name: str = "edi-live",
                  queue_items: int = 256, reorder_us: int = _DEFAULT_REORDER_US,
@@ -181,14 +183,15 @@ class RecordWriter(_SinkThread):
     """`--record FILE.aedat4`: the input packets as received (events, APS frames, IMU, triggers)."""
 
     def __init__(self, path: str | Path, width: int, height: int, *, camera_name: str = "edi-live",
-                 queue_items: int = 256, on_error: Callable[[BaseException], None] | None = None) -> None:
+                 queue_items: int = 256, on_error: Callable[[BaseException], None] | None = None,
+                 color_filter: ColorFilter | None = None) -> None:
         self.path = Path(path)
 
         def open_writer() -> Any:
             from edi_live.aedat4 import Aedat4Writer
 
             return Aedat4Writer(self.path, width, height, events=True, frames=True, imu=True, triggers=True,
-                                camera_name=camera_name, frame_source="aps")
+                                camera_name=camera_name, frame_source="aps", color_filter=color_filter)
 
         super().__init__("record-writer", open_writer, queue_items, on_error)
         self._last = {"events": -(2**63), "frames": -(2**63), "imu": -(2**63), "triggers": -(2**63)}

@@ -44,7 +44,8 @@ unshown because the viewer fell behind (newest-only mode).
 
 
 def to_u8(image: np.ndarray) -> np.ndarray:
-    """Display-ready 8-bit gray: u2 keeps its top byte, floats are clipped to 0..255."""
+    """Display-ready 8 bits, gray (h, w) or colour (h, w, 3) BGR as received: u2 keeps its top byte, floats are
+    clipped to 0..255."""
     if image.dtype == np.uint8:
         return image
     if image.dtype == np.uint16:
@@ -232,13 +233,13 @@ class Recorder:
                 raise EdiLiveError(f"cannot write --mp4 {mp4}: {why}")
 
     def write(self, header: dict, image: np.ndarray) -> None:
-        gray = to_u8(image)
+        shown = to_u8(image)  # gray or BGR: PNG keeps either as it is, the MP4 is always BGR
         if self.png_dir is not None:
             path = self.png_dir / f"frame_{header['seq']:09d}.png"
-            if not cv2.imwrite(str(path), gray):
+            if not cv2.imwrite(str(path), shown):
                 raise EdiLiveError(f"cannot write {path}")
         if self.mp4 is not None:
-            size = (gray.shape[1], gray.shape[0])
+            size = (shown.shape[1], shown.shape[0])
             if self._writer is None:
                 self._writer = cv2.VideoWriter(str(self.mp4), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, size)
                 if not self._writer.isOpened():
@@ -247,7 +248,7 @@ class Recorder:
             if size != self._size:
                 self.skipped_size += 1
                 return
-            self._writer.write(cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR))
+            self._writer.write(shown if shown.ndim == 3 else cv2.cvtColor(shown, cv2.COLOR_GRAY2BGR))
         self.written += 1
 
     def close(self) -> None:

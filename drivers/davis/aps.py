@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from edi_live.datatypes import Frame
+from edi_live.datatypes import ColorFilter, Frame
 
 APS_ADC_MAX = 1023
 WHITE_RESET_MIN = 384
@@ -40,15 +40,17 @@ class ApsFrameAssembler:
     """The APS frame in progress. `aps_columns`/`aps_rows` are the SIZE registers; `swap`, `flip_x`, `flip_y`
     the ORIENTATION_INFO bits; `adc_x2` doubles samples (DAVIS240); `frame_bits` 8 gives uint8 frames
     (ADC >> 2, like DV recordings), 16 gives uint16 (ADC << 6). Counts into `counters` ("frames",
-    "frames_dropped")."""
+    "frames_dropped"). `color_filter` tags every frame with the sensor's Bayer pattern (None: mono), as libcaer
+    does: the pattern is the register's, not shifted for orientation or ROI."""
 
     def __init__(self, aps_columns: int, aps_rows: int, *, swap: bool, flip_x: bool, flip_y: bool, adc_x2: bool,
-                 frame_bits: int, counters: dict[str, int]) -> None:
+                 frame_bits: int, counters: dict[str, int], color_filter: ColorFilter | None = None) -> None:
         self.cols, self.rows = int(aps_columns), int(aps_rows)
         self.swap, self.flip_x, self.flip_y = swap, flip_x, flip_y
         self.adc_x2 = adc_x2
         self.frame_bits = frame_bits
         self.counters = counters
+        self.color_filter = color_filter
         self.seq = 0  # frames emitted
         self.ignore = True  # until the first frame start (stale data at startup)
         self._roi = [0, 0, self.width - 1, self.height - 1]
@@ -166,7 +168,8 @@ class ApsFrameAssembler:
         es = f["exp_start"] if f["exp_start"] is not None else f["start"]
         ee = f["exp_end"] if f["exp_end"] is not None else t
         ee = max(ee, es)
-        frame = Frame(np.ascontiguousarray(img), int(es), int(ee), int(f["start"]), int(t), self.seq)
+        frame = Frame(np.ascontiguousarray(img), int(es), int(ee), int(f["start"]), int(t), self.seq,
+                      color_filter=self.color_filter)
         self.seq += 1
         self.counters["frames"] += 1
         return frame

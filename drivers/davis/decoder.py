@@ -19,7 +19,7 @@ import numpy as np
 from drivers.davis import _kernel
 from drivers.davis.aps import ApsFrameAssembler, column_runs
 from drivers.davis.imu import ImuSampleAssembler
-from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, Frame, Packet, empty_events
+from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, ColorFilter, Frame, Packet, empty_events
 
 # wire special-event numbers (code 0) -> AEDAT4 TriggerType
 TRIGGER_OF_SPECIAL = {2: 2, 3: 1, 4: 3, 16: 5, 17: 4}
@@ -32,12 +32,13 @@ class DavisDecoder:
     dvs_columns/dvs_rows and aps_columns/aps_rows are the SIZE registers (before any swap); orientations are
     the ORIENTATION_INFO registers (DVS bit 2 swap; APS bit 2 swap, bit 1 flip X, bit 0 flip Y; IMU bit 2/1/0
     flip X/Y/Z). `frame_bits` 8 gives uint8 frames (ADC >> 2, like DV recordings), 16 gives uint16 (ADC << 6).
+    `color_filter`: a colour sensor's Bayer pattern (the APS colour-filter register); frames carry it, raw.
     """
 
     def __init__(self, dvs_columns: int, dvs_rows: int, aps_columns: int | None = None,
                  aps_rows: int | None = None, *, dvs_orientation: int = 0, aps_orientation: int = 0,
                  imu_orientation: int = 0, imu_type: int = 1, adc_x2: bool = False, time_offset_us: int = 0,
-                 frame_bits: int = 8) -> None:
+                 frame_bits: int = 8, color_filter: ColorFilter | None = None) -> None:
         if frame_bits not in (8, 16):
             raise ValueError(f"frame_bits must be 8 or 16 (got {frame_bits})")
         self.dvs_cols, self.dvs_rows = int(dvs_columns), int(dvs_rows)
@@ -54,7 +55,7 @@ class DavisDecoder:
                                       aps_rows if aps_rows is not None else dvs_rows,
                                       swap=bool(aps_orientation & 4), flip_x=bool(aps_orientation & 2),
                                       flip_y=bool(aps_orientation & 1), adc_x2=bool(adc_x2), frame_bits=frame_bits,
-                                      counters=self.counters)
+                                      counters=self.counters, color_filter=color_filter)
         self._imu = ImuSampleAssembler(imu_orientation, imu_type, self.counters)
 
     # ---- public -------------------------------------------------------------------------------------

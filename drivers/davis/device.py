@@ -21,7 +21,7 @@ import numpy as np
 from drivers.davis import discovery, models, protocol as P
 from drivers.davis.decoder import DavisDecoder
 from drivers.davis.transport import UsbTransport, read_serial
-from edi_live.datatypes import Packet, SourceInfo, SourceStatus
+from edi_live.datatypes import ColorFilter, Packet, SourceInfo, SourceStatus
 from edi_live.errors import (DeviceDisconnectedError, DeviceNotFoundError, ProtocolError, SourceError,
                              UnsupportedFirmwareError)
 
@@ -196,7 +196,10 @@ class DavisSource:
         self.device_info = info
         dvs_swap = bool(info["dvs_orientation"] & 4)
         w, h = (info["dvs_rows"], info["dvs_columns"]) if dvs_swap else (info["dvs_columns"], info["dvs_rows"])
-        self.info = SourceInfo(w, h, name=models.camera_name(info["chip_id"]), serial=serial or "", kind=self._kind())
+        self.info = SourceInfo(w, h, name=models.camera_name(info["chip_id"]), serial=serial or "", kind=self._kind(),
+                               color_filter=info["color_filter"])
+        if self.info.is_color:
+            log.info("%s is a colour %s: %s Bayer mosaic", t.where, self.info.name, self.info.color_filter)
         self._configure(t, model, info)
         _warm_up_decoder(info)
         self._start(t, model, info)
@@ -240,12 +243,22 @@ class DavisSource:
                                                      P.DVS_HAS_ROI_FILTER, P.DVS_HAS_SKIP_FILTER,
                                                      P.DVS_HAS_POLARITY_FILTER)},
         }
+        info["color_filter"] = self._color_filter(t, r(P.APS, P.APS_COLOR_FILTER))
         for key in ("dvs_columns", "dvs_rows", "aps_columns", "aps_rows"):
             if not 0 < info[key] <= 4096:
                 raise ProtocolError(f"{t.where}: {key} register reads {info[key]}, expected 1..4096; replug the camera")
         if info["clocks"].adc_mhz <= 0:
             raise ProtocolError(f"{t.where}: ADC clock register reads 0 MHz; replug the camera")
         return info
+
+    @staticmethod
+    def _color_filter(t: UsbTransport, code: int) -> ColorFilter | None:
+        """The sensor's Bayer pattern from the APS colour-filter register (libcaer's code, see models)."""
+        try:
+            return models.color_filter_of_code(code)
+        except ValueError as exc:
+            log.warning("%s: %s; its APS frames are read as grey", t.where, exc)
+            return None
 
     def _configure(self, t: UsbTransport, model: models.DavisModel, info: dict) -> None:
         # like libcaer, the ROI and filter limits use the sizes as reported to the user (after any X/Y swap)
@@ -278,7 +291,8 @@ class DavisSource:
         self._decoder = DavisDecoder(info["dvs_columns"], info["dvs_rows"], info["aps_columns"], info["aps_rows"],
                                      dvs_orientation=info["dvs_orientation"], aps_orientation=info["aps_orientation"],
                                      imu_orientation=info["imu_orientation"], imu_type=info["imu_type"],
-                                     adc_x2=model.adc_x2, time_offset_us=epoch_us)
+                                     adc_x2=model.adc_x2, time_offset_us=epoch_us,
+                                     color_filter=info["color_filter"])
         self._decoder.anchor(time.monotonic_ns())  # device time 0 ~ now (MUX and timestamps just started)
         self._reader = threading.Thread(target=self._read_loop, args=(t, self._queue), name="usb-reader",
                                         daemon=True)

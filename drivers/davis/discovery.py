@@ -5,7 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from drivers.davis import models, transport
+from drivers.davis import models, protocol as P, transport
+from edi_live.datatypes import ColorFilter
 from edi_live.errors import DeviceNotFoundError, DevicePermissionError, SourceError
 
 
@@ -20,10 +21,26 @@ class DeviceDescription:
     address: int | None
     firmware_version: int
     error: str | None = None
+    sensor: str | None = None  # "mono", "colour" or None when the colour-filter register could not be read
+    color_filter: ColorFilter | None = None  # a colour sensor's Bayer pattern
 
     def __str__(self) -> str:
         s = f"{self.model} serial={self.serial or '?'} usb={self.bus}:{self.address} firmware={self.firmware_version}"
+        if self.sensor == "colour":
+            s += f" colour ({self.color_filter} Bayer)"
+        elif self.sensor:
+            s += f" {self.sensor}"
         return s + (f" ({self.error})" if self.error else "")
+
+
+def _read_sensor(dev: Any) -> tuple[str | None, ColorFilter | None]:
+    """("colour", pattern) or ("mono", None) from the APS colour-filter register, as libcaer's discovery reads it
+    (a control transfer on endpoint 0, no interface claimed); (None, None) when the camera does not answer."""
+    try:
+        pattern = models.color_filter_of_code(transport.read_register(dev, P.APS, P.APS_COLOR_FILTER))
+    except (SourceError, ValueError):
+        return None, None
+    return ("colour" if pattern else "mono"), pattern
 
 
 def _describe(dev: Any) -> DeviceDescription:
@@ -35,8 +52,9 @@ def _describe(dev: Any) -> DeviceDescription:
         error = "permission denied: install the udev rule with python -m drivers.udev --install"
     except SourceError as exc:
         error = str(exc)
+    sensor, pattern = _read_sensor(dev) if error is None else (None, None)
     return DeviceDescription(model.name, int(dev.idProduct), serial, dev.bus, dev.address,
-                             int(dev.bcdDevice) & 0xFF, error)
+                             int(dev.bcdDevice) & 0xFF, error, sensor, pattern)
 
 
 def list_devices(backend: Any = None) -> list[DeviceDescription]:

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from edi_live.datatypes import ColorFilter
+
 VENDOR_ID = 0x152A
 PID_FX2 = 0x841B  # DAVIS240A/B/C boards (USB 2.0)
 PID_FX3 = 0x841A  # DAVIS346 and other FX3 boards (USB 3.0)
@@ -24,6 +26,31 @@ CHIP_NAMES = {0: "DAVIS240A", 1: "DAVIS240B", 2: "DAVIS240C", 3: "DAVIS128", 4: 
               6: "DAVIS640", 7: "DAVIS640H", 8: "DAVIS208", 9: "DAVIS346C"}
 DAVIS240_CHIPS = (0, 1, 2)
 DAVIS346_CHIPS = (4, 5, 9)
+
+# APS/COLOR_FILTER register (libcaer reads it once at open into info.apsColorFilter and tags every frame with it) ->
+# our pattern names. libcaer's codes are its caer_frame_event_color_filter (include/libcaer/events/frame.h); it names
+# the 2x2 block clockwise from the top-left (top-left, top-right, bottom-right, bottom-left), we name it row by row:
+# its pixel-colour table (src/frame_utils.c, determinePixelColor) puts RGBG's R at (x even, y even), G at (odd, even)
+# and (even, odd), B at (odd, odd), i.e. our RGGB, and its OpenCV demosaic uses COLOR_BayerBG2RGB for RGBG, which is
+# OpenCV's name for an RGGB sensor. Codes 5..8 are RGBW variants (white instead of the second green): not supported.
+LIBCAER_COLOR_FILTERS: dict[int, ColorFilter | None] = {0: None, 1: "RGGB", 2: "GRBG", 3: "GBRG", 4: "BGGR"}
+LIBCAER_FILTER_NAMES = {0: "MONO", 1: "RGBG", 2: "GRGB", 3: "GBGR", 4: "BGRG", 5: "RGBW", 6: "GRWB", 7: "WBGR",
+                        8: "BWRG"}
+
+
+def color_filter_of_code(code: int) -> ColorFilter | None:
+    """Our pattern for a libcaer colour-filter code; ValueError for a code edi-live cannot use (RGBW, unknown)."""
+    if code not in LIBCAER_COLOR_FILTERS:
+        name = LIBCAER_FILTER_NAMES.get(code, "unknown")
+        raise ValueError(f"APS colour filter code {code} ({name}) is not a supported Bayer pattern "
+                         "(edi-live reads mono and RGGB/GRBG/GBRG/BGGR sensors)")
+    return LIBCAER_COLOR_FILTERS[code]
+
+
+def code_of_color_filter(pattern: ColorFilter | None) -> int:
+    """The libcaer colour-filter code of our pattern (None = mono = 0); the emulator answers it."""
+    return next(code for code, p in LIBCAER_COLOR_FILTERS.items() if p == pattern)
+
 
 FLASHY_HINT = ("update the camera with iniVation's Flashy tool (https://inivation.gitlab.io/dv/dv-docs/docs/"
                "firmware-update/): it installs FX2 firmware 4 / FX3 firmware 6 and logic 18.1")

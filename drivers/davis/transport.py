@@ -11,7 +11,7 @@ from typing import Any
 import usb.core
 import usb.util
 
-from drivers.davis import models
+from drivers.davis import models, protocol as P
 from drivers.udev import RULE_TEXT
 from edi_live.errors import (DeviceBusyError, DeviceDisconnectedError, DevicePermissionError,
                              SourceError)
@@ -69,6 +69,17 @@ def read_serial(dev: Any) -> str:
     except (usb.core.USBError, ValueError, NotImplementedError) as exc:
         raise translate(exc if isinstance(exc, usb.core.USBError) else
                         usb.core.USBError(str(exc), errno=errno.EACCES), describe(dev)) from exc
+
+
+def read_register(dev: Any, module: int, param: int) -> int:
+    """One configuration register of an unclaimed device (a vendor request on endpoint 0, as libcaer's discovery
+    reads device facts before opening it for streaming)."""
+    try:
+        data = bytes(dev.ctrl_transfer(P.REQ_IN, P.VR_CONFIG, module, param, 4, timeout=1000))
+        return P.unpack_value(data)
+    except (usb.core.USBError, ValueError, NotImplementedError) as exc:
+        raise translate(exc if isinstance(exc, usb.core.USBError) else usb.core.USBError(str(exc)),
+                        describe(dev)) from exc
 
 
 class UsbTransport:

@@ -14,7 +14,6 @@ import numpy as np
 from edi_live.aedat4 import schema as S
 from edi_live.aedat4._check import check_events, parse_check_evts
 from edi_live.aedat4.header import StreamInfo
-from edi_live.aedat4.payloads import to_gray
 from edi_live.datatypes import EVENT_DTYPE, Frame
 from edi_live.errors import RecordingError
 
@@ -76,7 +75,8 @@ def _events_vector(payload: bytes) -> tuple[int, int]:
 
 
 def decode_frame(payload: bytes, stream: StreamInfo, seq: int) -> Frame:
-    """An FRME payload as a gray `Frame` (colour converted, an ROI placed on the full sensor)."""
+    """An FRME payload as a `Frame`, an ROI placed on the full sensor: gray (a raw Bayer mosaic tagged with its
+    pattern when the stream's metadata names one), or BGR (h, w, 3) for BGR and BGRA frames (alpha dropped)."""
     tb = S.root_table(payload, b"FRME")
     ts = tb.scalar(S.FR_TIMESTAMP, _I64)
     soe, eoe = tb.scalar(S.FR_SOE, _I64), tb.scalar(S.FR_EOE, _I64)
@@ -95,10 +95,10 @@ def decode_frame(payload: bytes, stream: StreamInfo, seq: int) -> Frame:
         raise RecordingError(f"frame holds {count} pixel bytes, {w}x{h}x{channels}x{depth} expected")
     dtype = np.uint8 if depth == 1 else np.dtype("<u2")
     img = np.frombuffer(payload, dtype=dtype, count=w * h * channels, offset=start)
-    img = img.reshape(h, w) if channels == 1 else to_gray(img.reshape(h, w, channels))
+    img = img.reshape(h, w) if channels == 1 else np.ascontiguousarray(img.reshape(h, w, channels)[..., :3])
     if (stream.width and stream.height and (w, h) != (stream.width, stream.height)
             and px + w <= stream.width and py + h <= stream.height):
-        full = np.zeros((stream.height, stream.width), dtype=img.dtype)  # an ROI frame: place it on the sensor
+        full = np.zeros((stream.height, stream.width) + img.shape[2:], dtype=img.dtype)  # an ROI frame: on the sensor
         full[py:py + h, px:px + w] = img
         img = full
     if soe or eoe:
@@ -108,4 +108,4 @@ def decode_frame(payload: bytes, stream: StreamInfo, seq: int) -> Frame:
     if hi < lo or (exposure is not None and exposure < 0):
         raise RecordingError(f"frame with a negative exposure (start {lo} µs, end {hi} µs)")
     return Frame(image=img, exposure_start_us=lo, exposure_end_us=hi, start_us=sof or None, end_us=eof or None,
-                 seq=seq)
+                 seq=seq, color_filter=stream.color_filter if channels == 1 else None)

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 from edi_live.aedat4 import schema as S
-from edi_live.datatypes import SourceInfo
+from edi_live.datatypes import COLOR_FILTERS, ColorFilter, SourceInfo
 from edi_live.errors import RecordingError
 
 SUPPORTED_TYPES = ("EVTS", "FRME", "IMUS", "TRIG")
@@ -32,6 +32,7 @@ class StreamInfo:
     height: int = 0
     source: str = ""  # camera, e.g. "DAVIS346_00000391"
     compression: str = ""
+    color_filter: ColorFilter | None = None  # a frame stream of raw Bayer mosaics: their pattern (info "colorFilter")
 
     @property
     def supported(self) -> bool:
@@ -120,8 +121,26 @@ def _parse_xml(xml: bytes, error: Callable[[str, int | None], RecordingError]) -
                                   name=attrs.get("originalOutputName", "").strip() or f"stream{sid}",
                                   width=_int(iattrs.get("sizeX")), height=_int(iattrs.get("sizeY")),
                                   source=iattrs.get("source", "").strip(),
-                                  compression=attrs.get("compression", "").strip()))
+                                  compression=attrs.get("compression", "").strip(),
+                                  color_filter=color_filter_of_metadata(iattrs.get(COLOR_FILTER_KEY))))
     return streams
+
+
+# A frame stream holds raw Bayer mosaics when its info node says so with the attribute "colorFilter" (the key
+# dv-processing's writers store with Config.addStreamMetadata("frames", ("colorFilter", ...)); DV itself writes a
+# colour DAVIS's frames demosaiced, as BGR). Accepted values: our names (row by row: RGGB, GRBG, GBRG, BGGR),
+# libcaer's (clockwise from the top-left: RGBG, GRGB, GBGR, BGRG, see drivers.davis.models) or libcaer's code
+# 0-4; anything else, or MONO/0, reads as mono.
+COLOR_FILTER_KEY = "colorFilter"
+_LIBCAER_NAMES = {"RGBG": "RGGB", "GRGB": "GRBG", "GBGR": "GBRG", "BGRG": "BGGR"}
+_LIBCAER_CODES = {"1": "RGGB", "2": "GRBG", "3": "GBRG", "4": "BGGR"}
+
+
+def color_filter_of_metadata(value: str | None) -> ColorFilter | None:
+    v = (value or "").strip().upper()
+    if v in COLOR_FILTERS:
+        return v  # type: ignore[return-value]
+    return _LIBCAER_NAMES.get(v) or _LIBCAER_CODES.get(v)  # type: ignore[return-value]
 
 
 def _source_info(streams: list[StreamInfo]) -> SourceInfo:
@@ -130,7 +149,8 @@ def _source_info(streams: list[StreamInfo]) -> SourceInfo:
     label = next((s.source for s in ranked if s.source), "")
     name, serial = split_camera_label(label)
     w, h = (sized[0].width, sized[0].height) if sized else (0, 0)
-    return SourceInfo(width=w, height=h, name=name, serial=serial, kind="replay")
+    pattern = next((s.color_filter for s in ranked if s.type == "FRME" and s.color_filter), None)
+    return SourceInfo(width=w, height=h, name=name, serial=serial, kind="replay", color_filter=pattern)
 
 
 def _int(text: str | None) -> int:

@@ -1,4 +1,4 @@
-"""Decoders for the small AEDAT4 payloads: IMU samples and triggers (vectors of tables), and colour-to-gray.
+"""Decoders for the small AEDAT4 payloads: IMU samples and triggers (vectors of tables).
 
 IMU and trigger packets hold vectors of FlatBuffers *tables* (fields equal to zero are omitted), so each table is
 read through its vtable; the values come out in the field order of IMU_DTYPE / TRIGGER_DTYPE and are packed
@@ -13,12 +13,6 @@ import numpy as np
 
 from edi_live.aedat4 import schema as S
 from edi_live.datatypes import IMU_DTYPE, TRIGGER_DTYPE
-
-
-def to_gray(img: np.ndarray) -> np.ndarray:
-    """BGR(A) -> gray with the ITU-R BT.601 weights, keeping the bit depth."""
-    b, g, r = (img[..., i].astype(np.float32) for i in range(3))
-    return np.rint(0.114 * b + 0.587 * g + 0.299 * r).astype(img.dtype)
 
 
 _IMU_ROW = struct.Struct("<q10f")  # IMU_DTYPE's memory layout: t, temperature, accel xyz, gyro xyz, mag xyz

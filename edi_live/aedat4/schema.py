@@ -23,6 +23,7 @@ IOH_COMPRESSION, IOH_DATA_TABLE_POSITION, IOH_INFO_NODE = 0, 1, 2
 FR_TIMESTAMP, FR_SOF, FR_EOF, FR_SOE, FR_EOE = 0, 1, 2, 3, 4
 FR_FORMAT, FR_SIZE_X, FR_SIZE_Y, FR_POS_X, FR_POS_Y, FR_PIXELS, FR_EXPOSURE, FR_SOURCE = 5, 6, 7, 8, 9, 10, 11, 12
 FRAME_FORMAT_GRAY8, FRAME_FORMAT_GRAY16 = 0, 2
+FRAME_FORMAT_BGR8, FRAME_FORMAT_BGR16 = 16, 18  # OpenCV 8UC3 / 16UC3: DV's colour frames
 FRAME_FORMAT_CHANNELS = {0: (1, 1), 2: (1, 2), 16: (3, 1), 18: (3, 2), 24: (4, 1), 26: (4, 2)}  # (channels, bytes)
 FRAME_SOURCES = {"undefined": 0, "sensor": 1, "aps": 1, "accumulation": 2, "motion_compensation": 3,
                  "synthetic": 4, "reconstruction": 5, "visualization": 6, "other": 7}

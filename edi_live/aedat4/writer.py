@@ -16,7 +16,8 @@ import numpy as np
 
 from edi_live.aedat4 import schema as S
 from edi_live.aedat4.compression import compressor
-from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, Frame, as_events
+from edi_live.aedat4.header import COLOR_FILTER_KEY
+from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, ColorFilter, Frame, as_events
 from edi_live.errors import RecordingError
 
 _STREAMS = (("events", "EVTS"), ("frames", "FRME"), ("imu", "IMUS"), ("triggers", "TRIG"))
@@ -41,7 +42,8 @@ class Aedat4Writer:
 
     def __init__(self, path: str | os.PathLike, width: int, height: int, *, events: bool = True,
                  frames: bool = True, imu: bool = False, triggers: bool = False, compression: str = "lz4",
-                 camera_name: str = "edi-live", frame_source: str = "aps") -> None:
+                 camera_name: str = "edi-live", frame_source: str = "aps",
+                 color_filter: ColorFilter | None = None) -> None:
         self.path = os.fspath(path)
         if compression not in S.COMPRESSION_CODES:
             raise RecordingError(f"unknown compression '{compression}' (use one of {', '.join(S.COMPRESSION_CODES)})",
@@ -54,6 +56,7 @@ class Aedat4Writer:
         self.width, self.height = int(width), int(height)
         self.compression = compression
         self.camera_name = camera_name
+        self.color_filter = color_filter  # gray frames are raw mosaics of this pattern (stream metadata)
         self._frame_source = S.FRAME_SOURCES[frame_source]
         wanted = {"events": events, "frames": frames, "imu": imu, "triggers": triggers}
         self._ids = {}
@@ -77,7 +80,8 @@ class Aedat4Writer:
     # ------------------------------------------------------------------------------------------ header
     def _xml(self) -> bytes:
         streams = [(sid, type_id, name) for name, type_id in _STREAMS if (sid := self._ids.get(name)) is not None]
-        return info_xml(streams, self.width, self.height, self.camera_name, self.compression)
+        return info_xml(streams, self.width, self.height, self.camera_name, self.compression,
+                        color_filter=self.color_filter)
 
     def _header(self, dtp: int) -> tuple[bytes, dict[int, int]]:
         return io_header(self.compression, dtp, self._xml())
@@ -133,7 +137,7 @@ class Aedat4Writer:
             self._packet("events", payload, n, t0, t1)
 
     def write_frame(self, frame: Frame) -> None:
-        """Append one frame (8- or 16-bit gray): timestamp = exposure start, SOE/EOE and exposure set."""
+        """Append one frame (8- or 16-bit gray or BGR): timestamp = exposure start, SOE/EOE and exposure set."""
         soe = int(frame.exposure_start_us)
         self._check("frames", soe, soe)
         try:
@@ -195,8 +199,9 @@ class Aedat4Writer:
 # Module-level so that every AEDAT4 producer (this file writer, edi_live.dv_output's network server) shares them.
 
 def info_xml(streams: list[tuple[int, str, str]], width: int, height: int, camera_name: str,
-             compression: str) -> bytes:
-    """The IOHeader's infoNode XML for `streams` = [(stream id, type identifier, output name), ...]."""
+             compression: str, color_filter: ColorFilter | None = None) -> bytes:
+    """The IOHeader's infoNode XML for `streams` = [(stream id, type identifier, output name), ...]; a frame stream
+    of raw Bayer mosaics names their pattern (`color_filter`) in its info node, the key the reader looks for."""
     parts = ['<dv version="2.0">', '<node name="outInfo" path="/outInfo/">']
     for sid, type_id, name in streams:
         base = f"/outInfo/{sid}/"
@@ -206,6 +211,8 @@ def info_xml(streams: list[tuple[int, str, str]], width: int, height: int, camer
                          ("typeIdentifier", type_id)):
             parts.append(f'<attr key="{key}" type="string">{escape(val)}</attr>')
         parts.append(f'<node name="info" path="{base}info/">')
+        if type_id == "FRME" and color_filter:
+            parts.append(f'<attr key="{COLOR_FILTER_KEY}" type="string">{escape(color_filter)}</attr>')
         if type_id in ("EVTS", "FRME"):
             parts.append(f'<attr key="sizeX" type="int">{width}</attr>')
             parts.append(f'<attr key="sizeY" type="int">{height}</attr>')
@@ -235,16 +242,17 @@ def events_payloads(events: np.ndarray):
 
 
 def frame_payload(frame: Frame, source_code: int) -> bytes:
-    """FRME payload of an 8- or 16-bit gray frame: timestamp = exposure start, SOE/EOE and exposure set.
-    ValueError for another pixel type."""
+    """FRME payload of an 8- or 16-bit gray or BGR frame (DV's colour frame format, OpenCV's 8UC3/16UC3):
+    timestamp = exposure start, SOE/EOE and exposure set. ValueError for another pixel type."""
     img = np.ascontiguousarray(frame.image)
+    colour = img.ndim == 3
     if img.dtype == np.uint8:
-        fmt = S.FRAME_FORMAT_GRAY8
+        fmt = S.FRAME_FORMAT_BGR8 if colour else S.FRAME_FORMAT_GRAY8
     elif img.dtype == np.uint16:
-        fmt, img = S.FRAME_FORMAT_GRAY16, img.astype("<u2", copy=False)
+        fmt, img = S.FRAME_FORMAT_BGR16 if colour else S.FRAME_FORMAT_GRAY16, img.astype("<u2", copy=False)
     else:
-        raise ValueError(f"frames must be uint8 or uint16 gray, got {img.dtype}")
-    h, w = img.shape
+        raise ValueError(f"frames must be uint8 or uint16 gray or BGR, got {img.dtype}")
+    h, w = img.shape[:2]
     soe, eoe = int(frame.exposure_start_us), int(frame.exposure_end_us)
     spec = (S.TableSpec().scalar(S.FR_TIMESTAMP, "q", soe)
             .scalar(S.FR_SOF, "q", int(frame.start_us or 0)).scalar(S.FR_EOF, "q", int(frame.end_us or 0))

@@ -14,6 +14,7 @@ import pytest
 
 from drivers.dv_network import DvNetworkSource, parse_dv_endpoint
 from edi_live.aedat4 import Aedat4Reader
+from edi_live.datatypes import Frame
 from edi_live.errors import ConfigError, DeviceDisconnectedError, DeviceNotFoundError, ProtocolError, SourceError
 
 pytest.importorskip("dv_processing")
@@ -157,3 +158,26 @@ def test_a_consumer_that_falls_behind_costs_counted_drops_and_a_gap(real_recordi
     assert status.dropped_events > 0 and received + status.dropped_events == 319_512
     assert received <= 20_000 + 2_000 and any(p.gap for p in packets)
     assert isinstance(error, DeviceDisconnectedError)
+
+
+def test_colour_frames_from_a_dv_network_writer_arrive_as_bgr(tmp_path, rng):
+    from edi_live.aedat4 import Aedat4Writer
+    from tests.helpers.recordings import flatten, random_recording
+
+    events, grey, _ = flatten(random_recording(rng, 346, 260, n_events=3000, n_frames=2, n_imu=0,
+                                               duration_us=60_000))
+    bgr = [np.ascontiguousarray(np.stack([f.image, 255 - f.image, f.image // 2], axis=2)) for f in grey]
+    path = tmp_path / "colour.aedat4"
+    with Aedat4Writer(path, 346, 260, camera_name="DAVIS346_00000007") as w:
+        w.write_events(events)
+        for f, image in zip(grey, bgr):
+            w.write_frame(Frame(image, f.exposure_start_us, f.exposure_end_us))
+    peers = [Peer(kind, path) for kind in ("events", "frames")]
+    try:
+        with DvNetworkSource([p.endpoint for p in peers]) as source:
+            packets, _ = _drain(source)
+    finally:
+        for peer in peers:
+            peer.finish()
+    frames = [f for p in packets for f in p.frames]
+    assert len(frames) == 2 and all(np.array_equal(f.image, image) for f, image in zip(frames, bgr))

@@ -258,15 +258,20 @@ def test_colour_and_roi_frames_from_dv_processing(tmp_path, rng):
 
     path = tmp_path / "colour.aedat4"
     bgr = rng.integers(0, 256, (260, 346, 3), dtype=np.uint8)
+    bgra = rng.integers(0, 256, (260, 346, 4), dtype=np.uint8)
     patch = rng.integers(0, 256, (10, 12), dtype=np.uint8)
+    colour_patch = rng.integers(0, 256, (10, 12, 3), dtype=np.uint8)
     writer = dv.io.MonoCameraWriter(str(path), dv.io.MonoCameraWriter.FrameOnlyConfig("DAVIS346_1", (346, 260)))
     writer.writeFrame(dv.Frame(T0, 1000, 0, 0, bgr, dv.FrameSource.SENSOR), "frames")
+    writer.writeFrame(dv.Frame(T0 + 2000, 1000, 0, 0, bgra, dv.FrameSource.SENSOR), "frames")
     writer.writeFrame(dv.Frame(T0 + 5000, 1000, 5, 7, patch, dv.FrameSource.SENSOR), "frames")
+    writer.writeFrame(dv.Frame(T0 + 8000, 1000, 5, 7, colour_patch, dv.FrameSource.SENSOR), "frames")
     del writer
     with Aedat4Reader(path) as reader:
-        colour, roi = [data for _, data in reader]
-    # BT.601 luma, computed here independently of the reader
-    b, g, r = (bgr[..., i].astype(np.float64) for i in range(3))
-    assert np.abs(colour.image.astype(int) - np.rint(0.114 * b + 0.587 * g + 0.299 * r)).max() <= 1
+        assert reader.source_info.color_filter is None  # demosaiced colour, not a raw mosaic
+        colour, no_alpha, roi, colour_roi = [data for _, data in reader]
+    assert colour.image.shape == (260, 346, 3) and np.array_equal(colour.image, bgr) and colour.color_filter is None
+    assert np.array_equal(no_alpha.image, bgra[..., :3])  # BGRA: alpha dropped, BGR kept
     assert roi.image.shape == (260, 346)  # an ROI frame is placed on the full sensor
     assert np.array_equal(roi.image[7:17, 5:17], patch) and roi.image.sum() == patch.sum()
+    assert colour_roi.image.shape == (260, 346, 3) and np.array_equal(colour_roi.image[7:17, 5:17], colour_patch)

@@ -476,3 +476,14 @@ def test_damage_is_one_error_line_after_the_summary_never_a_silent_exit_0(real_r
     assert "Warning" not in proc.stderr.replace("edi-live: WARNING", "") and "Traceback" not in proc.stderr
     written = int(re.search(r"--out frames written: (\d+)", proc.stderr).group(1))
     assert written == _out_frames(out) > 0
+
+
+def test_a_colour_camera_says_colour_in_the_listing_and_the_summary():
+    listed = run_cli("--list-devices", "--usb-backend", "drivers.emulator:colour_backend")
+    assert listed.returncode == 0, listed.stderr
+    assert "davis346" in listed.stdout and "colour (RGGB Bayer)" in listed.stdout
+    proc = run_cli("--device", "davis346", "--usb-backend", "drivers.emulator:colour_backend", "--no-publish",
+                   "--duration", "1", timeout_s=90)
+    assert proc.returncode == 0, proc.stderr
+    assert "done in" in proc.stderr and "camera: DAVIS346_EMU00001 346x260, colour (RGGB Bayer mosaic)" in proc.stderr
+    assert "INFO: DAVIS davis346 at USB 1:7 is a colour DAVIS346: RGGB Bayer mosaic" in proc.stderr  # at start-up

@@ -279,3 +279,27 @@ def test_bad_endpoint_and_key_are_client_errors(tmp_path):
         Subscriber("nonsense://x")
     with pytest.raises(ClientError, match="CURVE server public key"):
         Subscriber("tcp://127.0.0.1:9", curve_server_key=tmp_path / "missing.key")
+
+
+def test_subscribe_yields_colour_frames_as_h_w_3_bgr(pub):
+    image = np.zeros((48, 64, 3), np.uint8)
+    image[..., 0], image[..., 1], image[..., 2] = 10, 20, 30  # B, G, R
+    image[5, 7] = (1, 2, 3)
+    rec = Reconstruction(image, 70, "latent", 0, -5, 5, 0.2, 0.2, 7)
+    stop = threading.Event()
+
+    def feed():
+        while not stop.wait(0.02):
+            pub.submit(rec)
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    gen = subscribe(pub.bound_endpoints[0], timeout_s=RECV_S)
+    try:
+        header, got = next(gen)
+        assert (header["v"], header["layout"], header["channels"]) == (2, "bgr", 3)
+        assert got.shape == (48, 64, 3) and np.array_equal(got, image)
+    finally:
+        stop.set()
+        feeder.join(5)
+        gen.close()

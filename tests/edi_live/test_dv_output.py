@@ -277,3 +277,18 @@ def test_the_cli_takes_dv_input_and_serves_dv_output_and_out_is_finalised(real_r
     with Aedat4Reader(out) as reader:  # finalised: the data table is there
         assert reader.data_table() is not None
         assert sum(1 for s, _ in reader if s.type == "FRME") >= 5
+
+
+def test_colour_reconstructions_reach_dv_processing_as_colour_frames():
+    out = DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, camera_name="DAVIS346_00000391")
+    out.start()
+    try:
+        reader = _reader(parse_tcp_endpoint(out.bound_endpoint)[1], 1)
+        _wait(lambda: out.client_count() == 1, 30)
+        bgr = np.zeros((260, 346, 3), np.uint8)
+        bgr[..., 0], bgr[..., 1], bgr[..., 2] = 1, 2, 3  # B, G, R
+        out.submit(Reconstruction(bgr, T0, "latent", T0, T0, T0, 0.2, 0.2, 10))
+        (frame,) = _lines(reader)[1:]
+        assert frame["shape"] == [260, 346, 3] and frame["pixel_sum"] == 6 * 260 * 346
+    finally:
+        out.close()

@@ -103,7 +103,7 @@ def good_parts(rng, **header_changes):
 
 
 @pytest.mark.parametrize("changes, message", [
-    ({"v": 2}, "protocol v2"),
+    ({"v": 3}, "protocol v3"),
     ({"v": KeyError}, "version"),
     ({"seq": -1}, "seq"),
     ({"seq": 1.5}, "seq"),
@@ -215,6 +215,8 @@ def test_decoded_numbers_stay_finite(rng):
 # key -> (type, value expected for make_rec(..., c_on=0.2, c_off=0.4) sent as seq 9 from "DAVIS346_00000391").
 README_FRAME_TABLE = {
     "v": (int, 1),
+    "layout": (str, "gray"),
+    "channels": (int, 1),
     "seq": (int, 9),
     "t": (int, 1_700_000_123_456),
     "w": (int, 5),
@@ -289,3 +291,39 @@ def test_bit_flipped_frames_decode_consistently_or_give_client_errors(flips, par
     except ClientError:
         return
     assert image.shape == (header["h"], header["w"]) and image.dtype == wire.DTYPES[header["dtype"]]
+
+
+def make_colour_rec(rng, w=6, h=4) -> Reconstruction:
+    rec = make_rec(rng, w, h)
+    image = rng.integers(0, 256, size=(h, w, 3)).astype(np.uint8)
+    return Reconstruction(image, rec.t_us, rec.kind, rec.ref_t_us, rec.exposure_start_us, rec.exposure_end_us,
+                          rec.c_on, rec.c_off, rec.n_events, rec.arrival_ns)
+
+
+def test_colour_frames_are_v2_bgr_and_decode_to_h_w_3(rng):
+    rec = make_colour_rec(rng)
+    parts = wire.encode_frame(rec, seq=1, source="DAVIS346_1")
+    header = header_of(parts)
+    assert (header["v"], header["layout"], header["channels"], header["w"], header["h"]) == (2, "bgr", 3, 6, 4)
+    assert bytes(parts[2]) == rec.image.tobytes()  # row-major, B, G, R interleaved
+    assert np.shares_memory(np.frombuffer(parts[2], np.uint8), rec.image)  # still zero-copy
+    decoded, image = wire.decode_frame(as_bytes(parts))
+    assert image.shape == (4, 6, 3) and np.array_equal(image, rec.image) and decoded["layout"] == "bgr"
+    # the v1 rule every v1 client applies (`v` must equal 1): it refuses a colour frame, never misreads it
+    assert header["v"] != 1 and header_of(wire.encode_frame(make_rec(rng, 6, 4), 2, "x"))["v"] == 1
+
+
+def test_a_v1_senders_frame_without_layout_is_gray(rng):
+    header, image = wire.decode_frame(good_parts(rng, layout=KeyError, channels=KeyError))
+    assert header["layout"] == "gray" and image.ndim == 2
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"layout": "rgb"}, "layout 'rgb'"),
+    ({"layout": "bgr", "channels": 3}, "16x8x3 u1 = 384 bytes, pixel part has 128"),  # gray-sized pixels
+    ({"layout": "bgr"}, "layout .bgr. with 1 channels"),
+    ({"channels": 3}, "layout 'gray' with 3 channels"),
+])
+def test_bad_layouts_are_rejected(rng, changes, message):
+    with pytest.raises(ClientError, match=message):
+        wire.decode_frame(good_parts(rng, **changes))

@@ -114,3 +114,20 @@ def test_record_round_trip_of_a_real_recording(tmp_path, real_recordings):
     np.testing.assert_array_equal(a["polarity"], b["polarity"])
     _, frames = read_frames(path)
     assert len(frames) == n_frames > 0
+
+
+def test_out_writes_colour_reconstructions_as_colour_frames(tmp_path):
+    import aedat
+
+    path = tmp_path / "colour.aedat4"
+    w = OutWriter(path, 8, 6)
+    w.start()
+    bgr = np.zeros((6, 8, 3), np.uint8)
+    bgr[..., 0], bgr[..., 1], bgr[..., 2] = 30, 120, 210  # B, G, R
+    bgr[0, 0] = (1, 2, 3)
+    w.submit(Reconstruction(bgr, 1000, "latent", 1000, 1000, 1000, 0.2, 0.2, 10))
+    w.close(timeout_s=10)
+    _, (frame,) = read_frames(path)
+    assert frame.image.shape == (6, 8, 3) and np.array_equal(frame.image, bgr)  # dv-processing: BGR
+    (packet,) = list(aedat.Decoder(str(path)))
+    assert packet["frame"]["format"] == "RGB" and np.array_equal(packet["frame"]["pixels"], bgr[..., ::-1])

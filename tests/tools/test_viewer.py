@@ -36,14 +36,21 @@ def pattern(i: int) -> np.ndarray:
     return image
 
 
-def rec(i: int) -> Reconstruction:
-    return Reconstruction(pattern(i), 1000 * i, "latent", 0, 0, 0, 0.2, 0.2, i)
+def colour_pattern(i: int) -> np.ndarray:
+    """A BGR card whose three planes differ: blue is pattern(i), green its negative, red a constant 200."""
+    card = pattern(i)
+    return np.ascontiguousarray(np.stack([card, 255 - card, np.full_like(card, 200)], axis=2))
+
+
+def rec(i: int, colour: bool = False) -> Reconstruction:
+    return Reconstruction(colour_pattern(i) if colour else pattern(i), 1000 * i, "latent", 0, 0, 0, 0.2, 0.2, i)
 
 
 class Feeder:
     """A Publisher fed with pattern(i) frames every period_s from a thread."""
 
-    def __init__(self, period_s: float = 0.02) -> None:
+    def __init__(self, period_s: float = 0.02, colour: bool = False) -> None:
+        self.colour = colour
         self.pub = Publisher(["tcp://127.0.0.1:*"], "test-cam", sndhwm=1000, stats_interval_s=0.2,
                              stats_provider=lambda: {"events_per_s": 2.0e6, "c": 0.2})
         self.pub.start()
@@ -56,7 +63,7 @@ class Feeder:
     def _run(self) -> None:
         i = 0
         while not self._stop.wait(self._period_s):
-            self.pub.submit(rec(i))
+            self.pub.submit(rec(i, self.colour))
             i += 1
 
     def close(self) -> None:
@@ -208,6 +215,29 @@ def test_mjpeg_page_shows_the_frame_in_headless_chromium(feeder, tmp_path):
     assert (page[:, border + 1:] > 100).sum() > 200, "no counters right of the frame"
 
 
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed")
+def test_the_browser_shows_a_colour_stream_in_colour(tmp_path):
+    feeder = Feeder(colour=True)
+    v, thread = start_viewer(["--endpoint", feeder.endpoint, "--http", "127.0.0.1:0", "--quiet"])
+    try:
+        wait_for(lambda: v.rates.frames > 3)
+        shot = tmp_path / "shot.png"
+        cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+               "--disable-background-networking", "--disable-component-update", "--disable-sync",
+               f"--user-data-dir={tmp_path / 'profile'}", f"--screenshot={shot}", "--window-size=900,400",
+               "--hide-scrollbars", "--force-device-scale-factor=1", "--timeout=5000", v.url]
+        out = subprocess.run(cmd, capture_output=True, text=True, timeout=50, check=False)
+        assert shot.is_file(), f"chromium wrote no screenshot (exit {out.returncode}): {out.stderr[-500:]}"
+    finally:
+        stop_viewer(v, thread)
+        feeder.close()
+    page = cv2.imread(str(shot), cv2.IMREAD_COLOR).astype(int)
+    frame_area = page[:, :450][page[:, :450].sum(axis=2) > 60]  # the shown frame (the page is black around it)
+    # the card's red plane is a constant 200 and its green plane the blue plane's negative: a gray rendering
+    # would have equal planes everywhere
+    assert abs(np.median(frame_area[:, 2]) - 200) < 15
+    assert np.mean(np.abs(frame_area[:, 1] - frame_area[:, 0])) > 40
+
 def run_cli(args: list[str], **kwargs) -> subprocess.Popen:
     kwargs.setdefault("cwd", REPO)  # tools run as `python -m tools.viewer` from the repository root
     return subprocess.Popen([sys.executable, "-m", "tools.viewer", *args], stderr=subprocess.PIPE,
@@ -343,3 +373,29 @@ def test_status_json_answers_a_stats_map_with_binary_values():
         feeder.join(5)
         stop_viewer(v, thread)
         ctx.destroy(linger=0)
+
+
+def test_colour_stream_in_png_mp4_and_http(tmp_path):
+    feeder = Feeder(colour=True)
+    png_dir, mp4 = tmp_path / "png", tmp_path / "colour.mp4"
+    try:
+        v, thread = start_viewer(["--endpoint", feeder.endpoint, "--all", "--http", "127.0.0.1:0", "--quiet",
+                                  "--png", str(png_dir), "--mp4", str(mp4), "--max-frames", "10"])
+        wait_for(lambda: v.rates.frames > 2)
+        with urllib.request.urlopen(v.url + "frame.jpg", timeout=10) as resp:  # what the browser page shows
+            jpeg = cv2.imdecode(np.frombuffer(resp.read(), np.uint8), cv2.IMREAD_COLOR)
+        thread.join(30)
+        v.close()
+    finally:
+        feeder.close()
+    assert np.abs(jpeg.astype(int) - colour_pattern(0).astype(int))[8:, 8:].mean() < 8  # in colour
+    pngs = sorted(png_dir.glob("frame_*.png"))
+    assert len(pngs) == 10
+    for path in pngs:
+        saved = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        np.testing.assert_array_equal(saved, colour_pattern(int(saved[0, 0, 0])))  # lossless BGR
+    cap = cv2.VideoCapture(str(mp4))
+    ok, frame = cap.read()
+    cap.release()
+    assert ok and frame.shape == (H, W, 3)
+    assert np.abs(frame.astype(int) - colour_pattern(0).astype(int))[8:, 8:].mean() < 10  # lossy, same colours

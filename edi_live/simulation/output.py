@@ -31,7 +31,7 @@ def write_aedat4(sim: Simulation, path: str | Path, *, chunk_events: int = 20_00
     ev = sim.events
     cfg = sim.config
     with Aedat4Writer(path, cfg.width, cfg.height, events=True, frames=True, imu=bool(sim.imu.size),
-                      camera_name="edi-live-sim") as wr:
+                      camera_name="edi-live-sim", color_filter=cfg.color_filter) as wr:
         pos = 0
         imu_pos = 0
         bounds = [f.exposure_end_us for f in sim.frames] + [np.iinfo(np.int64).max]

@@ -58,3 +58,16 @@ def test_the_simulator_reads_pattern_names_as_the_node_does(pattern):
     from edi_live.simulation.colour_scene import sensor_channels
 
     assert (sensor_channels(pattern, 5, 7) == channel_map(pattern, 5, 7)).all()
+
+
+def test_a_written_colour_recording_names_its_pattern(tmp_path):
+    from drivers.replay import ReplaySource
+    from edi_live.simulation import write_aedat4
+
+    sim = simulate(SceneConfig(width=16, height=12, duration_s=0.06, color_filter="GRBG"))
+    write_aedat4(sim, tmp_path / "c.aedat4")
+    source = ReplaySource(tmp_path / "c.aedat4")
+    try:
+        assert source.info.color_filter == "GRBG"  # else a replay would read the mosaic as grey
+    finally:
+        source.stop()

@@ -80,6 +80,7 @@ class EdiReconstructor:
         self._latent = LatentState(self.width, self.height)
         self._pair: contrast.FramePair | None = None  # formed on this frame, judged after its deblur
         self.has_reference = False
+        self.follow_latent = True  # see the Reconstructor protocol
         self.events_ignored = False  # set when the c policy finds that the events carry no signal
         self._ref_t = 0
         self._exposure = (0, 0)
@@ -249,7 +250,8 @@ class EdiReconstructor:
         t_end = int(events["t"][-1])
         if self._noise is not None:
             events = self._noise.stream(events)
-        self._latent.apply(events, self._c(), self._mask, count=self._counting(), move=not self.events_ignored)
+        self._latent.apply(events, self._c(), self._mask, count=self._counting(),
+                           move=self.follow_latent and not self.events_ignored)
         self._t_last = max(self._t_last, t_end)
         self._pending_events += n
         self.events_applied += n
@@ -310,35 +312,17 @@ class EdiReconstructor:
         self._need_reference("reference_log()")
         return self._latent.log_ref, int(self._ref_t)
 
-    def render_fused(self, previous: tuple[np.ndarray, int], previous_image: np.ndarray, current_image: np.ndarray,
-                     times: Sequence[int], events: np.ndarray) -> list[Reconstruction]:
+    def render_fused(self, previous: tuple[np.ndarray, int] | None, previous_image: np.ndarray | None,
+                     current_image: np.ndarray | None, times: Sequence[int], events: np.ndarray) -> list[Reconstruction]:
         """Latent frames at `times` (ascending, between the previous reference f0 and the current one f1) from both
-        references (edi.fusion_plan); `events` hold at least those with f0 < t <= f1. Frames carry ref_t_us = f1."""
+        references (edi.fused_frames); `events` hold at least those with f0 < t <= f1 (previous None: forward
+        from the current reference, times after f1; the images are then not used). Frames carry ref_t_us = f1."""
         self._need_reference("render_fused()")
-        log0, f0 = previous
-        f1 = int(self._ref_t)
-        inf0 = self._aps.to_float(previous_image)[1]
-        inf1 = self._aps.to_float(current_image)[1]
-        if self.events_ignored:
-            events = events[:0]
-        plan = edi.fusion_plan(log0, self._latent.log_ref, events, f0, f1, self.c_on, self.c_off, inf0, inf1,
-                               mask=self._mask)
-        prop = edi.FusedPropagator(plan, self._mask)
-        t = events["t"]
-        pos = edi.time_index(t, f0, "right")
-        out = []
-        for t_us in times:
-            t_us = int(t_us)
-            if t_us >= f1 or t_us <= f0:  # the fused video passes through both deblurred frames
-                image = edi.to_uint8(self._latent.log_ref if t_us >= f1 else log0)
-                out.append(self._reconstruction(image, t_us, "latent", 0))
-                continue
-            end = edi.time_index(t, t_us, "right")
-            prop.apply(events[pos:end])
-            prop.set_time(edi.time_share((t_us - f0) / (f1 - f0)))
-            out.append(self._reconstruction(prop.display.copy(), t_us, "latent", max(0, end - pos)))
-            pos = max(pos, end)
-        return out
+        informative = None if previous is None else (self._aps.to_float(previous_image)[1],
+                                                     self._aps.to_float(current_image)[1])
+        frames = edi.fused_frames(self.reference_log(), previous, informative, times,
+                              events[:0] if self.events_ignored else events, self._c(), self._mask)
+        return [self._reconstruction(image, t, "latent", n) for image, t, n in frames]
 
     def stats(self) -> dict:
         return {

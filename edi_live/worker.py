@@ -55,6 +55,7 @@ class EdiWorker:
                  on_error: Callable[[BaseException], None] | None = None, name: str = "edi-worker") -> None:
         self.ring = ring
         self.rec = reconstructor
+        reconstructor.follow_latent = config.mode != "fused"  # fused frames come from both references
         self.config = config
         self.sinks = list(sinks)
         self.name = name
@@ -232,7 +233,7 @@ class EdiWorker:
         if self.config.mode != "causal" and self._nearest.should_hold(t_us, self._ref_f_us):
             self._nearest.held.append((t_us, arrival_ns))
             return
-        self._emit(self.rec.render())
+        self._emit(self.rec.render() if self.rec.follow_latent else self._render_at(t_us, arrival_ns))
 
     def _on_frame(self, entry: FrameEntry) -> None:
         frame = entry.frame
@@ -345,15 +346,16 @@ class EdiWorker:
     def _flush_deferred(self) -> None:
         if not self._nearest.held or not self.rec.has_reference:
             return
-        for t, a in self._nearest.take_all():
-            self._emit(self._render_at(t, a))
+        for rec in held_frames.render_rest(self.rec, self.ring, self._nearest, self._ref_f_us):
+            self._emit(rec)
 
     def _heartbeat(self) -> None:
         if not self.rec.has_reference or self._await_reference:
             return
         if time.monotonic() - self._last_emit_s >= self.config.heartbeat_s:
             self.heartbeats += 1
-            self._emit(self.rec.render())
+            frame = self.rec.render()  # fused mode: from the reference (it keeps no causal image)
+            self._emit(frame if self.rec.follow_latent else self._render_at(frame.t_us, 0))
 
     def _emit(self, rec: Reconstruction) -> None:
         self._since = 0

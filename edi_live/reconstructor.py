@@ -66,10 +66,11 @@ class EdiReconstructor:
         self._policy = ContrastPolicy(estimator, self.c_on, self.c_off, PolicySettings(
             reestimate_every=int(settings.reestimate_every), startup_estimates=settings.history_pairs,
             fit_patience=int(settings.fit_patience), fit_strong=float(settings.fit_strong),
-            c_history=int(settings.c_history)))
+            c_history=int(settings.c_history), joint_pairs=int(settings.joint_pairs)))
         if not self._fixed:
             self._tracker = ContrastTracker(self.width, self.height, self._policy,
-                                            history_pairs=settings.history_pairs, sample_pixels=settings.sample_pixels)
+                                            history_pairs=max(settings.history_pairs, settings.joint_pairs),
+                                            sample_pixels=settings.sample_pixels)
         self._hot = HotPixels(self.width, self.height, enabled=settings.mask_hot_pixels,
                               min_rate_hz=settings.hot_min_rate_hz, rel_factor=settings.hot_rel_factor,
                               decay=settings.hot_decay)

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any, Callable, TextIO
 
 
-from edi_live import calibration
+from edi_live import calibration, fused_mode
 from edi_live.config import EdiConfig, NodeConfig
 from edi_live.errors import ConfigError, EdiLiveError, NodeError, SourceError
 from edi_live.reconstruction import Reconstructor
@@ -67,6 +67,8 @@ def default_reconstructor(width: int, height: int, edi: EdiConfig) -> Reconstruc
     kwargs["aps_gamma"] = float(edi.aps_gamma or 1.0)
     if edi.c_start is not None:
         kwargs["c_start"] = edi.c_start
+    if edi.mode == "fused":
+        kwargs["joint_pairs"] = fused_mode.JOINT_PAIRS
     return EdiReconstructor(width, height, **kwargs)
 
 

@@ -10,7 +10,8 @@ itself).
     python -m tools.bench_c_stability [--passes 3] [--joint-pairs 0,6]
 
 `--joint-pairs K`: the policy pools the cost of the last K frame pairs (edi_live.contrast.joint) for its estimates
-and fit tests; 0 = the default (the reconstructor's own short pair history).
+and fit tests; 0 = off (the single-pair policy, as in causal and nearest mode); `--mode fused` uses
+edi_live.fused_mode.JOINT_PAIRS.
 """
 
 from __future__ import annotations

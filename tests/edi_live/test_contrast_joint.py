@@ -102,3 +102,12 @@ def test_a_looped_stream_re_estimates_less_with_joint_c():
         spread[k] = float(np.std(cs[3:]) / np.median(cs[3:]))
     assert counts[K] < counts[0], counts
     assert spread[K] < spread[0], spread
+
+
+def test_the_node_estimates_c_jointly_in_fused_mode_only():
+    from edi_live.config import EdiConfig
+    from edi_live.fused_mode import JOINT_PAIRS
+    from edi_live.node import default_reconstructor
+
+    assert default_reconstructor(8, 6, EdiConfig(mode="fused")).settings.joint_pairs == JOINT_PAIRS > 1
+    assert default_reconstructor(8, 6, EdiConfig(mode="causal")).settings.joint_pairs == 0

@@ -23,8 +23,8 @@ class Reconstructor(Protocol):
     black_level: float  # APS black level (8-bit DN) taken off the frames
     clock_offset_us: int  # events arrive this much later than the APS exposure they belong to
     aps_gamma: float  # APS response exponent undone before the deblur
-    # False (fused mode): on_events only counts events, render() stays at the reference; frames come from
-    # render_fused / render_from_reference, so the causal image is not advanced beside them
+    # False (fused mode, set by the worker): on_events keeps the events and applies them only when render() needs
+    # the latent image; the frames come from render_fused, so no causal image is advanced beside them
     follow_latent: bool
 
     @property

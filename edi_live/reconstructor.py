@@ -27,6 +27,9 @@ from edi_live.pixel_masks import HotPixels, NoiseFilter, UnreliablePixels
 from edi_live.reconstructor_settings import ReconstructorSettings
 
 
+_BEHIND_CAP = 1 << 20  # events kept unapplied (follow_latent False) before they are applied anyway
+
+
 class EdiReconstructor:
     """Deblurs each APS frame at mid-exposure and advances the latent image event by event.
 
@@ -82,6 +85,8 @@ class EdiReconstructor:
         self._pair: contrast.FramePair | None = None  # formed on this frame, judged after its deblur
         self.has_reference = False
         self.follow_latent = True  # see the Reconstructor protocol
+        self._behind: list[np.ndarray] = []  # events on_events kept but did not apply (follow_latent False)
+        self._behind_n = 0
         self.events_ignored = False  # set when the c policy finds that the events carry no signal
         self._ref_t = 0
         self._exposure = (0, 0)
@@ -148,6 +153,7 @@ class EdiReconstructor:
     @property
     def latent_log_image(self) -> np.ndarray:
         """A copy of log L(t) at the latest event applied (8-bit scale)."""
+        self._catch_up()
         return self._latent.log_lat.copy()
 
     @property
@@ -180,6 +186,7 @@ class EdiReconstructor:
         if self._streamer:
             raise NodeError("on_frame() on a streaming_copy(): deblur on the original reconstructor")
         t_start = time.perf_counter()
+        self._behind, self._behind_n = [], 0  # the latent image restarts at this frame's L(f)
         img = frame.image
         if img.shape != (self.height, self.width):
             raise ConfigError(f"APS frame is {img.shape[1]}x{img.shape[0]} but the reconstructor was set up for "
@@ -253,6 +260,11 @@ class EdiReconstructor:
             events = self._noise.stream(events)
         self._latent.apply(events, self._c(), self._mask, count=self._counting(),
                            move=self.follow_latent and not self.events_ignored)
+        if not (self.follow_latent or self.events_ignored):  # kept; applied if render() needs the latent image
+            self._behind.append(events)
+            self._behind_n += n
+            if self._behind_n > _BEHIND_CAP:
+                self._catch_up()  # bounded memory
         self._t_last = max(self._t_last, t_end)
         self._pending_events += n
         self.events_applied += n
@@ -290,6 +302,7 @@ class EdiReconstructor:
         self._need_reference("render()")
         n = self._pending_events
         self._pending_events = 0
+        self._catch_up()
         return self._reconstruction(self._latent.display.copy(), self._t_last, "latent", n)
 
     def render_from_reference(self, t_us: int, events: np.ndarray) -> Reconstruction:
@@ -349,6 +362,12 @@ class EdiReconstructor:
 
     def _counting(self) -> bool:
         return not (self._fixed or self._streamer)
+
+    def _catch_up(self) -> None:
+        """Apply the events that on_events only kept (follow_latent False): the latent image is current again."""
+        behind, self._behind, self._behind_n = self._behind, [], 0
+        for events in behind:
+            self._latent.apply(events, self._c(), self._mask, count=False, move=True)
 
     def _frames_one_by_one(self, events: np.ndarray, cuts: Sequence[int], arrivals: Sequence[int]) -> list:
         out = []

@@ -233,7 +233,7 @@ class EdiWorker:
         if self.config.mode != "causal" and self._nearest.should_hold(t_us, self._ref_f_us):
             self._nearest.held.append((t_us, arrival_ns))
             return
-        self._emit(self.rec.render() if self.rec.follow_latent else self._render_at(t_us, arrival_ns))
+        self._emit(self.rec.render())
 
     def _on_frame(self, entry: FrameEntry) -> None:
         frame = entry.frame
@@ -354,8 +354,7 @@ class EdiWorker:
             return
         if time.monotonic() - self._last_emit_s >= self.config.heartbeat_s:
             self.heartbeats += 1
-            frame = self.rec.render()  # fused mode: from the reference (it keeps no causal image)
-            self._emit(frame if self.rec.follow_latent else self._render_at(frame.t_us, 0))
+            self._emit(self.rec.render())
 
     def _emit(self, rec: Reconstruction) -> None:
         self._since = 0

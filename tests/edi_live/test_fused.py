@@ -165,3 +165,33 @@ def test_frames_after_the_last_reference_are_forward_edi_in_one_pass():
         want = rec.render_from_reference(t, sim.events).image
         assert r.t_us == t and np.max(np.abs(r.image.astype(int) - want)) <= 1
         assert np.count_nonzero(r.image != want) <= 1e-4 * want.size
+
+
+def test_fused_frames_that_cannot_be_held_are_forward_edi_from_the_reference(monkeypatch):
+    """The fused mode keeps no causal latent image (follow_latent False). With the hold full (no next APS frame
+    for a long time), frames are rendered at once from the reference: the causal mode's frames."""
+    from edi_live import fused_mode
+    from edi_live.config import EdiConfig
+    from edi_live.datatypes import Packet
+    from tests.edi_live.test_worker import run_worker
+
+    monkeypatch.setattr(fused_mode, "_MAX_HELD", 0)
+    sim = _scene()
+    ev = sim.events
+    packets, cut = [], 0
+    for f in sim.frames:
+        end = int(np.searchsorted(ev["t"], f.exposure_end_us, side="right"))
+        packets.append(Packet(events=ev[cut:end], frames=[f]))
+        cut = end
+    packets.append(Packet(events=ev[cut:]))
+    frames = {}
+    for mode in ("causal", "fused"):
+        rec = EdiReconstructor(sim.config.width, sim.config.height, c=0.2)
+        _, _, out, errors = run_worker(packets, EdiConfig(every=300, mode=mode, deblur_thread=False), rec=rec,
+                                       timeout_s=60)
+        assert not errors
+        assert rec.follow_latent == (mode == "causal")
+        frames[mode] = {r.t_us: r.image for r in out if r.kind == "latent"}
+    assert len(frames["fused"]) > 10 and frames["fused"].keys() == frames["causal"].keys()
+    for t, image in frames["fused"].items():
+        assert np.max(np.abs(image.astype(int) - frames["causal"][t])) <= 1

@@ -68,7 +68,8 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
         # must not compile it mid-stream
         from edi_live.edi import log_divisor_events
 
-        log_divisor_events(events, width, height, t_us - 20_000, t_us - 10_000, None, 0.2, 0.15)
+        t0 = int(events["t"][0])  # an exposure over these events (fused mode's block above moved t_us on)
+        log_divisor_events(events, width, height, t0, t0 + 10_000, None, 0.2, 0.15)
         # the worker's noise-or-activity test: its filter kernel over ring slices (strided fields) and one event
         from edi_live.activity import SceneActivity
 

@@ -13,6 +13,10 @@ Rules, per APS frame once the estimator has what it needs (a pair for pairwise e
   frame's pair must agree, since a pair across a scene cut looks the same.
 - An estimate whose cost curve is flat (information below `info_z`) is no information: c stays.
 - An accepted estimate enters a short history and c becomes its median, so one odd pair does not move c.
+- Joint c (`joint_pairs` K > 0): estimates and fit tests pool the last K pairs (edi_live.contrast.joint), with the
+  pairs that no c near the others' explains (a scene cut, a loop seam) set aside; two newest pairs that both
+  disagree fail the fit test at once (the threshold changed). While every estimate so far was flat, c is estimated
+  again each time the window holds one more pair.
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ from typing import Sequence
 
 import numpy as np
 
-from edi_live.contrast import ContrastEstimator, FrameData, FramePair
+from edi_live.contrast import ContrastEstimator, FrameData, FramePair, joint
 
 C_RANGE = (0.01, 2.0)
 
@@ -35,6 +39,8 @@ class PolicySettings:
     fit_patience: int = 2
     fit_strong: float = 3.0
     c_history: int = 3
+    joint_pairs: int = 0  # K > 0: pool the last K pairs (the tracker must keep them)
+    outlier_z: float = 6.0  # joint c: a pair whose own misfit at c reaches this is set aside
 
 
 class ContrastPolicy:
@@ -56,6 +62,8 @@ class ContrastPolicy:
         self._startup_left = max(1, settings.startup_estimates) - 1
         self._still_votes = 0
         self._history: collections.deque = collections.deque(maxlen=max(1, int(settings.c_history)))
+        self._joint = int(settings.joint_pairs) if estimator.needs_pair else 0
+        self._tried_with = 0  # joint c: pairs in the window at the last estimate
 
     @property
     def c(self) -> tuple[float, float]:
@@ -66,6 +74,8 @@ class ContrastPolicy:
         est = self.estimator
         if est.needs_pair and not pairs:
             return
+        if self._joint:
+            pairs = list(pairs)[-self._joint:]
         self.last_fit = info = {}
         self._frames_since_estimate += 1
         startup = self._estimated and self._startup_left > 0 and len(pairs) >= 2
@@ -83,8 +93,10 @@ class ContrastPolicy:
             return
         due = first or startup or bool(self.settings.reestimate_every
                                        and self._frames_since_estimate >= self.settings.reestimate_every)
+        if self._joint and not self._history and len(pairs) > self._tried_with:
+            due = True  # no informative estimate yet: the pooled window has grown
         if not due:
-            due = self._fit_test_fails(cur, pairs[-1:], floor, info)
+            due = self._fit_test_fails(cur, pairs if self._joint else pairs[-1:], floor, info)
         if due:
             self._estimate(cur, pairs, first, startup, floor, info)
 
@@ -92,7 +104,15 @@ class ContrastPolicy:
                         info: dict) -> bool:
         est = self.estimator
         if self.events_ignored:  # do the events now explain more at the cached c than at none?
-            z = est.still_misfit(cur, last, floor, self.c)
+            z = est.still_misfit(cur, last[-1:], floor, self.c)
+        elif self._joint:
+            verdict = joint.judge_pairs(est, cur, last, self.c, outlier_z=self.settings.outlier_z,
+                                        run=self.settings.fit_patience)
+            info["set_aside"] = verdict.set_aside
+            if verdict.newest_disagree:
+                info["fit_z"] = _z(verdict.pair_z[-1])
+                return True
+            z = est.misfit(cur, verdict.inliers, self.c)
         else:
             z = est.misfit(cur, last, self.c)
         fail = z is not None and z >= est.fit_z
@@ -103,7 +123,12 @@ class ContrastPolicy:
     def _estimate(self, cur: FrameData, pairs: Sequence[FramePair], first: bool, startup: bool,
                   floor: tuple[float, float], info: dict) -> None:
         est = self.estimator
-        found = est.estimate(cur, pairs, self.c)
+        if self._joint:
+            self._tried_with = len(pairs)
+            found, pairs = joint.joint_estimate(est, cur, pairs, self.c, outlier_z=self.settings.outlier_z,
+                                                run=self.settings.fit_patience)
+        else:
+            found = est.estimate(cur, pairs, self.c)
         if found is None:
             return
         info["found"] = float(found[0])

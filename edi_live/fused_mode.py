@@ -13,6 +13,9 @@ import numpy as np
 from edi_live.nearest_mode import NearestHoldBack
 
 _MAX_HELD = 4096  # beyond this (APS frames stopped coming), frames are rendered forward from the reference
+# c is estimated jointly over this many consecutive frame pairs (edi_live.contrast.joint; the node sets it in
+# fused mode): fewer re-estimations at scene cuts, and the frames wait for the next APS frame anyway
+JOINT_PAIRS = 6
 
 
 class FusedHoldBack(NearestHoldBack):

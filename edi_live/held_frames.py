@@ -24,6 +24,27 @@ def render_held(rec: Reconstructor, ring: EventRing, hold: NearestHoldBack, ref_
     return dataclasses.replace(out, arrival_ns=arrival_ns)
 
 
+def render_rest(rec: Reconstructor, ring: EventRing, hold: NearestHoldBack, ref_f_us: int | None) -> list:
+    """Every held time at the end of the stream, from the current reference: the times after it in one forward
+    pass (rec.render_fused without a previous reference), any others one by one."""
+    done = hold.take_all()
+    if ref_f_us is None:
+        return []
+    after = [d for d in done if d[0] > ref_f_us]
+    out = [render_held(rec, ring, hold, ref_f_us, t, a) for t, a in done if t <= ref_f_us]
+    if after:
+        events = ring.window(ref_f_us + 1, after[-1][0] + 1, end_index=ring.read_index)
+        out.extend(_stamped(rec.render_fused(None, None, None, [t for t, _ in after], events), after, hold))
+    return out
+
+
+def _stamped(recs: list[Reconstruction], held: list[tuple[int, int]], hold: NearestHoldBack) -> list[Reconstruction]:
+    for _, a in held:
+        if a:
+            hold.waited(a)
+    return [dataclasses.replace(r, arrival_ns=a) for r, (_, a) in zip(recs, held)]
+
+
 def render_fused(rec: Reconstructor, ring: EventRing, hold, ref_f_us: int, frame: Frame) -> list[Reconstruction]:
     """The held times up to the new reference, from it and the previous one (forward from the new one when there
     is no previous: the first frame, after a gap); the new reference is kept for the next pair."""
@@ -33,8 +54,4 @@ def render_fused(rec: Reconstructor, ring: EventRing, hold, ref_f_us: int, frame
         return [render_held(rec, ring, hold, ref_f_us, t, a) for t, a in done]
     (log0, f0), image0 = previous
     events = ring.window(f0 + 1, ref_f_us + 1, end_index=ring.read_index)
-    recs = rec.render_fused((log0, f0), image0, frame.image, [t for t, _ in done], events)
-    for _, a in done:
-        if a:
-            hold.waited(a)
-    return [dataclasses.replace(r, arrival_ns=a) for r, (_, a) in zip(recs, done)]
+    return _stamped(rec.render_fused((log0, f0), image0, frame.image, [t for t, _ in done], events), done, hold)

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any, Callable, TextIO
 
 
-from edi_live import calibration
+from edi_live import calibration, fused_mode
 from edi_live.config import EdiConfig, NodeConfig
 from edi_live.errors import ConfigError, EdiLiveError, NodeError, SourceError
 from edi_live.reconstruction import Reconstructor
@@ -69,6 +69,8 @@ def default_reconstructor(width: int, height: int, edi: EdiConfig) -> Reconstruc
     if edi.c_start is not None:
         kwargs["c_start"] = edi.c_start
     kwargs["color_filter"], kwargs["gray"] = edi.color_filter, bool(edi.gray)
+    if edi.mode == "fused":
+        kwargs["joint_pairs"] = fused_mode.JOINT_PAIRS
     return EdiReconstructor(width, height, **kwargs)
 
 

@@ -23,6 +23,9 @@ class Reconstructor(Protocol):
     black_level: float  # APS black level (8-bit DN) taken off the frames
     clock_offset_us: int  # events arrive this much later than the APS exposure they belong to
     aps_gamma: float  # APS response exponent undone before the deblur
+    # False (fused mode, set by the worker): on_events keeps the events and applies them only when render() needs
+    # the latent image; the frames come from render_fused, so no causal image is advanced beside them
+    follow_latent: bool
 
     @property
     def reestimations(self) -> int: ...
@@ -60,9 +63,10 @@ class Reconstructor(Protocol):
         """(log L(f) of the current reference, f): kept by fused mode for the next pair."""
         ...
 
-    def render_fused(self, previous: tuple[np.ndarray, int], previous_image: np.ndarray, current_image: np.ndarray,
-                     times: Sequence[int], events: np.ndarray) -> list[Reconstruction]:
-        """Latent frames at `times` between the previous reference and the current one, from both."""
+    def render_fused(self, previous: tuple[np.ndarray, int] | None, previous_image: np.ndarray | None,
+                     current_image: np.ndarray | None, times: Sequence[int], events: np.ndarray) -> list[Reconstruction]:
+        """Latent frames at `times` between the previous reference and the current one, from both (previous None:
+        forward from the current reference, at times after it)."""
         ...
 
     def mark_gap(self) -> None:

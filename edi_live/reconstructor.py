@@ -28,6 +28,9 @@ from edi_live.pixel_masks import HotPixels, NoiseFilter, UnreliablePixels
 from edi_live.reconstructor_settings import ReconstructorSettings
 
 
+_BEHIND_CAP = 1 << 20  # events kept unapplied (follow_latent False) before they are applied anyway
+
+
 class EdiReconstructor:
     """Deblurs each APS frame at mid-exposure and advances the latent image event by event.
 
@@ -69,10 +72,11 @@ class EdiReconstructor:
         self._policy = ContrastPolicy(estimator, self.c_on, self.c_off, PolicySettings(
             reestimate_every=int(settings.reestimate_every), startup_estimates=settings.history_pairs,
             fit_patience=int(settings.fit_patience), fit_strong=float(settings.fit_strong),
-            c_history=int(settings.c_history)))
+            c_history=int(settings.c_history), joint_pairs=int(settings.joint_pairs)))
         if not self._fixed:
             self._tracker = ContrastTracker(self.width, self.height, self._policy,
-                                            history_pairs=settings.history_pairs, sample_pixels=settings.sample_pixels)
+                                            history_pairs=max(settings.history_pairs, settings.joint_pairs),
+                                            sample_pixels=settings.sample_pixels)
         self._hot = HotPixels(self.width, self.height, enabled=settings.mask_hot_pixels,
                               min_rate_hz=settings.hot_min_rate_hz, rel_factor=settings.hot_rel_factor,
                               decay=settings.hot_decay)
@@ -84,6 +88,9 @@ class EdiReconstructor:
         self._colour: colour_edi.ColourPlan | None = None  # colour: EDI on the Bayer mosaic, demosaiced for output
         self._pair: contrast.FramePair | None = None  # formed on this frame, judged after its deblur
         self.has_reference = False
+        self.follow_latent = True  # see the Reconstructor protocol
+        self._behind: list[np.ndarray] = []  # events on_events kept but did not apply (follow_latent False)
+        self._behind_n = 0
         self.events_ignored = False  # set when the c policy finds that the events carry no signal
         self._ref_t = 0
         self._exposure = (0, 0)
@@ -150,6 +157,7 @@ class EdiReconstructor:
     @property
     def latent_log_image(self) -> np.ndarray:
         """A copy of log L(t) at the latest event applied (8-bit scale)."""
+        self._catch_up()
         return self._latent.log_lat.copy()
 
     @property
@@ -183,6 +191,7 @@ class EdiReconstructor:
             raise NodeError("on_frame() on a streaming_copy(): deblur on the original reconstructor")
         t_start = time.perf_counter()
         self._colour, img = colour_edi.read_frame(self._colour, frame, self.settings)
+        self._behind, self._behind_n = [], 0  # the latent image restarts at this frame's L(f)
         if img.shape != (self.height, self.width):
             raise ConfigError(f"APS frame is {img.shape[1]}x{img.shape[0]} but the reconstructor was set up for "
                               f"{self.width}x{self.height}; check the source resolution")
@@ -253,7 +262,13 @@ class EdiReconstructor:
         t_end = int(events["t"][-1])
         if self._noise is not None:
             events = self._noise.stream(events)
-        self._latent.apply(events, self._c(), self._mask, count=self._counting(), move=not self.events_ignored)
+        self._latent.apply(events, self._c(), self._mask, count=self._counting(),
+                           move=self.follow_latent and not self.events_ignored)
+        if not (self.follow_latent or self.events_ignored):  # kept; applied if render() needs the latent image
+            self._behind.append(events)
+            self._behind_n += n
+            if self._behind_n > _BEHIND_CAP:
+                self._catch_up()  # bounded memory
         self._t_last = max(self._t_last, t_end)
         self._pending_events += n
         self.events_applied += n
@@ -291,6 +306,7 @@ class EdiReconstructor:
         self._need_reference("render()")
         n = self._pending_events
         self._pending_events = 0
+        self._catch_up()
         return self._reconstruction(self._latent.display.copy(), self._t_last, "latent", n)
 
     def render_from_reference(self, t_us: int, events: np.ndarray) -> Reconstruction:
@@ -314,35 +330,18 @@ class EdiReconstructor:
         self._need_reference("reference_log()")
         return self._latent.log_ref, int(self._ref_t)
 
-    def render_fused(self, previous: tuple[np.ndarray, int], previous_image: np.ndarray, current_image: np.ndarray,
-                     times: Sequence[int], events: np.ndarray) -> list[Reconstruction]:
+    def render_fused(self, previous: tuple[np.ndarray, int] | None, previous_image: np.ndarray | None,
+                     current_image: np.ndarray | None, times: Sequence[int], events: np.ndarray) -> list[Reconstruction]:
         """Latent frames at `times` (ascending, between the previous reference f0 and the current one f1) from both
-        references (edi.fusion_plan); `events` hold at least those with f0 < t <= f1. Frames carry ref_t_us = f1."""
+        references (edi.fused_frames); `events` hold at least those with f0 < t <= f1 (previous None: forward
+        from the current reference, times after f1; the images are then not used). Frames carry ref_t_us = f1."""
         self._need_reference("render_fused()")
-        log0, f0 = previous
-        f1 = int(self._ref_t)
-        inf0 = self._aps.to_float(colour_edi.as_mosaic(self._colour, previous_image))[1]
-        inf1 = self._aps.to_float(colour_edi.as_mosaic(self._colour, current_image))[1]
-        if self.events_ignored:
-            events = events[:0]
-        plan = edi.fusion_plan(log0, self._latent.log_ref, events, f0, f1, self.c_on, self.c_off, inf0, inf1,
-                               mask=self._mask)
-        prop = edi.FusedPropagator(plan, self._mask)
-        t = events["t"]
-        pos = edi.time_index(t, f0, "right")
-        out = []
-        for t_us in times:
-            t_us = int(t_us)
-            if t_us >= f1 or t_us <= f0:  # the fused video passes through both deblurred frames
-                image = edi.to_uint8(self._latent.log_ref if t_us >= f1 else log0)
-                out.append(self._reconstruction(image, t_us, "latent", 0))
-                continue
-            end = edi.time_index(t, t_us, "right")
-            prop.apply(events[pos:end])
-            prop.set_time(edi.time_share((t_us - f0) / (f1 - f0)))
-            out.append(self._reconstruction(prop.display.copy(), t_us, "latent", max(0, end - pos)))
-            pos = max(pos, end)
-        return out
+        informative = None if previous is None else (
+            self._aps.to_float(colour_edi.as_mosaic(self._colour, previous_image))[1],
+            self._aps.to_float(colour_edi.as_mosaic(self._colour, current_image))[1])
+        frames = edi.fused_frames(self.reference_log(), previous, informative, times,
+                              events[:0] if self.events_ignored else events, self._c(), self._mask)
+        return [self._reconstruction(image, t, "latent", n) for image, t, n in frames]
 
     def stats(self) -> dict:
         return {
@@ -368,6 +367,12 @@ class EdiReconstructor:
 
     def _counting(self) -> bool:
         return not (self._fixed or self._streamer)
+
+    def _catch_up(self) -> None:
+        """Apply the events that on_events only kept (follow_latent False): the latent image is current again."""
+        behind, self._behind, self._behind_n = self._behind, [], 0
+        for events in behind:
+            self._latent.apply(events, self._c(), self._mask, count=False, move=True)
 
     def _frames_one_by_one(self, events: np.ndarray, cuts: Sequence[int], arrivals: Sequence[int]) -> list:
         out = []

@@ -31,6 +31,7 @@ class ReconstructorSettings:
     fit_patience: int = 2
     fit_strong: float = 3.0
     c_history: int = 3  # accepted estimates whose median is c
+    joint_pairs: int = 0  # > 0: c from the last K pairs pooled, odd pairs set aside (edi_live.contrast.joint)
     sample_pixels: int = 4000  # pixels on which c is estimated
     mask_hot_pixels: bool = True
     hot_min_rate_hz: float = 300.0

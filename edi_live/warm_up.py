@@ -49,8 +49,13 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
             later = events.copy()
             later["t"] += 20_000
             rec.on_frame(Frame(image, t_us, t_us + 10_000), later)
-            rec.render_fused(previous, image, image, [previous[1] + 5_000, t_us + 4_000],
-                             concat_events([events, later]))
+            both = concat_events([events, later])
+            rec.render_fused(previous, image, image, [previous[1] + 5_000, t_us + 4_000], both)
+            # again on strided event fields: the reconstructor may have judged the random events a still scene
+            from edi_live import edi
+
+            edi.fused_frames(rec.reference_log(), previous, (image > 0, image > 0), [previous[1] + 5_000], both,
+                             (0.2, 0.2), None)
             t_us += 20_000
         # exposures without events (a dark or still scene), first and later: empty field views count as
         # C-contiguous, another specialisation
@@ -63,7 +68,8 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
         # must not compile it mid-stream
         from edi_live.edi import log_divisor_events
 
-        log_divisor_events(events, width, height, t_us - 20_000, t_us - 10_000, None, 0.2, 0.15)
+        t0 = int(events["t"][0])  # an exposure over these events (fused mode's block above moved t_us on)
+        log_divisor_events(events, width, height, t0, t0 + 10_000, None, 0.2, 0.15)
         # the worker's noise-or-activity test: its filter kernel over ring slices (strided fields) and one event
         from edi_live.activity import SceneActivity
 

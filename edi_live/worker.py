@@ -55,6 +55,7 @@ class EdiWorker:
                  on_error: Callable[[BaseException], None] | None = None, name: str = "edi-worker") -> None:
         self.ring = ring
         self.rec = reconstructor
+        reconstructor.follow_latent = config.mode != "fused"  # fused frames come from both references
         self.config = config
         self.sinks = list(sinks)
         self.name = name
@@ -346,8 +347,8 @@ class EdiWorker:
     def _flush_deferred(self) -> None:
         if not self._nearest.held or not self.rec.has_reference:
             return
-        for t, a in self._nearest.take_all():
-            self._emit(self._render_at(t, a))
+        for rec in held_frames.render_rest(self.rec, self.ring, self._nearest, self._ref_f_us):
+            self._emit(rec)
 
     def _heartbeat(self) -> None:
         if not self.rec.has_reference or self._await_reference:

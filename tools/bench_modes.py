@@ -42,8 +42,10 @@ class ModeRun:
     cpu_ms_per_latent: float  # the worker thread's CPU time (deblurs included) per latent frame
 
 
-def feed_worker(sim: Simulation, mode: str, every: int, c: tuple[float, float]) -> ModeRun:
-    """The node's worker on the simulated stream (APS frames in the packet holding their exposure end)."""
+def feed_worker(sim: Simulation, mode: str, every: int, c: tuple[float, float] | None,
+                joint_pairs: int = 0) -> ModeRun:
+    """The node's worker on the simulated stream (APS frames in the packet holding their exposure end); c None:
+    estimated by the reconstructor (with joint c over `joint_pairs` pairs if > 0)."""
     from edi_live.config import EdiConfig
     from edi_live.datatypes import Packet
     from edi_live.reconstructor import EdiReconstructor
@@ -52,7 +54,8 @@ def feed_worker(sim: Simulation, mode: str, every: int, c: tuple[float, float]) 
 
     cfg = sim.config
     ring = EventRing(capacity_events=1 << 22, capacity_frames=64, policy="wait")
-    rec = EdiReconstructor(cfg.width, cfg.height, c_on=c[0], c_off=c[1])
+    rec = (EdiReconstructor(cfg.width, cfg.height, c_on=c[0], c_off=c[1]) if c is not None
+           else EdiReconstructor(cfg.width, cfg.height, joint_pairs=joint_pairs))
     out: list = []
     errors: list = []
     worker = EdiWorker(ring, rec, EdiConfig(every=every, mode=mode, deblur_thread=False, quality_every=0,
@@ -150,11 +153,13 @@ def consistency(times: np.ndarray, images: list[np.ndarray], gt: list[np.ndarray
 
 
 def score_scene(label: str, sim: Simulation, *, every: int, modes=MODES_RUN, c: tuple[float, float] | None = None,
-                log=print) -> dict[str, dict[str, float]]:
-    """Per mode: PSNR/SSIM against the truth, PSNR against the oracles, consistency, latency and cost."""
+                log=print, estimate_c: tuple[int, ...] = ()) -> dict[str, dict[str, float]]:
+    """Per mode: PSNR/SSIM against the truth, PSNR against the oracles, consistency, latency and cost. With
+    `estimate_c` (joint-pair counts K, 0 = off) each mode also runs with c estimated, as "MODE, c est. K"."""
     cfg = sim.config
     c = (float(cfg.c_on), float(cfg.c_off)) if c is None else c
     runs = {m: feed_worker(sim, m, every, c) for m in modes}
+    runs.update({f"{m}, c est. K={k}": feed_worker(sim, m, every, None, k) for m in modes for k in estimate_c})
     skip = int(sim.mid_exposure_us[1])  # the first interval warms up the state (as the accuracy suite skips it)
     last = int(sim.mid_exposure_us[-1])
     times = sorted({int(t) for r in runs.values() for t in r.times if skip <= t < last})
@@ -171,7 +176,7 @@ def score_scene(label: str, sim: Simulation, *, every: int, modes=MODES_RUN, c: 
         g = [gt[int(t)] for t in ts]
         row = {"frames": len(ts), "psnr": np.mean([psnr(a, b) for a, b in zip(imgs, g)]),
                "ssim": np.mean([ssim(a, b) for a, b in zip(imgs, g)])}
-        own = [oracle.image(int(t), int(np.flatnonzero(mids == r)[0])) for t, r in zip(ts, refs)]
+        own = [oracle.image(int(t), int(np.flatnonzero(mids == r)[0])) for t, r in zip(ts, refs)]  # true c
         row["psnr_own_oracle_truth"] = np.mean([psnr(a, b) for a, b in zip(own, g)])
         row["dn_vs_own_oracle"] = np.mean([np.mean(np.abs(a.astype(np.float64) - b)) for a, b in zip(imgs, own)])
         switch = refs[1:] != refs[:-1]
@@ -193,13 +198,23 @@ def score_scene(label: str, sim: Simulation, *, every: int, modes=MODES_RUN, c: 
     return res
 
 
-def cost_ratio(sim: Simulation, every: int, repeats: int = 5) -> dict[str, list[float]]:
-    """Worker CPU ms per latent frame, causal / nearest / fused run alternately `repeats` times (A/B in one run)."""
+def cost_ratio(sim: Simulation, every: int, repeats: int = 5,
+               runs: tuple[tuple[str, int | None], ...] | None = None) -> dict[str, list[float]]:
+    """Worker CPU ms per latent frame of each (mode, joint pairs) run, alternately `repeats` times (A/B in one
+    run), after one untimed run of each (kernels compiled or loaded from the cache). Joint pairs None: the true c
+    given; an int K: c estimated, with joint c over K pairs (0 = off)."""
+    runs = runs or tuple((m, None) for m in MODES_RUN)
     c = true_c(sim)
-    out: dict[str, list[float]] = {m: [] for m in MODES_RUN}
+
+    def one(mode: str, k: int | None) -> float:
+        return feed_worker(sim, mode, every, c if k is None else None, k or 0).cpu_ms_per_latent
+
+    for m, k in runs:
+        one(m, k)
+    out: dict[str, list[float]] = {m if k is None else f"{m}, c est. K={k}": [] for m, k in runs}
     for _ in range(repeats):
-        for m in MODES_RUN:
-            out[m].append(feed_worker(sim, m, every, c).cpu_ms_per_latent)
+        for (m, k), name in zip(runs, out):
+            out[name].append(one(m, k))
     return out
 
 
@@ -241,23 +256,32 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--every", type=int, default=2000)
     ap.add_argument("--modes", default=",".join(MODES_RUN))
     ap.add_argument("--cost", action="store_true", help="only the CPU cost per latent frame of each mode, A/B")
+    ap.add_argument("--repeats", type=int, default=9, help="--cost: alternating runs of each mode")
+    ap.add_argument("--estimate-c", default="", help="also run each mode with c estimated, joint c over K pairs "
+                                                     "for each comma-separated K (0 = single-pair policy)")
     args = ap.parse_args(argv)
     if args.cost:
         label, cfg = modes_suite(True, False)[0]
+        from edi_live.fused_mode import JOINT_PAIRS
+
         sim = simulate(cfg)
-        cpu = cost_ratio(sim, args.every)
-        print(f"worker CPU ms per latent frame on '{label}' (--every {args.every}), median [min, max] of 5 alternating runs")
-        for m, v in cpu.items():
-            ratios = [a / b for a, b in zip(v, cpu["causal"])]
-            print(f"  {m}: {np.median(v):.3f} [{min(v):.3f}, {max(v):.3f}] ms, x{np.median(ratios):.2f} causal "
-                  f"[{min(ratios):.2f}, {max(ratios):.2f}]")
+        for title, runs in (("true c given", None),
+                            ("c estimated", (("causal", 0), ("fused", 0), ("fused", JOINT_PAIRS)))):
+            cpu = cost_ratio(sim, args.every, args.repeats, runs)
+            base = next(iter(cpu.values()))
+            print(f"worker CPU ms per latent frame on '{label}' (--every {args.every}), {title}, median [min, max] "
+                  f"of {args.repeats} alternating runs")
+            for m, v in cpu.items():
+                ratios = [a / b for a, b in zip(v, base)]
+                print(f"  {m}: {np.median(v):.3f} [{min(v):.3f}, {max(v):.3f}] ms, x{np.median(ratios):.2f} causal "
+                      f"[{min(ratios):.2f}, {max(ratios):.2f}]")
         return 0
     t0 = time.perf_counter()
     results = {}
     for label, cfg in modes_suite(args.quick, args.realistic):
         sim = simulate(cfg)
         results[label] = score_scene(label, sim, every=args.every, modes=tuple(args.modes.split(",")),
-                                     c=true_c(sim))
+                                     c=true_c(sim), estimate_c=tuple(int(k) for k in args.estimate_c.split(",") if k))
     print(table(results))
     print(f"\nwall time {time.perf_counter() - t0:.0f} s")
     return 0

@@ -2,7 +2,12 @@
 frames before and after it: what each mode shows between two APS frames. Runs the node as a user would (--out) and
 reads its frames back.
 
-    python -m tools.modes_figure docs/modes_real.png [--recording FILE.aedat4] [--between K]
+    python -m tools.modes_figure docs/modes_real.png [--recording FILE.aedat4] [--between K] [--strip OUT.png]
+
+`--strip OUT.png`: a second picture, to look for jumps where the reference changes: for nearest and fused, the
+consecutive latent frames around APS frame K+1's mid-exposure (fused switches from the pair (K, K+1) to (K+1, K+2)
+there; nearest switched at the midpoint before), cropped to the moving part, each with its change from the
+frame before (x4) below it.
 """
 
 from __future__ import annotations
@@ -31,18 +36,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("out", type=Path)
     ap.add_argument("--recording", type=Path, default=REAL / "emlb_demo-01_davis346.aedat4")
     ap.add_argument("--between", type=int, default=6, help="show the time halfway between APS frames K and K+1")
+    ap.add_argument("--strip", type=Path, help="also write the frames around APS frame K+1 (reference switch)")
+    ap.add_argument("--every", type=int, default=300)
     args = ap.parse_args(argv)
     _, aps = load_recording(args.recording)
     k = min(args.between, len(aps) - 2)
     t = (aps[k].mid_exposure_us + aps[k + 1].mid_exposure_us) // 2
     gain = 255.0 / max(1.0, float(np.percentile(aps[k].image, 99.5)))
     tiles = [_label(aps[k].image * gain, f"APS frame {k}")]
+    strips = []
     with tempfile.TemporaryDirectory() as tmp:
         for mode in ("causal", "nearest", "fused"):
             out = Path(tmp) / f"{mode}.aedat4"
             subprocess.run([sys.executable, "-m", "edi_live", "--replay", str(args.recording), "--speed", "0",
-                            "--no-publish", "--mode", mode, "--every", "300", "--out", str(out)], check=True,
-                           capture_output=True)
+                            "--no-publish", "--mode", mode, "--every", str(args.every), "--out", str(out)],
+                           check=True, capture_output=True)
+            if args.strip and mode != "causal":
+                crop = moving_box(np.abs(aps[k + 1].image.astype(np.float64) - aps[k].image))
+                strips.append(switch_strip(frames_of(out), aps[k + 1], mode, gain, crop=crop))
             # an --out frame's exposure window is its latent time; pick the one nearest the midpoint
             lo, hi = aps[k].mid_exposure_us, aps[k + 1].mid_exposure_us
             inside = [f for f in frames_of(out) if lo < f.exposure_start_us < hi]
@@ -51,7 +62,38 @@ def main(argv: list[str] | None = None) -> int:
             tiles.append(_label(best.image * gain, f"{mode}: APS {k} + {after_ms:.1f} ms"))
     tiles.append(_label(aps[k + 1].image * gain, f"APS frame {k + 1}"))
     write_rows([np.hstack(_fit(tiles, 200))], args.out)
+    if args.strip:
+        write_rows(strips, args.strip)
     return 0
+
+
+def moving_box(change: np.ndarray, margin: int = 12) -> tuple[int, int, int, int]:
+    """(y0, y1, x0, x1) around the pixels that changed clearly (1st..99th percentile of their positions)."""
+    ys, xs = np.nonzero(change > 25)
+    if ys.size < 20:
+        return 0, change.shape[0], 0, change.shape[1]
+    (y0, y1), (x0, x1) = np.percentile(ys, [1, 99]).astype(int), np.percentile(xs, [1, 99]).astype(int)
+    return max(0, y0 - margin), y1 + margin, max(0, x0 - margin), x1 + margin
+
+
+def switch_strip(frames: list[Frame], switch: Frame, mode: str, gain: float, n: int = 3,
+                 crop: tuple[int, int, int, int] | None = None) -> np.ndarray:
+    """n latent frames before and n after the switch frame's mid-exposure, cropped to where they change, each
+    above its change from the previous frame (x4, mid-grey = none)."""
+    f = switch.mid_exposure_us
+    video = sorted(frames, key=lambda x: x.exposure_start_us)  # --out frames carry their time as a 0-length window
+    i = next(j for j, x in enumerate(video) if x.exposure_start_us > f)
+    lo, hi = max(1, i - n), min(len(video), i + n)
+    imgs = [x.image.astype(np.float64) for x in video[lo - 1:hi]]
+    if crop is None:
+        crop = moving_box(np.abs(imgs[-1] - imgs[0]))
+    y0, y1, x0, x1 = crop
+    tops, bottoms = [], []
+    for x, prev, cur in zip(video[lo:hi], imgs, imgs[1:]):
+        ms = (x.exposure_start_us - f) / 1000
+        tops.append(_label((cur * gain)[y0:y1, x0:x1], f"{mode} {ms:+.1f} ms"))
+        bottoms.append(_label((128 + 4 * (cur - prev))[y0:y1, x0:x1], "change x4"))
+    return np.vstack([np.hstack(_fit(tops, 120)), np.hstack(_fit(bottoms, 120))])
 
 
 if __name__ == "__main__":

@@ -31,8 +31,8 @@ Modules: selection (time windows, pixel picks, counts), levels (level table, log
 from edi_live.edi import _kernels_fused, _kernels_levels, _kernels_pixels, _kernels_stream
 from edi_live.edi._backend import (DARK_FLOOR, LEVEL_CAP, LOG_MAX, LOG_MIN, have_numba, numpy_reference)
 from edi_live.edi.deblur import ApsResponse, blurry_to_float, deblur, deblur_log, finish_frame_u8, log_divisor_events
-from edi_live.edi.fused import (FusedPropagator, FusionPlan, event_mass, fused_log, fusion_plan, fusion_weights,
-                                time_share)
+from edi_live.edi.fused import (FusedPropagator, FusionPlan, event_mass, forward_plan, fused_frames, fused_log,
+                                fusion_plan, fusion_weights, time_share)
 from edi_live.edi.latent import (Propagator, event_delta, propagate_log, render_buckets, to_uint8, u8_tables)
 from edi_live.edi.levels import LevelTable, build_level_table, empty_table, log_divisor
 from edi_live.edi.pairs import consistency_cost, pair_candidates
@@ -57,7 +57,8 @@ def compiled_signatures() -> dict[str, set[str]]:
 
 __all__ = [
     "ApsResponse", "DARK_FLOOR", "FusedPropagator", "FusionPlan", "LEVEL_CAP", "LOG_MAX", "LOG_MIN", "LevelTable",
-    "Propagator", "add_counts", "compiled_signatures", "event_mass", "fused_log", "fusion_plan", "fusion_weights",
+    "Propagator", "add_counts", "compiled_signatures", "event_mass", "forward_plan", "fused_frames", "fused_log",
+    "fusion_plan", "fusion_weights",
     "time_share",
     "background_activity_keep", "blurry_to_float", "build_level_table", "consistency_cost", "deblur", "deblur_log",
     "decay_hot_counts", "empty_table", "event_delta", "events_at_pixels", "finish_frame_u8", "flat_index",

@@ -1,18 +1,20 @@
-"""numba kernel of the fused (two-frame) latent image: event propagation with per-pixel ON/OFF steps.
+"""numba kernels of the fused (two-frame) latent image: the plan per pair of frames, event propagation with
+per-pixel ON/OFF steps, and the time term; the display through the bucket tables (to_uint8's rounding, no exp).
 
 Private to edi_live.edi (see edi_live.edi.fused and its numpy reference).
 """
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
 
+from edi_live.edi._kernels_stream import _u8
+
 
 @njit(cache=True, nogil=True)
-def propagate_steps(x, y, p, width, height, mask, use_mask, flat, step_on, step_off, lo, hi, disp):
+def propagate_steps(x, y, p, width, height, mask, use_mask, flat, step_on, step_off, lo, hi, disp, v0, scale,
+                    bucket_u8, bucket_thr):
     for i in range(x.size):
         if x[i] >= width or y[i] >= height:
             continue
@@ -25,10 +27,7 @@ def propagate_steps(x, y, p, width, height, mask, use_mask, flat, step_on, step_
         elif v > hi:
             v = hi
         flat[q] = v
-        z = math.exp(min(v, 6.0)) + 0.5
-        if z > 255.0:
-            z = 255.0
-        disp[q] = np.uint8(z)
+        disp[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)
 
 
 @njit(cache=True, nogil=True)
@@ -46,3 +45,44 @@ def pair_sums(x, y, p, width, height, mask, use_mask, c_on, c_off, delta, mass):
         else:
             delta[q] -= c_off
             mass[q] += c_off
+
+
+@njit(cache=True, nogil=True)
+def plan_pixels(r0, r1, e01, mass, inf0, inf1, a, c_on, c_off, lo, hi, start, step_on, step_off, time_term,
+                start_u8, v0, scale, bucket_u8, bucket_thr):
+    """The per-pixel part of a fusion plan in one pass (flat float32 arrays; see edi_live.edi.fused.fusion_plan),
+    with the uint8 image of its start."""
+    one = np.float32(1.0)
+    for q in range(r0.size):
+        d = r1[q] - r0[q] - e01[q]
+        s = r0[q]
+        share = np.float32(0.0)
+        if inf0[q] == inf1[q]:
+            share = d / (mass[q] + a)
+        elif inf1[q]:  # only frame k+1 informative: it is taken whole
+            s = s + d
+        if s < lo:
+            s = lo
+        elif s > hi:
+            s = hi
+        start[q] = s
+        start_u8[q] = _u8(s, v0, scale, bucket_u8, bucket_thr)
+        step_on[q] = c_on * (one + share)
+        step_off[q] = -c_off * (one - share)
+        time_term[q] = a * share
+
+
+@njit(cache=True, nogil=True)
+def shift_time(flat, term, dtau, lo, hi, disp, v0, scale, bucket_u8, bucket_thr):
+    """flat += dtau * term, clipped, and the uint8 display at the pixels whose time term is not zero."""
+    for q in range(flat.size):
+        t = term[q]
+        if t == 0.0:
+            continue
+        v = flat[q] + dtau * t
+        if v < lo:
+            v = lo
+        elif v > hi:
+            v = hi
+        flat[q] = v
+        disp[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)

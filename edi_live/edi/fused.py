@@ -21,20 +21,22 @@ which time distance shares between the sides (tau = (t - f_k) / (f_{k+1} - f_k),
 tau_q = j / (STEPS - 1) on the j-th step (0 on the first, 1 on the last: no jump at the frames). Then each event moves log L by c_on (1 + s) or -c_off (1 - s),
 s = D / (M + A): a per-pixel threshold correction towards frame k+1, so a latent frame costs what a forward one
 does (O(new events)) plus, STEPS times per interval, one pass over the pixels for the time term tau_q A D/(M + A).
-The plan is set up once per pair of frames (`fusion_plan`, O(events + pixels)). A = 1 (5 events at c = 0.2) and
+The plan is set up once per pair of frames (`fusion_plan`, O(events + pixels)); `fused_frames` renders a pair's
+held times with it in one pass (or, with `forward_plan`, plain forward EDI after the last frame). A = 1 (5 events at c = 0.2) and
 STEPS = 4 were chosen on the accuracy benchmark's scenes (tools/bench_modes.py; A in 0.5..2 is within 0.1 dB).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
 from edi_live.edi import _backend, _kernels_fused
 from edi_live.edi._backend import LOG_MAX, LOG_MIN
-from edi_live.edi.latent import event_delta, to_uint8
-from edi_live.edi.selection import select, window
+from edi_live.edi.latent import event_delta, render_buckets, to_uint8
+from edi_live.edi.selection import select, time_index, window
 
 
 REFERENCE_MASS = 1.0  # A: a reference frame's own error, in units of event mass (log intensity)
@@ -98,6 +100,7 @@ class FusionPlan:
     step_on: np.ndarray
     step_off: np.ndarray
     time_term: np.ndarray
+    start_u8: np.ndarray | None = None  # to_uint8(start), when the plan's kernel made it
 
 
 def fusion_plan(log_ref0: np.ndarray, log_ref1: np.ndarray, events: np.ndarray, f0_us: int, f1_us: int,
@@ -107,11 +110,21 @@ def fusion_plan(log_ref0: np.ndarray, log_ref1: np.ndarray, events: np.ndarray, 
     with f0 < t <= f1 are used; masked pixels' events are ignored, as in the references' own propagation)."""
     h, w = log_ref0.shape
     e01, mass = _pair_sums(events, w, h, c_on, c_off, f0_us, f1_us, mask)
+    a = float(reference_mass)
+    if _backend.have_numba():  # one pass over the pixels, no full-frame temporaries
+        flat = lambda v, dt: np.ascontiguousarray(v, dt).reshape(-1)  # noqa: E731
+        start, start_u8 = np.empty((h, w), np.float32), np.empty((h, w), np.uint8)
+        step_on, step_off, term = (np.empty(h * w, np.float32) for _ in range(3))
+        _kernels_fused.plan_pixels(flat(log_ref0, np.float32), flat(log_ref1, np.float32), e01.reshape(-1),
+                                   mass.reshape(-1), flat(informative0, bool), flat(informative1, bool),
+                                   np.float32(a), np.float32(c_on), np.float32(c_off), np.float32(LOG_MIN),
+                                   np.float32(LOG_MAX), start.reshape(-1), step_on, step_off, term,
+                                   start_u8.reshape(-1), *render_buckets())
+        return FusionPlan(int(f0_us), int(f1_us), start, step_on, step_off, term, start_u8)
     r0 = np.asarray(log_ref0, np.float32)
     d = np.asarray(log_ref1, np.float32) - r0 - e01
     inf0, inf1 = np.asarray(informative0, bool), np.asarray(informative1, bool)
     one_sided = inf0 != inf1
-    a = float(reference_mass)
     share = d / (mass + np.float32(a))
     share[one_sided] = 0.0
     start = r0.copy()
@@ -122,6 +135,15 @@ def fusion_plan(log_ref0: np.ndarray, log_ref1: np.ndarray, events: np.ndarray, 
     step_on = np.float32(c_on) * (np.float32(1.0) + share)
     step_off = np.float32(-c_off) * (np.float32(1.0) - share)
     return FusionPlan(int(f0_us), int(f1_us), start, step_on, step_off, np.float32(a) * share)
+
+
+def forward_plan(log_ref: np.ndarray, f_us: int, c_on: float, c_off: float) -> FusionPlan:
+    """The plan of plain forward EDI from one reference (no later frame yet: the frames after the last one): every
+    pixel steps by c_on / -c_off per event, no time term."""
+    n = log_ref.size
+    start = np.clip(np.asarray(log_ref, np.float32), LOG_MIN, LOG_MAX)
+    return FusionPlan(int(f_us), int(f_us), start, np.full(n, c_on, np.float32), np.full(n, -c_off, np.float32),
+                      np.zeros(n, np.float32))
 
 
 def _pair_sums(events: np.ndarray, w: int, h: int, c_on: float, c_off: float, f0_us: int, f1_us: int,
@@ -145,7 +167,7 @@ class FusedPropagator:
     def __init__(self, plan: FusionPlan, mask: np.ndarray | None) -> None:
         self.plan = plan
         self.log_image = plan.start.copy()
-        self.display = to_uint8(self.log_image)
+        self.display = to_uint8(self.log_image) if plan.start_u8 is None else plan.start_u8.copy()
         self.tau_q = 0.0
         self._h, self._w = self.log_image.shape
         self._mask = mask
@@ -156,6 +178,12 @@ class FusedPropagator:
         if tau_q == self.tau_q:
             return
         flat = self.log_image.reshape(-1)
+        if _backend.have_numba():  # only the pixels with a time term; the display updated in the same pass
+            _kernels_fused.shift_time(flat, self.plan.time_term, np.float32(tau_q - self.tau_q),
+                                      np.float32(LOG_MIN), np.float32(LOG_MAX), self.display.reshape(-1),
+                                      *render_buckets())
+            self.tau_q = tau_q
+            return
         flat += np.float32(tau_q - self.tau_q) * self.plan.time_term
         np.clip(flat, LOG_MIN, LOG_MAX, out=flat)
         self.display = to_uint8(self.log_image)
@@ -166,7 +194,8 @@ class FusedPropagator:
         if _backend.have_numba():
             ev = window(events, None, None)
             _kernels_fused.propagate_steps(ev["x"], ev["y"], ev["p"], self._w, self._h, self._m, self._use_m, flat,
-                                           self.plan.step_on, self.plan.step_off, LOG_MIN, LOG_MAX, disp)
+                                           self.plan.step_on, self.plan.step_off, LOG_MIN, LOG_MAX, disp,
+                                           *render_buckets())
             return
         idx, _, p = select(events, self._w, self._h, None, None, self._mask)
         if idx.size == 0:
@@ -175,3 +204,34 @@ class FusedPropagator:
         flat += np.bincount(idx, weights=steps, minlength=flat.size).astype(np.float32)
         flat[idx] = np.clip(flat[idx], LOG_MIN, LOG_MAX)
         disp[idx] = to_uint8(flat[idx])
+
+
+def fused_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, int] | None,
+                 informative: tuple[np.ndarray, np.ndarray] | None, times: Sequence[int], events: np.ndarray,
+                 c: tuple[float, float], mask: np.ndarray | None) -> list[tuple[np.ndarray, int, int]]:
+    """The latent images at `times` (ascending) in one propagation pass over the events: (uint8 image, t, events
+    since the previous image) per time. `current`/`previous`: (log L(f), f) of the two references (previous None:
+    plain forward EDI, for times after the current f); `informative`: where the previous / current APS frame is
+    neither clipped nor black; `events`: at least those from the earlier reference to the last time."""
+    log1, f1 = current
+    if previous is None:
+        log0, f0 = log1, f1
+        plan = forward_plan(log1, f1, *c)
+    else:
+        log0, f0 = previous
+        plan = fusion_plan(log0, log1, events, f0, f1, c[0], c[1], informative[0], informative[1], mask=mask)
+    prop = FusedPropagator(plan, mask)
+    t = events["t"]
+    pos = time_index(t, f0, "right")
+    out = []
+    for t_us in map(int, times):
+        if t_us <= f0 or (previous is not None and t_us >= f1):  # the video passes through the deblurred frames
+            out.append((to_uint8(log1 if t_us >= f1 else log0), t_us, 0))
+            continue
+        end = time_index(t, t_us, "right")
+        prop.apply(events[pos:end])
+        if previous is not None:
+            prop.set_time(time_share((t_us - f0) / (f1 - f0)))
+        out.append((prop.display.copy(), t_us, max(0, end - pos)))
+        pos = max(pos, end)
+    return out

@@ -137,3 +137,61 @@ def test_worker_in_fused_mode_renders_every_latent_frame_between_two_frames_in_t
     assert all(a.t_us <= b.t_us for a, b in zip(out, out[1:]))
     stats = worker.stats()
     assert stats["fused_added_latency_ms_p50"] is not None and stats["nearest_added_latency_ms_p50"] is None
+
+
+def test_the_kernel_path_renders_what_the_numpy_reference_does():
+    """The plan, time term and propagation kernels (one pass, display through the bucket tables) against the numpy
+    reference of the same plan: identical up to float32 rounding at a few pixels."""
+    sim = _scene(c_on=0.2, c_off=0.16)
+    rec, logs = _references(sim, 0.2, 0.16)
+    (log1, f1), (log2, f2) = logs[1], logs[2]
+    times = list(range(f1 + 1, f2, max(1, (f2 - f1) // 40)))
+    fast = rec.render_fused((log1, f1), sim.frames[1].image, sim.frames[2].image, times, sim.events)
+    with edi.numpy_reference():
+        slow = rec.render_fused((log1, f1), sim.frames[1].image, sim.frames[2].image, times, sim.events)
+    diff = np.stack([np.abs(a.image.astype(int) - b.image.astype(int)) for a, b in zip(fast, slow)])
+    assert diff.max() <= 1 and np.count_nonzero(diff) <= 1e-4 * diff.size
+
+
+def test_frames_after_the_last_reference_are_forward_edi_in_one_pass():
+    """render_fused without a previous reference (the held frames at the end of a stream) equals
+    render_from_reference at each time."""
+    sim = _scene(c_on=0.2, c_off=0.16)
+    rec, logs = _references(sim, 0.2, 0.16)
+    f2 = logs[2][1]
+    times = [f2 + 500 * k for k in range(1, 12)]
+    out = rec.render_fused(None, None, None, times, sim.events)
+    for t, r in zip(times, out):
+        want = rec.render_from_reference(t, sim.events).image
+        assert r.t_us == t and np.max(np.abs(r.image.astype(int) - want)) <= 1
+        assert np.count_nonzero(r.image != want) <= 1e-4 * want.size
+
+
+def test_fused_frames_that_cannot_be_held_are_forward_edi_from_the_reference(monkeypatch):
+    """The fused mode keeps no causal latent image (follow_latent False). With the hold full (no next APS frame
+    for a long time), frames are rendered at once from the reference: the causal mode's frames."""
+    from edi_live import fused_mode
+    from edi_live.config import EdiConfig
+    from edi_live.datatypes import Packet
+    from tests.edi_live.test_worker import run_worker
+
+    monkeypatch.setattr(fused_mode, "_MAX_HELD", 0)
+    sim = _scene()
+    ev = sim.events
+    packets, cut = [], 0
+    for f in sim.frames:
+        end = int(np.searchsorted(ev["t"], f.exposure_end_us, side="right"))
+        packets.append(Packet(events=ev[cut:end], frames=[f]))
+        cut = end
+    packets.append(Packet(events=ev[cut:]))
+    frames = {}
+    for mode in ("causal", "fused"):
+        rec = EdiReconstructor(sim.config.width, sim.config.height, c=0.2)
+        _, _, out, errors = run_worker(packets, EdiConfig(every=300, mode=mode, deblur_thread=False), rec=rec,
+                                       timeout_s=60)
+        assert not errors
+        assert rec.follow_latent == (mode == "causal")
+        frames[mode] = {r.t_us: r.image for r in out if r.kind == "latent"}
+    assert len(frames["fused"]) > 10 and frames["fused"].keys() == frames["causal"].keys()
+    for t, image in frames["fused"].items():
+        assert np.max(np.abs(image.astype(int) - frames["causal"][t])) <= 1

@@ -263,10 +263,11 @@ def kernels():
     return compiled_signatures()
 
 if __name__ == "__main__":
-    warm_up(default_reconstructor, EdiConfig())
+    warm_up(default_reconstructor, EdiConfig(mode=sys.argv[2]))
     before = kernels()
     try:  # the CLI's replay: frames decoded in the child arrive read-only; 1 ms packets give 1-event slices
-        main(["--replay", sys.argv[1], "--no-publish", "--speed", "8", "--every", "7", "--log-level", "error"])
+        main(["--replay", sys.argv[1], "--no-publish", "--speed", "8", "--every", "7", "--log-level", "error",
+              "--mode", sys.argv[2]])
     except SystemExit as exc:
         assert not exc.code, exc.code
     # separate thresholds (the default estimator fits them when the data call for it) use their own kernel
@@ -283,15 +284,17 @@ if __name__ == "__main__":
 """
 
 
-@pytest.mark.parametrize("name", ["emlb_demo-01_davis346.aedat4", "evlib_sample_davis346.aedat4"])
-def test_the_warm_up_covers_every_kernel_specialisation_a_replay_needs(real_recordings, name):
+@pytest.mark.parametrize("name, mode", [("emlb_demo-01_davis346.aedat4", "causal"),
+                                        ("evlib_sample_davis346.aedat4", "causal"),
+                                        ("emlb_demo-01_davis346.aedat4", "fused")])
+def test_the_warm_up_covers_every_kernel_specialisation_a_replay_needs(real_recordings, name, mode):
     """A numba kernel met with new argument types (a read-only frame, a one-event slice, an exposure without
     events) is compiled on the spot, seconds with a cold cache, stalling the worker mid-stream. After the node's
     warm-up a real replay must need no new specialisation. Run in a fresh interpreter, so that other tests' calls
     do not hide a gap. (evlib's first exposures hold no events.)"""
     # -c with the repository as the working directory: the interpreter imports this checkout's packages
     recording = str(real_recordings[name])
-    done = subprocess.run([sys.executable, "-c", _NO_NEW_KERNELS, recording], capture_output=True, text=True,
+    done = subprocess.run([sys.executable, "-c", _NO_NEW_KERNELS, recording, mode], capture_output=True, text=True,
                           timeout=120, cwd=str(Path(__file__).resolve().parents[2]))
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip().splitlines()[-1] == "{}", f"compiled during the replay: {done.stdout[-2000:]}"

@@ -34,6 +34,7 @@ class StandIn:
         self.black_level = 0.0
         self.clock_offset_us = 0
         self.aps_gamma = 1.0
+        self.follow_latent = True
         self.gaps_marked = 0
         self.ref_f = None
         self.t = None

@@ -106,6 +106,7 @@ def profile(path: Path, every: int, extra: dict, top: int) -> None:
             time.sleep(0.01)
     finally:
         pub.close()
+        idle.close()
         conn.send("stop")
         sub = conn.recv() if conn.poll(30) else {}
         proc.join(10)
@@ -153,29 +154,31 @@ def split(path: Path, every: int, extra: dict, repeat: int) -> None:
     from edi_live.publisher import Publisher
     from edi_live.worker import EdiWorker
 
-    configs = {"EDI only (no sink, no quality score)": (0, False), "+ quality score": (2, False),
-               "+ publisher, 1 subscriber (the node)": (2, True)}
+    configs = {"EDI only (no sink, no quality score)": (0, None), "+ quality score": (2, None),
+               "+ publisher, nobody subscribed": (2, "idle"), "+ publisher, 1 subscriber (the node)": (2, "pub")}
     cpu: dict[str, list[float]] = {k: [] for k in configs}
     deblur: list[float] = []
     by_thread: dict[str, list[float]] = {}
     frames = events = 0
     pub = Publisher(["tcp://127.0.0.1:*"], "profile", inbox_size=1 << 20, sndhwm=0)
+    idle = Publisher(["tcp://127.0.0.1:*"], "profile", inbox_size=1 << 20, sndhwm=0)
     pub.start()
+    idle.start()
     proc, conn = _start_subscriber(pub)
     try:
         for r in range(repeat + 1):  # the first round warms kernels and caches; not counted
             for name, (quality, publish) in configs.items():
                 cfg = EdiConfig(every=every, deblur_thread=False, quality_every=quality, **extra)
                 ring, info = _filled_ring(path)
-                worker = EdiWorker(ring, default_reconstructor(info.width, info.height, cfg), cfg,
-                                   [pub.submit] if publish else [])
+                sinks = {None: [], "idle": [idle.submit], "pub": [pub.submit]}[publish]
+                worker = EdiWorker(ring, default_reconstructor(info.width, info.height, cfg), cfg, sinks)
                 c0 = time.process_time()
                 t0 = _threads_cpu()
                 worker._run()
-                while pub.pending():
+                while pub.pending() or idle.pending():
                     time.sleep(0.001)
                 t1 = _threads_cpu()
-                if r and publish:
+                if r and publish == "pub":
                     for k, v in t1.items():
                         by_thread.setdefault(k, []).append(v - t0.get(k, 0.0))
                 if r:
@@ -184,6 +187,7 @@ def split(path: Path, every: int, extra: dict, repeat: int) -> None:
                 frames, events = sum(worker.sent.values()), worker.events_in
     finally:
         pub.close()
+        idle.close()
         conn.send("stop")
         conn.recv() if conn.poll(30) else None
         proc.join(10)

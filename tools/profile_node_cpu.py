@@ -120,7 +120,8 @@ def profile(path: Path, every: int, extra: dict, top: int) -> None:
     total = sum(by_stage.values())
     print(f"\n## profile: {path.name} {info.width}x{info.height}, --every {every}, {worker.events_in} events, "
           f"{frames} frames sent ({worker.sent}), subscriber received {sub.get('frames')}")
-    print(f"worker thread CPU {cpu_s:.3f} s unprofiled-equivalent unknown (cProfile adds overhead: read the shares)")
+    print(f"worker thread CPU {cpu_s:.3f} s under the profiler (which inflates small Python calls most: read the "
+          f"shares, and `split` for costs without a profiler)")
     print("| stage | profiled s | share | µs per frame (profiled) |\n|---|---|---|---|")
     for stage, s in sorted(by_stage.items(), key=lambda kv: -kv[1]):
         print(f"| {stage} | {s:.3f} | {100 * s / total:.1f} % | {1e6 * s / max(1, frames):.1f} |")
@@ -206,7 +207,8 @@ def split(path: Path, every: int, extra: dict, repeat: int) -> None:
         f"{k} {np.median(v):.2f}" for k, v in sorted(by_thread.items(), key=lambda kv: -np.median(kv[1]))
         if np.median(v) > 0))
     d = float(np.median(deblur))
-    print(f"of which APS deblur incl. c estimation: {d:.3f} s = {1e6 * d / frames:.1f} µs per frame")
+    print(f"of which APS deblur incl. c estimation (wall time, so inflated under load): {d:.3f} s = "
+          f"{1e6 * d / frames:.1f} µs per frame")
 
 
 _CHILD = """

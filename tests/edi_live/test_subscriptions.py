@@ -9,7 +9,7 @@ import zmq
 
 from edi_live.subscriptions import Subscriptions
 
-WAIT_MS = 5000
+WAIT_S = 5.0
 
 
 @pytest.fixture
@@ -37,27 +37,27 @@ def xpub():
 
 
 def settle(subs: Subscriptions, sock: zmq.Socket, expected: list[bytes]) -> None:
-    """Wait (poll with a timeout, no sleeps) until the subscription messages in flight have been applied."""
-    deadline = time.monotonic() + WAIT_MS / 1000
+    """Hand the XPUB socket's messages to `subs` (poll with a timeout, no sleeps) until it holds `expected`."""
+    deadline = time.monotonic() + WAIT_S
     while subs.prefixes() != expected:
         assert time.monotonic() < deadline, f"subscriptions stayed {subs.prefixes()}, expected {expected}"
-        sock.poll(50, zmq.POLLIN)
-        subs.drain(sock)
+        if sock.poll(50, zmq.POLLIN):
+            subs.apply(sock.recv())
 
 
 def test_nobody_then_a_frame_subscriber_then_nobody_again(xpub):
     sock, subscriber = xpub
     subs = Subscriptions(b"frame", recheck_ns=0)
-    assert not subs.wanted(sock)
+    assert not subs.wanted
     stats_only = subscriber(b"stats")
     settle(subs, sock, [b"stats"])
-    assert not subs.wanted(sock)  # a stats subscriber does not want frames
+    assert not subs.wanted  # a stats subscriber does not want frames
     frames = subscriber(b"frame")
     settle(subs, sock, [b"frame", b"stats"])
-    assert subs.wanted(sock)
+    assert subs.wanted
     frames.setsockopt(zmq.UNSUBSCRIBE, b"frame")
     settle(subs, sock, [b"stats"])
-    assert not subs.wanted(sock)
+    assert not subs.wanted
     stats_only.close(0)  # a subscriber that goes away unsubscribes (libzmq sends it for the peer)
     settle(subs, sock, [])
 
@@ -68,7 +68,7 @@ def test_any_prefix_of_the_topic_wants_it(xpub, prefix):
     subs = Subscriptions(b"frame", recheck_ns=0)
     subscriber(prefix)
     settle(subs, sock, [prefix])
-    assert subs.wanted(sock)
+    assert subs.wanted
 
 
 def test_two_subscribers_leave_one_at_a_time(xpub):
@@ -80,18 +80,24 @@ def test_two_subscribers_leave_one_at_a_time(xpub):
     settle(subs, sock, [b"", b"frame"])
     first.close(0)
     settle(subs, sock, [b""])
-    assert subs.wanted(sock)  # the one left still takes every topic
+    assert subs.wanted  # the one left still takes every topic
     second.close(0)
     settle(subs, sock, [])
-    assert not subs.wanted(sock)
+    assert not subs.wanted
 
 
-def test_while_wanted_the_socket_is_read_only_every_recheck_interval(xpub):
-    sock, subscriber = xpub
+def test_repeated_subscriptions_are_counted_and_other_messages_ignored():
+    subs = Subscriptions(b"frame")
+    for message in (b"\x01frame", b"\x01frame", b"\x02frame", b"", b"\x00frame"):
+        subs.apply(message)
+    assert subs.wanted and subs.prefixes() == [b"frame"]
+    subs.apply(b"\x00frame")
+    assert not subs.wanted and subs.prefixes() == []
+
+
+def test_the_socket_is_read_for_every_frame_while_nobody_listens_and_seldom_otherwise():
     subs = Subscriptions(b"frame", recheck_ns=10**12)
-    sub = subscriber(b"frame")
-    settle(subs, sock, [b"frame"])
-    assert subs.wanted(sock)  # starts the interval
-    sub.close(0)
-    assert sock.poll(WAIT_MS, zmq.POLLIN)  # the unsubscription is waiting on the socket...
-    assert subs.wanted(sock)  # ... and not read before the interval ends
+    assert subs.check_due() and subs.check_due()  # nobody: a subscription must be seen at the next frame
+    subs.apply(b"\x01frame")
+    assert subs.check_due()  # the first check starts the interval ...
+    assert not subs.check_due()  # ... and the next one waits for it to end

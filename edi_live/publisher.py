@@ -176,6 +176,17 @@ class Publisher:
             self._inbox.append(rec)
             self._cond.notify()
 
+    def wants_frames(self) -> bool:
+        """Whether anyone subscribes to frames now (for the worker: a frame nobody wants need not be rendered).
+        Reads the subscriptions that arrived when the socket is free; never waits."""
+        if self._sock_lock.acquire(blocking=False):
+            try:
+                if self._sock is not None:
+                    return self._frames_wanted(self._sock)
+            finally:
+                self._sock_lock.release()
+        return self._subscriptions.wanted
+
     def pending(self) -> int:
         """Reconstructions waiting in the inbox (never more than inbox_size)."""
         return len(self._inbox)

@@ -137,8 +137,10 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         latency = ""
         if s.get("latency_p99_us") is not None:
             latency = f"; last-interval latency p50 {_ms(s.get('latency_p50_us'))} p99 {_ms(s['latency_p99_us'])}"
-        unsubscribed = s.get("frames_unsubscribed", 0)
-        nobody = f", {unsubscribed} not sent (no subscriber)" if unsubscribed else ""
+        unsubscribed, unrendered = s.get("frames_unsubscribed", 0), s.get("frames_not_rendered", 0)
+        nobody = f", {unsubscribed} not sent" if unsubscribed else ""
+        nobody += f", {unrendered} latent frames not rendered" if unrendered else ""
+        nobody += " (no subscriber)" if nobody else ""
         lines.append(f"  published {s['frames_sent']} frames{nobody}{latency}")
     prediction = _prediction_line(s)
     if prediction is not None:

@@ -212,25 +212,48 @@ def split(path: Path, every: int, extra: dict, repeat: int) -> None:
 
 
 _CHILD = """
-import json, sys
+import json, sys, time
 from pathlib import Path
 from tools.bench_stream import run_with_subscriber
-stats, sub, wall_s, pub = run_with_subscriber(Path(sys.argv[1]), {"every": int(sys.argv[2])}, speed=0, passes=int(sys.argv[3]))
+if sys.argv[4] == "1":
+    stats, sub, wall_s, pub = run_with_subscriber(Path(sys.argv[1]), {"every": int(sys.argv[2])}, speed=0,
+                                                  passes=int(sys.argv[3]))
+else:  # publishing, nobody subscribed
+    import drivers
+    from edi_live.config import NodeConfig
+    from edi_live.node import Node
+    cfg = NodeConfig.from_options({"replay": sys.argv[1], "speed": 0, "publish": ["tcp://127.0.0.1:*"],
+                                   "every": int(sys.argv[2]), "loop": True})
+    source = drivers.open_source("replay", path=sys.argv[1], speed=0, loop=True, decode_process=True)
+    node = Node(cfg, source)
+    import threading
+    started = {}
+    def stop_after_passes():
+        node.started.wait(60)
+        started["cpu_s"] = time.process_time()  # after the kernels' warm-up
+        while getattr(source, "loops", 0) < int(sys.argv[3]) and not node.final_stats:
+            time.sleep(0.01)
+        node.stop()
+    threading.Thread(target=stop_after_passes, daemon=True).start()
+    stats = node.run()
+    stats["node_cpu_s"], sub, wall_s = time.process_time() - started["cpu_s"], {}, 0.0
 print(json.dumps({"cpu_s": stats["node_cpu_s"], "events": stats["events_processed"], "frames": sub.get("frames"),
                   "emitted": stats["frames_out"], "gaps": sub.get("seq_gaps"), "wall_s": wall_s}))
 """
 
 
-def ab(other: Path, paths: list[Path], every: int, repeat: int, passes: int) -> None:
+def ab(other: Path, paths: list[Path], every: int, repeat: int, passes: int, subscribers: int = 1) -> None:
     here = Path(__file__).resolve().parent.parent
-    print(f"\n## A/B node CPU: new = {here}, old = {other}; --every {every}, {passes} passes, {repeat} pairs")
+    print(f"\n## A/B node CPU: new = {here}, old = {other}; --every {every}, {passes} passes, {repeat} pairs, "
+          f"{subscribers} subscriber(s)")
     for path in paths:
         runs: dict[str, list[dict]] = {"old": [], "new": []}
         for i in range(repeat):
             order = ("old", "new") if i % 2 == 0 else ("new", "old")
             for which in order:
                 cwd = other if which == "old" else here
-                out = subprocess.run([sys.executable, "-c", _CHILD, str(path), str(every), str(passes)], cwd=cwd,
+                out = subprocess.run([sys.executable, "-c", _CHILD, str(path), str(every), str(passes),
+                                      str(subscribers)], cwd=cwd,
                                      capture_output=True, text=True)
                 if out.returncode != 0:
                     raise SystemExit(f"{which} run failed:\n{out.stderr[-2000:]}")
@@ -256,6 +279,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--passes", type=int, default=3)
     ap.add_argument("--c", type=float)
     ap.add_argument("--top", type=int, default=25)
+    ap.add_argument("--nobody", action="store_true", help="ab: publish with nobody subscribed (node CPU incl. start-up)")
     args = ap.parse_args(argv)
     if not args.input:
         from tools.bench_stream import default_recording
@@ -270,7 +294,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         if args.other is None:
             ap.error("ab needs the other checkout")
-        ab(args.other.resolve(), args.input, args.every, args.repeat, args.passes)
+        ab(args.other.resolve(), args.input, args.every, args.repeat, args.passes, 0 if args.nobody else 1)
     return 0
 
 

@@ -29,9 +29,10 @@ from pathlib import Path
 import numpy as np
 
 STAGES = (  # (stage, substrings of "file:function" that belong to it), first match wins
+    ("quality score (edi_live/quality.py)", ("quality.py",)),
     ("deblur (APS frame, c estimation)", ("reconstructor.py:on_frame", "contrast", "c_policy", "deblur",
                                           "levels", "divisor", "finish_frame", "set_reference", "pixel_masks",
-                                          "quality", "hot", "noise")),
+                                          "hot", "noise")),
     ("EDI kernel (propagate 1000 events, display refresh)", ("_kernels", "Propagator", "propagator", "apply")),
     ("render (copy of the display)", ("method 'copy'",)),
     ("header packing (dict + msgpack)", ("frame_header", "packb", "encode_frame", "header", "ascontiguous",
@@ -106,7 +107,6 @@ def profile(path: Path, every: int, extra: dict, top: int) -> None:
             time.sleep(0.01)
     finally:
         pub.close()
-        idle.close()
         conn.send("stop")
         sub = conn.recv() if conn.poll(30) else {}
         proc.join(10)

@@ -338,7 +338,7 @@ class Publisher:
             # part by part with int flags: send_multipart's per-call checks and enum arithmetic cost a few µs a
             # frame. Every part is copied into its message, the pixels too: pyzmq's zero-copy send releases the
             # buffer through its garbage-collector thread, which cost more than the copy at 346x260 (90 kB:
-            # 55 against 46 µs a frame with a subscriber; under 64 kB pyzmq copied anyway). XPUB does not
+            # 67 against 51 µs a frame with a subscriber; under 64 kB pyzmq copied anyway). XPUB does not
             # block: with NOBLOCK a message over SNDHWM is dropped whole.
             last = len(parts) - 1
             for i, part in enumerate(parts):

@@ -235,8 +235,11 @@ class Node:
             self.record_writer.start()
         if self.out_writer is not None:
             sinks.append(self.out_writer.submit)
+        # with the publisher as the only sink, latent frames no subscriber would receive are not rendered
+        only_publisher = self.publisher is not None and sinks == [self.publisher.submit]
         self.worker = EdiWorker(self.ring, reconstructor, cfg.effective_edi, sinks,
-                                on_error=lambda e: self.fail(e, "edi-worker"))
+                                on_error=lambda e: self.fail(e, "edi-worker"),
+                                frames_wanted=self.publisher.wants_frames if only_publisher else None)
         self.worker.start()
         self._pump = threading.Thread(target=self._pump_loop, name="pump", daemon=True)
         self._pump.start()

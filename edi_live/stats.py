@@ -12,6 +12,8 @@ import dataclasses
 import time
 from typing import Any, Callable, TextIO
 
+import numpy as np
+
 
 def collect(source: Any = None, ring: Any = None, worker: Any = None, publisher: Any = None,
             writers: tuple[Any, ...] = ()) -> dict[str, Any]:
@@ -36,6 +38,7 @@ def collect(source: Any = None, ring: Any = None, worker: Any = None, publisher:
         ps = publisher.stats()
         pub_dropped = int(ps.get("dropped", 0))
         out.update({"frames_sent": ps.get("sent", 0), "publish_dropped": pub_dropped,
+                    "frames_unsubscribed": ps.get("unsubscribed", 0),
                     "latency_p50_us": ps.get("latency_p50_us"), "latency_p99_us": ps.get("latency_p99_us")})
     for w in writers:
         if w is not None:
@@ -134,7 +137,11 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         latency = ""
         if s.get("latency_p99_us") is not None:
             latency = f"; last-interval latency p50 {_ms(s.get('latency_p50_us'))} p99 {_ms(s['latency_p99_us'])}"
-        lines.append(f"  published {s['frames_sent']} frames{latency}")
+        unsubscribed, unrendered = s.get("frames_unsubscribed", 0), s.get("frames_not_rendered", 0)
+        nobody = f", {unsubscribed} not sent" if unsubscribed else ""
+        nobody += f", {unrendered} latent frames not rendered" if unrendered else ""
+        nobody += " (no subscriber)" if nobody else ""
+        lines.append(f"  published {s['frames_sent']} frames{nobody}{latency}")
     prediction = _prediction_line(s)
     if prediction is not None:
         lines.append(prediction)
@@ -182,3 +189,24 @@ class StatusLine:
             self.stream.write("\n")
             self.stream.flush()
             self._drawn = 0
+
+
+class LatencySamples:
+    """Latency samples (µs) of the current stats interval, in a fixed-size buffer."""
+
+    def __init__(self, size: int) -> None:
+        self._buf = np.zeros(size, dtype=np.float64)
+        self._n = 0
+
+    def add(self, value_us: float) -> None:
+        self._buf[self._n % len(self._buf)] = value_us
+        self._n += 1
+
+    def take(self) -> tuple[float | None, float | None]:
+        """p50 and p99 of the samples since the last take (None when there were none), then reset."""
+        n = min(self._n, len(self._buf))
+        self._n = 0
+        if n == 0:
+            return None, None
+        p50, p99 = np.percentile(self._buf[:n], [50, 99])
+        return float(p50), float(p99)

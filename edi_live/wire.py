@@ -18,7 +18,8 @@ says what was wrong, never a numpy or msgpack exception.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+import operator
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import msgpack
@@ -67,6 +68,7 @@ STATS_KEYS = {
     "dropped": "publish_dropped",
     "dropped_inbox": "publish_dropped_inbox",
     "dropped_socket": "publish_dropped_socket",
+    "unsubscribed": "publish_unsubscribed",
     "sent_per_s": "frames_sent_per_s",
     "last_seq": "last_seq",
 }
@@ -112,6 +114,71 @@ def encode_frame(rec: Reconstruction, seq: int, source: str) -> list[bytes | mem
     header = frame_header(rec, seq, source)
     pixels = np.ascontiguousarray(rec.image, dtype=DTYPES[header["dtype"]])
     return [FRAME_TOPIC, msgpack.packb(header, use_bin_type=True), memoryview(pixels).cast("B")]
+
+
+# header keys whose values change from frame to frame; every other key is fixed by _template_key()
+_PER_FRAME_KEYS = ("seq", "t", "ref_t", "exp_start", "exp_end", "n_events", "c", "c_on", "c_off")
+
+
+def _template_key(rec: Reconstruction) -> tuple:
+    """What fixes every header value outside _PER_FRAME_KEYS (frame_header must depend on nothing else)."""
+    image = rec.image
+    return image.shape, image.dtype, rec.kind, rec.c_on == rec.c_off
+
+
+class FrameEncoder:
+    """encode_frame() for one source, with the header packed from a cached template: the keys and the values
+    that stay the same (v, w, h, dtype, kind, source) are packed once per `_template_key`, per frame only the
+    values that change (~0.5 µs instead of ~1.7 µs for the dict and msgpack.packb). The bytes are exactly
+    msgpack.packb(frame_header(rec, seq, source)) (tests check it)."""
+
+    def __init__(self, source: str) -> None:
+        self.source = source
+        self._pack = msgpack.Packer(use_bin_type=True).pack
+        self._templates: dict[tuple, tuple[list[bytes], Callable[[tuple], tuple]]] = {}
+
+    def _template(self, rec: Reconstruction, seq: int) -> tuple[list[bytes], Callable[[tuple], tuple]]:
+        """(parts with the per-frame values' places empty, which of _PER_FRAME_KEYS go there, in order)."""
+        header = frame_header(rec, seq, self.source)
+        parts: list[bytes] = []
+        picks: list[int] = []
+        current = msgpack.Packer(use_bin_type=True).pack_map_header(len(header))
+        for key, value in header.items():
+            current += self._pack(key)
+            if key in _PER_FRAME_KEYS:
+                parts += [current, b""]
+                picks.append(_PER_FRAME_KEYS.index(key))
+                current = b""
+            else:
+                current += self._pack(value)
+        parts.append(current)
+        pick = operator.itemgetter(*picks) if len(picks) > 1 else (lambda values: (values[picks[0]],))
+        return parts, pick
+
+    def header(self, rec: Reconstruction, seq: int) -> bytes:
+        """The packed v1 header of one reconstruction."""
+        key = _template_key(rec)
+        template = self._templates.get(key)
+        if template is None:  # frame_header refuses what the wire cannot carry (ValueError)
+            template = self._templates[key] = self._template(rec, seq)
+        parts, pick = template
+        c_on = float(rec.c_on)
+        values = (seq, rec.t_us, rec.ref_t_us, rec.exposure_start_us, rec.exposure_end_us, rec.n_events, c_on,
+                  c_on, float(rec.c_off))  # in _PER_FRAME_KEYS order
+        parts = parts.copy()
+        try:
+            parts[1::2] = map(self._pack, pick(values))
+        except TypeError:  # numpy integers (msgpack packs Python numbers only): the slow path converts them
+            return msgpack.packb(frame_header(rec, seq, self.source), use_bin_type=True)
+        return b"".join(parts)
+
+    def encode(self, rec: Reconstruction, seq: int) -> list[bytes | memoryview]:
+        """The parts of one frame message, as encode_frame(rec, seq, source)."""
+        header = self.header(rec, seq)
+        image = rec.image
+        if not image.flags.c_contiguous or image.dtype.str.lstrip("|") not in DTYPES:
+            image = np.ascontiguousarray(image, dtype=DTYPES[dtype_name(image.dtype)])
+        return [FRAME_TOPIC, header, memoryview(image).cast("B")]
 
 
 def _as_buffer(part: object, what: str) -> memoryview:

@@ -14,7 +14,6 @@ times (latency, --max-fps, the heartbeat) are time.monotonic. The policy, in ful
   latent frames coming (deblur_handover). The thread blocks on the ring's condition between wake-ups.
 """
 
-
 from __future__ import annotations
 
 import collections
@@ -30,6 +29,7 @@ from edi_live.config import EdiConfig
 from edi_live.datatypes import Reconstruction, concat_events
 from edi_live.deblur_handover import PendingDeblur
 from edi_live import held_frames
+from edi_live.frame_demand import FrameDemand
 from edi_live.frame_gate import FrameGate, in_event_clock
 from edi_live.fused_mode import FusedHoldBack
 from edi_live.nearest_mode import NearestHoldBack
@@ -52,7 +52,9 @@ class EdiWorker:
     """Runs the reconstructor on its own thread ("edi-worker"); see the module docstring for the policy."""
 
     def __init__(self, ring: EventRing, reconstructor: Reconstructor, config: EdiConfig, sinks: Sequence[Sink] = (), *,
-                 on_error: Callable[[BaseException], None] | None = None, name: str = "edi-worker") -> None:
+                 on_error: Callable[[BaseException], None] | None = None, name: str = "edi-worker",
+                 frames_wanted: Callable[[], bool] | None = None) -> None:
+        self.demand = FrameDemand(frames_wanted)  # latent frames nobody would receive are not rendered
         self.ring = ring
         self.rec = reconstructor
         reconstructor.follow_latent = config.mode != "fused"  # fused frames come from both references
@@ -79,18 +81,14 @@ class EdiWorker:
         self.quality = (PredictionScore(config.mode, score_every=config.quality_every,
                                         color_filter=config.color_filter, gray=config.gray)  # type: ignore[arg-type]
                         if config.quality_every else None)
-        self.events_in = 0
-        self.frames_in = 0
+        self.events_in = self.frames_in = 0
         self.sent = {"deblurred": 0, "latent": 0}
-        self.heartbeats = 0
-        self.skipped_static = 0
+        self.heartbeats = self.skipped_static = 0
         self.skipped_static_deblur = 0  # APS frames not deblurred at all (static scene)
         self._last_deblur_s = 0.0
-        self.skipped_max_fps = 0
-        self.gaps = 0
+        self.skipped_max_fps = self.gaps = 0
         self.wakeups = 0  # idle waits: bounded by ~4/s plus data arrivals (no busy loop)
-        self.busy_s = 0.0
-        self.cpu_s = 0.0
+        self.busy_s = self.cpu_s = 0.0
 
     # ---------------------------------------------------------------- control (any thread)
 
@@ -194,6 +192,8 @@ class EdiWorker:
             # the frames held before they are sent (a 64k-event chunk at --every 1 would be 64k images)
             cuts = range(max(1, every - self._since), n + 1, every)
             tail = n - cuts[-1] if len(cuts) else self._since + n
+            if self.demand.skip(len(cuts), self.quality):
+                cuts = cuts[:0]  # the events below still move the latent image
             pos = 0
             for g in range(0, len(cuts), _BATCH_FRAMES):
                 group = cuts[g:g + _BATCH_FRAMES]
@@ -381,7 +381,7 @@ class EdiWorker:
             "skipped_static": self.skipped_static,
             "skipped_static_deblur": self.skipped_static_deblur,
             "noise_only_events": self._scene.noise_only_events,
-            "skipped_max_fps": self.skipped_max_fps,
+            "skipped_max_fps": self.skipped_max_fps, "frames_not_rendered": self.demand.not_rendered,
             "worker_gaps": self.gaps,
             "c": round((c_on + c_off) / 2, 4),
             "c_on": round(c_on, 4),

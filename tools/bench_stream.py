@@ -166,8 +166,9 @@ class ThreadCpu:
     """Samples each named thread's CPU time from /proc (Linux), keeping the last value seen per thread."""
 
     def __init__(self, period_s: float = 0.1) -> None:
-        self.cpu_s: dict[str, float] = {}
-        self._base: dict[str, float] = {t.name: self._now(t) for t in threading.enumerate()}
+        self.cpu_s: dict[str, float] = {}  # by thread name (threads of the same name summed)
+        self._per_thread: dict[str, float] = {}
+        self._base: dict[str, float] = self._sample()
         self._stop = threading.Event()
         self._period_s = period_s
         self._thread = threading.Thread(target=self._run, name="cpu-sampler", daemon=True)
@@ -181,29 +182,35 @@ class ThreadCpu:
         self._thread.join(2)
 
     @staticmethod
-    def _now(t: threading.Thread) -> float:
-        try:
-            with open(f"/proc/self/task/{t.native_id}/stat") as fh:
-                fields = fh.read().rsplit(")", 1)[1].split()
-        except (OSError, TypeError):
-            return 0.0
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    def _sample() -> dict[str, float]:
+        """CPU s per thread of this process: Python threads by name, libzmq's I/O thread and others by OS name."""
+        tick = os.sysconf("SC_CLK_TCK")
+        python_names = {t.native_id: t.name for t in threading.enumerate()}
+        out: dict[str, float] = {}
+        for tid in os.listdir("/proc/self/task"):
+            try:
+                with open(f"/proc/self/task/{tid}/stat") as fh:
+                    head, rest = fh.read().rsplit(")", 1)
+            except OSError:
+                continue
+            fields = rest.split()
+            out[f"{python_names.get(int(tid), head.split('(', 1)[1])}/{tid}"] = (int(fields[11]) + int(fields[12])) / tick
+        return out
 
     def _run(self) -> None:
-        tick = os.sysconf("SC_CLK_TCK")
         while not self._stop.wait(self._period_s):
-            for t in threading.enumerate():
-                try:
-                    with open(f"/proc/self/task/{t.native_id}/stat") as fh:
-                        fields = fh.read().rsplit(")", 1)[1].split()
-                except (OSError, TypeError):
-                    continue
-                total_s = (int(fields[11]) + int(fields[12])) / tick
-                self._base.setdefault(t.name, total_s)  # threads already running count from now
-                self.cpu_s[t.name] = total_s - self._base[t.name]
+            for key, total_s in self._sample().items():
+                self._base.setdefault(key, total_s)  # threads started meanwhile count from their first sample
+                self._per_thread[key] = total_s - self._base[key]
+            by_name: dict[str, float] = {}
+            for key, v in self._per_thread.items():
+                name = key.rsplit("/", 1)[0]
+                by_name[name] = by_name.get(name, 0.0) + v
+            self.cpu_s = by_name
 
     def split(self) -> str:
-        keep = {k: v for k, v in self.cpu_s.items() if k in ("pump", "edi-worker", "publisher", "MainThread")}
+        keep = {k: v for k, v in self.cpu_s.items()
+                if k in ("pump", "edi-worker", "publisher", "MainThread") or k.startswith("ZMQbg/IO")}
         total = sum(keep.values()) or 1.0
         return ", ".join(f"{k} {v:.2f} s ({100 * v / total:.0f}%)" for k, v in sorted(keep.items(),
                                                                                       key=lambda kv: -kv[1]))

@@ -31,7 +31,7 @@ def sync(pub: Publisher, *subs: Subscriber) -> int:
     """Submit probe frames until every subscriber has received one (slow-joiner fix), then drain each one up to
     the last probe; returns the next seq."""
     seen = [-1] * len(subs)
-    submitted = 0
+    submitted = pub.stats()["sent"] + pub.stats()["unsubscribed"]
     deadline = time.monotonic() + 10
     while min(seen) < 0:
         assert time.monotonic() < deadline, "subscribers never received a probe frame"
@@ -40,7 +40,9 @@ def sync(pub: Publisher, *subs: Subscriber) -> int:
         for k, sub in enumerate(subs):
             while (item := sub.recv(0.02)) is not None:
                 seen[k] = item[0]["seq"]
-    wait_until(lambda: pub.stats()["sent"] == submitted, "the publisher never sent every probe")
+    # probes submitted before any subscription reached the publisher are not sent (counted as unsubscribed)
+    wait_until(lambda: pub.stats()["sent"] + pub.stats()["unsubscribed"] == submitted,
+               "the publisher never handled every probe")
     last = pub.stats()["last_seq"]
     for sub, seq in zip(subs, seen):  # drain stragglers: every probe up to the last one
         while seq < last:
@@ -233,7 +235,8 @@ def test_burst_submit_never_waits_and_counts_inbox_drops(publisher):
         pub.close()
     assert max(max_pending) <= 8  # memory stays bounded
     stats = pub.stats()
-    assert stats["sent"] + stats["dropped_inbox"] + stats["dropped_socket"] == n
+    # frames submitted before the subscription reached the publisher are counted as unsubscribed (and take no seq)
+    assert stats["sent"] + stats["dropped_inbox"] + stats["dropped_socket"] + stats["unsubscribed"] == n
     assert stats["last_seq"] == stats["sent"] + stats["dropped_socket"] - 1
 
 
@@ -338,3 +341,30 @@ def test_invalid_limits_are_refused():
         Publisher([], "cam")
     with pytest.raises(PublishError):
         Publisher([ANY], "cam", inbox_size=0)
+
+
+def test_frames_nobody_subscribes_to_are_counted_not_sent(publisher):
+    """XPUB: with no frame subscriber the publisher neither encodes nor sends (a stats-only subscriber does not
+    count); the first frames after a subscription go out again with consecutive seq."""
+    pub = publisher([ANY], "cam", sndhwm=1000)
+    for i in range(5):
+        pub.submit(make_rec(i, 8, 4))
+    wait_until(lambda: pub.stats()["unsubscribed"] == 5, "frames without a subscriber were not counted")
+    assert pub.stats()["sent"] == 0 and pub.stats()["last_seq"] == -1
+    with Subscriber(pub.bound_endpoints[0], newest_only=False) as sub:
+        assert sub.recv_stats(timeout_s=RECV_S) is not None  # stats still flow to a stats subscriber
+        seq0 = sync(pub, sub)
+        for i in range(1, 11):
+            pub.submit(make_rec(i, 8, 4))
+        seqs = []
+        for _ in range(10):
+            item = sub.recv(RECV_S)
+            assert item is not None
+            seqs.append(item[0]["seq"])
+        assert seqs == list(range(seq0, seq0 + 10))
+    unsubscribed = pub.stats()["unsubscribed"]
+    sent = pub.stats()["sent"]
+    # once the subscriber has gone (its unsubscription is read within the recheck interval), frames stop going out
+    wait_until(lambda: pub.submit(make_rec(0, 8, 4)) or pub.stats()["unsubscribed"] > unsubscribed,
+               "frames kept being sent after the last subscriber left")
+    assert pub.stats()["sent"] < sent + 10_000

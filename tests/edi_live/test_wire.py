@@ -327,3 +327,28 @@ def test_a_v1_senders_frame_without_layout_is_gray(rng):
 def test_bad_layouts_are_rejected(rng, changes, message):
     with pytest.raises(ClientError, match=message):
         wire.decode_frame(good_parts(rng, **changes))
+
+
+def test_the_cached_header_encoder_gives_exactly_the_reference_bytes(rng):
+    """FrameEncoder packs from per-layout templates; every message must equal encode_frame's, whatever mix of
+    layouts, kinds, thresholds and number types goes through one encoder."""
+    encoder = wire.FrameEncoder("DAVIS346_00000391")
+    base = make_rec(rng)
+    recs = [base, make_rec(rng, kind="deblurred"), make_rec(rng, c_on=0.25, c_off=0.3), make_rec(rng, 346, 260),
+            make_rec(rng, 8, 4, dtype=np.dtype(">u2")), make_rec(rng, 8, 4, dtype=np.dtype("<f4")),
+            Reconstruction(rng.integers(0, 256, (20, 30), dtype=np.uint8)[::2, ::3], 5, "latent", 0, 0, 0,
+                           0.2, 0.2, 0),
+            Reconstruction(base.image, np.int64(2**40), "latent", np.int64(-7), 0, 2**63 - 1, np.float32(0.125),
+                           np.float32(0.125), np.uint16(3)),
+            Reconstruction(base.image, 0, "latent", 0, -(2**31), 0, 1e-30, 2.5, 0), base, make_colour_rec(rng),
+            make_colour_rec(rng, 346, 260), base]
+    for seq, rec in enumerate(recs * 2):
+        seq = seq * 1_000_003  # seq values of every msgpack integer width
+        assert as_bytes(encoder.encode(rec, seq)) == as_bytes(wire.encode_frame(rec, seq, "DAVIS346_00000391"))
+
+
+def test_the_cached_header_encoder_refuses_what_the_wire_cannot_carry(rng):
+    rec = make_rec(rng, 4, 4)
+    rec = Reconstruction(rec.image.astype(np.float64), 0, "latent", 0, 0, 0, 0.2, 0.2, 0)
+    with pytest.raises(ValueError, match="cannot go on the wire"):
+        wire.FrameEncoder("cam").encode(rec, 0)

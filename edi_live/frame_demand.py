@@ -1,0 +1,33 @@
+"""Whether the worker's latent frames are wanted now: a node whose only sink is the publisher need not render
+frames that no subscriber would receive (`Publisher.wants_frames`, from the XPUB socket's subscriptions).
+
+Owns the question and the count of frames not rendered; the worker asks before rendering a batch. The latent
+image still moves with every event (the next frame wanted is exact), only the copies, the `Reconstruction`s
+and the quality score's work are saved. The quality score is reset while nothing is shown, so it never scores
+a prediction that nobody saw; it scores again once frames flow (see edi_live/quality.py on resets).
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Protocol
+
+
+class _Resettable(Protocol):
+    def reset(self) -> None: ...
+
+
+class FrameDemand:
+    """`wanted`: asked before each batch of latent frames (None: always wanted, e.g. when --out takes them)."""
+
+    def __init__(self, wanted: Callable[[], bool] | None = None) -> None:
+        self._wanted = wanted
+        self.not_rendered = 0  # latent frames counted but not rendered: nobody subscribed
+
+    def skip(self, n_frames: int, quality: _Resettable | None) -> bool:
+        """True (and the frames counted) when nobody wants these n_frames frames."""
+        if not n_frames or self._wanted is None or self._wanted():
+            return False
+        self.not_rendered += n_frames
+        if quality is not None:
+            quality.reset()
+        return True

@@ -18,6 +18,7 @@ import numpy as np
 
 import edi_live.contrast as contrast
 import edi_live.edi as edi
+from edi_live.black_level_policy import BlackLevelPolicy
 from edi_live.c_policy import ContrastPolicy, PolicySettings
 from edi_live.contrast_tracking import ContrastTracker
 from edi_live.datatypes import Frame, Reconstruction
@@ -56,8 +57,10 @@ class EdiReconstructor:
                 estimator = contrast.make_estimator(settings.estimator, **options)
             except (ValueError, TypeError) as exc:
                 raise ConfigError(str(exc)) from None
+        estimate_black = settings.black_level is None and not self._fixed and settings.aps_gamma == 1.0
+        self._black = BlackLevelPolicy(None if estimate_black else float(settings.black_level or 0.0))
         try:
-            self._aps = edi.ApsResponse(settings.saturation, float(settings.black_level), float(settings.aps_gamma))
+            self._aps = edi.ApsResponse(settings.saturation, self._black.value, float(settings.aps_gamma))
         except (TypeError, ValueError) as exc:
             raise ConfigError(str(exc)) from None
         if not (isinstance(settings.clock_offset_us, int) and abs(settings.clock_offset_us) <= 100_000):
@@ -198,6 +201,11 @@ class EdiReconstructor:
             b, informative = self._aps.to_float(img)
             self._pair = self._tracker.step(events, b, informative, (ts, te, f), mask, self._latent.acc, self._t_last,
                                       self.has_reference)
+            new_black = self._black.update(self._pair, self._aps.black_level)
+            if new_black is not None:  # pairs so far used the old value: c and the pixel check start over
+                self._aps = dataclasses.replace(self._aps, black_level=new_black)
+                self._tracker.restart()
+                self._pair = None
             self.c_on, self.c_off = self._policy.c
             self.events_ignored = self._policy.events_ignored
             self.last_estimate_ms = (time.perf_counter() - t0) * 1e3
@@ -343,6 +351,7 @@ class EdiReconstructor:
     def stats(self) -> dict:
         return {
             "c_on": self.c_on, "c_off": self.c_off, "c_fixed": self._fixed, "black_level": self.black_level,
+            "black_level_estimated": self._black.estimated,
             "estimator": self.estimator.name,
             "reestimations": self.reestimations, "ill_conditioned": self.ill_conditioned,
             "hot_pixels": self.hot_pixels, "unreliable_pixels": self.unreliable_pixels, "frames": self.frames,

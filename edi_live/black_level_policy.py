@@ -30,7 +30,7 @@ class BlackLevelSettings:
     min_pairs: int = 2
     min_pixels: int = 300
     recheck_every: int = 25
-    info_z: float = 1.0
+    info_z: float = 2.5
     history: int = 3
 
 

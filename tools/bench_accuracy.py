@@ -315,16 +315,17 @@ def run_reconstructor(sim: Simulation, **kwargs) -> Outputs:
     cs = []
     for k, f in enumerate(sim.frames):
         t0 = _cpu()
-        r = rec.on_frame(f, _events_between(ev, f.exposure_start_us, f.exposure_end_us, left="left"))
+        off = int(rec.clock_offset_us)  # the exposure in the event clock (as the worker's gate and window)
+        r = rec.on_frame(f, _events_between(ev, f.exposure_start_us + off, f.exposure_end_us + off, left="left"))
         out.deblurred[mids[k]] = (r.image.astype(np.float32), (_cpu() - t0) * 1e3)
         cs.append((r.c_on, r.c_off))
-        t_applied = f.exposure_end_us
+        t_applied = f.exposure_end_us + off
         for g in lat.get(k, []):
-            t = int(sim.gt_t_us[g])
+            t = int(sim.gt_t_us[g]) + off  # the ground truth's time in the event clock
             t0 = _cpu()
             if t <= t_applied:  # still inside this frame's exposure: go from the reference L(f)
-                r = rec.render_from_reference(t, _events_between(ev, min(t, f.mid_exposure_us),
-                                                                 max(t, f.mid_exposure_us)))
+                f_ev = f.mid_exposure_us + off
+                r = rec.render_from_reference(t, _events_between(ev, min(t, f_ev), max(t, f_ev)))
             else:
                 rec.on_events(_events_between(ev, t_applied, t))
                 t_applied = t

@@ -55,3 +55,32 @@ def test_midlevel_times_move_each_event_half_way_back_to_its_predecessor():
     ev["p"] = [1, 1, 1, 1]
     out = midlevel_times(ev, width=4, max_gap_us=10_000)
     assert sorted(out["t"].tolist()) == [100, 200, 250, 50_000 - 5_000]
+
+
+def _stream(sim, rec):
+    """Feed as the worker does: each exposure's events in the event clock (moved by the offset in use)."""
+    ev, frames = sim.events, sim.frames
+    t = ev["t"]
+
+    def between(t0, t1):
+        return ev[np.searchsorted(t, t0, "left"):np.searchsorted(t, t1, "right")]
+    for k, f in enumerate(frames):
+        off = rec.clock_offset_us
+        rec.on_frame(f, between(f.exposure_start_us + off, f.exposure_end_us + off))
+        if k + 1 < len(frames):
+            rec.on_events(between(f.exposure_end_us + off + 1, frames[k + 1].exposure_end_us + rec.clock_offset_us))
+    return rec
+
+
+def test_the_reconstructor_finds_the_offset_when_asked_and_keeps_a_given_one(scene):
+    import dataclasses
+
+    from edi_live.reconstructor import EdiReconstructor
+
+    cfg = with_effects(dataclasses.replace(scene, duration_s=1.2), "clock_offset")
+    sim = simulate(cfg)
+    rec = _stream(sim, EdiReconstructor(cfg.width, cfg.height, clock_offset_us=None))
+    assert abs(rec.clock_offset_us - cfg.event_offset_us) <= 300, rec._clock.last_estimates
+    assert rec.stats()["clock_offset_estimated"]
+    given = _stream(sim, EdiReconstructor(cfg.width, cfg.height, clock_offset_us=700))
+    assert given.clock_offset_us == 700 and not given.stats()["clock_offset_estimated"]

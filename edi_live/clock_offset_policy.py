@@ -31,6 +31,7 @@ class ClockOffsetSettings:
     recheck_every: int = 100
     min_change_us: int = 100
     sample_pixels: int = 4000
+    min_z: float = 3.0  # a pair's fit counts only when its best offset beats +-1 ms by this many standard errors
 
 
 class ClockOffsetPolicy:
@@ -73,8 +74,8 @@ class ClockOffsetPolicy:
         if int(t[-1]) <= self._t_max:
             return
         new = events[np.searchsorted(t, self._t_max, "right"):]
-        self._chunks.append(new)
         self._t_max = int(new["t"][-1])
+        self._chunks.append(new[self._sample[new["y"], new["x"]]])  # the fit uses the sample's events only
 
     def update(self, frame: Frame, events: np.ndarray, image: np.ndarray, black_level: float,
                c: tuple[float, float], mask: np.ndarray | None) -> int | None:
@@ -91,7 +92,7 @@ class ClockOffsetPolicy:
         if len(self._frames) < 3:
             return None
         prev, cur = self._frames[0], self._frames[1]  # the newest frame's events reach past cur's window
-        events = np.concatenate(self._chunks) if len(self._chunks) > 1 else self._chunks[0] if self._chunks else None
+        events = np.concatenate(self._chunks) if self._chunks else None
         if events is None or events.size == 0:
             return None
         self._chunks = [events]
@@ -100,7 +101,8 @@ class ClockOffsetPolicy:
         keep_from = np.searchsorted(events["t"], cur.exposure_start_us - MAX_OFFSET_US - MIDLEVEL_GAP_US, "left")
         self._chunks = [events[keep_from:]]
         d = estimate_clock_offset(midlevel_times(events, self.width, MIDLEVEL_GAP_US), prev, cur, self._sample, c,
-                                  black_level=black_level, mask=mask, max_offset_us=MAX_OFFSET_US)
+                                  black_level=black_level, mask=mask, max_offset_us=MAX_OFFSET_US,
+                                  min_z=self.settings.min_z)
         if d is None:
             return None
         self.estimates += 1

@@ -204,8 +204,8 @@ class EdiReconstructor:
                 self._aps = dataclasses.replace(self._aps, black_level=new_black)
             new_offset = self._clock.update(frame, events, img, self._aps.black_level, self._policy.c, mask)
             self.clock_offset_us = self._clock.value
-            if new_black is not None or new_offset is not None:  # pairs so far used the old values: start over
-                self._tracker.restart()
+            if new_black is not None or new_offset is not None:  # pairs so far used the old values
+                self._tracker.restart() if new_black is not None else self._tracker.mark_gap()
                 self._pair = None
             self.c_on, self.c_off = self._policy.c
             self.events_ignored = self._policy.events_ignored

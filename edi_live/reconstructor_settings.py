@@ -42,8 +42,8 @@ class ReconstructorSettings:
     aps_gamma: float = 1.0  # APS response: value = black + 255 (I/255)^(1/gamma); undone before the deblur
     # events arrive this much later than the APS exposure they belong to (event time = APS time + offset), µs;
     # the frame's exposure window and reference time are moved into the event clock by it
-    # None: estimated from the stream (clock_offset_policy; needs c estimation); opt-in, not reliable on every scene
-    clock_offset_us: int | None = 0
+    # None: estimated from the stream (clock_offset_policy; needs c estimation, else 0)
+    clock_offset_us: int | None = None
     denoise_us: int = 0  # background-activity filter window; 0 = off
     mask_unreliable_pixels: bool = True  # ignore events that contradict the APS frames (needs c estimation)
 

@@ -759,7 +759,8 @@ def run_camera_given(sim: Simulation) -> Outputs:
     cam = sim.camera()
     moved = dataclasses.replace(sim, events=sim.events.copy())
     moved.events["t"] -= int(cam["event_offset_us"])
-    out = run_reconstructor(moved, black_level=float(cam["aps_offset_dn"]), aps_gamma=float(cam["aps_gamma"]))
+    out = run_reconstructor(moved, black_level=float(cam["aps_offset_dn"]), aps_gamma=float(cam["aps_gamma"]),
+                            clock_offset_us=0)
     return out
 
 

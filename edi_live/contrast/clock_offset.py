@@ -39,10 +39,13 @@ class FrameWindow:
 def estimate_clock_offset(events: np.ndarray, prev: FrameWindow, cur: FrameWindow, sample: np.ndarray,
                           c: tuple[float, float], *, black_level: float = 0.0, mask: np.ndarray | None = None,
                           max_offset_us: int = 4000, step_us: int = 250, b_low: float = 6.0,
-                          b_high: float = 250.0, delta: float = 0.1, min_pixels: int = 30) -> float | None:
+                          b_high: float = 250.0, delta: float = 0.1, min_pixels: int = 30,
+                          min_z: float = 0.0, z_step_us: int = 1000) -> float | None:
     """d in µs (events late by d: event time = APS time + d) within +-max_offset_us, or None when the frames
     say nothing (too few usable pixels, or a flat cost). `events`: time-ordered, covering both exposures moved by
-    up to max_offset_us; `sample`: (H, W) bool pixels to use; `mask`: pixels whose events are ignored."""
+    up to max_offset_us; `sample`: (H, W) bool pixels to use; `mask`: pixels whose events are ignored. With min_z,
+    the best grid point must beat both points z_step_us away by min_z standard errors of the per-pixel cost
+    difference (paired over pixels), else None: a shallow or noisy cost curve says nothing about the offset."""
     h, w = sample.shape
     if events.size == 0:
         return None
@@ -65,8 +68,20 @@ def estimate_clock_offset(events: np.ndarray, prev: FrameWindow, cur: FrameWindo
         return None
     dlog_b = np.log(bc[pixels]) - np.log(bp[pixels])
     offsets = np.arange(-max_offset_us, max_offset_us + 1, step_us)
-    costs = np.array([_cost(sub, prev, cur, int(d), pixels, dlog_b, c, w, h, delta) for d in offsets])
+    terms = np.array([_terms(sub, prev, cur, int(d), pixels, dlog_b, c, w, h, delta) for d in offsets])
+    costs = terms.sum(axis=1)
     i = int(np.argmin(costs))
+    if min_z > 0:
+        k = max(1, z_step_us // step_us)
+        zs = []
+        for j in (i - k, i + k):
+            if 0 <= j < offsets.size:
+                diff = terms[j] - terms[i]
+                n = diff.size
+                var = max(float(diff.dot(diff)) / n - (float(diff.sum()) / n) ** 2, 0.0)
+                zs.append(float(diff.sum()) / (np.sqrt(n * var) + 1e-12))
+        if not zs or min(zs) < min_z:
+            return None
     spread = float(costs.max() - costs.min())
     if not np.isfinite(costs[i]) or spread <= 1e-9 * max(float(costs[i]), 1e-12):
         return None
@@ -78,8 +93,9 @@ def estimate_clock_offset(events: np.ndarray, prev: FrameWindow, cur: FrameWindo
     return best
 
 
-def _cost(events: np.ndarray, prev: FrameWindow, cur: FrameWindow, d: int, pixels: np.ndarray,
-          dlog_b: np.ndarray, c: tuple[float, float], w: int, h: int, delta: float) -> float:
+def _terms(events: np.ndarray, prev: FrameWindow, cur: FrameWindow, d: int, pixels: np.ndarray,
+           dlog_b: np.ndarray, c: tuple[float, float], w: int, h: int, delta: float) -> np.ndarray:
+    """Per-pixel robust residuals for the offset d (the cost is their sum)."""
     pred = np.zeros(pixels.size)
     f_prev = (prev.exposure_start_us + prev.exposure_end_us) // 2 + d
     f_cur = (cur.exposure_start_us + cur.exposure_end_us) // 2 + d
@@ -92,7 +108,7 @@ def _cost(events: np.ndarray, prev: FrameWindow, cur: FrameWindow, d: int, pixel
     n_on, n_off = edi.signed_counts(events, w, h, t0=f_prev + 1, t1=f_cur)
     pred += c[0] * n_on[pixels] - c[1] * n_off[pixels]
     r = dlog_b - pred
-    return float(np.sum(np.sqrt(delta * delta + r * r)))
+    return np.sqrt(delta * delta + r * r)
 
 
 def midlevel_times(events: np.ndarray, width: int, max_gap_us: int = 10_000) -> np.ndarray:

@@ -28,7 +28,7 @@ class ClockOffsetSettings:
     # pixels fire their first events from a fresh reference and without a predecessor: the first frames give a
     # lag of ~0.5 ms on the simulator (~0.1 ms later on)
     first_round_after: int = 5
-    recheck_every: int = 100
+    recheck_every: int = 1000  # a fit costs ~20 ms at 240x180 (~7 deblurs): rounds stay rare
     min_change_us: int = 100
     sample_pixels: int = 4000
     min_z: float = 3.0  # a pair's fit counts only when its best offset beats +-1 ms by this many standard errors

@@ -10,6 +10,7 @@ median when that differs from the current one by at least `min_change_us`. Round
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,6 +59,12 @@ class ClockOffsetPolicy:
                                                      replace=False)
         sample[keep] = True
         self._sample = sample.reshape(height, width)
+
+    def frozen(self) -> "ClockOffsetPolicy":
+        """A cheap copy that keeps the current offset and collects nothing (for a streaming copy)."""
+        twin = copy.copy(self)
+        twin.given = self.value
+        return twin
 
     @property
     def estimated(self) -> bool:

@@ -57,9 +57,9 @@ class EdiReconstructor:
                 estimator = contrast.make_estimator(settings.estimator, **options)
             except (ValueError, TypeError) as exc:
                 raise ConfigError(str(exc)) from None
-        self._black = BlackLevelPolicy(None if settings.black_level is None and not self._fixed
-                                       and settings.aps_gamma == 1.0 else float(settings.black_level or 0.0))
         try:
+            self._black = BlackLevelPolicy(None if settings.black_level is None and not self._fixed
+                                           and settings.aps_gamma == 1.0 else float(settings.black_level or 0.0))
             self._aps = edi.ApsResponse(settings.saturation, self._black.value, float(settings.aps_gamma))
         except (TypeError, ValueError) as exc:
             raise ConfigError(str(exc)) from None
@@ -172,6 +172,7 @@ class EdiReconstructor:
         twin._hot = copy.copy(self._hot)  # keeps the current mask while the original finds the next one
         twin._noise = self._noise.copy() if self._noise is not None else None
         twin._tracker = None
+        twin._clock = self._clock.frozen()  # its events reach the original's on_events later
         twin._streamer = True
         return twin
 

@@ -64,6 +64,9 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
         from edi_live.edi import log_divisor_events
 
         log_divisor_events(events, width, height, t_us - 20_000, t_us - 10_000, None, 0.2, 0.15)
+        from edi_live.contrast.clock_offset import warm_up_kernels  # the clock-offset fit's, run after ~10 frames
+
+        warm_up_kernels()
         # the worker's noise-or-activity test: its filter kernel over ring slices (strided fields) and one event
         from edi_live.activity import SceneActivity
 

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import edi_live.edi as edi
+from edi_live.datatypes import EVENT_DTYPE
 
 
 @dataclass(frozen=True)
@@ -126,3 +127,20 @@ def midlevel_times(events: np.ndarray, width: int, max_gap_us: int = 10_000) -> 
     moved[order] = t - np.minimum(gap, max_gap_us) // 2
     out["t"] = moved
     return out[np.argsort(out["t"], kind="stable")]
+
+
+def warm_up_kernels() -> None:
+    """Run the fit once on a tiny synthetic pair (one and two thresholds), so that its numba kernels are compiled or
+    loaded before a stream starts rather than at the node's first round, mid-stream."""
+    w, h = 8, 6
+    rng = np.random.default_rng(1)
+    events = np.zeros(400, EVENT_DTYPE)
+    events["t"] = np.sort(rng.integers(0, 60_000, events.size))
+    events["x"] = rng.integers(0, w, events.size)
+    events["y"] = rng.integers(0, h, events.size)
+    events["p"] = rng.integers(0, 2, events.size).astype(bool)
+    image = np.full((h, w), 100.0)
+    frames = [FrameWindow(t0, t0 + 10_000, image, np.ones((h, w), bool)) for t0 in (10_000, 35_000)]
+    for c in ((0.2, 0.2), (0.2, 0.15)):
+        estimate_clock_offset(midlevel_times(events, w), *frames, np.ones((h, w), bool), c, min_pixels=1,
+                              max_offset_us=2000, min_z=3.0)

@@ -69,6 +69,14 @@ class ContrastPolicy:
     def c(self) -> tuple[float, float]:
         return self.c_on, self.c_off
 
+    def restart(self) -> None:
+        """The frames' calibration changed (e.g. the black level): estimate c afresh, forgetting the history."""
+        self._estimated = False
+        self._startup_left = max(1, self.settings.startup_estimates) - 1
+        self._history.clear()
+        self._still_votes = 0
+        self._fit_fails = 0
+
     def update(self, cur: FrameData, pairs: Sequence[FramePair]) -> None:
         """One APS frame: `cur` is its data, `pairs` the recent consecutive-frame pairs (newest last)."""
         est = self.estimator

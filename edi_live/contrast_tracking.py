@@ -43,6 +43,11 @@ class ContrastTracker:
         self._prev = None
         self._pairs.clear()
 
+    def restart(self) -> None:
+        """The frames' black level changed: pairs formed before are not comparable with the next ones."""
+        self.mark_gap()
+        self.policy.restart()
+
     def step(self, events: np.ndarray, b: np.ndarray, informative: np.ndarray, window: tuple[int, int, int],
              hot: np.ndarray | None, acc: tuple[np.ndarray, np.ndarray], t_last: int,
              has_reference: bool) -> contrast.FramePair | None:

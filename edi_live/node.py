@@ -64,7 +64,7 @@ def default_reconstructor(width: int, height: int, edi: EdiConfig) -> Reconstruc
     if edi.reestimate_every:
         kwargs["reestimate_every"] = edi.reestimate_every
     kwargs["black_level"] = float(edi.black_level or 0.0)
-    kwargs["clock_offset_us"] = int(edi.clock_offset_us or 0)
+    kwargs["clock_offset_us"] = None if edi.clock_offset_us is None else int(edi.clock_offset_us)  # None: estimated
     kwargs["aps_gamma"] = float(edi.aps_gamma or 1.0)
     if edi.c_start is not None:
         kwargs["c_start"] = edi.c_start

@@ -2,9 +2,8 @@
 
 Per APS frame it filters the events it trusts (pixel_masks), lets the c policy decide c on the frame's data
 (contrast_tracking, c_policy), deblurs L(f) and restarts the latent image there (latent_state); between frames it
-advances the latent image event by event. Tuning knobs are one frozen ReconstructorSettings
-(reconstructor_settings.py). Runs on the worker
-thread (not thread-safe). Time contract: see edi_live.reconstruction.
+advances the latent image event by event. The black level and clock offset policies may re-calibrate the frames.
+Knobs: one frozen ReconstructorSettings. Runs on the worker thread (not thread-safe). Time: see reconstruction.py.
 """
 
 from __future__ import annotations
@@ -19,7 +18,9 @@ import numpy as np
 import edi_live.colour_edi as colour_edi
 import edi_live.contrast as contrast
 import edi_live.edi as edi
+from edi_live.black_level_policy import BlackLevelPolicy
 from edi_live.c_policy import ContrastPolicy, PolicySettings
+from edi_live.clock_offset_policy import ClockOffsetPolicy
 from edi_live.contrast_tracking import ContrastTracker
 from edi_live.datatypes import Frame, Reconstruction
 from edi_live.errors import ConfigError, NodeError
@@ -63,12 +64,14 @@ class EdiReconstructor:
             except (ValueError, TypeError) as exc:
                 raise ConfigError(str(exc)) from None
         try:
-            self._aps = edi.ApsResponse(settings.saturation, float(settings.black_level), float(settings.aps_gamma))
+            self._black = BlackLevelPolicy(None if settings.black_level is None and not self._fixed
+                                           and settings.aps_gamma == 1.0 else float(settings.black_level or 0.0))
+            self._aps = edi.ApsResponse(settings.saturation, self._black.value, float(settings.aps_gamma))
         except (TypeError, ValueError) as exc:
             raise ConfigError(str(exc)) from None
-        if not (isinstance(settings.clock_offset_us, int) and abs(settings.clock_offset_us) <= 100_000):
-            raise ConfigError(f"clock offset must be whole µs within +-100 ms (got {settings.clock_offset_us!r})")
-        self.clock_offset_us = int(settings.clock_offset_us)
+        self._clock = ClockOffsetPolicy(None if settings.clock_offset_us is None and not self._fixed
+                                        else settings.clock_offset_us or 0, self.width, self.height)
+        self.clock_offset_us = self._clock.value  # read by the worker for its event windows
         self._policy = ContrastPolicy(estimator, self.c_on, self.c_off, PolicySettings(
             reestimate_every=int(settings.reestimate_every), startup_estimates=settings.history_pairs,
             fit_patience=int(settings.fit_patience), fit_strong=float(settings.fit_strong),
@@ -106,13 +109,11 @@ class EdiReconstructor:
     # ---- state for stats, tools and tests ----
 
     @property
-    def black_level(self) -> float:
-        """APS black level (8-bit DN) taken off the frames."""
+    def black_level(self) -> float:  # APS black level (8-bit DN) taken off the frames
         return self._aps.black_level
 
     @property
-    def aps_gamma(self) -> float:
-        """APS response exponent undone before the deblur."""
+    def aps_gamma(self) -> float:  # APS response exponent undone before the deblur
         return self._aps.gamma
 
     @property
@@ -183,6 +184,7 @@ class EdiReconstructor:
         twin._hot = copy.copy(self._hot)  # keeps the current mask while the original finds the next one
         twin._noise = self._noise.copy() if self._noise is not None else None
         twin._tracker = None
+        twin._clock = self._clock.frozen()  # its events reach the original's on_events later
         twin._streamer = True
         return twin
 
@@ -211,6 +213,14 @@ class EdiReconstructor:
             b, informative = self._aps.to_float(img)
             self._pair = self._tracker.step(events, b, informative, (ts, te, f), mask, self._latent.acc, self._t_last,
                                       self.has_reference)
+            new_black = self._black.update(self._pair, self._aps.black_level)
+            if new_black is not None:
+                self._aps = dataclasses.replace(self._aps, black_level=new_black)
+            new_offset = self._clock.update(frame, events, img, self._aps.black_level, self._policy.c, mask)
+            self.clock_offset_us = self._clock.value
+            if new_black is not None or new_offset is not None:  # pairs so far used the old values
+                self._tracker.restart() if new_black is not None else self._tracker.mark_gap()
+                self._pair = None
             self.c_on, self.c_off = self._policy.c
             self.events_ignored = self._policy.events_ignored
             self.last_estimate_ms = (time.perf_counter() - t0) * 1e3
@@ -260,6 +270,7 @@ class EdiReconstructor:
             return  # nothing to advance yet; the first APS frame rebuilds everything
         n = int(events.size)
         t_end = int(events["t"][-1])
+        self._clock.collect(events)
         if self._noise is not None:
             events = self._noise.stream(events)
         self._latent.apply(events, self._c(), self._mask, count=self._counting(),
@@ -283,6 +294,7 @@ class EdiReconstructor:
         if not cuts:
             self.on_events(events, 0)
             return []
+        self._clock.collect(events)
         if self._noise is not None or self.events_ignored:
             return self._frames_one_by_one(events, cuts, arrivals)
         t = events["t"]
@@ -346,6 +358,7 @@ class EdiReconstructor:
     def stats(self) -> dict:
         return {
             "c_on": self.c_on, "c_off": self.c_off, "c_fixed": self._fixed, "black_level": self.black_level,
+            "black_level_estimated": self._black.estimated, "clock_offset_estimated": self._clock.estimated,
             "estimator": self.estimator.name,
             "reestimations": self.reestimations, "ill_conditioned": self.ill_conditioned,
             "hot_pixels": self.hot_pixels, "unreliable_pixels": self.unreliable_pixels, "frames": self.frames,

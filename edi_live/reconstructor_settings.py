@@ -39,12 +39,14 @@ class ReconstructorSettings:
     hot_decay: float = 0.8
     saturation: float | None = None  # APS value at or above which a pixel is clipped (default: full scale)
     # APS value of no light (8-bit scale), taken off B so that frames are linear. DV's 8-bit frames reach 0 DN,
-    # hence the default; it is not estimated from the stream (see docs/calibration.md).
-    black_level: float = 0.0
+    # hence the default. None: estimated from the stream (black_level_policy; needs c estimation and aps_gamma 1);
+    # opt-in only, since it is not yet reliable on every scene (docs/calibration.md)
+    black_level: float | None = 0.0
     aps_gamma: float = 1.0  # APS response: value = black + 255 (I/255)^(1/gamma); undone before the deblur
     # events arrive this much later than the APS exposure they belong to (event time = APS time + offset), µs;
     # the frame's exposure window and reference time are moved into the event clock by it
-    clock_offset_us: int = 0
+    # None: estimated from the stream (clock_offset_policy; needs c estimation, else 0)
+    clock_offset_us: int | None = None
     denoise_us: int = 0  # background-activity filter window; 0 = off
     mask_unreliable_pixels: bool = True  # ignore events that contradict the APS frames (needs c estimation)
     # colour sensor (edi_live.colour_edi): the source's Bayer pattern (None: grey, unless a frame says otherwise);

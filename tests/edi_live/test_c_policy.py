@@ -143,3 +143,18 @@ def test_an_estimator_that_needs_no_pair_believes_a_still_verdict_at_once():
     policy.update(None, [])
     policy.update(None, [])
     assert policy.events_ignored and est.asked["confirm"] == 0
+
+
+def test_a_restart_estimates_afresh_and_forgets_the_history():
+    # after the frames' black level changed, estimates made on the old frames must not hold c through the median
+    est = Scripted(estimates=[(0.2, 0.2), (0.2, 0.2), (0.2, 0.2), (0.3, 0.3)])
+    policy = ContrastPolicy(est, 0.25, 0.25, PolicySettings(startup_estimates=1, c_history=3))
+    run(policy, 3)  # one estimate, then the fit test keeps it
+    assert policy.c == (0.2, 0.2) and est.asked["estimate"] == 1
+    policy.restart()
+    run(policy, 1)
+    assert est.asked["estimate"] == 2  # estimated at once, without a failed fit test
+    policy.restart()
+    est.estimates = [(0.3, 0.3)]
+    run(policy, 1)
+    assert policy.c == (0.3, 0.3)  # not the median with the 0.2 of before the restart

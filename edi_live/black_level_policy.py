@@ -1,0 +1,94 @@
+"""When to (re-)estimate the APS black level from the stream, and what to make of an estimate.
+
+The math is edi_live.contrast.black_level; this module owns the decision state only: the pool of quiet-pixel
+samples of recent frame pairs, when an estimate is due, whether it carries information, and the short history
+whose median is the black level. A given value (flag, TOML key, saved calibration) is never replaced.
+
+Rules: every pair adds its quiet pixels to a pool of the last `pool_pairs` pairs. At start-up an estimate is due
+once the pool holds `min_pairs` pairs and `min_pixels` pixels, and again each time it has grown by that much
+until it is full (a single pair is too noisy: +-3 DN on the simulator); after that every `recheck_every` pairs.
+An estimate is kept only when its cost beats the values 4 DN either side by `info_z` standard error(s); it enters
+a history of `history` estimates whose median is the black level.
+"""
+
+from __future__ import annotations
+
+import collections
+from dataclasses import dataclass
+
+import numpy as np
+
+from edi_live.contrast import FramePair
+from edi_live.contrast.black_level import QuietSamples, fit_black_level, quiet_samples
+
+MAX_BLACK_DN = 60.0  # estimates are searched on [0, this]; a larger offset is not a black level but a setting
+
+
+@dataclass(frozen=True)
+class BlackLevelSettings:
+    pool_pairs: int = 12
+    min_pairs: int = 2
+    min_pixels: int = 300
+    recheck_every: int = 25
+    info_z: float = 2.5
+    history: int = 3
+
+
+class BlackLevelPolicy:
+    """`update(pair, taken_off)` per new frame pair; returns the black level to use from now on when it changed."""
+
+    def __init__(self, given: float | None, settings: BlackLevelSettings = BlackLevelSettings()) -> None:
+        self.given = given
+        self.settings = settings
+        self.value = 0.0 if given is None else float(given)
+        self.estimates = 0
+        self.last_fit: dict = {}
+        self._pool: collections.deque = collections.deque(maxlen=max(1, settings.pool_pairs))
+        self._since = 0
+        self._startup_marks = self._startup_schedule()
+        self._history: collections.deque = collections.deque(maxlen=max(1, settings.history))
+
+    @property
+    def estimated(self) -> bool:
+        return self.given is None
+
+    def update(self, pair: FramePair | None, taken_off: float) -> float | None:
+        if self.given is not None or pair is None:
+            return None
+        self._pool.append(quiet_samples(pair, taken_off))
+        self._since += 1
+        startup = due = bool(self._startup_marks and len(self._pool) >= self._startup_marks[0])
+        if due:
+            self._startup_marks.pop(0)
+        elif not self._startup_marks and self._since >= self.settings.recheck_every:
+            due = True
+        if not due:
+            return None
+        samples = QuietSamples.join(list(self._pool))
+        if samples.size < self.settings.min_pixels:
+            if not self._startup_marks:
+                self._startup_marks = [len(self._pool)]  # try again on the next pair
+            return None
+        self._since = 0
+        fit = fit_black_level(samples, (0.0, MAX_BLACK_DN))
+        if fit is None:
+            return None
+        self.estimates += 1
+        self.last_fit = {"black_level": fit.black_level, "z": round(fit.z, 2), "pixels": fit.pixels}
+        if not fit.z >= self.settings.info_z:
+            self.last_fit["decision"] = "flat"
+            return None
+        if startup:  # a start-up estimate saw more pairs than the one before: it supersedes it
+            self._history.clear()
+        self._history.append(fit.black_level)
+        new = float(np.median(self._history))
+        self.last_fit["decision"] = "update"
+        if new == self.value:
+            return None
+        self.value = new
+        return new
+
+    def _startup_schedule(self) -> list[int]:
+        s = self.settings
+        marks = list(range(max(1, s.min_pairs), max(1, s.pool_pairs) + 1, max(1, s.min_pairs)))
+        return marks or [1]

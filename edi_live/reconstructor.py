@@ -18,14 +18,10 @@ import numpy as np
 import edi_live.colour_edi as colour_edi
 import edi_live.contrast as contrast
 import edi_live.edi as edi
-from edi_live.black_level_policy import BlackLevelPolicy
-from edi_live.c_policy import ContrastPolicy, PolicySettings
-from edi_live.clock_offset_policy import ClockOffsetPolicy
-from edi_live.contrast_tracking import ContrastTracker
 from edi_live.datatypes import Frame, Reconstruction
 from edi_live.errors import ConfigError, NodeError
 from edi_live.latent_state import LatentState
-from edi_live.pixel_masks import HotPixels, NoiseFilter, UnreliablePixels
+from edi_live.reconstructor_parts import build_calibration, build_masks, resolve_settings
 from edi_live.reconstructor_settings import ReconstructorSettings
 
 
@@ -41,51 +37,15 @@ class EdiReconstructor:
     def __init__(self, width: int, height: int, settings: ReconstructorSettings | None = None, **knobs: Any) -> None:
         if width <= 0 or height <= 0:
             raise ConfigError(f"sensor size must be positive (got {width}x{height})")
-        try:
-            settings = dataclasses.replace(settings or ReconstructorSettings(), **knobs)
-        except TypeError as exc:
-            raise ConfigError(f"unknown reconstructor setting ({exc})") from None
-        if settings.reestimate_every < 0:
-            raise ConfigError(f"reestimate_every must be >= 0 (got {settings.reestimate_every})")
-        self.settings = settings
+        self.settings = settings = resolve_settings(settings, knobs)
         self.width, self.height = int(width), int(height)
         self.c_on, self.c_off, self._fixed = settings.thresholds()
-        self._tracker: ContrastTracker | None = None
-        if self._fixed:
-            estimator: contrast.ContrastEstimator = contrast.FixedContrast(self.c_on, self.c_off)
-        else:
-            try:
-                options = dict(settings.estimator_options)
-                if settings.estimator == "consistency":
-                    options.setdefault("separate", settings.separate_thresholds)
-                elif settings.estimator == "energy":  # its TV/Sobel terms per same-channel sub-image in colour
-                    options.setdefault("mosaic", settings.color_filter is not None)
-                estimator = contrast.make_estimator(settings.estimator, **options)
-            except (ValueError, TypeError) as exc:
-                raise ConfigError(str(exc)) from None
-        try:
-            self._black = BlackLevelPolicy(None if settings.black_level is None and not self._fixed
-                                           and settings.aps_gamma == 1.0 else float(settings.black_level or 0.0))
-            self._aps = edi.ApsResponse(settings.saturation, self._black.value, float(settings.aps_gamma))
-        except (TypeError, ValueError) as exc:
-            raise ConfigError(str(exc)) from None
-        self._clock = ClockOffsetPolicy(None if settings.clock_offset_us is None and not self._fixed
-                                        else settings.clock_offset_us or 0, self.width, self.height)
+        parts = build_calibration(settings, self.width, self.height)
+        self._policy, self._tracker, self._black, self._aps, self._clock = (
+            parts.policy, parts.tracker, parts.black, parts.aps, parts.clock)
         self.clock_offset_us = self._clock.value  # read by the worker for its event windows
-        self._policy = ContrastPolicy(estimator, self.c_on, self.c_off, PolicySettings(
-            reestimate_every=int(settings.reestimate_every), startup_estimates=settings.history_pairs,
-            fit_patience=int(settings.fit_patience), fit_strong=float(settings.fit_strong),
-            c_history=int(settings.c_history), joint_pairs=int(settings.joint_pairs)))
-        if not self._fixed:
-            self._tracker = ContrastTracker(self.width, self.height, self._policy,
-                                            history_pairs=max(settings.history_pairs, settings.joint_pairs),
-                                            sample_pixels=settings.sample_pixels)
-        self._hot = HotPixels(self.width, self.height, enabled=settings.mask_hot_pixels,
-                              min_rate_hz=settings.hot_min_rate_hz, rel_factor=settings.hot_rel_factor,
-                              decay=settings.hot_decay)
-        self._noise = NoiseFilter(self.width, self.height, settings.denoise_us) if settings.denoise_us > 0 else None
-        self._unreliable = (UnreliablePixels(self.width, self.height, grow_px=2)
-                            if settings.mask_unreliable_pixels and self._tracker is not None else None)
+        self._hot, self._noise, self._unreliable = build_masks(settings, self.width, self.height,
+                                                               self._tracker is not None)
         self._mask: np.ndarray | None = self._hot.mask  # events at these pixels are ignored; replaced, not changed
         self._latent = LatentState(self.width, self.height)
         self._colour: colour_edi.ColourPlan | None = None  # colour: EDI on the Bayer mosaic, demosaiced for output

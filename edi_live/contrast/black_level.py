@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-import edi_live.edi as edi
 from edi_live.contrast.frames import FramePair
 
 

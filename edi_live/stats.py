@@ -82,13 +82,24 @@ def _ms(value_us: float | None) -> str:
 
 
 def format_status(s: dict[str, Any]) -> str:
-    """events/s, frames/s, c, latency p50/p99, drops, ring occupancy: one line."""
+    """events/s, frames/s, c, latency p50/p99, drops, ring occupancy, camera values, prediction: one line."""
     c = s.get("c_on"), s.get("c_off")
     c_text = "c=-" if c[0] is None or c[0] != c[0] else (
         f"c={c[0]:.3f}" if abs(c[0] - c[1]) < 1e-9 else f"c_on={c[0]:.3f} c_off={c[1]:.3f}")
     return (f"{_si(s.get('events_per_s', 0))} ev/s  {s.get('frames_per_s', 0):.0f} fps  {c_text}  "
             f"latency p50 {_ms(s.get('latency_p50_us'))} p99 {_ms(s.get('latency_p99_us'))}  "
-            f"drops {s.get('drops', 0)}  ring {100 * s.get('ring_occupancy', 0):.0f}%{_prediction_short(s)}")
+            f"drops {s.get('drops', 0)}  ring {100 * s.get('ring_occupancy', 0):.0f}%{_camera_short(s)}"
+            f"{_prediction_short(s)}")
+
+
+def _camera_short(s: dict[str, Any]) -> str:
+    """The camera values once they differ from an ideal camera's: black level and event clock offset."""
+    parts = []
+    if s.get("black_level_dn"):
+        parts.append(f"black {s['black_level_dn']:g} DN")
+    if s.get("clock_offset_us"):
+        parts.append(f"offset {s['clock_offset_us']} µs")
+    return "  " + " ".join(parts) if parts else ""
 
 
 def _prediction_short(s: dict[str, Any]) -> str:
@@ -122,8 +133,9 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         f"({s.get('frames_deblurred', 0)} deblurred, {s.get('frames_latent', 0)} latent, "
         f"{s.get('heartbeats', 0)} heartbeats; {frames / el:.0f} fps)",
         f"  c_on={s.get('c_on', float('nan')):.4f} c_off={s.get('c_off', float('nan')):.4f}, "
-        f"re-estimated {s.get('reestimations', 0)} times, black level {s.get('black_level_dn', 0):g} DN, "
-        f"clock offset {s.get('clock_offset_us', 0)} µs; "
+        f"re-estimated {s.get('reestimations', 0)} times, black level {s.get('black_level_dn', 0):g} DN"
+        f"{' (estimated)' if s.get('black_level_estimated') else ''}, "
+        f"clock offset {s.get('clock_offset_us', 0)} µs{' (estimated)' if s.get('clock_offset_estimated') else ''}; "
         f"ignored pixels: hot {s.get('hot_pixels', 0)}, "
         f"unreliable {s.get('unreliable_pixels', 0)}; drops {s.get('drops', 0)} "
         f"(ring events {s.get('ring_dropped_events', 0)}, ring frames {s.get('ring_dropped_frames', 0)}, "

@@ -393,8 +393,8 @@ class EdiWorker:
             "deblur_ms_max": round(float(np.max(deblur)), 3) if deblur else None,
             "nearest_added_latency_ms_p50": self._nearest.waited_ms_p50() if self.config.mode == "nearest" else None,
             "fused_added_latency_ms_p50": self._nearest.waited_ms_p50() if self.config.mode == "fused" else None,
-            "unreliable_pixels": int(rec.unreliable_pixels),
-            "black_level_dn": round(float(rec.black_level), 2),
+            "unreliable_pixels": int(rec.unreliable_pixels), "black_level_dn": round(float(rec.black_level), 2),
             "clock_offset_us": int(rec.clock_offset_us), "aps_gamma": float(rec.aps_gamma),
+            **{k: bool(v) for k, v in rec.stats().items() if k in ("clock_offset_estimated", "black_level_estimated")},
             **(self.quality.stats() if self.quality is not None else {}),
         }

@@ -79,3 +79,13 @@ def test_summary_reports_the_warm_up_on_its_own_line_and_not_in_the_rate():
     assert "done in 2.00 s" in first and "(500 ev/s)" in first  # 1000 events over the run alone
     assert "compiled or loaded in 6.50 s" in rest
     assert "compiled or loaded" not in format_summary(STATS, 2.0)  # a node that has not run: no such line
+
+
+def test_camera_values_show_in_the_status_line_and_summary_with_where_they_came_from():
+    ideal = format_status(STATS)
+    assert "offset" not in ideal and "black" not in ideal  # an ideal camera's line stays short
+    s = {**STATS, "black_level_dn": 10.0, "clock_offset_us": 1500, "clock_offset_estimated": True,
+         "black_level_estimated": False}
+    assert "black 10 DN" in format_status(s) and "offset 1500 µs" in format_status(s)
+    summary = format_summary(s, 1.0)
+    assert "black level 10 DN," in summary and "clock offset 1500 µs (estimated)" in summary

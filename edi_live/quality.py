@@ -52,7 +52,6 @@ from typing import Any
 
 import numpy as np
 
-from edi_live.colour_edi import ColourPlan, resolve_pattern
 from edi_live.datatypes import ColorFilter, Frame, Reconstruction
 
 PSNR_CAP_DB = 100.0
@@ -233,10 +232,12 @@ class PredictionScore:
     def _as_output_layout(self, frame: Frame) -> np.ndarray:
         """The APS frame in the layout of the node's output: as it is for a grey sensor; for a colour one
         demosaiced to BGR, or grey with `gray`, as the reconstructor shows its mosaic."""
-        pattern = resolve_pattern(self._color_filter, frame)
-        if pattern is None:
+        if self._color_filter is None and frame.color_filter is None and frame.image.ndim == 2:
             return frame.image
-        plan = ColourPlan(pattern, self._gray)
+        from edi_live.colour_edi import ColourPlan, resolve_pattern  # OpenCV: loaded for colour sources only
+
+        pattern = resolve_pattern(self._color_filter, frame)
+        plan = ColourPlan(pattern, self._gray)  # type: ignore[arg-type]  # never None here
         return plan.output(plan.input_mosaic(frame.image))
 
     def on_emitted(self, rec: Reconstruction) -> list[PredictionResult]:

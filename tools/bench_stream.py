@@ -162,6 +162,21 @@ def _lossless_publisher(**kwargs):
     return _RecordingPublisher(**kwargs, inbox_size=1 << 20, sndhwm=0)
 
 
+
+def thread_cpu_seconds() -> dict[int, tuple[str, float]]:
+    """{thread id: (OS thread name, user + system CPU seconds)} of this process (Linux /proc)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    out: dict[int, tuple[str, float]] = {}
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            with open(f"/proc/self/task/{tid}/stat") as fh:
+                head, rest = fh.read().rsplit(")", 1)
+        except OSError:
+            continue  # the thread ended meanwhile
+        fields = rest.split()
+        out[int(tid)] = (head.split("(", 1)[1], (int(fields[11]) + int(fields[12])) / tick)
+    return out
+
 class ThreadCpu:
     """Samples each named thread's CPU time from /proc (Linux), keeping the last value seen per thread."""
 
@@ -184,18 +199,8 @@ class ThreadCpu:
     @staticmethod
     def _sample() -> dict[str, float]:
         """CPU s per thread of this process: Python threads by name, libzmq's I/O thread and others by OS name."""
-        tick = os.sysconf("SC_CLK_TCK")
         python_names = {t.native_id: t.name for t in threading.enumerate()}
-        out: dict[str, float] = {}
-        for tid in os.listdir("/proc/self/task"):
-            try:
-                with open(f"/proc/self/task/{tid}/stat") as fh:
-                    head, rest = fh.read().rsplit(")", 1)
-            except OSError:
-                continue
-            fields = rest.split()
-            out[f"{python_names.get(int(tid), head.split('(', 1)[1])}/{tid}"] = (int(fields[11]) + int(fields[12])) / tick
-        return out
+        return {f"{python_names.get(tid, name)}/{tid}": cpu_s for tid, (name, cpu_s) in thread_cpu_seconds().items()}
 
     def _run(self) -> None:
         while not self._stop.wait(self._period_s):

@@ -131,19 +131,11 @@ def profile(path: Path, every: int, extra: dict, top: int) -> None:
 
 def _threads_cpu() -> dict[str, float]:
     """CPU seconds by thread name (comm) of this process, summed over threads of the same name (Linux)."""
-    import os
+    from tools.bench_stream import thread_cpu_seconds
 
-    tick = os.sysconf("SC_CLK_TCK")
     out: dict[str, float] = {}
-    for tid in os.listdir("/proc/self/task"):
-        try:
-            with open(f"/proc/self/task/{tid}/stat") as fh:
-                head, rest = fh.read().rsplit(")", 1)
-        except OSError:
-            continue
-        name = head.split("(", 1)[1]
-        fields = rest.split()
-        out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / tick
+    for name, cpu_s in thread_cpu_seconds().values():
+        out[name] = out.get(name, 0.0) + cpu_s
     return out
 
 

@@ -14,6 +14,7 @@ from hypothesis.extra import numpy as hnp
 import edi_live.edi as edi
 from edi_live.reconstructor import EdiReconstructor
 from edi_live.simulation import SceneConfig, simulate
+from tests.helpers.recordings import packets_by_frame
 
 _FLOATS = st.floats(allow_nan=True, allow_infinity=True, width=64)
 
@@ -114,18 +115,12 @@ def test_fused_beats_the_best_single_reference_with_threshold_mismatch():
 
 def test_worker_in_fused_mode_renders_every_latent_frame_between_two_frames_in_time_order():
     from edi_live.config import EdiConfig
-    from edi_live.datatypes import Packet
     from tests.edi_live.test_worker import run_worker
 
     sim = _scene()
     cfg = sim.config
     ev = sim.events
-    packets, cut = [], 0
-    for f in sim.frames:
-        end = int(np.searchsorted(ev["t"], f.exposure_end_us, side="right"))
-        packets.append(Packet(events=ev[cut:end], frames=[f]))
-        cut = end
-    packets.append(Packet(events=ev[cut:]))
+    packets = packets_by_frame(ev, sim.frames)
     rec = EdiReconstructor(cfg.width, cfg.height, c=0.2)
     worker, _, out, errors = run_worker(packets, EdiConfig(every=300, mode="fused"), rec=rec, timeout_s=60)
     assert not errors
@@ -172,18 +167,12 @@ def test_fused_frames_that_cannot_be_held_are_forward_edi_from_the_reference(mon
     for a long time), frames are rendered at once from the reference: the causal mode's frames."""
     from edi_live import fused_mode
     from edi_live.config import EdiConfig
-    from edi_live.datatypes import Packet
     from tests.edi_live.test_worker import run_worker
 
     monkeypatch.setattr(fused_mode, "_MAX_HELD", 0)
     sim = _scene()
     ev = sim.events
-    packets, cut = [], 0
-    for f in sim.frames:
-        end = int(np.searchsorted(ev["t"], f.exposure_end_us, side="right"))
-        packets.append(Packet(events=ev[cut:end], frames=[f]))
-        cut = end
-    packets.append(Packet(events=ev[cut:]))
+    packets = packets_by_frame(ev, sim.frames)
     frames = {}
     for mode in ("causal", "fused"):
         rec = EdiReconstructor(sim.config.width, sim.config.height, c=0.2)

@@ -20,6 +20,7 @@ from edi_live.datatypes import EVENT_DTYPE, Frame, Packet, Reconstruction
 from edi_live.reconstruction import Reconstructor
 from edi_live.ring import EventRing
 from edi_live.worker import EdiWorker
+from tests.helpers.recordings import packets_by_frame
 
 
 class StandIn:
@@ -292,13 +293,7 @@ def test_gap_suspends_latent_frames_until_the_next_aps_frame():
 def test_nearest_mode_references_each_latent_frame_to_the_nearer_aps_frame():
     ev = events_at(np.arange(0, 100_000, 5))
     frames = [aps(k * 20_000, k * 20_000 + 2_000) for k in range(5)]  # f = 1000, 21000, ...
-    packets = []
-    cut = 0
-    for f in frames:
-        end = int(np.searchsorted(ev["t"], f.exposure_end_us, side="right"))
-        packets.append(Packet(events=ev[cut:end], frames=[f]))
-        cut = end
-    packets.append(Packet(events=ev[cut:]))
+    packets = packets_by_frame(ev, frames)
     worker, rec, out, errors = run_worker(packets, EdiConfig(every=400, mode="nearest"))
     assert not errors
     fs = np.array([f.mid_exposure_us for f in frames])
@@ -314,12 +309,7 @@ def test_nearest_mode_references_each_latent_frame_to_the_nearer_aps_frame():
 def test_causal_mode_uses_the_latest_frame():
     ev = events_at(np.arange(0, 60_000, 5))
     frames = [aps(k * 20_000, k * 20_000 + 2_000) for k in range(3)]
-    packets, cut = [], 0
-    for f in frames:
-        end = int(np.searchsorted(ev["t"], f.exposure_end_us, side="right"))
-        packets.append(Packet(events=ev[cut:end], frames=[f]))
-        cut = end
-    packets.append(Packet(events=ev[cut:]))
+    packets = packets_by_frame(ev, frames)
     worker, rec, out, errors = run_worker(packets, EdiConfig(every=400))
     for r in out:
         assert r.ref_t_us <= r.t_us
@@ -368,11 +358,8 @@ class SlowDeblur(StandIn):
 def two_frame_packets():
     ev = events_at(np.arange(0, 60_000, 5))
     frames = [aps(0, 2_000), aps(20_000, 22_000)]
-    packets, cut = [], 0
-    for f in frames:
-        end = int(np.searchsorted(ev["t"], f.exposure_end_us, side="right"))
-        packets.append(Packet(events=ev[cut:end], frames=[f]))
-        cut = end
+    packets = packets_by_frame(ev, frames, tail=False)
+    cut = sum(p.events.size for p in packets)
     # the rest in small packets, so the worker streams while the second frame is being deblurred
     packets += [Packet(events=ev[k:k + 200]) for k in range(cut, len(ev), 200)]
     return ev, frames, packets

@@ -48,3 +48,16 @@ def flatten(packets):
     imu = np.concatenate([p.imu for p in ps]) if ps else np.zeros(0, IMU_DTYPE)
     return events, frames, imu
 
+
+
+def packets_by_frame(events: np.ndarray, frames: list[Frame], tail: bool = True) -> list[Packet]:
+    """One Packet per APS frame, holding the events up to its exposure end (as a camera delivers them), then the
+    events after the last frame in one more Packet (`tail`); `events` sorted by t."""
+    packets, cut = [], 0
+    for f in frames:
+        end = int(np.searchsorted(events["t"], f.exposure_end_us, side="right"))
+        packets.append(Packet(events=events[cut:end], frames=[f]))
+        cut = end
+    if tail:
+        packets.append(Packet(events=events[cut:]))
+    return packets

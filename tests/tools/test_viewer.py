@@ -183,19 +183,25 @@ def test_http_endpoints_serve_the_frame_and_stats(feeder):
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 
+def _screenshot(url: str, tmp_path) -> Path:
+    """A 900x400 headless-Chromium screenshot of the page at `url`."""
+    shot = tmp_path / "shot.png"
+    cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+           "--disable-background-networking", "--disable-component-update", "--disable-sync",
+           f"--user-data-dir={tmp_path / 'profile'}", f"--screenshot={shot}", "--window-size=900,400",
+           "--hide-scrollbars", "--force-device-scale-factor=1", "--timeout=5000", url]
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=50, check=False)
+    assert shot.is_file(), f"chromium wrote no screenshot (exit {out.returncode}): {out.stderr[-500:]}"
+    return shot
+
+
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (Debian: apt-get install -y chromium); "
                                              "tools/test.sh installs it when run as root")
 def test_mjpeg_page_shows_the_frame_in_headless_chromium(feeder, tmp_path):
     v, thread = start_viewer(["--endpoint", feeder.endpoint, "--http", "127.0.0.1:0", "--quiet"])
     try:
         wait_for(lambda: v.rates.frames > 3)
-        shot = tmp_path / "shot.png"
-        cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-               "--disable-background-networking", "--disable-component-update", "--disable-sync",
-               f"--user-data-dir={tmp_path / 'profile'}", f"--screenshot={shot}", "--window-size=900,400",
-               "--hide-scrollbars", "--force-device-scale-factor=1", "--timeout=5000", v.url]
-        out = subprocess.run(cmd, capture_output=True, text=True, timeout=50, check=False)
-        assert shot.is_file(), f"chromium wrote no screenshot (exit {out.returncode}): {out.stderr[-500:]}"
+        shot = _screenshot(v.url, tmp_path)
     finally:
         stop_viewer(v, thread)
     page = cv2.imread(str(shot), cv2.IMREAD_GRAYSCALE)
@@ -221,13 +227,7 @@ def test_the_browser_shows_a_colour_stream_in_colour(tmp_path):
     v, thread = start_viewer(["--endpoint", feeder.endpoint, "--http", "127.0.0.1:0", "--quiet"])
     try:
         wait_for(lambda: v.rates.frames > 3)
-        shot = tmp_path / "shot.png"
-        cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-               "--disable-background-networking", "--disable-component-update", "--disable-sync",
-               f"--user-data-dir={tmp_path / 'profile'}", f"--screenshot={shot}", "--window-size=900,400",
-               "--hide-scrollbars", "--force-device-scale-factor=1", "--timeout=5000", v.url]
-        out = subprocess.run(cmd, capture_output=True, text=True, timeout=50, check=False)
-        assert shot.is_file(), f"chromium wrote no screenshot (exit {out.returncode}): {out.stderr[-500:]}"
+        shot = _screenshot(v.url, tmp_path)
     finally:
         stop_viewer(v, thread)
         feeder.close()

@@ -72,12 +72,27 @@ def divisor_stream(t, x, y, p, width, height, mask, use_mask, ts, te, f, c, coun
     underflow harmlessly), so any event count stays finite. Events must lie in [ts, te]. `state` is scratch
     (npix rows of DIVISOR_STATE), `seen` (npix uint8) must come zeroed. With use_acc, the ON/OFF counts of the
     events after f are added to acc_on/acc_off.
-    Returns (pixels in ascending order, log D, c * (n(te) - n(f)))."""
-    npix = width * height
-    k = 64
+    Returns (pixels in ascending order, log D, c * (n(te) - n(f))).
+    The same as divisor_feed over the events (in any number of time-ordered parts) then divisor_finish."""
+    n_act = divisor_feed(t, x, y, p, width, height, mask, use_mask, ts, f, c, count_all, use_count_all, state, seen)
+    return divisor_finish(width, height, ts, te, c, count_all, use_count_all, state, seen, n_act, acc_on, acc_off,
+                          use_acc)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _level_table(c, k):
     ztab = np.empty(2 * k + 1, dtype=np.float64)
     for j in range(2 * k + 1):
         ztab[j] = math.exp(c * (j - k))
+    return ztab
+
+
+@njit(cache=True, nogil=True)
+def divisor_feed(t, x, y, p, width, height, mask, use_mask, ts, f, c, count_all, use_count_all, state, seen):
+    """divisor_stream's pass over (a time-ordered part of) the exposure's events; returns the pixels it made
+    active. Every part of one exposure must come with the same mask, c, ts and f, in time order."""
+    k = 64
+    ztab = _level_table(c, k)
     n_act = 0
     for i in range(t.size):
         if x[i] >= width or y[i] >= height:
@@ -115,6 +130,15 @@ def divisor_stream(t, x, y, p, width, height, mask, use_mask, ts, te, f, c, coun
         row.t = ti
         row.lvl += np.float32(1.0) if p[i] else np.float32(-1.0)
         row.n += 1
+    return n_act
+
+
+@njit(cache=True, nogil=True)
+def divisor_finish(width, height, ts, te, c, count_all, use_count_all, state, seen, n_act, acc_on, acc_off, use_acc):
+    """divisor_stream's results from the state divisor_feed left (`n_act`: the active pixels it reported)."""
+    npix = width * height
+    k = 64
+    ztab = _level_table(c, k)
     pixels = np.empty(n_act, dtype=np.int64)
     log_d = np.empty(n_act, dtype=np.float64)
     delta_end = np.empty(n_act, dtype=np.float64)
@@ -234,8 +258,17 @@ def divisor_stream_two(t, x, y, p, width, height, mask, use_mask, ts, te, f, c_o
                        state, seen, acc_on, acc_off, use_acc):
     """divisor_stream for separate thresholds: each event multiplies the pixel's weight w by exp(c_on) or
     exp(-c_off) (two constants, no exp per event); see _add_dwell for how any event count stays finite. Same
-    arguments and results."""
-    npix = width * height
+    arguments and results; the same as divisor_feed_two over the events (in parts) then divisor_finish_two."""
+    n_act = divisor_feed_two(t, x, y, p, width, height, mask, use_mask, ts, f, c_on, c_off, count_all, use_count_all,
+                             state, seen)
+    return divisor_finish_two(width, height, ts, te, c_on, c_off, count_all, use_count_all, state, seen, n_act,
+                              acc_on, acc_off, use_acc)
+
+
+@njit(cache=True, nogil=True)
+def divisor_feed_two(t, x, y, p, width, height, mask, use_mask, ts, f, c_on, c_off, count_all, use_count_all, state,
+                     seen):
+    """divisor_stream_two's pass over (a time-ordered part of) the exposure's events (see divisor_feed)."""
     e_on = math.exp(c_on)
     e_off = math.exp(-c_off)
     n_act = 0
@@ -272,6 +305,14 @@ def divisor_stream_two(t, x, y, p, width, height, mask, use_mask, ts, te, f, c_o
         else:
             row.off += 1
             row.w *= e_off
+    return n_act
+
+
+@njit(cache=True, nogil=True)
+def divisor_finish_two(width, height, ts, te, c_on, c_off, count_all, use_count_all, state, seen, n_act, acc_on,
+                       acc_off, use_acc):
+    """divisor_stream_two's results from the state divisor_feed_two left."""
+    npix = width * height
     pixels = np.empty(n_act, dtype=np.int64)
     log_d = np.empty(n_act, dtype=np.float64)
     delta_end = np.empty(n_act, dtype=np.float64)

@@ -1,0 +1,81 @@
+"""RunningDivisor: the double integral fed in parts while an exposure runs equals log_divisor_events on all of its
+events at once, bit for bit, for any split of the events, with one or two thresholds, masks, hot-pixel counts and
+the counts after f; and the numpy reference agrees."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import edi_live.edi as edi
+from edi_live.datatypes import EVENT_DTYPE
+
+W, H = 23, 17
+
+
+def _events(rng, n=6000, t0=1_000, t1=41_000):
+    ev = np.zeros(n, EVENT_DTYPE)
+    ev["t"] = np.sort(rng.integers(t0, t1, n)) // 7 * 7  # many events share a time, also across the cuts
+    ev["x"] = rng.integers(0, W + 2, n)  # a few off the sensor: ignored by both
+    ev["y"] = rng.integers(0, H, n)
+    ev["p"] = rng.random(n) < 0.6
+    return ev
+
+
+def _parts(ev, rng, overlap: bool):
+    """Time-ordered batches at random cuts; with `overlap`, each batch repeats the tail of the previous one."""
+    cuts = np.sort(rng.integers(0, ev.size, 7))
+    out, lo = [], 0
+    for c in [*cuts, ev.size]:
+        start = max(0, lo - 50) if overlap else lo
+        out.append(ev[start:c])
+        lo = c
+    return out
+
+
+@pytest.mark.parametrize("reference", [False, True])
+@pytest.mark.parametrize("c_on, c_off", [(0.2, 0.2), (0.25, 0.17)])
+@pytest.mark.parametrize("overlap", [False, True])
+def test_fed_in_parts_equals_all_at_once(rng, reference, c_on, c_off, overlap):
+    ev = _events(rng)
+    ts, te = 5_000, 37_000  # events before and after the exposure are ignored
+    f = (ts + te) // 2
+    mask = np.zeros(W * H, bool)
+    mask[rng.integers(0, W * H, 20)] = True
+    with edi.numpy_reference() if reference else _nothing():
+        counts_once, counts_run = np.zeros(W * H, np.int64), np.zeros(W * H, np.int64)
+        acc_once = (np.zeros(W * H, np.int64), np.zeros(W * H, np.int64))
+        acc_run = (np.zeros(W * H, np.int64), np.zeros(W * H, np.int64))
+        once = edi.log_divisor_events(ev, W, H, ts, te, f, c_on, c_off, mask=mask, event_counts=counts_once,
+                                      counts_after_f=acc_once)
+        run = edi.RunningDivisor(W, H, ts, te, f, c_on, c_off, mask=mask, event_counts=counts_run)
+        for k, part in enumerate(_parts(ev, rng, overlap)):
+            (run.feed_from if overlap and k else run.feed)(part)
+        got = run.finish(counts_after_f=acc_run)
+    order_once, order_run = np.argsort(once[0]), np.argsort(got[0])
+    assert np.array_equal(once[0][order_once], got[0][order_run])
+    assert np.array_equal(once[1][order_once], got[1][order_run])  # bit-identical, not merely close
+    if once[2] is None:
+        assert got[2] is None
+    else:
+        assert np.array_equal(once[2][order_once], got[2][order_run])
+    assert np.array_equal(counts_once, counts_run)
+    assert all(np.array_equal(a, b) for a, b in zip(acc_once, acc_run))
+    assert run.events_fed == edi.window(ev, ts, te).size
+
+
+def test_matches_names_exactly_the_divisor_it_computes(rng):
+    mask = np.zeros(W * H, bool)
+    run = edi.RunningDivisor(W, H, 0, 10_000, 5_000, 0.2, 0.2, mask=mask)
+    assert run.matches(0, 10_000, 5_000, 0.2, 0.2, mask, None)
+    assert not run.matches(0, 10_000, 5_000, 0.21, 0.2, mask, None)  # c changed
+    assert not run.matches(0, 10_001, 5_000, 0.2, 0.2, mask, None)  # another window
+    assert not run.matches(0, 10_000, 5_000, 0.2, 0.2, mask.copy(), None)  # another mask, even if equal now
+
+
+class _nothing:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False

@@ -20,6 +20,7 @@ import edi_live.contrast as contrast
 import edi_live.edi as edi
 from edi_live.datatypes import Frame, Reconstruction
 from edi_live.errors import ConfigError, NodeError
+from edi_live.exposure_ahead import ExposureAhead
 from edi_live.latent_state import LatentState
 from edi_live.reconstructor_parts import build_calibration, build_masks, resolve_settings
 from edi_live.reconstructor_settings import ReconstructorSettings
@@ -46,6 +47,8 @@ class EdiReconstructor:
         self.clock_offset_us = self._clock.value  # read by the worker for its event windows
         self._hot, self._noise, self._unreliable = build_masks(settings, self.width, self.height,
                                                                self._tracker is not None)
+        # the next exposure's double integral while it runs (not with the noise filter: it drops events later)
+        self._ahead = ExposureAhead(self.width, self.height, settings.deblur_ahead and self._noise is None)
         self._mask: np.ndarray | None = self._hot.mask  # events at these pixels are ignored; replaced, not changed
         self._latent = LatentState(self.width, self.height)
         self._colour: colour_edi.ColourPlan | None = None  # colour: EDI on the Bayer mosaic, demosaiced for output
@@ -130,9 +133,11 @@ class EdiReconstructor:
 
     def mark_gap(self) -> None:
         """A no-op on a streaming_copy(): the caller hands the gap to the original, which owns the pairs."""
-        if self._streamer or self._tracker is None:
+        if self._streamer:
             return
-        self._tracker.mark_gap()
+        self._ahead.drop()
+        if self._tracker is not None:
+            self._tracker.mark_gap()
 
     def streaming_copy(self) -> "EdiReconstructor":
         """Only the latent state (image, display, noise-filter state) is copied: ~30 µs at 346x260, where a deepcopy
@@ -186,9 +191,11 @@ class EdiReconstructor:
             self.last_estimate_ms = (time.perf_counter() - t0) * 1e3
             self._latent.reset_counts()  # the accumulators are used (and written) only when c is estimated
         frame_counts = self._hot.frame_counts if self._hot.enabled else None
-        divisor = edi.log_divisor_events(events, self.width, self.height, ts, te, f, self.c_on, self.c_off,
-                                         mask=mask, event_counts=frame_counts,
-                                         counts_after_f=None if self._fixed else self._latent.acc)
+        running = self._ahead.take(events, ts, te, f, self._c(), mask, frame_counts)  # the integral so far, if any
+        counts_after_f = None if self._fixed else self._latent.acc
+        divisor = running.finish(counts_after_f) if running is not None else edi.log_divisor_events(
+            events, self.width, self.height, ts, te, f, self.c_on, self.c_off, mask=mask, event_counts=frame_counts,
+            counts_after_f=counts_after_f)
         if self.events_ignored:  # still scene: L(f) = B and the latent image stays there
             divisor = (divisor[0][:0], divisor[1][:0], divisor[2][:0] if divisor[2] is not None else None)
         log_prev = self._latent.log_ref
@@ -217,6 +224,8 @@ class EdiReconstructor:
         self._ref_t = f
         self._exposure = (ts, te)
         self._t_last = max(self._t_last, t_batch_end, f)
+        self._ahead.arm(ts, te, self._c(), self._mask, self._hot.frame_counts if self._hot.enabled else None,
+                        self._t_last)
         self.frames += 1
         self.events_applied += n_new
         n_events = self._pending_events + n_new
@@ -231,6 +240,8 @@ class EdiReconstructor:
         n = int(events.size)
         t_end = int(events["t"][-1])
         self._clock.collect(events)
+        if not self._streamer:
+            self._ahead.feed(events)
         if self._noise is not None:
             events = self._noise.stream(events)
         self._latent.apply(events, self._c(), self._mask, count=self._counting(),
@@ -257,6 +268,8 @@ class EdiReconstructor:
         self._clock.collect(events)
         if self._noise is not None or self.events_ignored:
             return self._frames_one_by_one(events, cuts, arrivals)
+        if not self._streamer:
+            self._ahead.feed(events)
         t = events["t"]
 
         def frame(k: int, i1: int) -> Reconstruction:
@@ -322,7 +335,7 @@ class EdiReconstructor:
             "estimator": self.estimator.name,
             "reestimations": self.reestimations, "ill_conditioned": self.ill_conditioned,
             "hot_pixels": self.hot_pixels, "unreliable_pixels": self.unreliable_pixels, "frames": self.frames,
-            "events_ignored": self.events_ignored,
+            "events_ignored": self.events_ignored, "deblurs_ahead": self._ahead.used,
             "events_applied": self.events_applied, "has_reference": self.has_reference,
             "last_deblur_ms": round(self.last_deblur_ms, 3), "last_estimate_ms": round(self.last_estimate_ms, 3),
         }

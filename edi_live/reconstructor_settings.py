@@ -48,6 +48,7 @@ class ReconstructorSettings:
     # None: estimated from the stream (clock_offset_policy; needs c estimation, else 0)
     clock_offset_us: int | None = None
     denoise_us: int = 0  # background-activity filter window; 0 = off
+    deblur_ahead: bool = True  # accumulate the next exposure's double integral while it runs (exposure_ahead.py)
     mask_unreliable_pixels: bool = True  # ignore events that contradict the APS frames (needs c estimation)
     # colour sensor (edi_live.colour_edi): the source's Bayer pattern (None: grey, unless a frame says otherwise);
     # EDI runs on the mosaic, output is demosaiced BGR (`demosaic`: colour.DEMOSAIC_METHODS), or grey with `gray`

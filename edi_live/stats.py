@@ -130,7 +130,9 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
     lines = [
         f"edi-live: done in {elapsed_s:.2f} s: {events} events ({_si(events / el)} ev/s), "
         f"{s.get('aps_frames_in', 0)} APS frames in, {frames} frames out "
-        f"({s.get('frames_deblurred', 0)} deblurred, {s.get('frames_latent', 0)} latent, "
+        f"({s.get('frames_deblurred', 0)} deblurred"
+        f"{' (' + str(s['deblurs_ahead']) + ' integrated ahead)' if s.get('deblurs_ahead') else ''}, "
+        f"{s.get('frames_latent', 0)} latent, "
         f"{s.get('heartbeats', 0)} heartbeats; {frames / el:.0f} fps)",
         f"  c_on={s.get('c_on', float('nan')):.4f} c_off={s.get('c_off', float('nan')):.4f}, "
         f"re-estimated {s.get('reestimations', 0)} times, black level {s.get('black_level_dn', 0):g} DN"

@@ -30,13 +30,15 @@ PURE_MATH = ("edi_live/edi/", "edi_live/contrast/", "edi_live/reconstructor.py",
              "edi_live/c_policy.py", "edi_live/contrast_tracking.py", "edi_live/latent_state.py",
              "edi_live/pixel_masks.py", "edi_live/quality.py", "edi_live/ring.py", "edi_live/ring_buffer.py",
              "edi_live/reconstructor_settings.py", "edi_live/colour.py", "edi_live/colour_edi.py",
-             "edi_live/black_level_policy.py", "edi_live/clock_offset_policy.py", "edi_live/reconstructor_parts.py")
+             "edi_live/black_level_policy.py", "edi_live/clock_offset_policy.py", "edi_live/reconstructor_parts.py",
+             "edi_live/exposure_ahead.py")
 PURE_MATH_ALLOWED = {"numpy", "cv2", "numba", "edi_live"}
 PURE_MATH_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.errors", "edi_live.edi", "edi_live.contrast",
                          "edi_live.c_policy", "edi_live.contrast_tracking", "edi_live.latent_state",
                          "edi_live.pixel_masks", "edi_live.reconstruction", "edi_live.ring_buffer",
                          "edi_live.reconstructor_settings", "edi_live.colour",  # "colour" covers colour_edi
-                         "edi_live.black_level_policy", "edi_live.clock_offset_policy", "edi_live.reconstructor_parts")
+                         "edi_live.black_level_policy", "edi_live.clock_offset_policy", "edi_live.reconstructor_parts",
+                         "edi_live.exposure_ahead")
 DRIVERS_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.source", "edi_live.errors", "edi_live.aedat4",
                        "edi_live.simulation")  # the emulator's generated scene
 # the simulator is the ground truth: it must not use the EDI code it is there to judge

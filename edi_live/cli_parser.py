@@ -88,6 +88,9 @@ def build_parser() -> argparse.ArgumentParser:
     edi.add_argument("--deblur-thread", action=argparse.BooleanOptionalAction,
                      help="causal mode: deblur APS frames on a helper thread so latent frames are not held up "
                           "(default: on, except for --speed 0 replays where throughput matters)")
+    edi.add_argument("--deblur-ahead", action=argparse.BooleanOptionalAction,
+                     help="accumulate each exposure's double integral while it is exposed, when exposures are "
+                          "regular, so a deblurred frame only waits for a finish (default: on; frames are the same)")
     edi.add_argument("--reestimate-every", type=int, metavar="K",
                      help="also re-estimate c every K APS frames (default: 0 = only when it stops fitting)")
     edi.add_argument("--black-level", type=float, metavar="DN",

@@ -114,6 +114,7 @@ class EdiConfig:
     # causal mode: deblur APS frames on a helper thread while latent frames keep flowing (lower latency, ~25 %
     # less throughput). None = automatic: on for a live camera and paced replay, off for --speed 0.
     deblur_thread: bool | None = None
+    deblur_ahead: bool = True  # run the next exposure's double integral while it is exposed (exposure_ahead.py)
     c_start: tuple[float, float] | None = None  # (c_on, c_off) from a saved calibration (set by the node)
     aps_gamma: float | None = None  # APS response exponent; None: 1, or a loaded calibration's
     # events arrive this many µs later than the APS exposure they belong to; None: 0, or a loaded calibration's
@@ -150,6 +151,7 @@ class EdiConfig:
                                             and not isinstance(self.black_level, bool)
                                             and math.isfinite(self.black_level) and 0 <= self.black_level < 128),
                f"black-level must be a number of DN in [0, 128) (got {self.black_level!r})")
+        _check(isinstance(self.deblur_ahead, bool), f"deblur-ahead must be true or false (got {self.deblur_ahead!r})")
         _check(self.deblur_thread is None or isinstance(self.deblur_thread, bool),
                f"deblur-thread must be true or false (got {self.deblur_thread!r})")
 
@@ -312,6 +314,7 @@ OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
     "clock_offset_us": ("edi", "clock_offset_us", None),
     "aps_gamma": ("edi", "aps_gamma", _num),
     "deblur_thread": ("edi", "deblur_thread", None),
+    "deblur_ahead": ("edi", "deblur_ahead", _bool("deblur-ahead")),
     "gray": ("edi", "gray", _bool("gray")),
     "publish": ("publisher", "endpoints", _endpoints),
     "no_publish": ("publisher", "-", _bool("no-publish")),

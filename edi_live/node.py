@@ -69,6 +69,7 @@ def default_reconstructor(width: int, height: int, edi: EdiConfig) -> Reconstruc
     if edi.c_start is not None:
         kwargs["c_start"] = edi.c_start
     kwargs["color_filter"], kwargs["gray"] = edi.color_filter, bool(edi.gray)
+    kwargs["deblur_ahead"] = bool(edi.deblur_ahead)
     if edi.mode == "fused":
         kwargs["joint_pairs"] = fused_mode.JOINT_PAIRS
     return EdiReconstructor(width, height, **kwargs)

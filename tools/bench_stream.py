@@ -742,6 +742,10 @@ def _extra(args: argparse.Namespace) -> dict:
         extra["c"] = args.c
     if args.no_deblur_thread:
         extra["deblur_thread"] = False
+    if args.no_deblur_ahead:
+        extra["deblur_ahead"] = False
+    if args.clock_offset_us is not None:
+        extra["clock_offset_us"] = args.clock_offset_us
     return extra
 
 
@@ -758,6 +762,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=None,
                     help="memory: run length (default 60; use 600 for the 10-minute run); latency/static: 10")
     ap.add_argument("--c", type=float, help="throughput/latency: fixed contrast threshold (default: estimated)")
+    ap.add_argument("--no-deblur-ahead", action="store_true",
+                    help="throughput/latency: read each exposure's events at its end (the node's deblur-ahead = false)")
+    ap.add_argument("--clock-offset-us", type=int, default=None,
+                    help="throughput/latency: give the event clock offset instead of estimating it")
     ap.add_argument("--no-deblur-thread", action="store_true",
                     help="throughput/latency: deblur APS frames on the worker thread (the node's deblur-thread = false)")
     ap.add_argument("--speed", type=float, default=1.0, help="memory mode: replay speed (default 1 = real time)")

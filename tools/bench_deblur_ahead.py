@@ -1,0 +1,62 @@
+"""Deblur time per APS frame with and without the running double integral (edi_live/exposure_ahead.py).
+
+The reconstructor is fed as the worker feeds it: the events in chunks as they come, each APS frame at its exposure
+end with every event from its exposure start on. Both variants run alternately on the same recording; the table
+gives each run's median on_frame wall time (ms, the first 4 frames left out: the prediction needs three regular
+windows) and the ratio of the two in each pair (median, min, max), so a shared machine's load cancels out.
+
+    python -m tools.bench_deblur_ahead RECORDING.aedat4 [--repeat 5] [--c 0.2]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+import edi_live.edi as edi
+from edi_live.reconstructor import EdiReconstructor
+from tools.figure import load_recording
+
+
+def deblur_ms(events: np.ndarray, frames: list, rec: EdiReconstructor, chunk: int = 1000) -> list[float]:
+    t = events["t"]
+    out, pos = [], 0
+    for f in frames:
+        end = int(np.searchsorted(t, f.exposure_end_us, side="right"))
+        while pos < end:
+            nxt = min(pos + chunk, end)
+            rec.on_events(events[pos:nxt])
+            pos = nxt
+        rec.on_frame(f, edi.window(events[:pos], f.exposure_start_us, None))
+        out.append(rec.last_deblur_ms)
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m tools.bench_deblur_ahead", description=__doc__.split("\n\n")[0])
+    ap.add_argument("recording", type=Path)
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--c", type=float, default=None, help="a fixed c (default: estimated)")
+    args = ap.parse_args(argv)
+    events, frames = load_recording(args.recording)
+    h, w = frames[0].image.shape[:2]
+    knobs = {} if args.c is None else {"c": args.c}
+    runs: dict[bool, list[float]] = {True: [], False: []}
+    used = 0
+    for _ in range(args.repeat):
+        for ahead in (True, False):
+            rec = EdiReconstructor(w, h, deblur_ahead=ahead, clock_offset_us=0, **knobs)
+            runs[ahead].append(float(np.median(deblur_ms(events, frames, rec)[4:])))
+            used = rec.stats()["deblurs_ahead"] if ahead else used
+    ratio = np.array(runs[False]) / np.array(runs[True])
+    print(f"{args.recording.name}: {len(frames)} APS frames, {used} deblurred from the running integral; "
+          f"c {'fixed ' + str(args.c) if args.c is not None else 'estimated'}, clock offset given (0)")
+    print("on_frame ms, median per run: ahead " + " ".join(f"{v:.2f}" for v in runs[True])
+          + " | read at the end " + " ".join(f"{v:.2f}" for v in runs[False]))
+    print(f"read-at-the-end / ahead: median {np.median(ratio):.2f} (min {ratio.min():.2f}, max {ratio.max():.2f})")
+
+
+if __name__ == "__main__":
+    main()

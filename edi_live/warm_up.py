@@ -57,6 +57,18 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
             edi.fused_frames(rec.reference_log(), previous, (image > 0, image > 0), [previous[1] + 5_000], both,
                              (0.2, 0.2), None)
             t_us += 20_000
+        # the running double integral (deblur ahead): fed ring slices (strided fields) and single events
+        from edi_live.edi import RunningDivisor
+
+        npix = width * height
+        t_lo, t_hi = int(events["t"][0]), int(events["t"][-1])
+        for c_off in (0.2, 0.15):
+            for mask, counts in ((None, None), (np.zeros(npix, bool), np.zeros(npix, np.int64))):
+                run = RunningDivisor(width, height, t_lo, t_hi, (t_lo + t_hi) // 2, 0.2, c_off, mask=mask,
+                                     event_counts=counts)
+                run.feed(events[:-1])
+                run.feed_from(events[-1:])
+                run.finish((np.zeros(npix, np.int64), np.zeros(npix, np.int64)) if counts is not None else None)
         # exposures without events (a dark or still scene), first and later: empty field views count as
         # C-contiguous, another specialisation
         empty = np.zeros(0, EVENT_DTYPE)

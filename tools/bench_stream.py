@@ -116,6 +116,7 @@ def _subscriber(endpoint: str, conn) -> None:
         conn.send("ready")
         cpu0 = time.process_time()
         n, first_s, last_s, seqs_ok, last_seq, gaps = 0, None, None, True, -1, 0
+        arrivals: list[tuple[int, int, bool]] = []
         while True:
             got = sub.recv(timeout_s=2.0)
             if got is None:
@@ -124,6 +125,9 @@ def _subscriber(endpoint: str, conn) -> None:
                 continue
             header, _ = got
             now = time.perf_counter()
+            # for the latency seen from outside: when it came, and the sensor time of its last event
+            arrivals.append((time.monotonic_ns(), header["exp_end"] if header["kind"] == "deblurred" else header["t"],
+                             header["kind"] == "deblurred"))
             first_s = first_s or now
             last_s = now
             if header["seq"] <= last_seq:
@@ -132,7 +136,8 @@ def _subscriber(endpoint: str, conn) -> None:
             last_seq = header["seq"]
             n += 1
         conn.send({"frames": n, "seq_increasing": seqs_ok, "seq_gaps": gaps,
-                   "span_s": (last_s - first_s) if n > 1 else 0.0, "cpu_s": time.process_time() - cpu0})
+                   "span_s": (last_s - first_s) if n > 1 else 0.0, "cpu_s": time.process_time() - cpu0,
+                   "arrivals": np.array(arrivals, np.int64).reshape(-1, 3)})
 
 
 class _RecordingPublisher:
@@ -324,9 +329,38 @@ def bench_latency(path: Path, every: int, rate_ev_s: float, seconds: float, pack
             q = np.percentile(sel, [50, 90, 99, 100]) / 1000
             print(f"  {kind:9s} frames {len(sel):6d}: p50 {q[0]:.3f} ms, p90 {q[1]:.3f} ms, p99 {q[2]:.3f} ms, "
                   f"max {q[3]:.3f} ms")
+    _print_outside_latency(sub.get("arrivals"), speed)
     print(f"achieved event rate {stats['events_processed'] / wall_s / 1e6:.2f} M/s over {wall_s:.1f} s; replay "
           f"packets span up to {packet_us} µs of events (a USB-transfer-like cadence), so a packet's frames share "
           f"one arrival stamp; load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs")
+
+
+def outside_latency_us(arrivals: np.ndarray, speed: float) -> np.ndarray:
+    """Latency seen at the subscriber (µs): receive time minus the paced wall time of the frame's last event (for
+    a deblurred frame its exposure end), relative to the fastest frame of each pass over the recording (the
+    subscriber does not know when the replay clock started; a pass begins where sensor time jumps back)."""
+    recv_ns, t_us = arrivals[:, 0].astype(np.float64), arrivals[:, 1].astype(np.float64)
+    offset = recv_ns / 1e3 - t_us / speed  # paced: wall µs = start + (t - t0) / speed
+    out = np.empty_like(offset)
+    passes = np.flatnonzero(np.diff(t_us) < -2e5) + 1  # a loop restart: sensor time back by more than 0.2 s
+    for seg in np.split(np.arange(offset.size), passes):
+        if seg.size:
+            out[seg] = offset[seg] - offset[seg].min()
+    return out
+
+
+def _print_outside_latency(arrivals: np.ndarray | None, speed: float) -> None:
+    if arrivals is None or not len(arrivals):
+        return
+    lat = outside_latency_us(arrivals, speed) / 1000
+    deblurred = arrivals[:, 2].astype(bool)
+    print("seen from the subscriber (receive time - paced wall time of the frame's last event / exposure end, "
+          "relative to the fastest frame of each pass):")
+    for kind, sel in (("latent", ~deblurred), ("deblurred", deblurred)):
+        if sel.any():
+            q = np.percentile(lat[sel], [50, 90, 99, 100])
+            print(f"  {kind:9s} frames {int(sel.sum()):6d}: p50 {q[0]:.3f} ms, p90 {q[1]:.3f} ms, p99 {q[2]:.3f} ms, "
+                  f"max {q[3]:.3f} ms")
 
 
 def bench_stages(path: Path, every: int, repeat: int, extra: dict | None = None) -> None:

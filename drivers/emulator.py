@@ -148,6 +148,14 @@ class EmulatorBackend(usb.backend.IBackend):
         return bool(r.get((P.MUX, P.MUX_RUN)) and r.get((P.USB, P.USB_RUN)) and r.get((P.MUX, P.MUX_TIMESTAMP_RUN)))
 
     @property
+    def producing(self) -> bool:
+        """Streaming with a producer switched on: only then does a camera send data (the driver may still be
+        finishing its start sequence before that)."""
+        r = self.regs
+        return self.streaming and any(r.get(k) for k in ((P.DVS, P.DVS_RUN), (P.APS, P.APS_RUN),
+                                                         (P.IMU, P.IMU_RUN_ACCEL), (P.IMU, P.IMU_RUN_GYRO)))
+
+    @property
     def edi_live_epoch_us(self) -> int | None:
         """Recording time of device time 0 (the driver adds it so timestamps match the recording)."""
         with self._lock:
@@ -156,7 +164,7 @@ class EmulatorBackend(usb.backend.IBackend):
 
     def stream_ended(self) -> bool:
         with self._lock:
-            if not self.stream.done and self.streaming and not self._pending:
+            if not self.stream.done and self.producing and not self._pending:
                 self._fill_locked()
             return self.stream.done and not self._pending and self._fault is None  # a fault: bulk_read raises it
 
@@ -303,7 +311,7 @@ class EmulatorBackend(usb.backend.IBackend):
         deadline = time.monotonic() + (timeout or 1000) / 1000.0
         while True:
             with self._lock:
-                if self.streaming:
+                if self.producing:
                     self._fill_locked()
                     n = self._take_locked(buff)
                     if n:

@@ -77,6 +77,27 @@ def test_unplug_mid_stream_yields_everything_then_one_error(rng):
     assert 1000 < len(ev) < len(want) and np.array_equal(ev, want[: len(ev)])
 
 
+def test_slow_start_sequence_loses_nothing(rng, monkeypatch):
+    """The reader thread runs before the producers are switched on; a start sequence delayed by a busy machine
+    must not let the camera stream (and here unplug) before `__enter__` returns."""
+    from drivers.davis import protocol as P
+    write = DavisSource._write
+
+    def write_late(self, t, writes):
+        if writes is P.START_PRODUCERS_ON:
+            time.sleep(0.3)  # the injected fault (a preempted main thread), not a synchronisation
+        return write(self, t, writes)
+
+    monkeypatch.setattr(DavisSource, "_write", write_late)
+    packets = _recording(rng)
+    got = []
+    with pytest.raises(DeviceDisconnectedError):
+        with DavisSource(backend=backend(packets, speed=0, unplug_after_bytes=60_001), policy="wait",
+                         read_size_bytes=4096) as src:
+            got.extend(p for p in src if p is not None)
+    assert len(flatten(got)[0]) > 1000
+
+
 def test_reconnect_waits_and_resumes(rng):
     packets = _recording(rng)
     want = flatten(packets)[0]

@@ -130,9 +130,10 @@ def make_source(config: NodeConfig, explicit: set[str] | frozenset = frozenset()
                                policy=config.ring_policy)
 
 
-def colour_line(info: SourceInfo) -> str:
-    """The summary's line for a colour camera (mono cameras need none)."""
-    return f"  camera: {info.label} {info.width}x{info.height}, colour ({info.color_filter} Bayer mosaic)"
+def colour_line(info: SourceInfo, pattern: str | None = None) -> str:
+    """The summary's line for a colour camera (mono cameras need none); `pattern`: --bayer-pattern's, if given."""
+    given = " given by --bayer-pattern" if pattern else ""
+    return f"  camera: {info.label} {info.width}x{info.height}, colour ({pattern or info.color_filter} Bayer mosaic{given})"
 
 
 def list_devices_command(flags: dict[str, Any]) -> int:
@@ -257,8 +258,8 @@ def _main(argv: Sequence[str] | None, signals: StopSignals) -> int:
                 from edi_live.stats import format_summary
 
                 print(format_summary(node.final_stats, node.elapsed_s), file=sys.stderr)
-                if source.info.is_color:
-                    print(colour_line(source.info), file=sys.stderr)
+                if source.info.is_color or config.edi.color_filter:
+                    print(colour_line(source.info, config.edi.color_filter), file=sys.stderr)
         return 0
     except SystemExit as exc:  # --help / --version
         return int(exc.code or 0)

@@ -109,6 +109,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="save the calibration in use at the end of the run (a live camera also saves its own)")
     edi.add_argument("--gray", action="store_true",
                      help="a colour camera's frames as grey images (default: colour BGR for a colour camera)")
+    edi.add_argument("--bayer-pattern", metavar="PATTERN", type=str.upper,
+                     help="read the APS frames as a colour mosaic with this Bayer pattern (RGGB, GRBG, GBRG, "
+                          "BGGR: the top-left 2x2 block row by row), for a recording that does not name it (DV's "
+                          "BGR frames, raw mosaics stored as grey); default: the source's own, RGGB for BGR frames")
     edi.add_argument("--quality-every", type=int, metavar="N",
                      help="score how well the output predicted one APS frame in N (the live quality figure; "
                           "default: 2, 0 = off)")

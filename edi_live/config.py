@@ -26,6 +26,7 @@ from typing import Any, Callable, Mapping
 
 from edi_live import config_file
 from edi_live.checks import check as _check
+from edi_live.datatypes import COLOR_FILTERS
 from edi_live.checks import check_endpoint, fits_memory, int_in as _int_in, positive_or_none as _positive_or_none
 from edi_live.config_file import merge_options, norm_key
 from edi_live.errors import ConfigError
@@ -124,7 +125,8 @@ class EdiConfig:
     # APS black level (8-bit DN) taken off each frame so the output is linear; None: 0, or a loaded calibration's
     black_level: float | None = None
     gray: bool = False  # a colour source's frames as grey (h, w) images
-    color_filter: str | None = None  # the source's Bayer pattern (set by the node from SourceInfo.color_filter)
+    # the Bayer pattern of a colour source: --bayer-pattern, else the source's own (SourceInfo.color_filter)
+    color_filter: str | None = None
 
     def __post_init__(self) -> None:
         _int_in("every", self.every, 1, 10**12, "events per latent frame")
@@ -151,6 +153,8 @@ class EdiConfig:
                                             and not isinstance(self.black_level, bool)
                                             and math.isfinite(self.black_level) and 0 <= self.black_level < 128),
                f"black-level must be a number of DN in [0, 128) (got {self.black_level!r})")
+        _check(self.color_filter is None or self.color_filter in COLOR_FILTERS,
+               f"bayer-pattern must be one of {', '.join(COLOR_FILTERS)} (got {self.color_filter!r})")
         _check(isinstance(self.deblur_ahead, bool), f"deblur-ahead must be true or false (got {self.deblur_ahead!r})")
         _check(self.deblur_thread is None or isinstance(self.deblur_thread, bool),
                f"deblur-thread must be true or false (got {self.deblur_thread!r})")
@@ -316,6 +320,7 @@ OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
     "deblur_thread": ("edi", "deblur_thread", None),
     "deblur_ahead": ("edi", "deblur_ahead", _bool("deblur-ahead")),
     "gray": ("edi", "gray", _bool("gray")),
+    "bayer_pattern": ("edi", "color_filter", lambda v: None if v is None else str(v).upper()),
     "publish": ("publisher", "endpoints", _endpoints),
     "no_publish": ("publisher", "-", _bool("no-publish")),
     "curve_secret_key": ("publisher", "curve_secret_key", _path),

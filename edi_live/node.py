@@ -213,7 +213,12 @@ class Node:
         info = self.source.info
         self.ring = EventRing(cfg.ring.capacity_events, cfg.ring.capacity_frames, cfg.ring_policy)
         edi_cfg, self._calibration_to = calibration.prepare(cfg.edi, info, cfg.calibration, cfg.save_calibration)
-        edi_cfg = dataclasses.replace(edi_cfg, color_filter=info.color_filter)  # colour: EDI on the Bayer mosaic
+        # colour: EDI on the Bayer mosaic, with the user's pattern over the source's
+        edi_cfg = dataclasses.replace(edi_cfg, color_filter=edi_cfg.color_filter or info.color_filter)
+        if edi_cfg.color_filter is not None:
+            from edi_live.colour import one_opencv_thread  # OpenCV: loaded for colour sources only
+
+            one_opencv_thread()
         reconstructor = self._make_reconstructor(info.width, info.height, edi_cfg)
         sinks = []
         if cfg.publisher.enabled:
@@ -232,7 +237,7 @@ class Node:
             self.out_writer.start()
         if cfg.output.record is not None:
             self.record_writer = RecordWriter(cfg.output.record, info.width, info.height, camera_name=info.label,
-                                              queue_items=cfg.output.queue_items, color_filter=info.color_filter,
+                                              queue_items=cfg.output.queue_items, color_filter=edi_cfg.color_filter,
                                               on_error=lambda e: self.fail(e, "record-writer"))
             self.record_writer.start()
         if self.out_writer is not None:

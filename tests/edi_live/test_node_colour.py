@@ -41,3 +41,29 @@ def test_a_colour_source_gives_colour_frames_unless_gray(gray, mode):
     assert rec.settings.color_filter == "GBRG" and rec.settings.gray == gray
     assert rec.render().image.shape == ((24, 32) if gray else (24, 32, 3))
     assert np.asarray(rec.render().image).dtype == np.uint8
+
+
+def test_bayer_pattern_option_reads_a_grey_stored_mosaic_as_colour():
+    """A raw mosaic stored as grey frames (a recording that lost its pattern) becomes colour with --bayer-pattern;
+    the user's pattern wins over the source's."""
+    sim = simulate(SceneConfig(width=32, height=24, duration_s=0.2, color_filter="GRBG", velocity_px_s=(100.0, 20.0)))
+    sim.frames[:] = [type(f)(f.image, f.exposure_start_us, f.exposure_end_us) for f in sim.frames]
+    made = []
+
+    def factory(w, h, edi):
+        made.append(default_reconstructor(w, h, edi))
+        return made[-1]
+
+    for source_pattern in (None, "BGGR"):
+        source = BurstSource(_packets(sim), width=32, height=24)
+        source.info = SourceInfo(32, 24, "raw burst", kind="usb", color_filter=source_pattern)
+        options = {"device": "auto", "no_publish": True, "every": 200, "bayer_pattern": "grbg"}
+        Node(NodeConfig.from_options(options), source, reconstructor_factory=factory).run()
+        assert made[-1].settings.color_filter == "GRBG"
+        assert made[-1].render().image.shape == (24, 32, 3)
+
+
+def test_an_unknown_bayer_pattern_is_a_usage_error():
+    from edi_live.errors import ConfigError
+    with pytest.raises(ConfigError, match="bayer-pattern must be one of RGGB, GRBG, GBRG, BGGR"):
+        NodeConfig.from_options({"device": "auto", "bayer_pattern": "RGBG"})

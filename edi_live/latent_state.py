@@ -97,6 +97,12 @@ class LatentState:
         self.display.reshape(-1)[idx] = shown
         deblurred.reshape(-1)[idx] = shown
 
+    def restart_pixels(self, pixels: np.ndarray) -> None:
+        """At `pixels` (flat indices), the latent image goes back to the reference L(f)."""
+        ref = self.log_ref.reshape(-1)[pixels]
+        self.log_lat.reshape(-1)[pixels] = ref
+        self.display.reshape(-1)[pixels] = edi.to_uint8(ref)
+
     def refresh_display(self) -> None:
         np.copyto(self.display, edi.to_uint8(self.log_lat))
 

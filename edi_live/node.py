@@ -151,7 +151,7 @@ class Node:
                 "aps_frames_in", "frames_deblurred", "frames_latent", "heartbeats", "skipped_max_fps",
                 "source_dropped_events", "source_gaps", "nearest_added_latency_ms_p50",
                 "fused_added_latency_ms_p50", "out_wait_s",
-                "unreliable_pixels", "black_level_dn", "clock_offset_us", "aps_gamma", "clock_offset_estimated",
+                "unreliable_pixels", "flicker_pixels", "black_level_dn", "clock_offset_us", "aps_gamma", "clock_offset_estimated",
                 "black_level_estimated", "pred_psnr_db", "still_psnr_db",
                 "pred_gain_db",
                 "pred_psnr_active_db", "still_psnr_active_db", "pred_beats_still_frac", "pred_frames_scored",

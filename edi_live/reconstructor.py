@@ -21,6 +21,7 @@ import edi_live.edi as edi
 from edi_live.datatypes import Frame, Reconstruction
 from edi_live.errors import ConfigError, NodeError
 from edi_live.exposure_ahead import ExposureAhead
+from edi_live.flicker_pixels import FlickerPixels
 from edi_live.latent_state import LatentState
 from edi_live.reconstructor_parts import build_calibration, build_masks, resolve_settings
 from edi_live.reconstructor_settings import ReconstructorSettings
@@ -47,6 +48,7 @@ class EdiReconstructor:
         self.clock_offset_us = self._clock.value  # read by the worker for its event windows
         self._hot, self._noise, self._unreliable = build_masks(settings, self.width, self.height,
                                                                self._tracker is not None)
+        self._flicker = FlickerPixels(self.width, self.height) if settings.mask_flicker_pixels else None
         # the next exposure's double integral while it runs (not with the noise filter: it drops events later)
         self._ahead = ExposureAhead(self.width, self.height, settings.deblur_ahead and self._noise is None)
         self._mask: np.ndarray | None = self._hot.mask  # events at these pixels are ignored; replaced, not changed
@@ -110,9 +112,9 @@ class EdiReconstructor:
         return 0 if self._unreliable is None else self._unreliable.count
 
     @property
-    def ignored_pixel_mask(self) -> np.ndarray:
-        """(H, W) bool: every pixel whose events are ignored now (hot or unreliable)."""
-        return np.zeros((self.height, self.width), bool) if self._mask is None else self._mask.copy()
+    def flicker_pixels(self) -> int:
+        """Pixels lit by a flickering (mains) lamp now (their events are ignored like hot pixels')."""
+        return 0 if self._flicker is None else self._flicker.count
 
     @property
     def hot_pixel_mask(self) -> np.ndarray:
@@ -138,6 +140,9 @@ class EdiReconstructor:
         self._ahead.drop()
         if self._tracker is not None:
             self._tracker.mark_gap()
+        if self._flicker is not None and self._flicker.count:
+            self._flicker.reset()
+            self._mask = self._combined_mask()
 
     def streaming_copy(self) -> "EdiReconstructor":
         """Only the latent state (image, display, noise-filter state) is copied: ~30 µs at 346x260, where a deepcopy
@@ -148,7 +153,7 @@ class EdiReconstructor:
         twin._latent = self._latent.streaming_copy()
         twin._hot = copy.copy(self._hot)  # keeps the current mask while the original finds the next one
         twin._noise = self._noise.copy() if self._noise is not None else None
-        twin._tracker = None
+        twin._tracker = twin._flicker = None  # the original finds pairs and flicker in these events later
         twin._clock = self._clock.frozen()  # its events reach the original's on_events later
         twin._streamer = True
         return twin
@@ -167,9 +172,10 @@ class EdiReconstructor:
         f = frame.mid_exposure_us + off
         if self.has_reference and f <= self._ref_t:
             self.mark_gap()  # time went backwards (new recording, loop without offset): start over
-        mask = self._mask
         t_all = events["t"]
         n_new = t_all.size - edi.time_index(t_all, self._t_last, "right")
+        self._observe_flicker(events[t_all.size - n_new:])  # the deblur leaves out newly flagged pixels
+        mask = self._mask
         t_batch_end = int(t_all[-1]) if t_all.size else self._t_last
         if self._noise is not None:
             events = self._noise.exposure(events, self._t_last)
@@ -242,6 +248,7 @@ class EdiReconstructor:
         self._clock.collect(events)
         if not self._streamer:
             self._ahead.feed(events)
+        self._observe_flicker(events)
         if self._noise is not None:
             events = self._noise.stream(events)
         self._latent.apply(events, self._c(), self._mask, count=self._counting(),
@@ -270,6 +277,7 @@ class EdiReconstructor:
             return self._frames_one_by_one(events, cuts, arrivals)
         if not self._streamer:
             self._ahead.feed(events)
+        self._observe_flicker(events)
         t = events["t"]
 
         def frame(k: int, i1: int) -> Reconstruction:
@@ -334,7 +342,8 @@ class EdiReconstructor:
             "black_level_estimated": self._black.estimated, "clock_offset_estimated": self._clock.estimated,
             "estimator": self.estimator.name,
             "reestimations": self.reestimations, "ill_conditioned": self.ill_conditioned,
-            "hot_pixels": self.hot_pixels, "unreliable_pixels": self.unreliable_pixels, "frames": self.frames,
+            "hot_pixels": self.hot_pixels, "unreliable_pixels": self.unreliable_pixels,
+            "flicker_pixels": self.flicker_pixels, "frames": self.frames,
             "events_ignored": self.events_ignored, "deblurs_ahead": self._ahead.used,
             "events_applied": self.events_applied, "has_reference": self.has_reference,
             "last_deblur_ms": round(self.last_deblur_ms, 3), "last_estimate_ms": round(self.last_estimate_ms, 3),
@@ -343,10 +352,19 @@ class EdiReconstructor:
     # ---- internals ----
 
     def _combined_mask(self) -> np.ndarray | None:
-        hot = self._hot.mask
-        if self._unreliable is None or self._unreliable.count == 0:
-            return hot
-        return self._unreliable.mask if hot is None else (hot | self._unreliable.mask)
+        masks = [] if self._hot.mask is None else [self._hot.mask]
+        masks += [m.mask for m in (self._unreliable, self._flicker) if m is not None and m.count]
+        return None if not masks else masks[0] if len(masks) == 1 else np.logical_or.reduce(masks)
+
+    def _observe_flicker(self, events: np.ndarray) -> None:
+        """Pixels flickering in `events` join the mask first; the latent image restarts there (flicker_pixels)."""
+        if self._flicker is None or self._streamer or events.size == 0:
+            return
+        changed, flagged_now = self._flicker.observe(events)
+        if changed:
+            self._mask = self._combined_mask()
+        if flagged_now.size and self.has_reference:
+            self._latent.restart_pixels(flagged_now)
 
     def _c(self) -> tuple[float, float]:
         return self.c_on, self.c_off

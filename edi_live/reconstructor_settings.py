@@ -50,6 +50,7 @@ class ReconstructorSettings:
     denoise_us: int = 0  # background-activity filter window; 0 = off
     deblur_ahead: bool = True  # accumulate the next exposure's double integral while it runs (exposure_ahead.py)
     mask_unreliable_pixels: bool = True  # ignore events that contradict the APS frames (needs c estimation)
+    mask_flicker_pixels: bool = True  # ignore the events of pixels that flicker at a mains period (flicker_pixels)
     # colour sensor (edi_live.colour_edi): the source's Bayer pattern (None: grey, unless a frame says otherwise);
     # EDI runs on the mosaic, output is demosaiced BGR (`demosaic`: colour.DEMOSAIC_METHODS), or grey with `gray`
     color_filter: ColorFilter | None = None

@@ -139,7 +139,7 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         f"{' (estimated)' if s.get('black_level_estimated') else ''}, "
         f"clock offset {s.get('clock_offset_us', 0)} µs{' (estimated)' if s.get('clock_offset_estimated') else ''}; "
         f"ignored pixels: hot {s.get('hot_pixels', 0)}, "
-        f"unreliable {s.get('unreliable_pixels', 0)}; drops {s.get('drops', 0)} "
+        f"unreliable {s.get('unreliable_pixels', 0)}, flicker {s.get('flicker_pixels', 0)}; drops {s.get('drops', 0)} "
         f"(ring events {s.get('ring_dropped_events', 0)}, ring frames {s.get('ring_dropped_frames', 0)}, "
         f"publish {s.get('publish_dropped', 0)}, source events {s.get('source_dropped_events', 0)}); "
         f"skipped: static {s.get('skipped_static', 0)}, max-fps {s.get('skipped_max_fps', 0)}",

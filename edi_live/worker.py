@@ -394,6 +394,6 @@ class EdiWorker:
             "unreliable_pixels": int(rec.unreliable_pixels), "black_level_dn": round(float(rec.black_level), 2),
             "clock_offset_us": int(rec.clock_offset_us), "aps_gamma": float(rec.aps_gamma),
             **{k: v for k, v in rec.stats().items() if k in ("clock_offset_estimated", "black_level_estimated",
-                                                              "deblurs_ahead")},
+                                                              "deblurs_ahead", "flicker_pixels")},
             **(self.quality.stats() if self.quality is not None else {}),
         }

@@ -20,7 +20,7 @@ from tools.figure import _fit, _label, load_recording, write_rows
 REAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
 DEFAULT = [(REAL / "emlb_demo-01_davis346.aedat4", 6), (REAL / "aestream_davis346.aedat4", 2),
            (REAL / "evlib_sample_davis346.aedat4", 2)]
-BEFORE = {"separate_thresholds": False, "mask_unreliable_pixels": False}
+BEFORE = {"separate_thresholds": False, "mask_unreliable_pixels": False, "mask_flicker_pixels": False}
 
 
 def reconstruct(events: np.ndarray, frames: list, index: int, settings: dict) -> tuple:

@@ -25,7 +25,7 @@ below; its underscored modules (the numba kernels) are private. Every function r
 numpy reference of the same contract (`numpy_reference()`, see _backend).
 
 Modules: selection (time windows, pixel picks, counts), levels (level table, log D), deblur (log L(f)), latent
-(propagation, rendering), fused (two-frame latent images), pixels (hot pixels, noise filters, sampling), pairs (the consistency estimator's sums), running (the double
+(propagation, rendering), fused (two-frame latent images), pixels (hot pixels, noise and flicker filters, sampling), pairs (the consistency estimator's sums), running (the double
 integral of an exposure accumulated while its events arrive).
 """
 
@@ -38,8 +38,9 @@ from edi_live.edi.latent import (Propagator, event_delta, propagate_log, render_
 from edi_live.edi.levels import LevelTable, build_level_table, empty_table, log_divisor
 from edi_live.edi.pairs import consistency_cost, pair_candidates
 from edi_live.edi.running import RunningDivisor
-from edi_live.edi.pixels import (background_activity_keep, decay_hot_counts, hot_pixel_mask, isolated_event_mask,
-                                 new_activity_map, sample_and_count, supported_events_keep)
+from edi_live.edi.pixels import (FlickerState, background_activity_keep, decay_hot_counts, flicker_cycles,
+                                 hot_pixel_mask, isolated_event_mask, new_activity_map, sample_and_count,
+                                 supported_events_keep)
 from edi_live.edi.selection import (add_counts, events_at_pixels, flat_index, select, signed_counts, time_index,
                                     window)
 
@@ -58,7 +59,7 @@ def compiled_signatures() -> dict[str, set[str]]:
 
 
 __all__ = [
-    "ApsResponse", "DARK_FLOOR", "FusedPropagator", "FusionPlan", "LEVEL_CAP", "LOG_MAX", "LOG_MIN", "LevelTable",
+    "ApsResponse", "DARK_FLOOR", "FlickerState", "flicker_cycles", "FusedPropagator", "FusionPlan", "LEVEL_CAP", "LOG_MAX", "LOG_MIN", "LevelTable",
     "Propagator", "RunningDivisor", "add_counts", "compiled_signatures", "event_mass", "forward_plan", "fused_frames", "fused_log",
     "fusion_plan", "fusion_weights",
     "time_share",

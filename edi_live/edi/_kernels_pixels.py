@@ -97,3 +97,47 @@ def select_and_count(x, y, p, width, height, keep, s0, s1, mask, use_mask, out_o
     return out[:m]
 
 
+
+
+@njit(cache=True, nogil=True)
+def flicker_cycles(t, x, y, p, width, height, bits, times, lo_us, hi_us, cycles, hold_us, flagged_now, changes):
+    """Mains-flicker cycles per pixel. State, flat over pixels: `bits` (1 = last event ON, 2 = an event was seen,
+    4 = flagged, bits 3-7 = run: consecutive regular cycles, up to 31) and `times` (n, 2): the latest OFF -> ON
+    switch (onset) and the latest regular one. An onset ends a cycle and starts the next; a cycle lo_us..hi_us
+    long, or twice that (a missed switch), is regular; `cycles` regular ones in a row flag the pixel, which stays
+    flagged while regular cycles keep coming within hold_us. Writes the pixels flagged by these events into
+    `flagged_now` and returns how many; changes[0] counts every flag change (on and off). Most events repeat
+    their pixel's last polarity: they touch one byte (and one time when flagged)."""
+    n = 0
+    for i in range(t.size):
+        xi = np.int64(x[i])
+        yi = np.int64(y[i])
+        if xi >= width or yi >= height:
+            continue
+        q = yi * width + xi
+        b = np.int64(bits[q])
+        if p[i]:
+            if (b & 3) == 2:  # ON after OFF: a cycle ends
+                ti = t[i]
+                d = ti - times[q, 0]
+                times[q, 0] = ti
+                if lo_us <= d <= hi_us or 2 * lo_us <= d <= 2 * hi_us:
+                    if b < 248:
+                        b += 8
+                    times[q, 1] = ti
+                else:
+                    b &= 7
+                if (b & 4) == 0 and (b >> 3) >= cycles:
+                    b |= 4
+                    changes[0] += 1
+                    if n < flagged_now.size:  # full only if pixels were flagged again within the call
+                        flagged_now[n] = q
+                        n += 1
+            b |= 3
+        else:
+            b = (b & ~1) | 2
+        if (b & 4) != 0 and t[i] - times[q, 1] > hold_us:
+            b &= 3
+            changes[0] += 1
+        bits[q] = b
+    return n

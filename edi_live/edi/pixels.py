@@ -108,3 +108,68 @@ def sample_and_count(events: np.ndarray, width: int, height: int, keep: np.ndarr
     inside = (x < width) & (y < height)
     idx = np.where(inside, y.astype(np.int64) * width + x, 0)
     return s0 + np.flatnonzero(inside & keep[idx])
+
+
+class FlickerState:
+    """Per-pixel state of `flicker_cycles` (flat over width * height pixels)."""
+
+    def __init__(self, width: int, height: int) -> None:
+        npix = width * height
+        self.width, self.height = width, height
+        self.bits = np.zeros(npix, np.uint8)  # 1: last event ON, 2: an event was seen, 4: flagged, >> 3: run
+        self.times = np.full((npix, 2), -(2**62), np.int64)  # latest OFF -> ON switch, latest regular one
+        self.changes = np.zeros(1, np.int64)  # flag changes so far
+        self.flagged_now = np.empty(npix, np.int64)  # scratch: a pixel is flagged at most once per call
+
+    @property
+    def flagged(self) -> np.ndarray:
+        """Flat bool: the flagged pixels (a new array)."""
+        return (self.bits & 4) != 0
+
+    @property
+    def run(self) -> np.ndarray:
+        """Flat: each pixel's consecutive regular cycles (up to 31)."""
+        return self.bits >> 3
+
+
+def flicker_cycles(events: np.ndarray, state: FlickerState, *, min_period_us: int, max_period_us: int, cycles: int,
+                   hold_us: int) -> np.ndarray:
+    """Feed time-ordered events to the flicker state. A pixel is flagged once `cycles` consecutive cycles (one
+    OFF -> ON switch to the next) lasted min..max_period_us, or twice that (a switch the pixel missed, or a lamp
+    flickering at the mains frequency itself), and stays flagged while such cycles come within hold_us
+    (state.flagged; state.changes counts flag changes). Returns the flat pixels these events flagged."""
+    s = state
+    if _backend.have_numba():
+        n = _kernels_pixels.flicker_cycles(events["t"], events["x"], events["y"], events["p"], s.width, s.height,
+                                           s.bits, s.times, int(min_period_us), int(max_period_us), int(cycles),
+                                           int(hold_us), s.flagged_now, s.changes)
+        return s.flagged_now[:n].copy()
+    n = 0
+    for t, x, y, on in zip(events["t"].tolist(), events["x"].tolist(), events["y"].tolist(), events["p"].tolist()):
+        if x >= s.width or y >= s.height:
+            continue
+        q = y * s.width + x
+        b = int(s.bits[q])
+        if on:
+            if b & 3 == 2:
+                d = t - s.times[q, 0]
+                s.times[q, 0] = t
+                if min_period_us <= d <= max_period_us or 2 * min_period_us <= d <= 2 * max_period_us:
+                    b = b + 8 if b < 248 else b
+                    s.times[q, 1] = t
+                else:
+                    b &= 7
+                if not b & 4 and b >> 3 >= cycles:
+                    b |= 4
+                    s.changes[0] += 1
+                    if n < s.flagged_now.size:
+                        s.flagged_now[n] = q
+                        n += 1
+            b |= 3
+        else:
+            b = (b & ~1) | 2
+        if b & 4 and t - s.times[q, 1] > hold_us:
+            b &= 3
+            s.changes[0] += 1
+        s.bits[q] = b
+    return s.flagged_now[:n].copy()

@@ -115,10 +115,37 @@ def test_separate_thresholds_keep_a_moving_scene_with_a_lamp_from_drifting():
         worst_lamp = max(float(np.abs(seen - aps)[lamp].max()) for aps, seen in pairs)
         return rest, worst_lamp
 
-    rest, lamp_worst = drift()
-    rest_one_c, lamp_worst_one_c = drift(separate_thresholds=False)
+    # the thresholds alone: the flicker mask, which handles the lamp whatever c is, is off here
+    rest, lamp_worst = drift(mask_flicker_pixels=False)
+    rest_one_c, lamp_worst_one_c = drift(separate_thresholds=False, mask_flicker_pixels=False)
     assert rest < 0.6 * rest_one_c, (rest, rest_one_c)
     assert lamp_worst < lamp_worst_one_c
+    # with one c, the flicker mask keeps the moving lamp from drifting as well
+    rest_masked, lamp_worst_masked = drift(separate_thresholds=False)
+    assert rest_masked < 0.6 * rest_one_c, (rest_masked, rest_one_c)
+    assert lamp_worst_masked < lamp_worst_one_c
+
+
+@pytest.mark.parametrize("flicker_hz", [100.0, 120.0])
+def test_a_lamp_with_mismatched_thresholds_stays_put_from_the_first_frame(flicker_hz):
+    """c given (no estimation, so no frame-pair check) and 20 % off for OFF events: only the flicker mask, which
+    needs no frame pair, keeps the lamp at what the APS frames say, from the first exposure on."""
+    cfg = SceneConfig(width=96, height=72, duration_s=0.5, texture="blocks", velocity_px_s=(0.0, 0.0),
+                      flicker_hz=flicker_hz, c_on=0.2, c_off=0.16, c_sigma=0.0, seed=4)
+    sim = simulate(cfg)
+    assert sim.events.size > 1000, "the lamp must make events for this test to mean anything"
+
+    def worst(**settings):
+        _, latent = stream(sim, EdiReconstructor(cfg.width, cfg.height, c=0.2, **settings), every=200)
+        pairs = _mean_latent_over_exposures(sim, latent)
+        assert len(pairs) >= 5
+        return max(np.sqrt(np.mean((seen - aps) ** 2)) for aps, seen in pairs), \
+            max(np.abs(seen - aps).max() for aps, seen in pairs)
+
+    rms, peak = worst()
+    assert rms <= 1.0 and peak <= 40, (rms, peak)
+    rms_off, peak_off = worst(mask_flicker_pixels=False)
+    assert rms_off > 2 * rms and peak_off > 40, (rms_off, peak_off)  # the scene does need it
 
 
 def test_a_given_clock_offset_moves_the_exposure_window_into_the_event_clock():

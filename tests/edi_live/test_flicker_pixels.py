@@ -1,0 +1,108 @@
+"""Flickering pixels (edi_live.flicker_pixels): found from the events alone at mains periods, held while the
+flicker lasts, released after; the kernel does what its numpy reference does."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import edi_live.edi as edi
+from edi_live.datatypes import EVENT_DTYPE
+from edi_live.flicker_pixels import FlickerPixels
+
+W, H = 8, 4
+
+
+def _events(rows: list[tuple[int, int, int, bool]]) -> np.ndarray:
+    rows = sorted(rows)
+    ev = np.zeros(len(rows), EVENT_DTYPE)
+    for i, (t, x, y, p) in enumerate(rows):
+        ev[i] = (t, x, y, p)
+    return ev
+
+
+def _flicker(x: int, y: int, period_us: float, t0: int, t1: int, burst: int = 3) -> list:
+    """A lamp pixel: each cycle an ON burst then an OFF burst of `burst` events."""
+    rows, t = [], float(t0)
+    while t < t1:
+        for k in range(burst):
+            rows.append((int(t) + 100 * k, x, y, True))
+            rows.append((int(t + period_us / 2) + 100 * k, x, y, False))
+        t += period_us
+    return rows
+
+
+def _flag_time(events: np.ndarray, x: int, y: int) -> int | None:
+    fp = FlickerPixels(W, H)
+    for e in events:
+        fp.observe(e[None])
+        if fp.mask[y, x]:
+            return int(e["t"])
+    return None
+
+
+@pytest.mark.parametrize("hz", [100.0, 120.0, 50.0, 60.0])
+def test_mains_flicker_is_flagged_after_two_cycles(hz):
+    period = 1e6 / hz
+    ev = _events(_flicker(2, 1, period, 0, 100_000))
+    t = _flag_time(ev, 2, 1)
+    # the third OFF -> ON switch (the first ON has no OFF before it): the end of two whole cycles
+    assert t is not None and abs(t - 3 * period) < 200, (t, 3 * period)
+
+
+@pytest.mark.parametrize("hz", [30.0, 200.0, 80.0])
+def test_other_rates_are_not_flagged(hz):
+    ev = _events(_flicker(2, 1, 1e6 / hz, 0, 200_000))
+    assert _flag_time(ev, 2, 1) is None
+
+
+def test_a_moving_edge_and_noise_are_not_flagged():
+    rng = np.random.default_rng(0)
+    rows = [(1000 * x + 10 * k, x, 1, True) for x in range(W) for k in range(6)]  # an edge sweeping the row
+    rows += [(int(t), int(rng.integers(0, W)), 3, bool(rng.random() < 0.5))  # noise, 0.5 kHz on one row
+             for t in np.sort(rng.uniform(0, 200_000, 100))]
+    fp = FlickerPixels(W, H)
+    fp.observe(_events(rows))
+    assert fp.count == 0 and not fp.mask.any()
+
+
+def test_a_pixel_is_released_once_its_flicker_stops():
+    ev = _events(_flicker(2, 1, 10_000, 0, 60_000) + [(150_000, 2, 1, True)])
+    fp = FlickerPixels(W, H, hold_us=30_000)
+    changed, flagged = fp.observe(ev[ev["t"] < 60_000])
+    assert changed and flagged.tolist() == [1 * W + 2] and fp.mask[1, 2]
+    changed, flagged = fp.observe(ev[ev["t"] >= 60_000])  # the next event comes long after the last cycle
+    assert changed and flagged.size == 0 and not fp.mask.any() and fp.count == 0
+    fp.observe(_events(_flicker(2, 1, 10_000, 200_000, 240_000)))
+    assert fp.mask[1, 2], "flagged again when it flickers again"
+    fp.reset()
+    assert fp.count == 0 and not fp.mask.any()
+
+
+def test_the_kernel_does_what_the_numpy_reference_does():
+    rng = np.random.default_rng(3)
+    rows = _flicker(1, 1, 10_000, 0, 120_000) + _flicker(5, 2, 8_333, 3_000, 120_000, burst=1)
+    rows += _flicker(6, 3, 17_000, 0, 120_000)  # a missed switch: two periods per cycle still count
+    rows += [(int(t), int(rng.integers(0, W + 2)), int(rng.integers(0, H)), bool(rng.random() < 0.5))
+             for t in rng.uniform(0, 120_000, 3000)]  # noise, some of it off the sensor
+    ev = _events(rows)
+    results = []
+    for reference in (False, True):
+        state = edi.FlickerState(W, H)
+        got = []
+        with edi.numpy_reference() if reference else _nothing():
+            for chunk in np.array_split(ev, 7):
+                got.append(edi.flicker_cycles(chunk, state, min_period_us=7300, max_period_us=11300, cycles=2,
+                                              hold_us=30_000).tolist())
+        results.append((got, state.bits.copy(), state.run.copy(), int(state.changes[0])))
+    (got_k, flag_k, run_k, ch_k), (got_r, flag_r, run_r, ch_r) = results
+    assert got_k == got_r and np.array_equal(flag_k, flag_r) and np.array_equal(run_k, run_r) and ch_k == ch_r
+    assert ch_k > 0 and any(got_k)
+
+
+class _nothing:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False

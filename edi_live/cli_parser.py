@@ -91,6 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
     edi.add_argument("--deblur-ahead", action=argparse.BooleanOptionalAction,
                      help="accumulate each exposure's double integral while it is exposed, when exposures are "
                           "regular, so a deblurred frame only waits for a finish (default: on; frames are the same)")
+    edi.add_argument("--flicker-mask", action=argparse.BooleanOptionalAction,
+                     help="ignore the events of pixels that flicker at a mains period (100/120 Hz lamps), so that a "
+                          "lamp shows what the APS frames say instead of drifting or blooming (default: on)")
     edi.add_argument("--reestimate-every", type=int, metavar="K",
                      help="also re-estimate c every K APS frames (default: 0 = only when it stops fitting)")
     edi.add_argument("--black-level", type=float, metavar="DN",

@@ -116,6 +116,7 @@ class EdiConfig:
     # less throughput). None = automatic: on for a live camera and paced replay, off for --speed 0.
     deblur_thread: bool | None = None
     deblur_ahead: bool = True  # run the next exposure's double integral while it is exposed (exposure_ahead.py)
+    flicker_mask: bool = True  # ignore pixels that flicker at a mains period (flicker_pixels.py)
     c_start: tuple[float, float] | None = None  # (c_on, c_off) from a saved calibration (set by the node)
     aps_gamma: float | None = None  # APS response exponent; None: 1, or a loaded calibration's
     # events arrive this many µs later than the APS exposure they belong to; None: 0, or a loaded calibration's
@@ -156,6 +157,7 @@ class EdiConfig:
         _check(self.color_filter is None or self.color_filter in COLOR_FILTERS,
                f"bayer-pattern must be one of {', '.join(COLOR_FILTERS)} (got {self.color_filter!r})")
         _check(isinstance(self.deblur_ahead, bool), f"deblur-ahead must be true or false (got {self.deblur_ahead!r})")
+        _check(isinstance(self.flicker_mask, bool), f"flicker-mask must be true or false (got {self.flicker_mask!r})")
         _check(self.deblur_thread is None or isinstance(self.deblur_thread, bool),
                f"deblur-thread must be true or false (got {self.deblur_thread!r})")
 
@@ -319,6 +321,7 @@ OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
     "aps_gamma": ("edi", "aps_gamma", _num),
     "deblur_thread": ("edi", "deblur_thread", None),
     "deblur_ahead": ("edi", "deblur_ahead", _bool("deblur-ahead")),
+    "flicker_mask": ("edi", "flicker_mask", _bool("flicker-mask")),
     "gray": ("edi", "gray", _bool("gray")),
     "bayer_pattern": ("edi", "color_filter", lambda v: None if v is None else str(v).upper()),
     "publish": ("publisher", "endpoints", _endpoints),

@@ -225,3 +225,14 @@ def test_gray_is_a_switch_from_the_flag_or_the_config_file(tmp_path: Path):
     assert "gray" not in options_from_args(["--replay", "x.aedat4"])[0]  # the file's value stands
     with pytest.raises(ConfigError, match="gray must be true or false"):
         NodeConfig.from_options({"replay": "x.aedat4", "gray": "yes"})
+
+
+def test_the_flicker_mask_switch_reaches_the_reconstructor():
+    from edi_live.node import default_reconstructor
+
+    on = NodeConfig.from_options({"device": "auto"})
+    off = NodeConfig.from_options({"device": "auto", "flicker_mask": False})
+    assert default_reconstructor(16, 12, on.edi).settings.mask_flicker_pixels is True
+    assert default_reconstructor(16, 12, off.edi).settings.mask_flicker_pixels is False
+    with pytest.raises(ConfigError, match="flicker-mask must be true or false"):
+        NodeConfig.from_options({"device": "auto", "flicker_mask": "false"})  # a TOML string, not a boolean

@@ -33,14 +33,16 @@ from typing import Sequence
 
 import numpy as np
 
-from edi_live.edi import _backend, _kernels_fused
+from edi_live.edi import _backend, _kernels_fused, _kernels_residual
 from edi_live.edi._backend import LOG_MAX, LOG_MIN
 from edi_live.edi.latent import event_delta, render_buckets, to_uint8
+from edi_live.edi.residual import ResidualTracker, exposure_residual
 from edi_live.edi.selection import select, time_index, window
 
 
 REFERENCE_MASS = 1.0  # A: a reference frame's own error, in units of event mass (log intensity)
 TIME_STEPS = 4
+RESIDUAL_SPAN = 0.3  # the residual a reference holds: its estimate averaged over this share of the interval
 
 
 def time_share(tau: float, steps: int = TIME_STEPS) -> float:
@@ -214,12 +216,20 @@ def fused_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, in
     plain forward EDI, for times after the current f); `informative`: where the previous / current APS frame is
     neither clipped nor black; `events`: at least those from the earlier reference to the last time."""
     log1, f1 = current
+    tracker = None
     if previous is None:
         log0, f0 = log1, f1
         plan = forward_plan(log1, f1, *c)
     else:
         log0, f0 = previous
-        plan = fusion_plan(log0, log1, events, f0, f1, c[0], c[1], informative[0], informative[1], mask=mask)
+        h, w = log0.shape
+        tracker = ResidualTracker(events, w, h, c[0], c[1], mask)
+        span = int(RESIDUAL_SPAN * (f1 - f0))
+        held0 = exposure_residual(tracker, f0 - span, f0 + span).reshape(h, w)
+        held1 = exposure_residual(tracker, f1 - span, f1 + span).reshape(h, w)
+        tracker.restart()
+        plan = fusion_plan(log0 - held0, log1 - held1, events, f0, f1, c[0], c[1], informative[0], informative[1],
+                           mask=mask)
     prop = FusedPropagator(plan, mask)
     t = events["t"]
     pos = time_index(t, f0, "right")
@@ -230,8 +240,27 @@ def fused_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, in
             continue
         end = time_index(t, t_us, "right")
         prop.apply(events[pos:end])
-        if previous is not None:
+        image = prop.display
+        if tracker is not None:
             prop.set_time(time_share((t_us - f0) / (f1 - f0)))
-        out.append((prop.display.copy(), t_us, max(0, end - pos)))
+            # events seen from 3 spans before to one span after t: the same estimate from either pair of frames
+            seen = (t_us - 3 * span, t_us + span)
+            image = with_residual(prop.log_image, prop.display, tracker.at(t_us, seen), tracker.active)
+        out.append((image.copy() if image is prop.display else image, t_us, max(0, end - pos)))
         pos = max(pos, end)
     return out
+
+
+def with_residual(log_image: np.ndarray, display: np.ndarray, residual: np.ndarray, active: np.ndarray) -> np.ndarray:
+    """A copy of `display` with the active pixels rendered from log_image + residual (flat residual)."""
+    image = display.copy()
+    if active.size == 0:
+        return image
+    flat = log_image.reshape(-1)
+    if _backend.have_numba():
+        _kernels_residual.render_with(flat, residual, active, np.float32(LOG_MIN), np.float32(LOG_MAX),
+                                      image.reshape(-1), *render_buckets())
+        return image
+    v = np.clip(flat[active] + residual[active], LOG_MIN, LOG_MAX).astype(np.float32)
+    image.reshape(-1)[active] = to_uint8(v)
+    return image

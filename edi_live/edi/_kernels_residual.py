@@ -1,6 +1,6 @@
 """numba kernels of the sub-threshold residual estimate between a pixel's events (see edi_live.edi.residual):
-the per-event link to the same pixel's next event, the per-pixel last event as the events stream in, and the
-residual (optionally rendered on top of a log image through the bucket tables).
+the per-event link to the same pixel's next event, each pixel's last and next event as the events stream in,
+and the residual at the active pixels, rendered on top of a log image through the bucket tables.
 
 Private to edi_live.edi (see edi_live.edi.residual and its numpy reference).
 """
@@ -34,38 +34,47 @@ def link_next(x, y, width, height, mask, use_mask, nxt, first):
 
 
 @njit(cache=True, nogil=True)
-def advance(x, y, width, height, mask, use_mask, start, end, last):
-    """last[q] = i for the events start <= i < end (the newest event of each pixel so far)."""
+def advance(x, y, p, tt, nxt, width, height, mask, use_mask, start, end, c_on, c_off, never, last_t, last_c,
+            next_t, next_c):
+    """For the events start <= i < end: their pixel's last event (time, signed threshold) becomes i and its next
+    event i's successor (time `never` and threshold 0 when there is none)."""
     for i in range(start, end):
         if x[i] >= width or y[i] >= height:
             continue
         q = np.int64(y[i]) * width + x[i]
         if use_mask and mask[q]:
             continue
-        last[q] = i
+        last_t[q] = tt[i]
+        last_c[q] = c_on if p[i] else -c_off
+        b = nxt[i]
+        if b >= 0:
+            next_t[q] = tt[b]
+            next_c[q] = c_on if p[b] else -c_off
+        else:
+            next_t[q] = never
+            next_c[q] = 0.0
 
 
 @njit(cache=True, nogil=True)
-def residual_at(t, tt, p, nxt, last, active, c_on, c_off, table_a, table_b, a_unknown, seen_from, seen_to, out):
+def residual_at(t, active, last_t, last_c, next_t, next_c, table_a, table_b, a_unknown, seen_from, seen_to, out):
     """out[q] = the residual estimate at time t for the active pixels q (the others untouched), as if only the
-    events with seen_from <= t <= seen_to had been seen."""
+    events with seen_from <= t <= seen_to had been seen (last_c 0: no last event)."""
     nb = table_a.size
     for k in range(active.size):
         q = active[k]
-        a = last[q]
-        if a < 0 or tt[a] < seen_from:
+        ta = last_t[q]
+        ca = last_c[q]
+        if ca == 0.0 or ta < seen_from:
             out[q] = 0.0
             continue
-        ca = c_on if p[a] else -c_off
-        b = nxt[a]
-        if b < 0 or tt[b] > seen_to:
+        tb = next_t[q]
+        if tb > seen_to:
             out[q] = a_unknown * ca
             continue
-        cb = c_on if p[b] else -c_off
-        span = tt[b] - tt[a]
-        x = (t - tt[a]) / span if span > 0 else 1.0
+        span = tb - ta
+        x = (t - ta) / span if span > 0 else 1.0
         i = min(max(int(x * nb), 0), nb - 1)
-        out[q] = table_a[i] * ca + table_b[i] * cb
+        out[q] = table_a[i] * ca + table_b[i] * next_c[q]
 
 
 @njit(cache=True, nogil=True)

@@ -240,27 +240,18 @@ def fused_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, in
             continue
         end = time_index(t, t_us, "right")
         prop.apply(events[pos:end])
-        image = prop.display
         if tracker is not None:
-            prop.set_time(time_share((t_us - f0) / (f1 - f0)))
-            # events seen from 3 spans before to one span after t: the same estimate from either pair of frames
-            seen = (t_us - 3 * span, t_us + span)
-            image = with_residual(prop.log_image, prop.display, tracker.at(t_us, seen), tracker.active)
-        out.append((image.copy() if image is prop.display else image, t_us, max(0, end - pos)))
+            tau = (t_us - f0) / (f1 - f0)
+            prop.set_time(time_share(tau))
+            tracker.at(t_us, residual_seen(t_us, span))
+            tracker.paint(prop.log_image, prop.display)
+        out.append((prop.display.copy(), t_us, max(0, end - pos)))
         pos = max(pos, end)
     return out
 
 
-def with_residual(log_image: np.ndarray, display: np.ndarray, residual: np.ndarray, active: np.ndarray) -> np.ndarray:
-    """A copy of `display` with the active pixels rendered from log_image + residual (flat residual)."""
-    image = display.copy()
-    if active.size == 0:
-        return image
-    flat = log_image.reshape(-1)
-    if _backend.have_numba():
-        _kernels_residual.render_with(flat, residual, active, np.float32(LOG_MIN), np.float32(LOG_MAX),
-                                      image.reshape(-1), *render_buckets())
-        return image
-    v = np.clip(flat[active] + residual[active], LOG_MIN, LOG_MAX).astype(np.float32)
-    image.reshape(-1)[active] = to_uint8(v)
-    return image
+def residual_seen(t_us: int, span: int) -> tuple[int, int]:
+    """The events a fused frame's residual estimate at t uses: from 10 spans before t (a pixel's last event, long
+    ago where it is still) to one span after (what the next APS frame's exposure brought): the same estimate from
+    either pair of frames around a reference, so nothing jumps where the pair changes."""
+    return t_us - 10 * span, t_us + span

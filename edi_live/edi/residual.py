@@ -24,10 +24,13 @@ from __future__ import annotations
 import numpy as np
 
 from edi_live.edi import _backend, _kernels_residual
+from edi_live.edi._backend import LOG_MAX, LOG_MIN
+from edi_live.edi.latent import render_buckets, to_uint8
 from edi_live.edi.selection import time_index, window
 
 TABLE_A = np.array([0.157, 0.245, 0.259, 0.257, 0.243, 0.228, 0.209, 0.194, 0.165, 0.088], np.float32)
 TABLE_B = np.array([-0.018, 0.011, 0.038, 0.067, 0.101, 0.143, 0.197, 0.277, 0.406, 0.696], np.float32)
+_NEVER = np.iinfo(np.int64).max // 2
 A_UNKNOWN = 0.22  # the mean of A over x: the residual after the last event when the next is not known yet
 
 
@@ -57,7 +60,11 @@ class ResidualTracker:
 
     def restart(self) -> None:
         """Back to before the window's first event."""
-        self.last = np.full(self._w * self._h, -1, np.int64)
+        n = self._w * self._h
+        self.last_t = np.zeros(n, np.int64)  # each pixel's last event so far: time, signed threshold (0: none)
+        self.last_c = np.zeros(n, np.float32)
+        self.next_t = np.full(n, _NEVER, np.int64)  # and the event after it (_NEVER, 0: none in the window)
+        self.next_c = np.zeros(n, np.float32)
         self._pos = 0
 
     def at(self, t_us: int, seen: tuple[int, int] | None = None) -> np.ndarray:
@@ -65,23 +72,53 @@ class ResidualTracker:
         pixels without events in the window. `seen` = (from, to): as if only the events in that time range were
         known (an estimate that does not depend on how wide the window is). The returned array is reused by the
         next call."""
-        lo, hi = seen if seen is not None else (np.iinfo(np.int64).min, np.iinfo(np.int64).max)
-        end = time_index(self.times, int(t_us), "right")
+        lo, hi = seen if seen is not None else (-_NEVER, _NEVER - 1)
+        start = self._pos
+        end = max(time_index(self.times, int(t_us), "right"), start)
         ev = self.events
         if _backend.have_numba():
-            _kernels_residual.advance(ev["x"], ev["y"], self._w, self._h, self._m, self._use_m, self._pos,
-                                      max(end, self._pos), self.last)
-            _kernels_residual.residual_at(np.int64(t_us), self.times, self.polarity, self.next, self.last,
-                                          self.active, self.c_on, self.c_off, TABLE_A, TABLE_B,
-                                          np.float32(A_UNKNOWN), np.int64(lo), np.int64(hi), self.residual)
+            _kernels_residual.advance(ev["x"], ev["y"], self.polarity, self.times, self.next, self._w, self._h,
+                                      self._m, self._use_m, start, end, self.c_on, self.c_off, np.int64(_NEVER),
+                                      self.last_t, self.last_c, self.next_t, self.next_c)
+            _kernels_residual.residual_at(np.int64(t_us), self.active, self.last_t, self.last_c, self.next_t,
+                                          self.next_c, TABLE_A, TABLE_B, np.float32(A_UNKNOWN), np.int64(lo),
+                                          np.int64(hi), self.residual)
         else:
-            idx = self._valid_index(self._pos, max(end, self._pos))
-            keep = idx >= 0
-            np.maximum.at(self.last, idx[keep], np.arange(self._pos, self._pos + idx.size)[keep])
-            self.residual[self.active] = _residual_numpy(int(t_us), self.times, self.polarity, self.next,
-                                                         self.last[self.active], self.c_on, self.c_off, lo, hi)
-        self._pos = max(end, self._pos)
+            self._advance_numpy(start, end)
+            q = self.active
+            self.residual[q] = _residual_numpy(int(t_us), self.last_t[q], self.last_c[q], self.next_t[q],
+                                               self.next_c[q], lo, hi)
+        self._pos = end
         return self.residual
+
+    def paint(self, log_image: np.ndarray, display: np.ndarray) -> None:
+        """display (uint8, in place) = the image of log_image + residual at the active pixels."""
+        flat, disp = log_image.reshape(-1), display.reshape(-1)
+        if _backend.have_numba():
+            _kernels_residual.render_with(flat, self.residual, self.active, np.float32(LOG_MIN), np.float32(LOG_MAX),
+                                          disp, *render_buckets())
+            return
+        q = self.active
+        disp[q] = to_uint8(np.clip(flat[q] + self.residual[q], LOG_MIN, LOG_MAX).astype(np.float32))
+
+    def _advance_numpy(self, start: int, end: int) -> None:
+        idx = self._valid_index(start, end)
+        keep = np.flatnonzero(idx >= 0)
+        if keep.size == 0:
+            return
+        q = idx[keep]
+        last = np.full(self._w * self._h, -1, np.int64)
+        np.maximum.at(last, q, start + keep)  # the newest of this batch's events per pixel
+        px = np.flatnonzero(last >= 0)
+        i = last[px]
+        on = self.polarity[i].astype(bool)
+        self.last_t[px] = self.times[i]
+        self.last_c[px] = np.where(on, self.c_on, -self.c_off)
+        b = self.next[i]
+        has = b >= 0
+        bb = np.where(has, b, 0)
+        self.next_t[px] = np.where(has, self.times[bb], _NEVER)
+        self.next_c[px] = np.where(has, np.where(self.polarity[bb].astype(bool), self.c_on, -self.c_off), 0.0)
 
     def _valid_index(self, start: int, end: int) -> np.ndarray:
         """Flat pixel index of events start..end-1, -1 for events off the sensor or masked."""
@@ -99,7 +136,7 @@ def exposure_residual(tracker: ResidualTracker, t0: int, t1: int, samples: int =
     """The mean residual estimate over `samples` times evenly inside [t0, t1] (the tracker must not be past t0),
     flat float32, from the events in [t0 - (t1 - t0), t1] only: the same value whichever window holds them."""
     acc = np.zeros_like(tracker.residual)
-    seen = (t0 - (t1 - t0), t1)
+    seen = (t0 - 5 * (t1 - t0), t1)
     for j in range(samples):
         t = t0 + (t1 - t0) * (2 * j + 1) // (2 * samples)
         acc += tracker.at(t, seen)
@@ -119,20 +156,15 @@ def _link_next_numpy(idx: np.ndarray, nxt: np.ndarray, first: np.ndarray) -> Non
     first[q[starts]] = order[starts]
 
 
-def _residual_numpy(t: int, times: np.ndarray, p: np.ndarray, nxt: np.ndarray, last: np.ndarray, c_on: np.float32,
-                    c_off: np.float32, seen_from: int, seen_to: int) -> np.ndarray:
-    out = np.zeros(last.size, np.float32)
-    a = np.where(last >= 0, last, 0)
-    has_a = (last >= 0) & (times[a] >= seen_from)
-    b = np.where(has_a, nxt[a], -1)
-    b = np.where((b >= 0) & (times[np.maximum(b, 0)] <= seen_to), b, -1)
-    ca = np.where(p[a], c_on, -c_off).astype(np.float32)
-    out[has_a & (b < 0)] = (np.float32(A_UNKNOWN) * ca)[has_a & (b < 0)]
-    both = has_a & (b >= 0)
-    bb = np.where(both, b, 0)
-    cb = np.where(p[bb], c_on, -c_off).astype(np.float32)
-    span = (times[bb] - times[a]).astype(np.float64)
-    x = np.where(span > 0, (t - times[a]) / np.where(span > 0, span, 1.0), 1.0)
+def _residual_numpy(t: int, last_t: np.ndarray, last_c: np.ndarray, next_t: np.ndarray, next_c: np.ndarray,
+                    seen_from: int, seen_to: int) -> np.ndarray:
+    out = np.zeros(last_t.size, np.float32)
+    has_a = (last_c != 0) & (last_t >= seen_from)
+    unknown = has_a & (next_t > seen_to)
+    out[unknown] = np.float32(A_UNKNOWN) * last_c[unknown]
+    both = has_a & ~unknown
+    span = (next_t - last_t).astype(np.float64)
+    x = np.where(span > 0, (t - last_t) / np.where(span > 0, span, 1.0), 1.0)
     i = np.clip((x * TABLE_A.size).astype(np.int64), 0, TABLE_A.size - 1)
-    out[both] = (TABLE_A[i] * ca + TABLE_B[i] * cb)[both]
+    out[both] = (TABLE_A[i] * last_c + TABLE_B[i] * next_c)[both]
     return out

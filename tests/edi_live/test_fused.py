@@ -80,7 +80,7 @@ def test_fused_equals_forward_at_f_k_and_backward_at_f_k1_and_the_weights_betwee
         held1 = exposure_residual(tracker, f1 - span, f1 + span).reshape(log1.shape)
         held2 = exposure_residual(tracker, f2 - span, f2 + span).reshape(log1.shape)
         tracker.restart()
-        residuals = [tracker.at(t, (t - 3 * span, t + span)).copy().reshape(log1.shape) for t in times[1:-1]]
+        residuals = [tracker.at(t, fused.residual_seen(t, span)).copy().reshape(log1.shape) for t in times[1:-1]]
     for t, r, res in zip(times[1:-1], out[1:-1], residuals):
         fwd = log1 - held1 + edi.event_delta(ev, cfg.width, cfg.height, 0.2, 0.16, t0=f1 + 1, t1=t)
         bwd = log2 - held2 - edi.event_delta(ev, cfg.width, cfg.height, 0.2, 0.16, t0=t + 1, t1=f2)

@@ -14,11 +14,14 @@ from edi_live.edi._kernels_stream import _u8
 
 
 @njit(cache=True, nogil=True)
-def link_next(x, y, width, height, mask, use_mask, nxt, first):
-    """nxt[i] = the next event of event i's pixel (-1: none), first[q] = pixel q's first event (-1: none);
-    events off the sensor or at masked pixels are left out (nxt -1, never linked)."""
+def link_next(x, y, width, height, mask, use_mask, snap, nxt, first, before):
+    """nxt[i] = the next event of event i's pixel (-1: none), first[q] = pixel q's first event (-1: none),
+    before[q] = pixel q's last event before index `snap` (-1: none); events off the sensor or at masked pixels are
+    left out (nxt -1, never linked)."""
     last = np.full(width * height, -1, np.int64)
     for i in range(x.size):
+        if i == snap:
+            before[:] = last
         nxt[i] = -1
         if x[i] >= width or y[i] >= height:
             continue
@@ -31,6 +34,30 @@ def link_next(x, y, width, height, mask, use_mask, nxt, first):
         else:
             first[q] = i
         last[q] = i
+    if snap >= x.size:
+        before[:] = last
+
+
+@njit(cache=True, nogil=True)
+def start_from(before, tt, p, nxt, c_on, c_off, never, last_t, last_c, next_t, next_c):
+    """Each pixel's last and next event as they stand after the events before[q] (-1: none)."""
+    for q in range(before.size):
+        a = before[q]
+        if a < 0:
+            last_t[q] = 0
+            last_c[q] = 0.0
+            next_t[q] = never
+            next_c[q] = 0.0
+            continue
+        last_t[q] = tt[a]
+        last_c[q] = c_on if p[a] else -c_off
+        b = nxt[a]
+        if b >= 0:
+            next_t[q] = tt[b]
+            next_c[q] = c_on if p[b] else -c_off
+        else:
+            next_t[q] = never
+            next_c[q] = 0.0
 
 
 @njit(cache=True, nogil=True)
@@ -83,6 +110,34 @@ def render_with(flat, res, active, lo, hi, disp, v0, scale, bucket_u8, bucket_th
     for k in range(active.size):
         q = active[k]
         v = flat[q] + res[q]
+        if v < lo:
+            v = lo
+        elif v > hi:
+            v = hi
+        disp[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)
+
+
+@njit(cache=True, nogil=True)
+def residual_paint(t, active, last_t, last_c, next_t, next_c, table_a, table_b, a_unknown, seen_from, seen_to,
+                   out, flat, lo, hi, disp, v0, scale, bucket_u8, bucket_thr):
+    """residual_at and render_with in one pass over the active pixels (what a fused frame needs)."""
+    nb = table_a.size
+    for k in range(active.size):
+        q = active[k]
+        ta = last_t[q]
+        ca = last_c[q]
+        r = np.float32(0.0)
+        if ca != 0.0 and ta >= seen_from:
+            tb = next_t[q]
+            if tb > seen_to:
+                r = a_unknown * ca
+            else:
+                span = tb - ta
+                x = (t - ta) / span if span > 0 else 1.0
+                i = min(max(int(x * nb), 0), nb - 1)
+                r = table_a[i] * ca + table_b[i] * next_c[q]
+        out[q] = r
+        v = flat[q] + r
         if v < lo:
             v = lo
         elif v > hi:

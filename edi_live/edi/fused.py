@@ -24,6 +24,12 @@ does (O(new events)) plus, STEPS times per interval, one pass over the pixels fo
 The plan is set up once per pair of frames (`fusion_plan`, O(events + pixels)); `fused_frames` renders a pair's
 held times with it in one pass (or, with `forward_plan`, plain forward EDI after the last frame). A = 1 (5 events at c = 0.2) and
 STEPS = 4 were chosen on the accuracy benchmark's scenes (tools/bench_modes.py; A in 0.5..2 is within 0.1 dB).
+
+On top, each frame adds the sub-threshold residual estimate r(t) between a pixel's events (edi_live.edi.residual),
+and the references enter the plan less what they already hold of it (its mean over RESIDUAL_SPAN of an interval
+either side of their mid-exposure): log L(t) = fused(log L_k - r_k, log L_{k+1} - r_{k+1}; t) + r(t). Both use
+only the events of fixed time ranges around t (residual_seen), so a frame near a reference comes out the same from
+either pair of frames. The frames at exactly f_k and f_{k+1} are the deblurred frames themselves.
 """
 
 from __future__ import annotations
@@ -223,8 +229,8 @@ def fused_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, in
     else:
         log0, f0 = previous
         h, w = log0.shape
-        tracker = ResidualTracker(events, w, h, c[0], c[1], mask)
         span = int(RESIDUAL_SPAN * (f1 - f0))
+        tracker = ResidualTracker(events, w, h, c[0], c[1], mask, start_us=f0 - span - 1)
         held0 = exposure_residual(tracker, f0 - span, f0 + span).reshape(h, w)
         held1 = exposure_residual(tracker, f1 - span, f1 + span).reshape(h, w)
         tracker.restart()
@@ -243,8 +249,7 @@ def fused_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, in
         if tracker is not None:
             tau = (t_us - f0) / (f1 - f0)
             prop.set_time(time_share(tau))
-            tracker.at(t_us, residual_seen(t_us, span))
-            tracker.paint(prop.log_image, prop.display)
+            tracker.at_painted(t_us, residual_seen(t_us, span), prop.log_image, prop.display)
         out.append((prop.display.copy(), t_us, max(0, end - pos)))
         pos = max(pos, end)
     return out

@@ -39,7 +39,9 @@ class ResidualTracker:
     each event's successor are made once, O(events))."""
 
     def __init__(self, events: np.ndarray, width: int, height: int, c_on: float, c_off: float,
-                 mask: np.ndarray | None = None) -> None:
+                 mask: np.ndarray | None = None, start_us: int | None = None) -> None:
+        """`start_us`: the earliest time `at` will be asked for (the events before it are context only: each
+        pixel's last event is found in the same pass that links them)."""
         self.events = window(events, None, None)
         self._w, self._h = width, height
         self.c_on, self.c_off = np.float32(c_on), np.float32(c_off)
@@ -48,30 +50,59 @@ class ResidualTracker:
         self.next = np.empty(n, np.int64)
         first = np.full(width * height, -1, np.int64)
         ev = self.events
-        if _backend.have_numba():
-            _kernels_residual.link_next(ev["x"], ev["y"], width, height, self._m, self._use_m, self.next, first)
-        else:
-            _link_next_numpy(self._valid_index(0, n), self.next, first)
-        self.active = np.flatnonzero(first >= 0)
         self.times = np.ascontiguousarray(ev["t"], np.int64)
         self.polarity = np.ascontiguousarray(ev["p"])
+        self._start = 0 if start_us is None else time_index(self.times, int(start_us), "right")
+        self._before = np.full(width * height, -1, np.int64)
+        if _backend.have_numba():
+            _kernels_residual.link_next(ev["x"], ev["y"], width, height, self._m, self._use_m, self._start, self.next,
+                                        first, self._before)
+        else:
+            idx = self._valid_index(0, n)
+            _link_next_numpy(idx, self.next, first)
+            early = np.flatnonzero(idx[:self._start] >= 0)
+            np.maximum.at(self._before, idx[early], early)
+        self.active = np.flatnonzero(first >= 0)
         self.residual = np.zeros(width * height, np.float32)
         self.restart()
 
     def restart(self) -> None:
-        """Back to before the window's first event."""
+        """Back to `start_us` (the window's start without one)."""
         n = self._w * self._h
         self.last_t = np.zeros(n, np.int64)  # each pixel's last event so far: time, signed threshold (0: none)
         self.last_c = np.zeros(n, np.float32)
         self.next_t = np.full(n, _NEVER, np.int64)  # and the event after it (_NEVER, 0: none in the window)
         self.next_c = np.zeros(n, np.float32)
-        self._pos = 0
+        if _backend.have_numba():
+            _kernels_residual.start_from(self._before, self.times, self.polarity, self.next, self.c_on, self.c_off,
+                                         np.int64(_NEVER), self.last_t, self.last_c, self.next_t, self.next_c)
+        else:
+            self._set_last(np.flatnonzero(self._before >= 0), self._before[self._before >= 0])
+        self._pos = self._start
 
     def at(self, t_us: int, seen: tuple[int, int] | None = None) -> np.ndarray:
         """The flat float32 residual estimate at t (>= the previous call's t) at the active pixels; zero at the
         pixels without events in the window. `seen` = (from, to): as if only the events in that time range were
         known (an estimate that does not depend on how wide the window is). The returned array is reused by the
         next call."""
+        self._update(t_us, seen)
+        return self.residual
+
+    def at_painted(self, t_us: int, seen: tuple[int, int] | None, log_image: np.ndarray,
+                   display: np.ndarray) -> None:
+        """`at`, then `paint` (in one pass over the active pixels with the kernels)."""
+        if not _backend.have_numba():
+            self.at(t_us, seen)
+            self.paint(log_image, display)
+            return
+        lo, hi = self._update(t_us, seen, estimate=False)
+        _kernels_residual.residual_paint(np.int64(t_us), self.active, self.last_t, self.last_c, self.next_t,
+                                         self.next_c, TABLE_A, TABLE_B, np.float32(A_UNKNOWN), np.int64(lo),
+                                         np.int64(hi), self.residual, log_image.reshape(-1), np.float32(LOG_MIN),
+                                         np.float32(LOG_MAX), display.reshape(-1), *render_buckets())
+
+    def _update(self, t_us: int, seen: tuple[int, int] | None, estimate: bool = True) -> tuple[int, int]:
+        """Advance to t and (`estimate`) the residual at the active pixels; returns the seen range."""
         lo, hi = seen if seen is not None else (-_NEVER, _NEVER - 1)
         start = self._pos
         end = max(time_index(self.times, int(t_us), "right"), start)
@@ -80,16 +111,17 @@ class ResidualTracker:
             _kernels_residual.advance(ev["x"], ev["y"], self.polarity, self.times, self.next, self._w, self._h,
                                       self._m, self._use_m, start, end, self.c_on, self.c_off, np.int64(_NEVER),
                                       self.last_t, self.last_c, self.next_t, self.next_c)
-            _kernels_residual.residual_at(np.int64(t_us), self.active, self.last_t, self.last_c, self.next_t,
-                                          self.next_c, TABLE_A, TABLE_B, np.float32(A_UNKNOWN), np.int64(lo),
-                                          np.int64(hi), self.residual)
+            if estimate:
+                _kernels_residual.residual_at(np.int64(t_us), self.active, self.last_t, self.last_c, self.next_t,
+                                              self.next_c, TABLE_A, TABLE_B, np.float32(A_UNKNOWN), np.int64(lo),
+                                              np.int64(hi), self.residual)
         else:
             self._advance_numpy(start, end)
             q = self.active
             self.residual[q] = _residual_numpy(int(t_us), self.last_t[q], self.last_c[q], self.next_t[q],
                                                self.next_c[q], lo, hi)
         self._pos = end
-        return self.residual
+        return lo, hi
 
     def paint(self, log_image: np.ndarray, display: np.ndarray) -> None:
         """display (uint8, in place) = the image of log_image + residual at the active pixels."""
@@ -106,11 +138,12 @@ class ResidualTracker:
         keep = np.flatnonzero(idx >= 0)
         if keep.size == 0:
             return
-        q = idx[keep]
         last = np.full(self._w * self._h, -1, np.int64)
-        np.maximum.at(last, q, start + keep)  # the newest of this batch's events per pixel
+        np.maximum.at(last, idx[keep], start + keep)  # the newest of this batch's events per pixel
         px = np.flatnonzero(last >= 0)
-        i = last[px]
+        self._set_last(px, last[px])
+
+    def _set_last(self, px: np.ndarray, i: np.ndarray) -> None:
         on = self.polarity[i].astype(bool)
         self.last_t[px] = self.times[i]
         self.last_c[px] = np.where(on, self.c_on, -self.c_off)
@@ -132,7 +165,7 @@ class ResidualTracker:
         return idx
 
 
-def exposure_residual(tracker: ResidualTracker, t0: int, t1: int, samples: int = 6) -> np.ndarray:
+def exposure_residual(tracker: ResidualTracker, t0: int, t1: int, samples: int = 4) -> np.ndarray:
     """The mean residual estimate over `samples` times evenly inside [t0, t1] (the tracker must not be past t0),
     flat float32, from the events in [t0 - (t1 - t0), t1] only: the same value whichever window holds them."""
     acc = np.zeros_like(tracker.residual)

@@ -24,6 +24,12 @@ does (O(new events)) plus, STEPS times per interval, one pass over the pixels fo
 The plan is set up once per pair of frames (`fusion_plan`, O(events + pixels)); `fused_frames` renders a pair's
 held times with it in one pass (or, with `forward_plan`, plain forward EDI after the last frame). A = 1 (5 events at c = 0.2) and
 STEPS = 4 were chosen on the accuracy benchmark's scenes (tools/bench_modes.py; A in 0.5..2 is within 0.1 dB).
+
+On top, each frame adds the sub-threshold residual estimate r(t) between a pixel's events (edi_live.edi.residual),
+and the references enter the plan less what they already hold of it (its mean over RESIDUAL_SPAN of an interval
+either side of their mid-exposure): log L(t) = fused(log L_k - r_k, log L_{k+1} - r_{k+1}; t) + r(t). Both use
+only the events of fixed time ranges around t (residual_seen), so a frame near a reference comes out the same from
+either pair of frames. The frames at exactly f_k and f_{k+1} are the deblurred frames themselves.
 """
 
 from __future__ import annotations
@@ -33,14 +39,16 @@ from typing import Sequence
 
 import numpy as np
 
-from edi_live.edi import _backend, _kernels_fused
+from edi_live.edi import _backend, _kernels_fused, _kernels_residual
 from edi_live.edi._backend import LOG_MAX, LOG_MIN
 from edi_live.edi.latent import event_delta, render_buckets, to_uint8
+from edi_live.edi.residual import ResidualTracker, exposure_residual
 from edi_live.edi.selection import select, time_index, window
 
 
 REFERENCE_MASS = 1.0  # A: a reference frame's own error, in units of event mass (log intensity)
 TIME_STEPS = 4
+RESIDUAL_SPAN = 0.3  # the residual a reference holds: its estimate averaged over this share of the interval
 
 
 def time_share(tau: float, steps: int = TIME_STEPS) -> float:
@@ -214,12 +222,20 @@ def fused_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, in
     plain forward EDI, for times after the current f); `informative`: where the previous / current APS frame is
     neither clipped nor black; `events`: at least those from the earlier reference to the last time."""
     log1, f1 = current
+    tracker = None
     if previous is None:
         log0, f0 = log1, f1
         plan = forward_plan(log1, f1, *c)
     else:
         log0, f0 = previous
-        plan = fusion_plan(log0, log1, events, f0, f1, c[0], c[1], informative[0], informative[1], mask=mask)
+        h, w = log0.shape
+        span = int(RESIDUAL_SPAN * (f1 - f0))
+        tracker = ResidualTracker(events, w, h, c[0], c[1], mask, start_us=f0 - span - 1)
+        held0 = exposure_residual(tracker, f0 - span, f0 + span).reshape(h, w)
+        held1 = exposure_residual(tracker, f1 - span, f1 + span).reshape(h, w)
+        tracker.restart()
+        plan = fusion_plan(log0 - held0, log1 - held1, events, f0, f1, c[0], c[1], informative[0], informative[1],
+                           mask=mask)
     prop = FusedPropagator(plan, mask)
     t = events["t"]
     pos = time_index(t, f0, "right")
@@ -230,8 +246,17 @@ def fused_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, in
             continue
         end = time_index(t, t_us, "right")
         prop.apply(events[pos:end])
-        if previous is not None:
-            prop.set_time(time_share((t_us - f0) / (f1 - f0)))
+        if tracker is not None:
+            tau = (t_us - f0) / (f1 - f0)
+            prop.set_time(time_share(tau))
+            tracker.at_painted(t_us, residual_seen(t_us, span), prop.log_image, prop.display)
         out.append((prop.display.copy(), t_us, max(0, end - pos)))
         pos = max(pos, end)
     return out
+
+
+def residual_seen(t_us: int, span: int) -> tuple[int, int]:
+    """The events a fused frame's residual estimate at t uses: from 10 spans before t (a pixel's last event, long
+    ago where it is still) to one span after (what the next APS frame's exposure brought): the same estimate from
+    either pair of frames around a reference, so nothing jumps where the pair changes."""
+    return t_us - 10 * span, t_us + span

@@ -12,6 +12,8 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 import edi_live.edi as edi
+from edi_live.edi import fused
+from edi_live.edi.residual import ResidualTracker, exposure_residual
 from edi_live.reconstructor import EdiReconstructor
 from edi_live.simulation import SceneConfig, simulate
 from tests.helpers.recordings import packets_by_frame
@@ -72,13 +74,20 @@ def test_fused_equals_forward_at_f_k_and_backward_at_f_k1_and_the_weights_betwee
     assert np.array_equal(out[-1].image, edi.to_uint8(log2))  # backward at f_{k+1}
     inf1 = edi.blurry_to_float(sim.frames[1].image)[1]
     inf2 = edi.blurry_to_float(sim.frames[2].image)[1]
-    for t, r in zip(times[1:-1], out[1:-1]):
-        fwd = log1 + edi.event_delta(ev, cfg.width, cfg.height, 0.2, 0.16, t0=f1 + 1, t1=t)
-        bwd = log2 - edi.event_delta(ev, cfg.width, cfg.height, 0.2, 0.16, t0=t + 1, t1=f2)
+    with edi.numpy_reference():  # the residual estimate (its own tests: test_residual.py), numpy reference
+        tracker = ResidualTracker(ev, cfg.width, cfg.height, 0.2, 0.16)
+        span = int(fused.RESIDUAL_SPAN * (f2 - f1))
+        held1 = exposure_residual(tracker, f1 - span, f1 + span).reshape(log1.shape)
+        held2 = exposure_residual(tracker, f2 - span, f2 + span).reshape(log1.shape)
+        tracker.restart()
+        residuals = [tracker.at(t, fused.residual_seen(t, span)).copy().reshape(log1.shape) for t in times[1:-1]]
+    for t, r, res in zip(times[1:-1], out[1:-1], residuals):
+        fwd = log1 - held1 + edi.event_delta(ev, cfg.width, cfg.height, 0.2, 0.16, t0=f1 + 1, t1=t)
+        bwd = log2 - held2 - edi.event_delta(ev, cfg.width, cfg.height, 0.2, 0.16, t0=t + 1, t1=f2)
         m = edi.event_mass(ev, cfg.width, cfg.height, 0.2, 0.16, t0=f1 + 1, t1=t)
         mt = edi.event_mass(ev, cfg.width, cfg.height, 0.2, 0.16, t0=f1 + 1, t1=f2)
         _, wb = edi.fusion_weights(m, mt, (t - f1) / (f2 - f1), inf1, inf2)
-        want = edi.to_uint8(edi.fused_log(fwd, bwd, wb))
+        want = edi.to_uint8(edi.fused_log(fwd, bwd, wb) + res)
         assert np.mean(np.abs(r.image.astype(int) - want)) < 0.05  # float32 rounding at a few pixels
         assert np.max(np.abs(r.image.astype(int) - want)) <= 1
 

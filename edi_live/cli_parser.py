@@ -94,6 +94,9 @@ def build_parser() -> argparse.ArgumentParser:
     edi.add_argument("--flicker-mask", action=argparse.BooleanOptionalAction,
                      help="ignore the events of pixels that flicker at a mains period (100/120 Hz lamps), so that a "
                           "lamp shows what the APS frames say instead of drifting or blooming (default: on)")
+    edi.add_argument("--fused-residual", action=argparse.BooleanOptionalAction,
+                     help="--mode fused: also estimate how far each pixel's log intensity has moved towards its next "
+                          "event (+2 dB on the simulator, at about 5x the cost per frame; default: off)")
     edi.add_argument("--reestimate-every", type=int, metavar="K",
                      help="also re-estimate c every K APS frames (default: 0 = only when it stops fitting)")
     edi.add_argument("--black-level", type=float, metavar="DN",

@@ -117,6 +117,7 @@ class EdiConfig:
     deblur_thread: bool | None = None
     deblur_ahead: bool = True  # run the next exposure's double integral while it is exposed (exposure_ahead.py)
     flicker_mask: bool = True  # ignore pixels that flicker at a mains period (flicker_pixels.py)
+    fused_residual: bool = False  # fused mode: estimate the log change below one threshold between events
     c_start: tuple[float, float] | None = None  # (c_on, c_off) from a saved calibration (set by the node)
     aps_gamma: float | None = None  # APS response exponent; None: 1, or a loaded calibration's
     # events arrive this many µs later than the APS exposure they belong to; None: 0, or a loaded calibration's
@@ -158,6 +159,8 @@ class EdiConfig:
                f"bayer-pattern must be one of {', '.join(COLOR_FILTERS)} (got {self.color_filter!r})")
         _check(isinstance(self.deblur_ahead, bool), f"deblur-ahead must be true or false (got {self.deblur_ahead!r})")
         _check(isinstance(self.flicker_mask, bool), f"flicker-mask must be true or false (got {self.flicker_mask!r})")
+        _check(isinstance(self.fused_residual, bool),
+               f"fused-residual must be true or false (got {self.fused_residual!r})")
         _check(self.deblur_thread is None or isinstance(self.deblur_thread, bool),
                f"deblur-thread must be true or false (got {self.deblur_thread!r})")
 
@@ -322,6 +325,7 @@ OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
     "deblur_thread": ("edi", "deblur_thread", None),
     "deblur_ahead": ("edi", "deblur_ahead", _bool("deblur-ahead")),
     "flicker_mask": ("edi", "flicker_mask", _bool("flicker-mask")),
+    "fused_residual": ("edi", "fused_residual", _bool("fused-residual")),
     "gray": ("edi", "gray", _bool("gray")),
     "bayer_pattern": ("edi", "color_filter", lambda v: None if v is None else str(v).upper()),
     "publish": ("publisher", "endpoints", _endpoints),

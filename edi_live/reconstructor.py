@@ -325,15 +325,15 @@ class EdiReconstructor:
 
     def render_fused(self, previous: tuple[np.ndarray, int] | None, previous_image: np.ndarray | None,
                      current_image: np.ndarray | None, times: Sequence[int], events: np.ndarray) -> list[Reconstruction]:
-        """Latent frames at `times` (ascending, between the previous reference f0 and the current one f1) from both
-        references (edi.fused_frames); `events` hold at least those with f0 < t <= f1 (previous None: forward
-        from the current reference, times after f1; the images are then not used). Frames carry ref_t_us = f1."""
+        """Latent frames at `times` (ascending, f0 < t < f1) from both references (edi.fused_frames: what `events`
+        must hold); previous None: forward from the current one, times after f1. Frames carry ref_t_us = f1."""
         self._need_reference("render_fused()")
         informative = None if previous is None else (
             self._aps.to_float(colour_edi.as_mosaic(self._colour, previous_image))[1],
             self._aps.to_float(colour_edi.as_mosaic(self._colour, current_image))[1])
         frames = edi.fused_frames(self.reference_log(), previous, informative, times,
-                              events[:0] if self.events_ignored else events, self._c(), self._mask)
+                                  events[:0] if self.events_ignored else events, self._c(), self._mask,
+                                  residual=self.settings.fused_residual)
         return [self._reconstruction(image, t, "latent", n) for image, t, n in frames]
 
     def stats(self) -> dict:

@@ -29,7 +29,7 @@ import numpy as np
 
 from edi_live.simulation import Simulation, simulate
 
-MODES_RUN = ("causal", "nearest", "fused")
+MODES_RUN = ("causal", "nearest", "fused", "fused+residual")  # fused+residual: --mode fused --fused-residual
 
 
 @dataclass
@@ -53,9 +53,10 @@ def feed_worker(sim: Simulation, mode: str, every: int, c: tuple[float, float] |
     from edi_live.worker import EdiWorker
 
     cfg = sim.config
+    mode, residual = mode.split("+")[0], mode.endswith("+residual")
     ring = EventRing(capacity_events=1 << 22, capacity_frames=64, policy="wait")
-    rec = (EdiReconstructor(cfg.width, cfg.height, c_on=c[0], c_off=c[1]) if c is not None
-           else EdiReconstructor(cfg.width, cfg.height, joint_pairs=joint_pairs))
+    rec = (EdiReconstructor(cfg.width, cfg.height, c_on=c[0], c_off=c[1], fused_residual=residual) if c is not None
+           else EdiReconstructor(cfg.width, cfg.height, joint_pairs=joint_pairs, fused_residual=residual))
     out: list = []
     errors: list = []
     worker = EdiWorker(ring, rec, EdiConfig(every=every, mode=mode, deblur_thread=False, quality_every=0,

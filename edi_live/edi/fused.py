@@ -216,14 +216,20 @@ class FusedPropagator:
 
 def fused_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, int] | None,
                  informative: tuple[np.ndarray, np.ndarray] | None, times: Sequence[int], events: np.ndarray,
-                 c: tuple[float, float], mask: np.ndarray | None) -> list[tuple[np.ndarray, int, int]]:
+                 c: tuple[float, float], mask: np.ndarray | None, *,
+                 residual: bool = True) -> list[tuple[np.ndarray, int, int]]:
     """The latent images at `times` (ascending) in one propagation pass over the events: (uint8 image, t, events
     since the previous image) per time. `current`/`previous`: (log L(f), f) of the two references (previous None:
     plain forward EDI, for times after the current f); `informative`: where the previous / current APS frame is
-    neither clipped nor black; `events`: at least those from the earlier reference to the last time."""
+    neither clipped nor black; `events`: at least those from the earlier reference to the last time (with
+    `residual`, the sub-threshold residual estimate between events: four intervals before f0 to the new frame's
+    exposure end; ~5x the cost of a frame without it)."""
     log1, f1 = current
     tracker = None
-    if previous is None:
+    if previous is not None and not residual:
+        log0, f0 = previous
+        plan = fusion_plan(log0, log1, events, f0, f1, c[0], c[1], informative[0], informative[1], mask=mask)
+    elif previous is None:
         log0, f0 = log1, f1
         plan = forward_plan(log1, f1, *c)
     else:
@@ -246,9 +252,9 @@ def fused_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, in
             continue
         end = time_index(t, t_us, "right")
         prop.apply(events[pos:end])
+        if previous is not None:
+            prop.set_time(time_share((t_us - f0) / (f1 - f0)))
         if tracker is not None:
-            tau = (t_us - f0) / (f1 - f0)
-            prop.set_time(time_share(tau))
             tracker.at_painted(t_us, residual_seen(t_us, span), prop.log_image, prop.display)
         out.append((prop.display.copy(), t_us, max(0, end - pos)))
         pos = max(pos, end)

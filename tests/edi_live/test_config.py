@@ -236,3 +236,12 @@ def test_the_flicker_mask_switch_reaches_the_reconstructor():
     assert default_reconstructor(16, 12, off.edi).settings.mask_flicker_pixels is False
     with pytest.raises(ConfigError, match="flicker-mask must be true or false"):
         NodeConfig.from_options({"device": "auto", "flicker_mask": "false"})  # a TOML string, not a boolean
+
+
+def test_the_fused_residual_switch_reaches_the_reconstructor():
+    from edi_live.node import default_reconstructor
+
+    plain = NodeConfig.from_options({"device": "auto", "mode": "fused"})
+    residual = NodeConfig.from_options({"device": "auto", "mode": "fused", "fused_residual": True})
+    assert default_reconstructor(16, 12, plain.edi).settings.fused_residual is False
+    assert default_reconstructor(16, 12, residual.edi).settings.fused_residual is True

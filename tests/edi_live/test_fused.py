@@ -46,10 +46,10 @@ def _scene(**kw):
     return simulate(cfg)
 
 
-def _references(sim, c_on, c_off):
+def _references(sim, c_on, c_off, **settings):
     """Deblurred frames k=1, 2 from the reconstructor (true c given) and the events between them."""
     cfg = sim.config
-    rec = EdiReconstructor(cfg.width, cfg.height, c_on=c_on, c_off=c_off)
+    rec = EdiReconstructor(cfg.width, cfg.height, c_on=c_on, c_off=c_off, **settings)
     ev = sim.events
     logs = []
     for f in sim.frames[:3]:
@@ -59,11 +59,11 @@ def _references(sim, c_on, c_off):
     return rec, logs
 
 
-@pytest.mark.parametrize("numpy_ref", [False, True])
-def test_fused_equals_forward_at_f_k_and_backward_at_f_k1_and_the_weights_between(numpy_ref):
+@pytest.mark.parametrize("numpy_ref, residual", [(False, False), (True, False), (False, True), (True, True)])
+def test_fused_equals_forward_at_f_k_and_backward_at_f_k1_and_the_weights_between(numpy_ref, residual):
     sim = _scene(c_on=0.2, c_off=0.16)
     cfg = sim.config
-    rec, logs = _references(sim, 0.2, 0.16)
+    rec, logs = _references(sim, 0.2, 0.16, fused_residual=residual)
     (log1, f1), (log2, f2) = logs[1], logs[2]
     ev = sim.events
     times = [f1, f1 + (f2 - f1) // 3, f1 + (f2 - f1) * 2 // 3, f2 - 1, f2]
@@ -81,6 +81,9 @@ def test_fused_equals_forward_at_f_k_and_backward_at_f_k1_and_the_weights_betwee
         held2 = exposure_residual(tracker, f2 - span, f2 + span).reshape(log1.shape)
         tracker.restart()
         residuals = [tracker.at(t, fused.residual_seen(t, span)).copy().reshape(log1.shape) for t in times[1:-1]]
+    if not residual:  # --fused-residual off (the default): plain two-sided EDI
+        held1 = held2 = np.zeros_like(log1)
+        residuals = [np.zeros_like(log1)] * len(residuals)
     for t, r, res in zip(times[1:-1], out[1:-1], residuals):
         fwd = log1 - held1 + edi.event_delta(ev, cfg.width, cfg.height, 0.2, 0.16, t0=f1 + 1, t1=t)
         bwd = log2 - held2 - edi.event_delta(ev, cfg.width, cfg.height, 0.2, 0.16, t0=t + 1, t1=f2)

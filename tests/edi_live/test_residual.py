@@ -88,7 +88,7 @@ def test_the_residual_makes_fused_frames_closer_to_the_truth():
     cfg = SceneConfig(width=96, height=72, duration_s=0.3, texture="camera", velocity_px_s=(150.0, 30.0),
                       noise_rate_hz=0.1, seed=5, latent_per_interval=6, c_sigma=0.02)
     sim = simulate(cfg)
-    rec = EdiReconstructor(cfg.width, cfg.height, c_on=0.2, c_off=0.2)
+    rec = EdiReconstructor(cfg.width, cfg.height, c_on=0.2, c_off=0.2, fused_residual=True)
     ev = sim.events
     mse = {"residual": [], "step": []}
     prev = None

@@ -93,7 +93,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "regular, so a deblurred frame only waits for a finish (default: on; frames are the same)")
     edi.add_argument("--flicker-mask", action=argparse.BooleanOptionalAction,
                      help="ignore the events of pixels that flicker at a mains period (100/120 Hz lamps), so that a "
-                          "lamp shows what the APS frames say instead of drifting or blooming (default: on)")
+                          "lamp shows what the APS frames say instead of drifting or blooming (default: on, except "
+                          "in fused mode, whose next APS frame already takes the drift out)")
     edi.add_argument("--fused-residual", action=argparse.BooleanOptionalAction,
                      help="--mode fused: also estimate how far each pixel's log intensity has moved towards its next "
                           "event (+2 dB on the simulator, at about 5x the cost per frame; default: off)")

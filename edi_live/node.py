@@ -70,7 +70,7 @@ def default_reconstructor(width: int, height: int, edi: EdiConfig) -> Reconstruc
         kwargs["c_start"] = edi.c_start
     kwargs["color_filter"], kwargs["gray"] = edi.color_filter, bool(edi.gray)
     kwargs["deblur_ahead"] = bool(edi.deblur_ahead)
-    kwargs["mask_flicker_pixels"] = bool(edi.flicker_mask)
+    kwargs["mask_flicker_pixels"] = edi.mode != "fused" if edi.flicker_mask is None else bool(edi.flicker_mask)
     kwargs["fused_residual"] = bool(edi.fused_residual)
     if edi.mode == "fused":
         kwargs["joint_pairs"] = fused_mode.JOINT_PAIRS

@@ -230,10 +230,13 @@ def test_gray_is_a_switch_from_the_flag_or_the_config_file(tmp_path: Path):
 def test_the_flicker_mask_switch_reaches_the_reconstructor():
     from edi_live.node import default_reconstructor
 
-    on = NodeConfig.from_options({"device": "auto"})
-    off = NodeConfig.from_options({"device": "auto", "flicker_mask": False})
-    assert default_reconstructor(16, 12, on.edi).settings.mask_flicker_pixels is True
-    assert default_reconstructor(16, 12, off.edi).settings.mask_flicker_pixels is False
+    def masked(**options):
+        cfg = NodeConfig.from_options({"device": "auto", **options})
+        return default_reconstructor(16, 12, cfg.edi).settings.mask_flicker_pixels
+
+    assert masked() is True and masked(mode="nearest") is True
+    assert masked(mode="fused") is False  # its next frame takes the drift out; the mask would cost it
+    assert masked(flicker_mask=False) is False and masked(mode="fused", flicker_mask=True) is True
     with pytest.raises(ConfigError, match="flicker-mask must be true or false"):
         NodeConfig.from_options({"device": "auto", "flicker_mask": "false"})  # a TOML string, not a boolean
 

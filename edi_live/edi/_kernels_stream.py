@@ -99,8 +99,11 @@ def divisor_feed(t, x, y, p, width, height, mask, use_mask, ts, f, c, count_all,
             continue
         q = np.int64(y[i]) * width + x[i]
         if use_mask and mask[q]:
-            if use_count_all:
-                count_all[q] += 1
+            if use_count_all:  # counted at the finish: a fed state may be dropped unfinished
+                if seen[q] == 0:  # 3: masked, its events counted in n
+                    seen[q] = 3
+                    state[q].n = 0
+                state[q].n += 1
             continue
         row = state[q]
         ti = np.float32(t[i] - ts)
@@ -148,6 +151,9 @@ def divisor_finish(width, height, ts, te, c, count_all, use_count_all, state, se
         if seen[q] == 0:
             continue
         row = state[q]
+        if seen[q] == 3:
+            count_all[q] += row.n
+            continue
         total = row.s
         base = row.base
         if span - row.t > 0.0:
@@ -277,8 +283,11 @@ def divisor_feed_two(t, x, y, p, width, height, mask, use_mask, ts, f, c_on, c_o
             continue
         q = np.int64(y[i]) * width + x[i]
         if use_mask and mask[q]:
-            if use_count_all:
-                count_all[q] += 1
+            if use_count_all:  # counted at the finish (see divisor_feed); 3: masked, its events counted in on
+                if seen[q] == 0:
+                    seen[q] = 3
+                    state[q].on = 0
+                state[q].on += 1
             continue
         row = state[q]
         ti = np.float32(t[i] - ts)
@@ -322,6 +331,9 @@ def divisor_finish_two(width, height, ts, te, c_on, c_off, count_all, use_count_
         if seen[q] == 0:
             continue
         row = state[q]
+        if seen[q] == 3:
+            count_all[q] += row.on
+            continue
         if span - row.t > 0.0:
             _add_dwell(row, span - row.t, c_on, c_off)
         total = row.s

@@ -21,8 +21,9 @@ class RunningDivisor:
     """log_divisor_events(all events fed, width, height, ts, te, f, c_on, c_off, mask=, event_counts=) in parts.
 
     feed() takes the stream's events in time order as they come (each once), feed_from() a batch that repeats
-    some of them; events outside [ts, te] are skipped. With `event_counts`, masked events are
-    counted into it as they are fed, and the active ones at the finish, as log_divisor_events does in one go.
+    some of them; events outside [ts, te] are skipped. With `event_counts`, every event is counted into it at the
+    finish, as log_divisor_events does in one go, and none before: a running divisor dropped unfinished (its
+    window was not the exposure's) must leave the counts to the deblur that reads the events instead.
     """
 
     def __init__(self, width: int, height: int, exposure_start_us: int, exposure_end_us: int, ref_t_us: int | None,

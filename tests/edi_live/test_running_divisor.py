@@ -73,6 +73,21 @@ def test_matches_names_exactly_the_divisor_it_computes(rng):
     assert not run.matches(0, 10_000, 5_000, 0.2, 0.2, mask.copy(), None)  # another mask, even if equal now
 
 
+@pytest.mark.parametrize("reference", [False, True])
+@pytest.mark.parametrize("c_on, c_off", [(0.2, 0.2), (0.25, 0.17)])
+def test_events_are_counted_only_at_the_finish(rng, reference, c_on, c_off):
+    # a running integral may be fed and then dropped (its window was not the exposure's): it must not have
+    # counted anything by then, masked events included, or the deblur that reads the events counts them twice
+    ev = _events(rng)
+    mask = np.zeros(W * H, bool)
+    mask[rng.integers(0, W * H, 20)] = True
+    counts = np.zeros(W * H, np.int64)
+    with edi.numpy_reference() if reference else _nothing():
+        run = edi.RunningDivisor(W, H, 5_000, 37_000, 21_000, c_on, c_off, mask=mask, event_counts=counts)
+        run.feed(ev)
+    assert run.events_fed > 0 and not counts.any()
+
+
 class _nothing:
     def __enter__(self):
         return self

@@ -49,15 +49,21 @@ def start_from(before, tt, p, nxt, c_on, c_off, never, last_t, last_c, next_t, n
             next_t[q] = never
             next_c[q] = 0.0
             continue
-        last_t[q] = tt[a]
-        last_c[q] = c_on if p[a] else -c_off
-        b = nxt[a]
-        if b >= 0:
-            next_t[q] = tt[b]
-            next_c[q] = c_on if p[b] else -c_off
-        else:
-            next_t[q] = never
-            next_c[q] = 0.0
+        _take(q, a, tt, p, nxt, c_on, c_off, never, last_t, last_c, next_t, next_c)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _take(q, i, tt, p, nxt, c_on, c_off, never, last_t, last_c, next_t, next_c):
+    """Pixel q's last event becomes event i (time, signed threshold), its next event i's successor."""
+    last_t[q] = tt[i]
+    last_c[q] = c_on if p[i] else -c_off
+    b = nxt[i]
+    if b >= 0:
+        next_t[q] = tt[b]
+        next_c[q] = c_on if p[b] else -c_off
+    else:
+        next_t[q] = never
+        next_c[q] = 0.0
 
 
 @njit(cache=True, nogil=True)
@@ -71,15 +77,7 @@ def advance(x, y, p, tt, nxt, width, height, mask, use_mask, start, end, c_on, c
         q = np.int64(y[i]) * width + x[i]
         if use_mask and mask[q]:
             continue
-        last_t[q] = tt[i]
-        last_c[q] = c_on if p[i] else -c_off
-        b = nxt[i]
-        if b >= 0:
-            next_t[q] = tt[b]
-            next_c[q] = c_on if p[b] else -c_off
-        else:
-            next_t[q] = never
-            next_c[q] = 0.0
+        _take(q, i, tt, p, nxt, c_on, c_off, never, last_t, last_c, next_t, next_c)
 
 
 @njit(cache=True, nogil=True)

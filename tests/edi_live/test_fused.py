@@ -16,6 +16,7 @@ from edi_live.edi import fused
 from edi_live.edi.residual import ResidualTracker, exposure_residual
 from edi_live.reconstructor import EdiReconstructor
 from edi_live.simulation import SceneConfig, simulate
+from tests.helpers.fused_pairs import fused_at_truth
 from tests.helpers.recordings import packets_by_frame
 
 _FLOATS = st.floats(allow_nan=True, allow_infinity=True, width=64)
@@ -102,24 +103,14 @@ def test_fused_beats_the_best_single_reference_with_threshold_mismatch():
     rec = EdiReconstructor(cfg.width, cfg.height, c_on=c_on, c_off=c_off)
     ev = sim.events
     err = {"forward": [], "backward": [], "nearest": [], "fused": []}
-    prev = None
-    for k, f in enumerate(sim.frames):
-        i0, i1 = np.searchsorted(ev["t"], [f.exposure_start_us, f.exposure_end_us + 1])
-        rec.on_frame(f, ev[i0:i1])
-        cur = rec.reference_log()
-        if prev is not None:
-            gts = [g for g in np.flatnonzero(sim.gt_kind == 1) if sim.gt_frame[g] == k - 1]
-            times = [int(sim.gt_t_us[g]) for g in gts]
-            fused = rec.render_fused(prev, sim.frames[k - 1].image, f.image, times, ev)
-            for g, t, r in zip(gts, times, fused):
-                fwd = prev[0] + edi.event_delta(ev, cfg.width, cfg.height, c_on, c_off, t0=prev[1] + 1, t1=t)
-                bwd = cur[0] - edi.event_delta(ev, cfg.width, cfg.height, c_on, c_off, t0=t + 1, t1=cur[1])
-                gt = np.clip(sim.gt_images[g], 0, 255)
-                mse = {"forward": edi.to_uint8(fwd), "backward": edi.to_uint8(bwd), "fused": r.image,
-                       "nearest": edi.to_uint8(fwd if t - prev[1] <= cur[1] - t else bwd)}
-                for name, img in mse.items():
-                    err[name].append(np.mean((img.astype(np.float64) - gt) ** 2))
-        prev = cur
+    for g, t, r, prev, cur in fused_at_truth(sim, rec):
+        fwd = prev[0] + edi.event_delta(ev, cfg.width, cfg.height, c_on, c_off, t0=prev[1] + 1, t1=t)
+        bwd = cur[0] - edi.event_delta(ev, cfg.width, cfg.height, c_on, c_off, t0=t + 1, t1=cur[1])
+        gt = np.clip(sim.gt_images[g], 0, 255)
+        mse = {"forward": edi.to_uint8(fwd), "backward": edi.to_uint8(bwd), "fused": r.image,
+               "nearest": edi.to_uint8(fwd if t - prev[1] <= cur[1] - t else bwd)}
+        for name, img in mse.items():
+            err[name].append(np.mean((img.astype(np.float64) - gt) ** 2))
     psnr = {name: float(np.mean(10 * np.log10(255.0 ** 2 / np.array(v)))) for name, v in err.items()}
     best_single = max(psnr["forward"], psnr["backward"], psnr["nearest"])
     assert psnr["fused"] > best_single + 0.3, psnr

@@ -15,6 +15,7 @@ from edi_live.datatypes import EVENT_DTYPE
 from edi_live.edi import fused
 from edi_live.edi.residual import ResidualTracker, exposure_residual
 from edi_live.simulation import SceneConfig, simulate
+from tests.helpers.fused_pairs import fused_at_truth
 
 
 def _ramp_events(c: float, period_us: int, n: int, on: bool = True) -> np.ndarray:
@@ -91,28 +92,18 @@ def test_the_residual_makes_fused_frames_closer_to_the_truth():
     rec = EdiReconstructor(cfg.width, cfg.height, c_on=0.2, c_off=0.2, fused_residual=True)
     ev = sim.events
     mse = {"residual": [], "step": []}
-    prev = None
-    for k, f in enumerate(sim.frames):
-        i0, i1 = np.searchsorted(ev["t"], [f.exposure_start_us, f.exposure_end_us + 1])
-        rec.on_frame(f, ev[i0:i1])
-        cur = rec.reference_log()
-        if prev is not None:
-            gts = [g for g in np.flatnonzero(sim.gt_kind == 1) if sim.gt_frame[g] == k - 1]
-            times = [int(sim.gt_t_us[g]) for g in gts]
-            frames = rec.render_fused(prev, sim.frames[k - 1].image, f.image, times, ev)
-            inf0 = edi.blurry_to_float(sim.frames[k - 1].image)[1]
-            inf1 = edi.blurry_to_float(f.image)[1]
-            for g, t, r in zip(gts, times, frames):
-                fwd = prev[0] + edi.event_delta(ev, cfg.width, cfg.height, 0.2, 0.2, t0=prev[1] + 1, t1=t)
-                bwd = cur[0] - edi.event_delta(ev, cfg.width, cfg.height, 0.2, 0.2, t0=t + 1, t1=cur[1])
-                m = edi.event_mass(ev, cfg.width, cfg.height, 0.2, 0.2, t0=prev[1] + 1, t1=t)
-                mt = edi.event_mass(ev, cfg.width, cfg.height, 0.2, 0.2, t0=prev[1] + 1, t1=cur[1])
-                _, wb = edi.fusion_weights(m, mt, (t - prev[1]) / (cur[1] - prev[1]), inf0, inf1)
-                step = edi.to_uint8(edi.fused_log(fwd, bwd, wb))
-                gt = np.clip(sim.gt_images[g], 0, 255)
-                mse["residual"].append(np.mean((r.image.astype(np.float64) - gt) ** 2))
-                mse["step"].append(np.mean((step.astype(np.float64) - gt) ** 2))
-        prev = cur
+    for g, t, r, prev, cur in fused_at_truth(sim, rec):
+        inf0 = edi.blurry_to_float(sim.frames[sim.gt_frame[g]].image)[1]
+        inf1 = edi.blurry_to_float(sim.frames[sim.gt_frame[g] + 1].image)[1]
+        fwd = prev[0] + edi.event_delta(ev, cfg.width, cfg.height, 0.2, 0.2, t0=prev[1] + 1, t1=t)
+        bwd = cur[0] - edi.event_delta(ev, cfg.width, cfg.height, 0.2, 0.2, t0=t + 1, t1=cur[1])
+        m = edi.event_mass(ev, cfg.width, cfg.height, 0.2, 0.2, t0=prev[1] + 1, t1=t)
+        mt = edi.event_mass(ev, cfg.width, cfg.height, 0.2, 0.2, t0=prev[1] + 1, t1=cur[1])
+        _, wb = edi.fusion_weights(m, mt, (t - prev[1]) / (cur[1] - prev[1]), inf0, inf1)
+        step = edi.to_uint8(edi.fused_log(fwd, bwd, wb))
+        gt = np.clip(sim.gt_images[g], 0, 255)
+        mse["residual"].append(np.mean((r.image.astype(np.float64) - gt) ** 2))
+        mse["step"].append(np.mean((step.astype(np.float64) - gt) ** 2))
     psnr = {k: float(np.mean(10 * np.log10(255.0 ** 2 / np.array(v)))) for k, v in mse.items()}
     assert len(mse["step"]) >= 20
     assert psnr["residual"] > psnr["step"] + 1.0, psnr  # 36.6 against 34.0 dB when written

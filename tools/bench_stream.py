@@ -655,23 +655,32 @@ class CountOnlyPolicy:
         StaticScene.observe, StaticScene.active_since_reference = self._saved
 
 
+def noise_recording(seconds: float, noise_hz: float = 0.5) -> Path:
+    """The still noisy scene of `noisy_scene` as an AEDAT4 recording, generated once and cached."""
+    cache = Path(tempfile.gettempdir()) / "edi-live-bench"
+    cache.mkdir(exist_ok=True)
+    path = cache / (f"noise_static_{seconds:.0f}s.aedat4" if noise_hz == 0.5 else
+                    f"noise_static_{seconds:.0f}s_{noise_hz:g}hz.aedat4")
+    if not path.exists():
+        from edi_live.aedat4 import Aedat4Writer
+
+        events, frames, _ = noisy_scene(seconds, noise_hz=noise_hz)
+        tmp = path.with_suffix(".part")
+        with Aedat4Writer(tmp, 240, 180) as writer:
+            for p in scene_packets(events, frames, packet_us=10_000):
+                writer.write_events(p.events)
+                for f in p.frames:
+                    writer.write_frame(f)
+        tmp.replace(path)
+    return path
+
+
 def bench_noise(seconds: float, repeat: int) -> None:
     print(f"\n## static 240x180 scene with 0.5 events/s per pixel of noise, APS at 20 fps: paced replay (speed 1) "
           f"with the publisher, {seconds:.0f} s measured after 2 s; node process CPU (the decoding child, the same in "
           f"both, not counted); A/B interleaved, {repeat} repeats")
 
-    cache = Path(tempfile.gettempdir()) / "edi-live-bench"
-    cache.mkdir(exist_ok=True)
-    path = cache / f"noise_static_{seconds + 4:.0f}s.aedat4"
-    if not path.exists():
-        from edi_live.aedat4 import Aedat4Writer
-
-        events, frames, _ = noisy_scene(seconds + 4)
-        with Aedat4Writer(path, 240, 180) as writer:
-            for p in scene_packets(events, frames, packet_us=10_000):
-                writer.write_events(p.events)
-                for f in p.frames:
-                    writer.write_frame(f)
+    path = noise_recording(seconds + 4)
     results: dict[str, list] = {"count-only (before)": [], "noise-aware": []}
     for _ in range(repeat):
         for name in results:

@@ -203,16 +203,16 @@ class EventRing:
             done += n
         return True
 
-    def _notify_consumer(self) -> None:
-        """Wake the consumer unless it waits with a WakeWhen this push does not meet (lock held). A producer
-        blocked for room is woken only by the consumer, so it never needs this notify."""
+    def _notify_consumer(self, always: bool = False) -> None:
+        """Wake the consumer unless it waits with a WakeWhen this push does not meet (lock held); a woken one no
+        longer counts as waiting. A producer blocked for room is woken only by the consumer (read_events)."""
         waiting = self._waiting
-        if waiting is None or self._due(waiting[1]):
+        if always or waiting is None or self._due(waiting[1]):
+            self._waiting = None
             self._cond.notify_all()
 
     def _due(self, wake: WakeWhen | None) -> bool:
-        """Whether a consumer waiting with `wake` has something to do (lock held): any new data without a
-        condition; with one, its condition met, an APS frame queued, or the input closed."""
+        """Whether a consumer waiting with `wake` has something to do: its condition met, a frame queued, closed."""
         return wake is None or self._closed or bool(self._frames) or wake.met(self._head, self.watermark_us)
 
     def _drop_unread(self, count: int) -> None:
@@ -248,7 +248,7 @@ class EventRing:
             self._frames.append(FrameEntry(frame, self._head, arrival_ns, gap))
             self.pushed_frames += 1
             self._version += 1
-            self._cond.notify_all()
+            self._notify_consumer(always=True)
         return True
 
     def close(self) -> None:
@@ -256,13 +256,13 @@ class EventRing:
         with self._cond:
             self._closed = True
             self._version += 1
-            self._cond.notify_all()
+            self._notify_consumer(always=True)
 
     def poke(self) -> None:
         """Wake a consumer blocked in wait() (e.g. a helper thread finished work for it). Any thread."""
         with self._cond:
             self._version += 1
-            self._cond.notify_all()
+            self._notify_consumer(always=True)
 
     # ---------------------------------------------------------------- consumer side (worker thread)
 

@@ -6,6 +6,7 @@
     python -m tools.bench_stream memory       # PSS over a looped replay (--seconds 60; 600 for the 10-minute run)
     python -m tools.bench_stream static       # CPU of the node on a static scene (APS frames, no events)
     python -m tools.bench_stream noise        # static scene with sensor noise: CPU, frames out, motion-onset delay
+    python -m tools.bench_stream noise --against ../main   # the same, A/B against another checkout
     python -m tools.bench_stream scaling      # worker cost per latent frame vs changed pixels and resolution
     python -m tools.bench_stream all
 
@@ -715,6 +716,82 @@ def bench_noise(seconds: float, repeat: int) -> None:
         print(f"  run {k}: {delay / 1000:.1f} ms (APS frame period 50 ms)")
 
 
+_NOISE_CHILD = r"""
+import json, os, sys, threading, time
+import drivers
+from edi_live.config import NodeConfig
+from edi_live.node import Node
+
+
+def threads_cpu():
+    tick, names, out = os.sysconf("SC_CLK_TCK"), {t.native_id: t.name for t in threading.enumerate()}, {}
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            with open(f"/proc/self/task/{tid}/stat") as fh:
+                head, rest = fh.read().rsplit(")", 1)
+        except OSError:
+            continue
+        fields, name = rest.split(), names.get(int(tid), head.split("(", 1)[1])
+        out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / tick
+    return out
+
+
+if __name__ == "__main__":
+    path, seconds = sys.argv[1], float(sys.argv[2])
+    cfg = NodeConfig.from_options({"replay": path, "publish": ["tcp://127.0.0.1:*"]})
+    node = Node(cfg, drivers.open_source("replay", path=path, speed=1.0, decode_process=True))
+    thread = threading.Thread(target=node.run, daemon=True)
+    thread.start()
+    node.started.wait(60)
+    time.sleep(2.0)
+    s0, t0, cpu0, wall0 = node.stats(), threads_cpu(), time.process_time(), time.monotonic()
+    time.sleep(seconds)
+    cpu, wall, t1, s1 = time.process_time() - cpu0, time.monotonic() - wall0, threads_cpu(), node.stats()
+    node.stop()
+    thread.join(30)
+    d = {k: s1[k] - s0[k] for k in ("frames_out", "heartbeats", "aps_frames_in", "skipped_static_deblur")}
+    by = {k: v - t0.get(k, 0.0) for k, v in t1.items()}
+    print(json.dumps({"node": 100 * (by.get("edi-worker", 0) + by.get("publisher", 0)) / wall,
+                      "pump": 100 * by.get("pump", 0) / wall, "process": 100 * cpu / wall,
+                      "frames": (d["frames_out"] - d["heartbeats"]) / wall, "heartbeats": d["heartbeats"] / wall,
+                      "deblurs": (d["aps_frames_in"] - d["skipped_static_deblur"]) / wall}))
+"""
+
+
+def bench_noise_ab(seconds: float, repeat: int, other: Path) -> None:
+    """The node on the noisy still scene, this checkout against `other`, each run in its own process (which imports
+    that checkout's code), in alternating order; per-thread CPU from /proc at the start and end of the window."""
+    import json
+    import subprocess
+
+    here = Path(__file__).resolve().parent.parent
+    path = noise_recording(seconds + 4)
+    print(f"\n## A/B: static 240x180 scene, 0.5 events/s per pixel of noise, APS 20 fps, paced replay (speed 1) with "
+          f"the publisher, {seconds:.0f} s after 2 s; new = {here}, old = {other}; {repeat} pairs, alternating order")
+    runs: dict[str, list[dict]] = {"old": [], "new": []}
+    for i in range(repeat):
+        for which in (("old", "new") if i % 2 == 0 else ("new", "old")):
+            out = subprocess.run([sys.executable, "-c", _NOISE_CHILD, str(path), str(seconds)],
+                                 cwd=other if which == "old" else here, capture_output=True, text=True)
+            if out.returncode != 0:
+                raise SystemExit(f"{which} run failed:\n{out.stderr[-2000:]}")
+            runs[which].append(json.loads(out.stdout.strip().splitlines()[-1]))
+    print("| checkout | worker + publisher, % of one core | pump | whole process | non-heartbeat frames/s | "
+          "heartbeats/s | deblurs/s |\n|---|---|---|---|---|---|---|")
+    for which, rows in runs.items():
+        def cell(key: str, digits: int = 1) -> str:
+            v = np.array([r[key] for r in rows])
+            return f"{np.median(v):.{digits}f} ({v.min():.{digits}f}-{v.max():.{digits}f})"
+        print(f"| {which} | {cell('node', 2)} | {cell('pump')} | {cell('process')} | {cell('frames')} | "
+              f"{cell('heartbeats', 2)} | {cell('deblurs', 2)} |")
+    for key in ("node", "process"):
+        ratios = [o[key] / max(n[key], 1e-9) for o, n in zip(runs["old"], runs["new"])]
+        print(f"old / new, {key} CPU per pair: median {np.median(ratios):.2f}x ({min(ratios):.2f}-{max(ratios):.2f})")
+    print("(thread CPU is counted in 10 ms ticks: worker + publisher over the window is a few ticks, so read it "
+          "to +-0.1 % of a core; the deblur helper threads of the 1/s heartbeat deblur end within the window and "
+          "are only in the whole-process figure)")
+
+
 class _Nothing:
     def __enter__(self):
         return self
@@ -822,6 +899,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-deblur-thread", action="store_true",
                     help="throughput/latency: deblur APS frames on the worker thread (the node's deblur-thread = false)")
     ap.add_argument("--speed", type=float, default=1.0, help="memory mode: replay speed (default 1 = real time)")
+    ap.add_argument("--against", type=Path, default=None,
+                    help="noise mode: A/B against another checkout (e.g. ../main), each run in its own process")
     args = ap.parse_args(argv)
     path = args.input
     if args.mode in ("throughput", "stages", "latency", "memory", "all") and path is None:
@@ -835,7 +914,9 @@ def main(argv: list[str] | None = None) -> int:
         bench_latency(path, args.every, args.rate, args.seconds or 10.0, extra=_extra(args))
     if args.mode in ("static", "all"):
         bench_static(args.seconds or 10.0)
-    if args.mode in ("noise", "all"):
+    if args.mode in ("noise", "all") and args.against is not None:
+        bench_noise_ab(args.seconds or 20.0, args.repeat, args.against.resolve())
+    elif args.mode in ("noise", "all"):
         bench_noise(args.seconds or 20.0, args.repeat)
     if args.mode in ("scaling", "all"):
         bench_scaling(args.every, args.repeat)

@@ -103,7 +103,8 @@ def run(seconds: float, use_cprofile: bool, top: int, noise_hz: float) -> dict[s
         f"{k} {v:.2f}" for k, v in sorted(by_thread.items(), key=lambda kv: -kv[1])))
     print(f"per second: events {d['events_processed'] / wall:.0f}, APS frames {d['aps_frames_in'] / wall:.1f}, "
           f"deblurs {(d['aps_frames_in'] - d['skipped_static_deblur']) / wall:.2f}, frames out "
-          f"{d['frames_out'] / wall:.2f} (heartbeats {d['heartbeats'] / wall:.2f}); calls: " + ", ".join(
+          f"{d['frames_out'] / wall:.2f} (heartbeats {d['heartbeats'] / wall:.2f}), deblur p50 {s1.get('deblur_ms_p50')} ms "
+          f"(wall), quiet waits {(s1.get('quiet_waits', 0) - s0.get('quiet_waits', 0)) / wall:.0f}; calls: " + ", ".join(
               f"{k} {v:.0f}" for k, v in calls.items()))
     for name, prof in _PROFILES.items():
         out = io.StringIO()

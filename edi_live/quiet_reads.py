@@ -48,12 +48,12 @@ class QuietReads:
         self._last_aps_end_us = end
 
     def wake(self, ring: EventRing, quiet: bool) -> WakeWhen | None:
-        """The condition to wait with after every event in the ring has been read; None (wake per push) unless
-        the scene is `quiet`."""
+        """The condition to wait with once the worker has nothing to do; None (wake per push) unless the scene is
+        `quiet`."""
         if not quiet:
             self._mark = None
             return None
-        head, t_us = ring.head, ring.watermark_us
+        head, t_us = ring.read_index, ring.watermark_us  # (events pushed since the last read count towards it)
         if self._mark is not None and t_us > self._mark[1]:
             rate = (head - self._mark[0]) / (t_us - self._mark[1])
             self._rate = rate if not self._rate else 0.75 * self._rate + 0.25 * rate

@@ -55,6 +55,7 @@ def _ring_with_noise(rate_per_ms: int, ms: int) -> EventRing:
         ev = np.zeros(rate_per_ms, EVENT_DTYPE)
         ev["t"] = k * 1000 + np.arange(rate_per_ms)
         ring.push(Packet(events=ev, watermark_us=k * 1000 + 999))
+    ring.read_events(1 << 20)  # the worker waits once it has read everything
     return ring
 
 
@@ -79,8 +80,12 @@ def test_the_wake_count_follows_the_noise_rate_and_an_active_scene_is_not_batche
         ev = np.zeros(200, EVENT_DTYPE)
         ev["t"] = k * 1000 + np.arange(200) * 50
         ring.push(Packet(events=ev, watermark_us=k * 1000 + 9_999))
+        ring.read_events(1 << 20)
         wake = quiet.wake(ring, quiet=True)
     expected = 20 * MAX_BATCH_US / 1000  # events the noise gives in one step
     count = wake.head - ring.head
     assert expected + 2 * math.sqrt(expected) < count < expected + 6 * math.sqrt(expected) + 20
-    assert QuietReads(every=100).wake(ring, quiet=True).head - ring.head <= 100  # never past a latent frame
+    small = QuietReads(every=10)
+    assert small.wake(ring, quiet=True).head - ring.head <= 10  # never past a latent frame
+    ring.push(Packet(events=ev[:5], watermark_us=300_000))  # pushed after the worker's last read: they count
+    assert small.wake(ring, quiet=True).head == ring.read_index + 10 == ring.head + 5

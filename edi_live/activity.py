@@ -97,6 +97,11 @@ class StaticScene:
         self.changed = True  # active between the previous deblurred frame and the current one
         self.noise_only_events = 0
 
+    @property
+    def quiet(self) -> bool:
+        """The latest events showed only noise (False before the first APS frame: nothing is judged then)."""
+        return self.activity is not None and not self.active
+
     def active_since_reference(self) -> bool:
         return self.activity is None or self.activity.active_since(self.ref_end_us)
 

@@ -32,6 +32,12 @@ Definition, for every APS frame k+1 (window W = [exposure_start, exposure_end] o
   so the honest subset would be a stale held frame that is not what the node sent: the figure is off
   (stats report pred_enabled False and no values). "fused" is off likewise: each of its frames is fitted on
   the next APS frame as well.
+- Held frames: APS frame k+1 is not scored when the node sent no frame since it took frame k (a still scene:
+  the static-scene policy sends nothing but the heartbeat). The viewer kept showing what it had, so the score
+  would only repeat how still the scene is, at the cost of a conversion and four MSEs per APS frame (most of a
+  still camera's CPU budget). Such frames are counted in `pred_frames_held`; the means describe the APS frames
+  during which the node sent something (at least one frame since the previous APS frame). `score_every` counts
+  the frames that are not held.
 - Completion: frame k+1 is scored when the node sends a frame with ref_t_us >= its mid-exposure or with
   t_us > its exposure end (in causal order no honest frame for it can follow), when the next APS frame
   arrives, or at finish(). So calling on_aps_frame before or after the frame's own deblur is both fine.
@@ -39,6 +45,7 @@ Definition, for every APS frame k+1 (window W = [exposure_start, exposure_end] o
 Cost: storing an emitted frame keeps a reference (no copy; receivers never modify emitted images). Each frame
 is integrated at most once per window it overlaps (one int32 multiply-add over the pixels); frames outside
 every window (readout gaps) cost nothing. Per APS frame: one copy of B, four masked MSEs. on_events: O(events).
+A held APS frame costs no arithmetic on its pixels (converted only if a later window needs it as B_k).
 Memory: the frames since the oldest window that may still need them, at most `max_frames`.
 """
 
@@ -47,6 +54,7 @@ from __future__ import annotations
 import bisect
 import collections
 import math
+import statistics
 from dataclasses import dataclass
 from typing import Any
 
@@ -160,6 +168,7 @@ class PredictionScore:
         self.results_total = 0
         self.scored_total = 0
         self.frames_dropped = 0  # emitted frames dropped by the memory cap
+        self.held_total = 0  # APS frames not scored: nothing was sent since the previous one (docstring)
         self.last: PredictionResult | None = None
         self.last_prediction: np.ndarray | None = None  # the last scored frame's prediction P (float64, 8-bit scale)
         self._summary: dict[str, Any] = self._summarise()
@@ -173,7 +182,9 @@ class PredictionScore:
         self._ref: list[int] = []
         self._img: list[np.ndarray] = []
         self._pending: list[_Window] = []
-        self._prev_b: np.ndarray | None = None
+        self._prev_b: np.ndarray | None = None  # B_k on the 8-bit scale (converted when first needed)
+        self._prev_image: np.ndarray | None = None  # ... and as taken
+        self._sent_since_aps = False
         self._prev_end: int | None = None
         self._prev_mid: int | None = None
         self._exposures: collections.deque[int] = collections.deque(maxlen=8)
@@ -211,9 +222,13 @@ class PredictionScore:
             self._shape = shape
         else:
             out = self._complete_all()  # every earlier window is complete once a later APS frame is taken
-        target, valid = to_8bit_scale(image, self._saturation)
-        self._aps_seen += 1
-        if self._prev_b is not None and self._aps_seen % self._score_every == 0:
+        held = self._prev_image is not None and not self._sent_since_aps
+        self.held_total += held
+        self._aps_seen += not held
+        if self._prev_image is not None and not held and self._aps_seen % self._score_every == 0:
+            target, valid = to_8bit_scale(image, self._saturation)
+            if self._prev_b is None:
+                self._prev_b = to_8bit_scale(self._prev_image, self._saturation)[0]
             active = None
             if self._events_fed:
                 active = self._events_map.reshape(shape[:2])
@@ -221,9 +236,13 @@ class PredictionScore:
                     active = np.repeat(active[..., None], shape[2], axis=2)
             self._pending.append(_Window(frame.seq, frame.exposure_start_us, frame.exposure_end_us, mid, target,
                                          self._prev_b, valid, active))
-        self._events_map = np.zeros(shape[0] * shape[1], bool)
-        self._events_fed = False
-        self._prev_b, self._prev_end, self._prev_mid = target, frame.exposure_end_us, mid
+            self._prev_b = target
+        else:
+            self._prev_b = None
+        if self._events_fed or self._events_map is None:
+            self._events_map = np.zeros(shape[0] * shape[1], bool)
+        self._events_fed = self._sent_since_aps = False
+        self._prev_image, self._prev_end, self._prev_mid = image, frame.exposure_end_us, mid
         self._exposures.append(frame.exposure_us)
         out.extend(self._complete(self._last_ref, self._last_t))  # the node may already have moved past it
         self._prune()
@@ -251,6 +270,7 @@ class PredictionScore:
         self._img.insert(i, rec.image)
         self._black, self._gamma = float(rec.black_level), float(rec.aps_gamma)
         self._last_ref, self._last_t = ref, t
+        self._sent_since_aps = True
         self._t_max = max(self._t_max, t)
         out = self._complete(ref, t)
         if len(self._t) >= 2 * self._pruned_at + 16:
@@ -265,7 +285,7 @@ class PredictionScore:
 
     def stats(self) -> dict[str, Any]:
         """Flat summary of the last `window` scored APS frames (means in dB unless named otherwise)."""
-        return dict(self._summary)
+        return {**self._summary, "pred_frames_held": self.held_total}
 
     # ---------------------------------------------------------------- internals
 
@@ -360,19 +380,17 @@ class PredictionScore:
         still = [r.psnr_still_db for r in recent]
         act = [(r.psnr_pred_active_db, r.psnr_still_active_db) for r in recent if r.psnr_pred_active_db is not None]
 
-        def mean(v: list) -> float | None:
-            return round(float(np.mean(v)), 3) if v else None
+        def mean(v: list) -> float | None:  # plain Python: numpy's per-call overhead was ~0.3 ms per summary
+            return round(math.fsum(v) / len(v), 3) if v else None
 
         def median(v: list) -> float | None:
-            return round(float(np.median(v)), 3) if v else None
+            return round(statistics.median(v), 3) if v else None
 
         return {
             "pred_enabled": self.enabled,
-            "pred_psnr_db": mean(pred),
-            "still_psnr_db": mean(still),
+            "pred_psnr_db": mean(pred), "still_psnr_db": mean(still),
             "pred_gain_db": mean([p - s for p, s in zip(pred, still)]),
-            "pred_psnr_median_db": median(pred),
-            "still_psnr_median_db": median(still),
+            "pred_psnr_median_db": median(pred), "still_psnr_median_db": median(still),
             "pred_psnr_active_db": mean([a[0] for a in act]),
             "still_psnr_active_db": mean([a[1] for a in act]),
             "pred_beats_still_frac": round(sum(p > s for p, s in zip(pred, still)) / len(pred), 3) if pred else None,

@@ -17,7 +17,8 @@ Overflow policy (the only place live and replay differ):
 - "wait" (replay): push waits for the consumer, so nothing is lost at any replay speed.
 
 All state is guarded by one condition variable (`_cond`). Copies in and out happen under its lock, so a live
-overwrite can never change data under the worker: windows and reads are copies, never views.
+overwrite can never change data under the worker: windows and reads are copies, never views. The consumer may
+wait with a `WakeWhen` (edi_live.ring_wake): then pushes that do not meet it do not wake it.
 The storage itself (a circular array addressed by global index) is `edi_live.ring_buffer.EventBuffer`.
 """
 
@@ -33,6 +34,7 @@ import numpy as np
 
 from edi_live.datatypes import Frame, Packet, as_events, empty_events
 from edi_live.ring_buffer import EventBuffer, raw_pairs
+from edi_live.ring_wake import WakeWhen
 
 POLICIES = ("drop_oldest", "wait")
 
@@ -91,6 +93,10 @@ class EventRing:
         self._frames: deque[FrameEntry] = deque()
         self._closed = False
         self._version = 0  # bumped on every push and on close: "data advanced"
+        # the consumer while it waits: (version it saw, its WakeWhen or None); pushes that do not meet the
+        # condition do not wake it (edi_live.ring_wake)
+        self._waiting: tuple[int, WakeWhen | None] | None = None
+        self._idle_waiters = 0  # producers in wait_consumer_idle
         # What a producer blocked by the wait policy waits for (0 / False: it is not waiting). The consumer
         # notifies only when that much room is free: a wake-up costs a futex syscall plus a GIL hand-over (14 %
         # of the worker's GIL time when every read woke the pump), and refilling in large steps needs few.
@@ -132,7 +138,7 @@ class EventRing:
             if packet.watermark_us > self.watermark_us:
                 self.watermark_us = int(packet.watermark_us)
                 self._version += 1
-                self._cond.notify_all()
+                self._notify_consumer()
         return True
 
     def _mark_gap_at_head(self) -> None:
@@ -193,9 +199,21 @@ class EventRing:
                 if last_t > self.watermark_us:
                     self.watermark_us = last_t
                 self._version += 1
-                self._cond.notify_all()
+                self._notify_consumer()
             done += n
         return True
+
+    def _notify_consumer(self, always: bool = False) -> None:
+        """Wake the consumer unless it waits with a WakeWhen this push does not meet (lock held); a woken one no
+        longer counts as waiting. A producer blocked for room is woken only by the consumer (read_events)."""
+        waiting = self._waiting
+        if always or waiting is None or self._due(waiting[1]):
+            self._waiting = None
+            self._cond.notify_all()
+
+    def _due(self, wake: WakeWhen | None) -> bool:
+        """Whether a consumer waiting with `wake` has something to do: its condition met, a frame queued, closed."""
+        return wake is None or self._closed or bool(self._frames) or wake.met(self._head, self.watermark_us)
 
     def _drop_unread(self, count: int) -> None:
         """drop_oldest: skip the `count` oldest unread events (lock held)."""
@@ -230,7 +248,7 @@ class EventRing:
             self._frames.append(FrameEntry(frame, self._head, arrival_ns, gap))
             self.pushed_frames += 1
             self._version += 1
-            self._cond.notify_all()
+            self._notify_consumer(always=True)
         return True
 
     def close(self) -> None:
@@ -238,13 +256,13 @@ class EventRing:
         with self._cond:
             self._closed = True
             self._version += 1
-            self._cond.notify_all()
+            self._notify_consumer(always=True)
 
     def poke(self) -> None:
         """Wake a consumer blocked in wait() (e.g. a helper thread finished work for it). Any thread."""
         with self._cond:
             self._version += 1
-            self._cond.notify_all()
+            self._notify_consumer(always=True)
 
     # ---------------------------------------------------------------- consumer side (worker thread)
 
@@ -270,13 +288,41 @@ class EventRing:
     def version(self) -> int:
         return self._version
 
-    def wait(self, since_version: int, timeout_s: float) -> bool:
-        """Block until data advanced past `since_version` (or close), at most `timeout_s`. True if it did."""
+    def wait(self, since_version: int, timeout_s: float, wake: WakeWhen | None = None) -> bool:
+        """Block until data advanced past `since_version` (or close), at most `timeout_s`. True if it did.
+        With `wake`, data that does not meet it (edi_live.ring_wake) does not end the wait."""
         with self._cond:
-            if self._version != since_version:
+            if self._version != since_version and self._due(wake):
                 return True
-            self._cond.wait(timeout_s)
+            self._waiting = (since_version, wake)
+            if self._idle_waiters:
+                self._cond.notify_all()
+            try:
+                self._cond.wait(timeout_s)
+            finally:
+                self._waiting = None
             return self._version != since_version
+
+    def wait_consumer_idle(self, timeout_s: float) -> bool:
+        """Producer side: block until the consumer waits for data that has not come, i.e. it has done all it
+        will do with what was pushed so far (a lockstep replay in sensor time, for tests and benchmarks).
+        False on timeout."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            self._idle_waiters += 1
+            try:
+                while not self._consumer_idle():
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0:
+                        return False
+                    self._cond.wait(remaining)
+                return True
+            finally:
+                self._idle_waiters -= 1
+
+    def _consumer_idle(self) -> bool:
+        waiting = self._waiting
+        return waiting is not None and (self._version == waiting[0] or not self._due(waiting[1]))
 
     def read_events(self, max_n: int, until_index: int | None = None) -> EventChunk:
         """Take up to `max_n` unread events (not past `until_index`) as a copy and advance the cursor."""
@@ -346,13 +392,8 @@ class EventRing:
         return (self._head - self._read) / self.max_unread
 
     def stats(self) -> dict:
-        return {
-            "ring_occupancy": round(self.occupancy, 4),
-            "ring_unread_events": self.unread_events,
-            "ring_frames_queued": len(self._frames),
-            "ring_dropped_events": self.dropped_events,
-            "ring_dropped_frames": self.dropped_frames,
-            "ring_gaps": self.gap_count,
-            "ring_history_truncated": self.history_truncated,
-            "ring_producer_wait_s": round(self.producer_wait_s, 3),
-        }
+        return {"ring_occupancy": round(self.occupancy, 4), "ring_unread_events": self.unread_events,
+                "ring_frames_queued": len(self._frames), "ring_dropped_events": self.dropped_events,
+                "ring_dropped_frames": self.dropped_frames, "ring_gaps": self.gap_count,
+                "ring_history_truncated": self.history_truncated,
+                "ring_producer_wait_s": round(self.producer_wait_s, 3)}

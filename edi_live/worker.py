@@ -34,6 +34,7 @@ from edi_live.frame_gate import FrameGate, in_event_clock
 from edi_live.fused_mode import FusedHoldBack
 from edi_live.nearest_mode import NearestHoldBack
 from edi_live.quality import PredictionScore
+from edi_live.quiet_reads import QuietReads
 from edi_live.reconstruction import Reconstructor
 from edi_live.ring import EventChunk, EventRing, FrameEntry
 
@@ -77,16 +78,15 @@ class EdiWorker:
         self._deblur_ms: collections.deque[float] = collections.deque(maxlen=256)  # on_frame wall time
         self._pending: PendingDeblur | None = None  # causal mode with deblur_thread
         self._scene = StaticScene()  # events that show only background noise make no frames
+        self._quiet = QuietReads(config.every)  # ... nor wake-ups per packet (read in larger steps)
         # how well the output predicted each APS frame (scored on this thread; stats() reads a copy)
         self.quality = (PredictionScore(config.mode, score_every=config.quality_every,
                                         color_filter=config.color_filter, gray=config.gray)  # type: ignore[arg-type]
                         if config.quality_every else None)
-        self.events_in = self.frames_in = 0
+        self.events_in = self.frames_in = self.heartbeats = self.skipped_static = self.skipped_max_fps = self.gaps = 0
         self.sent = {"deblurred": 0, "latent": 0}
-        self.heartbeats = self.skipped_static = 0
         self.skipped_static_deblur = 0  # APS frames not deblurred at all (static scene)
         self._last_deblur_s = 0.0
-        self.skipped_max_fps = self.gaps = 0
         self.wakeups = 0  # idle waits: bounded by ~4/s plus data arrivals (no busy loop)
         self.busy_s = self.cpu_s = 0.0
 
@@ -121,7 +121,7 @@ class EdiWorker:
                     break
                 self._heartbeat()
                 self.wakeups += 1
-                self.ring.wait(version, self._idle_wait_s())
+                self.ring.wait(version, self._idle_wait_s(), self._quiet.wake(self.ring, self._scene.quiet))
             if not self._abort.is_set():
                 if self._pending is not None:
                     self._adopt(wait=True)
@@ -239,6 +239,7 @@ class EdiWorker:
     def _on_frame(self, entry: FrameEntry) -> None:
         frame = entry.frame
         self.frames_in += 1
+        self._quiet.on_aps_frame(frame)
         if self.quality is not None:
             self.quality.on_aps_frame(in_event_clock(frame, self.rec.clock_offset_us))
         t0 = time.perf_counter()
@@ -377,9 +378,8 @@ class EdiWorker:
             "aps_frames_in": self.frames_in,
             "frames_deblurred": self.sent.get("deblurred", 0),
             "frames_latent": self.sent.get("latent", 0),
-            "heartbeats": self.heartbeats,
-            "skipped_static": self.skipped_static,
-            "skipped_static_deblur": self.skipped_static_deblur,
+            "heartbeats": self.heartbeats, "skipped_static": self.skipped_static,
+            "skipped_static_deblur": self.skipped_static_deblur, "quiet_waits": self._quiet.batched_waits,
             "noise_only_events": self._scene.noise_only_events,
             "skipped_max_fps": self.skipped_max_fps, "frames_not_rendered": self.demand.not_rendered,
             "worker_gaps": self.gaps,

@@ -6,6 +6,7 @@
     python -m tools.bench_stream memory       # PSS over a looped replay (--seconds 60; 600 for the 10-minute run)
     python -m tools.bench_stream static       # CPU of the node on a static scene (APS frames, no events)
     python -m tools.bench_stream noise        # static scene with sensor noise: CPU, frames out, motion-onset delay
+    python -m tools.bench_stream noise --against ../main   # the same, A/B against another checkout
     python -m tools.bench_stream scaling      # worker cost per latent frame vs changed pixels and resolution
     python -m tools.bench_stream all
 
@@ -644,15 +645,36 @@ class CountOnlyPolicy:
     def __enter__(self):
         from edi_live.activity import StaticScene
 
-        self._saved = StaticScene.observe, StaticScene.active_since_reference
+        self._saved = StaticScene.observe, StaticScene.active_since_reference, StaticScene.quiet
         StaticScene.observe = lambda scene, events: "active"
         StaticScene.active_since_reference = lambda scene: True
+        StaticScene.quiet = property(lambda scene: False)  # every read as it comes, as then
         return self
 
     def __exit__(self, *exc):
         from edi_live.activity import StaticScene
 
-        StaticScene.observe, StaticScene.active_since_reference = self._saved
+        StaticScene.observe, StaticScene.active_since_reference, StaticScene.quiet = self._saved
+
+
+def noise_recording(seconds: float, noise_hz: float = 0.5) -> Path:
+    """The still noisy scene of `noisy_scene` as an AEDAT4 recording, generated once and cached."""
+    cache = Path(tempfile.gettempdir()) / "edi-live-bench"
+    cache.mkdir(exist_ok=True)
+    path = cache / (f"noise_static_{seconds:.0f}s.aedat4" if noise_hz == 0.5 else
+                    f"noise_static_{seconds:.0f}s_{noise_hz:g}hz.aedat4")
+    if not path.exists():
+        from edi_live.aedat4 import Aedat4Writer
+
+        events, frames, _ = noisy_scene(seconds, noise_hz=noise_hz)
+        tmp = path.with_suffix(".part")
+        with Aedat4Writer(tmp, 240, 180) as writer:
+            for p in scene_packets(events, frames, packet_us=10_000):
+                writer.write_events(p.events)
+                for f in p.frames:
+                    writer.write_frame(f)
+        tmp.replace(path)
+    return path
 
 
 def bench_noise(seconds: float, repeat: int) -> None:
@@ -660,18 +682,7 @@ def bench_noise(seconds: float, repeat: int) -> None:
           f"with the publisher, {seconds:.0f} s measured after 2 s; node process CPU (the decoding child, the same in "
           f"both, not counted); A/B interleaved, {repeat} repeats")
 
-    cache = Path(tempfile.gettempdir()) / "edi-live-bench"
-    cache.mkdir(exist_ok=True)
-    path = cache / f"noise_static_{seconds + 4:.0f}s.aedat4"
-    if not path.exists():
-        from edi_live.aedat4 import Aedat4Writer
-
-        events, frames, _ = noisy_scene(seconds + 4)
-        with Aedat4Writer(path, 240, 180) as writer:
-            for p in scene_packets(events, frames, packet_us=10_000):
-                writer.write_events(p.events)
-                for f in p.frames:
-                    writer.write_frame(f)
+    path = noise_recording(seconds + 4)
     results: dict[str, list] = {"count-only (before)": [], "noise-aware": []}
     for _ in range(repeat):
         for name in results:
@@ -699,11 +710,88 @@ def bench_noise(seconds: float, repeat: int) -> None:
         print(f"| {name} | {np.median(a[:, 0]):.1f} ({a[:, 0].min():.1f}-{a[:, 0].max():.1f}) | "
               f"{np.median(a[:, 1]):.1f} ({a[:, 1].min():.1f}-{a[:, 1].max():.1f}) | "
               f"{np.median(a[:, 2]):.1f} | {np.median(a[:, 3]):.2f} | {np.median(a[:, 4]):.2f} |")
-    print("\nmotion onset (the scene starts moving at 100 px/s after 1 s): first moving event -> first frame that "
-          "is not a heartbeat, sensor time")
+    print("\nmotion onset (the scene starts moving at 100 px/s after 1 s; worker alone, 1 ms packets in lockstep): "
+          "first moving event -> sensor time the ring had reached when the first frame after it was sent")
     for k in range(repeat):
         delay = onset_delay_us(seed_shift=k)
         print(f"  run {k}: {delay / 1000:.1f} ms (APS frame period 50 ms)")
+
+
+_NOISE_CHILD = r"""
+import json, os, sys, threading, time
+import drivers
+from edi_live.config import NodeConfig
+from edi_live.node import Node
+
+
+def threads_cpu():
+    tick, names, out = os.sysconf("SC_CLK_TCK"), {t.native_id: t.name for t in threading.enumerate()}, {}
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            with open(f"/proc/self/task/{tid}/stat") as fh:
+                head, rest = fh.read().rsplit(")", 1)
+        except OSError:
+            continue
+        fields, name = rest.split(), names.get(int(tid), head.split("(", 1)[1])
+        out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / tick
+    return out
+
+
+if __name__ == "__main__":
+    path, seconds = sys.argv[1], float(sys.argv[2])
+    cfg = NodeConfig.from_options({"replay": path, "publish": ["tcp://127.0.0.1:*"]})
+    node = Node(cfg, drivers.open_source("replay", path=path, speed=1.0, decode_process=True))
+    thread = threading.Thread(target=node.run, daemon=True)
+    thread.start()
+    node.started.wait(60)
+    time.sleep(2.0)
+    s0, t0, cpu0, wall0 = node.stats(), threads_cpu(), time.process_time(), time.monotonic()
+    time.sleep(seconds)
+    cpu, wall, t1, s1 = time.process_time() - cpu0, time.monotonic() - wall0, threads_cpu(), node.stats()
+    node.stop()
+    thread.join(30)
+    d = {k: s1[k] - s0[k] for k in ("frames_out", "heartbeats", "aps_frames_in", "skipped_static_deblur")}
+    by = {k: v - t0.get(k, 0.0) for k, v in t1.items()}
+    print(json.dumps({"node": 100 * (by.get("edi-worker", 0) + by.get("publisher", 0)) / wall,
+                      "pump": 100 * by.get("pump", 0) / wall, "process": 100 * cpu / wall,
+                      "no_pump": 100 * (cpu - by.get("pump", 0)) / wall,
+                      "frames": (d["frames_out"] - d["heartbeats"]) / wall, "heartbeats": d["heartbeats"] / wall,
+                      "deblurs": (d["aps_frames_in"] - d["skipped_static_deblur"]) / wall}))
+"""
+
+
+def bench_noise_ab(seconds: float, repeat: int, other: Path) -> None:
+    """The node on the noisy still scene, this checkout against `other`, each run in its own process (which imports
+    that checkout's code), in alternating order; per-thread CPU from /proc at the start and end of the window."""
+    import json
+    import subprocess
+
+    here = Path(__file__).resolve().parent.parent
+    path = noise_recording(seconds + 4)
+    print(f"\n## A/B: static 240x180 scene, 0.5 events/s per pixel of noise, APS 20 fps, paced replay (speed 1) with "
+          f"the publisher, {seconds:.0f} s after 2 s; new = {here}, old = {other}; {repeat} pairs, alternating order")
+    runs: dict[str, list[dict]] = {"old": [], "new": []}
+    for i in range(repeat):
+        for which in (("old", "new") if i % 2 == 0 else ("new", "old")):
+            out = subprocess.run([sys.executable, "-c", _NOISE_CHILD, str(path), str(seconds)],
+                                 cwd=other if which == "old" else here, capture_output=True, text=True)
+            if out.returncode != 0:
+                raise SystemExit(f"{which} run failed:\n{out.stderr[-2000:]}")
+            runs[which].append(json.loads(out.stdout.strip().splitlines()[-1]))
+    print("| checkout | worker + publisher, % of one core | process without the pump | pump | whole process | "
+          "non-heartbeat frames/s | heartbeats/s | deblurs/s |\n|---|---|---|---|---|---|---|---|")
+    for which, rows in runs.items():
+        def cell(key: str, digits: int = 1) -> str:
+            v = np.array([r[key] for r in rows])
+            return f"{np.median(v):.{digits}f} ({v.min():.{digits}f}-{v.max():.{digits}f})"
+        print(f"| {which} | {cell('node', 2)} | {cell('no_pump', 2)} | {cell('pump')} | {cell('process')} | "
+              f"{cell('frames')} | "
+              f"{cell('heartbeats', 2)} | {cell('deblurs', 2)} |")
+    for key in ("node", "no_pump", "process"):
+        ratios = [o[key] / max(n[key], 1e-9) for o, n in zip(runs["old"], runs["new"])]
+        print(f"old / new, {key} CPU per pair: median {np.median(ratios):.2f}x ({min(ratios):.2f}-{max(ratios):.2f})")
+    print("(thread CPU is counted in 10 ms ticks, so read the thread figures to +-0.1 % of a core; the deblur "
+          "helper threads of the 1/s heartbeat deblur end within the window: they are in the process figures only)")
 
 
 class _Nothing:
@@ -714,26 +802,36 @@ class _Nothing:
         return None
 
 
-def onset_delay_us(seed_shift: int = 0, every: int = 1000) -> float:
-    """Worker alone (real reconstructor), 1 ms packets: sensor time from the first event caused by motion to
-    the first frame sent that is not the first deblurred frame or a heartbeat."""
+def onset_delay_us(seed_shift: int = 0, every: int = 1000, ring=None) -> float:
+    """Worker alone (real reconstructor) fed 1 ms packets in lockstep, as a camera delivers them: each is pushed
+    once the worker has done all it will do with the ones before (EventRing.wait_consumer_idle), so what it sees
+    per wake-up is what it would see live, however fast this machine is. Returns the sensor time from the first
+    event caused by motion to the newest data in the ring when the first frame after it was sent (not the first
+    deblurred frame; the heartbeat is off), i.e. the onset delay without the host's processing time."""
     from edi_live.config import EdiConfig
     from edi_live.ring import EventRing
     from edi_live.worker import EdiWorker
 
     events, frames, onset = noisy_scene(1.0 + 0.3, onset_s=1.0 + 0.01 * seed_shift)
-    ring = EventRing(capacity_events=1 << 22, capacity_frames=256, policy="wait")
-    for p in scene_packets(events, frames):
-        ring.push(p)
-    ring.close()
+    ring = ring if ring is not None else EventRing(capacity_events=1 << 22, capacity_frames=256, policy="wait")
     sent: list = []
     worker = EdiWorker(ring, default_reconstructor(240, 180, EdiConfig()), EdiConfig(every=every, heartbeat_s=3600),
-                       [lambda r: sent.append((r.t_us, worker.heartbeats))])
+                       [lambda r: sent.append((r.t_us, ring.watermark_us))])
     worker.start()
-    worker.done.wait(60)
-    later = [t for t, _ in sent[1:] if t >= onset]
+    try:
+        for p in scene_packets(events, frames):
+            ring.push(p)
+            if not ring.wait_consumer_idle(60):
+                raise RuntimeError(f"the worker did not settle (error: {worker.error!r})")
+    finally:
+        ring.close()
+        worker.done.wait(60)
+    if worker.error is not None:
+        raise RuntimeError(f"worker failed: {worker.error!r}")
+    assert worker.events_in == len(events), "every event was read"
     early = [t for t, _ in sent[1:] if t < onset]
     assert not early, f"frames on the static part: {early}"
+    later = [newest for t, newest in sent[1:] if t >= onset]
     return (later[0] - onset) if later else float("inf")
 
 
@@ -803,6 +901,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-deblur-thread", action="store_true",
                     help="throughput/latency: deblur APS frames on the worker thread (the node's deblur-thread = false)")
     ap.add_argument("--speed", type=float, default=1.0, help="memory mode: replay speed (default 1 = real time)")
+    ap.add_argument("--against", type=Path, default=None,
+                    help="noise mode: A/B against another checkout (e.g. ../main), each run in its own process")
     args = ap.parse_args(argv)
     path = args.input
     if args.mode in ("throughput", "stages", "latency", "memory", "all") and path is None:
@@ -816,7 +916,9 @@ def main(argv: list[str] | None = None) -> int:
         bench_latency(path, args.every, args.rate, args.seconds or 10.0, extra=_extra(args))
     if args.mode in ("static", "all"):
         bench_static(args.seconds or 10.0)
-    if args.mode in ("noise", "all"):
+    if args.mode in ("noise", "all") and args.against is not None:
+        bench_noise_ab(args.seconds or 20.0, args.repeat, args.against.resolve())
+    elif args.mode in ("noise", "all"):
         bench_noise(args.seconds or 20.0, args.repeat)
     if args.mode in ("scaling", "all"):
         bench_scaling(args.every, args.repeat)

@@ -375,6 +375,7 @@ def test_decoding_in_a_child_process_gives_the_same_packets(real_recordings, nam
         np.testing.assert_array_equal(a.events, b.events)
         np.testing.assert_array_equal(a.imu, b.imu)
         np.testing.assert_array_equal(a.triggers, b.triggers)
+        assert a.imu.dtype == b.imu.dtype and a.triggers.dtype == b.triggers.dtype  # (empty ones travel as None)
         assert a.watermark_us == b.watermark_us and not b.gap
         assert [(f.seq, f.exposure_start_us, f.exposure_end_us) for f in a.frames] == \
                [(f.seq, f.exposure_start_us, f.exposure_end_us) for f in b.frames]

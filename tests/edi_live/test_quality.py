@@ -238,20 +238,22 @@ def _all_finite_or_none(values):
 def test_no_nan_or_inf_in_degenerate_cases():
     s = PredictionScore()
     assert _all_finite_or_none(s.stats().values()) and s.stats()["pred_psnr_db"] is None
-    # empty window: no frame was ever sent (scored when the next APS frame arrives)
+    # empty window: the only frame sent so far comes after it (so the window is complete when it is taken)
     s.on_aps_frame(aps(np.full((2, 2), 80), 0, 100))
-    assert s.on_aps_frame(aps(np.full((2, 2), 90), 1000, 1100)) == []
-    s.on_emitted(rec(np.full((2, 2), 90), 1050, 1050, "deblurred"))  # its own frame: completes, does not count
-    r = s.last
+    s.on_emitted(rec(np.full((2, 2), 90), 1150, 50))
+    (r,) = s.on_aps_frame(aps(np.full((2, 2), 90), 1000, 1100))
     assert r.seq == 0 and not r.scored and r.coverage == 0.0 and r.n_frames_used == 0
+    s.on_emitted(rec(np.full((2, 2), 90), 1050, 1050, "deblurred"))  # its own frame: does not count
     # all-saturated and all-black targets: no informative pixel
     s.on_emitted(rec(np.full((2, 2), 90), 1200, 1050))
     s.on_aps_frame(aps(np.full((2, 2), 255), 2000, 2100))
-    (r,) = s.on_aps_frame(aps(np.zeros((2, 2)), 3000, 3100))
+    (r,) = s.on_emitted(rec(np.full((2, 2), 90), 2200, 1050))  # a frame after the window completes it
+    assert not r.scored and r.valid_px == 0
+    s.on_aps_frame(aps(np.zeros((2, 2)), 3000, 3100))
+    (r,) = s.on_emitted(rec(np.full((2, 2), 90), 3200, 1050))
     assert not r.scored and r.valid_px == 0
     # a single held frame over a zero-length exposure
-    (r,) = s.on_aps_frame(aps(np.full((2, 2), 100), 4000, 4000))
-    assert not r.scored and r.valid_px == 0
+    assert s.on_aps_frame(aps(np.full((2, 2), 100), 4000, 4000)) == []
     (r,) = s.finish()
     assert r.scored and r.n_frames_used == 1 and r.psnr_pred_db == pytest.approx(psnr_by_hand([90], [100]))
     # a frame that starts before any frame was sent: partly covered, unscored
@@ -267,6 +269,26 @@ def test_no_nan_or_inf_in_degenerate_cases():
                                     result.psnr_still_active_db, result.coverage])
         assert _all_finite_or_none(sc.stats().values())
     assert s.stats()["pred_frames_scored"] == 1 and s.stats()["pred_frames_unscored"] == 3
+    assert s.stats()["pred_frames_held"] == 0
+
+
+def test_aps_frames_with_nothing_sent_since_the_previous_one_are_held_not_scored():
+    s = PredictionScore(score_every=2)
+    s.on_aps_frame(aps(np.full((2, 2), 80), 0, 100))
+    s.on_emitted(rec(np.full((2, 2), 80), 150, 50))
+    assert s.on_aps_frame(aps(np.full((2, 2), 85), 1000, 1100)) == []  # the 2nd frame taken: scored later
+    assert s.on_aps_frame(aps(np.full((2, 2), 90), 2000, 2100))[0].seq == 0  # nothing sent since: held
+    assert s.on_aps_frame(aps(np.full((2, 2), 95), 3000, 3100)) == []  # held as well
+    s.on_emitted(rec(np.full((2, 2), 97), 3150, 50))
+    s.on_aps_frame(aps(np.full((2, 2), 99), 4000, 4100))  # the 3rd frame not held: skipped by score_every=2
+    s.on_emitted(rec(np.full((2, 2), 98), 4150, 50))
+    s.on_aps_frame(aps(np.full((2, 2), 100), 5000, 5100, seq=5))  # the 4th: scored against the frame before it
+    (r,) = s.finish()
+    assert r.seq == 5 and r.scored and r.n_frames_used == 1
+    assert r.psnr_pred_db == pytest.approx(psnr_by_hand([98], [100]))
+    assert r.psnr_still_db == pytest.approx(psnr_by_hand([99], [100]))  # B_k: the APS frame just before
+    st = s.stats()
+    assert st["pred_frames_held"] == 2 and st["pred_frames_scored"] == 2 and st["pred_frames_unscored"] == 0
 
 
 def test_nearest_and_fused_modes_switch_the_figure_off():

@@ -12,6 +12,7 @@ import pytest
 
 from edi_live.datatypes import EVENT_DTYPE, Frame, Packet
 from edi_live.ring import EventRing
+from edi_live.ring_wake import WakeWhen
 
 
 def make_events(t_us: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -197,6 +198,47 @@ def test_wait_returns_on_new_data_and_times_out_otherwise(rng):
     assert not ring.wait(v, timeout_s=0.02)
     ring.push(Packet(events=make_events(np.arange(3), rng)))
     assert ring.wait(v, timeout_s=0.02)
+
+
+class WaitingConsumer:
+    """A consumer thread blocked in ring.wait with a WakeWhen; `woke_at` is (head, watermark) when it returned."""
+
+    def __init__(self, ring: EventRing, wake: WakeWhen) -> None:
+        self.woke_at: tuple[int, int] | None = None
+        version = ring.version
+
+        def run() -> None:
+            ring.wait(version, 30.0, wake)
+            self.woke_at = (ring.head, ring.watermark_us)
+
+        self.thread = threading.Thread(target=run)
+        self.thread.start()
+        assert ring.wait_consumer_idle(10)
+
+
+@pytest.mark.parametrize("wake_by", ["events", "sensor time", "aps frame", "close"])
+def test_a_consumer_waiting_with_a_wake_condition_sleeps_through_pushes_that_do_not_meet_it(rng, wake_by):
+    ring = EventRing(capacity_events=1 << 12, policy="wait")
+    consumer = WaitingConsumer(ring, WakeWhen(head=100, t_us=10_000))
+    for k in range(9):  # 90 events up to t = 899 µs: below both thresholds
+        ring.push(Packet(events=make_events(np.arange(100 * k, 100 * k + 10), rng), watermark_us=100 * k + 99))
+        assert ring.wait_consumer_idle(10), "still waiting (the condition is not met)"
+        assert consumer.woke_at is None
+    last = {"events": Packet(events=make_events(np.arange(900, 910), rng)),
+            "sensor time": Packet(events=make_events(np.array([10_000]), rng)),
+            "aps frame": Packet(frames=[frame(900, 950)], watermark_us=950)}.get(wake_by)
+    ring.push(last) if last is not None else ring.close()
+    consumer.thread.join(10)
+    assert consumer.woke_at is not None
+    assert not ring.wait_consumer_idle(0.01)  # nobody waits any more
+
+
+def test_a_wait_with_a_condition_already_met_returns_at_once(rng):
+    ring = EventRing(capacity_events=1 << 12, policy="wait")
+    v = ring.version
+    ring.push(Packet(events=make_events(np.arange(50), rng)))
+    assert ring.wait(v, 10.0, WakeWhen(head=50, t_us=10**9))
+    assert not ring.wait(ring.version, 0.01, WakeWhen(head=0, t_us=0))  # nothing new since: times out
 
 
 def test_arrival_time_of_the_last_included_event(rng):

@@ -241,9 +241,9 @@ class WaitRecordingRing(EventRing):
         super().__init__(*args, **kwargs)
         self.idle_timeouts: list[float] = []
 
-    def wait(self, since_version: int, timeout_s: float) -> bool:
+    def wait(self, since_version: int, timeout_s: float, wake=None) -> bool:
         self.idle_timeouts.append(timeout_s)
-        return super().wait(since_version, timeout_s)
+        return super().wait(since_version, timeout_s, wake)
 
 
 def test_static_scene_heartbeat_only_and_no_busy_loop(clock):

@@ -1,0 +1,64 @@
+"""How long the worker lets a quiet stream pile up in the ring before reading it: a still camera's noise.
+
+Owns the `WakeWhen` (edi_live.ring_wake) the worker waits with. While the latest events showed only background
+noise (edi_live.activity), events make no frame: they only move the latent image, which comes out the same
+whatever the size of the reads. A read per 1 ms packet then cost ~100 µs of wake-up and per-read bookkeeping for
+~20 events (7 % of a core on a 240x180 sensor at 0.5 events/s per pixel), so the worker asks to be woken only
+when `batch_us` of sensor time or more events than the noise explains have arrived (at most a latent frame's
+worth, `every`, capped at MAX_EVENTS). APS frames, the end of the input and the deblur helper still wake it at
+once; the heartbeat is its wait's timeout; an active scene is read as it comes, as before.
+
+The price is at a motion onset: its first events are read at most `batch_us` of sensor time after they arrived.
+`batch_us` is MAX_BATCH_US, or a fifth of the APS frame period when that is shorter, so the first frame after an
+onset still comes well within one frame period. Sooner in practice: the event count that wakes the worker is
+what the noise gives in `batch_us` (its rate measured over the quiet reads) plus SIGMAS Poisson deviations and
+a margin, so an onset's extra events wake it early while noise alone rarely does (the rate starts at 0: the first
+quiet waits wake per packet until it is known).
+"""
+
+from __future__ import annotations
+
+import math
+
+from edi_live.datatypes import Frame
+from edi_live.ring import EventRing
+from edi_live.ring_wake import WakeWhen
+
+MAX_BATCH_US = 10_000
+MIN_BATCH_US = 1_000
+MAX_EVENTS = 1_000
+SIGMAS, MARGIN = 4.0, 16
+
+
+class QuietReads:
+    def __init__(self, every: int) -> None:
+        self.max_events = max(1, min(int(every), MAX_EVENTS))
+        self.batch_us = MAX_BATCH_US
+        self._last_aps_end_us: int | None = None
+        self._mark: tuple[int, int] | None = None  # (head, watermark) at the previous quiet wait
+        self._rate = 0.0  # noise events per µs of sensor time, averaged over the quiet reads
+        self.batched_waits = 0  # waits with a WakeWhen (stats)
+
+    def on_aps_frame(self, frame: Frame) -> None:
+        """Learn the APS frame period (the onset delay is kept to a fifth of it)."""
+        end = frame.exposure_end_us
+        if self._last_aps_end_us is not None and end > self._last_aps_end_us:
+            period = end - self._last_aps_end_us
+            self.batch_us = max(MIN_BATCH_US, min(MAX_BATCH_US, period // 5))
+        self._last_aps_end_us = end
+
+    def wake(self, ring: EventRing, quiet: bool) -> WakeWhen | None:
+        """The condition to wait with once the worker has nothing to do; None (wake per push) unless the scene is
+        `quiet`."""
+        if not quiet:
+            self._mark = None
+            return None
+        head, t_us = ring.read_index, ring.watermark_us  # (events pushed since the last read count towards it)
+        if self._mark is not None and t_us > self._mark[1]:
+            rate = (head - self._mark[0]) / (t_us - self._mark[1])
+            self._rate = rate if not self._rate else 0.75 * self._rate + 0.25 * rate
+        self._mark = (head, t_us)
+        self.batched_waits += 1
+        expected = self._rate * self.batch_us
+        count = min(self.max_events, int(expected + SIGMAS * math.sqrt(expected)) + MARGIN)
+        return WakeWhen(head=head + count, t_us=t_us + self.batch_us)

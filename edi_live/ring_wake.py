@@ -1,0 +1,23 @@
+"""When the ring's producer wakes a waiting consumer: at once (the default), or only once enough has arrived.
+
+Owns `WakeWhen`, the condition a consumer may attach to `EventRing.wait`. On a quiet stream (a still camera's
+background noise: a few dozen events per 1 ms packet) a wake-up per packet costs far more than the events in it
+(a futex, a GIL hand-over and the consumer's per-read bookkeeping), so the consumer asks to be woken only when
+`events` unread events or sensor time `t_us` has arrived, or at once for an APS frame, close or poke. The ring
+checks the condition under its lock on every push, so no data is ever missed, only read in fewer, larger steps.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True, slots=True)
+class WakeWhen:
+    """Wake the consumer once the ring's head index reaches `head` or its watermark reaches `t_us` (µs)."""
+
+    head: int
+    t_us: int
+
+    def met(self, head: int, watermark_us: int) -> bool:
+        return head >= self.head or watermark_us >= self.t_us

@@ -1,0 +1,91 @@
+"""The worker's quiet reads (edi_live.quiet_reads): a still camera's noise is read in steps of several packets,
+and a motion onset still makes a frame promptly, in sensor time.
+
+The worker-level tests replay a simulated still camera (0.5 events/s per pixel of noise, APS at 20 fps) that
+starts moving after 1 s, in 1 ms packets pushed in lockstep with the worker (EventRing.wait_consumer_idle): each
+packet goes in once the worker has done everything it will do with the ones before, so what the worker reads
+per wake-up, and how far the sensor clock had got when a frame went out, do not depend on this machine's speed.
+Oracles: the simulator's labels (which events are noise, the first moving event) and the packets pushed.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from edi_live.datatypes import EVENT_DTYPE, Frame, Packet
+from edi_live.quiet_reads import MAX_BATCH_US, MIN_BATCH_US, QuietReads
+from edi_live.ring import EventChunk, EventRing
+from tools.bench_stream import noisy_scene, onset_delay_us
+
+
+class ReadCountingRing(EventRing):
+    """Records the ring's watermark (sensor time) at every read that returned events."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.reads_at_us: list[int] = []
+
+    def read_events(self, max_n: int, until_index: int | None = None) -> EventChunk:
+        chunk = super().read_events(max_n, until_index)
+        if len(chunk.events):
+            self.reads_at_us.append(self.watermark_us)
+        return chunk
+
+
+def test_a_noisy_still_scene_is_read_in_steps_of_several_packets_and_an_onset_makes_a_frame_within_a_step():
+    ring = ReadCountingRing(capacity_events=1 << 22, capacity_frames=256, policy="wait")
+    delay_us = onset_delay_us(ring=ring)  # also checks: every event read, no frame on the still part
+    events, _, onset_us = noisy_scene(1.3, onset_s=1.0)
+    still_reads = sum(t < onset_us for t in ring.reads_at_us)
+    packets = (onset_us - int(events["t"][0])) // 1000  # 1 ms packets before the onset
+    assert packets > 900 and still_reads < packets / 4, f"{still_reads} reads for {packets} packets of noise"
+    # the onset is read within one quiet step at most (10 ms at 20 fps), far under the 50 ms frame period
+    assert 0 <= delay_us < MAX_BATCH_US
+
+
+def test_a_large_every_does_not_delay_the_onset():
+    assert onset_delay_us(seed_shift=3, every=20_000) < MAX_BATCH_US
+
+
+def _ring_with_noise(rate_per_ms: int, ms: int) -> EventRing:
+    ring = EventRing(capacity_events=1 << 16, policy="wait")
+    for k in range(ms):
+        ev = np.zeros(rate_per_ms, EVENT_DTYPE)
+        ev["t"] = k * 1000 + np.arange(rate_per_ms)
+        ring.push(Packet(events=ev, watermark_us=k * 1000 + 999))
+    ring.read_events(1 << 20)  # the worker waits once it has read everything
+    return ring
+
+
+def test_the_quiet_step_is_a_fifth_of_the_aps_period_within_bounds():
+    quiet = QuietReads(every=1000)
+    assert quiet.batch_us == MAX_BATCH_US  # before any APS period is known
+    for period_us, want in ((50_000, 10_000), (20_000, 4_000), (1_000, MIN_BATCH_US), (500_000, MAX_BATCH_US)):
+        quiet = QuietReads(every=1000)
+        for k in range(3):
+            quiet.on_aps_frame(Frame(np.zeros((2, 2), np.uint8), k * period_us, k * period_us + 100))
+        assert quiet.batch_us == want
+
+
+def test_the_wake_count_follows_the_noise_rate_and_an_active_scene_is_not_batched():
+    ring = _ring_with_noise(rate_per_ms=20, ms=100)
+    quiet = QuietReads(every=1000)
+    assert quiet.wake(ring, quiet=False) is None
+    first = quiet.wake(ring, quiet=True)
+    assert first.t_us == ring.watermark_us + MAX_BATCH_US
+    assert first.head - ring.head < 20  # the rate is not known yet: about a packet
+    for k in range(100, 200, 10):  # quiet waits 10 ms apart at 20 events/ms
+        ev = np.zeros(200, EVENT_DTYPE)
+        ev["t"] = k * 1000 + np.arange(200) * 50
+        ring.push(Packet(events=ev, watermark_us=k * 1000 + 9_999))
+        ring.read_events(1 << 20)
+        wake = quiet.wake(ring, quiet=True)
+    expected = 20 * MAX_BATCH_US / 1000  # events the noise gives in one step
+    count = wake.head - ring.head
+    assert expected + 2 * math.sqrt(expected) < count < expected + 6 * math.sqrt(expected) + 20
+    small = QuietReads(every=10)
+    assert small.wake(ring, quiet=True).head - ring.head <= 10  # never past a latent frame
+    ring.push(Packet(events=ev[:5], watermark_us=300_000))  # pushed after the worker's last read: they count
+    assert small.wake(ring, quiet=True).head == ring.read_index + 10 == ring.head + 5

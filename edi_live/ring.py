@@ -24,51 +24,18 @@ The storage itself (a circular array addressed by global index) is `edi_live.rin
 
 from __future__ import annotations
 
-import bisect
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass
 
 import numpy as np
 
 from edi_live.datatypes import Frame, Packet, as_events, empty_events
 from edi_live.ring_buffer import EventBuffer, raw_pairs
+from edi_live.ring_items import EventChunk, FrameEntry
 from edi_live.ring_wake import WakeWhen
 
 POLICIES = ("drop_oldest", "wait")
-
-
-@dataclass(frozen=True, slots=True)
-class EventChunk:
-    """Events handed to the consumer (a copy), with the host arrival time of each push they came from.
-
-    `push_ends[i]` is the end (exclusive, relative to this chunk) of the i-th push in it and `push_arrival_ns[i]`
-    that push's arrival time. `gap` is True if data was lost right before or inside this chunk.
-    """
-
-    events: np.ndarray
-    first_index: int
-    push_ends: list[int]
-    push_arrival_ns: list[int]
-    gap: bool
-
-    def arrival_ns_at(self, count: int) -> int:
-        """Arrival time of the push holding event `count - 1` (the last of the first `count` events)."""
-        if count <= 0 or not self.push_ends:
-            return 0
-        i = bisect.bisect_right(self.push_ends, count - 1)  # a few pushes per chunk: a list beats numpy here
-        return self.push_arrival_ns[min(i, len(self.push_arrival_ns) - 1)]
-
-
-@dataclass(frozen=True, slots=True)
-class FrameEntry:
-    """An APS frame in the queue. `end_index`: first event index after its exposure end."""
-
-    frame: Frame
-    end_index: int
-    arrival_ns: int
-    gap: bool = False
 
 
 class EventRing:
@@ -324,11 +291,14 @@ class EventRing:
         waiting = self._waiting
         return waiting is not None and (self._version == waiting[0] or not self._due(waiting[1]))
 
-    def read_events(self, max_n: int, until_index: int | None = None) -> EventChunk:
-        """Take up to `max_n` unread events (not past `until_index`) as a copy and advance the cursor."""
+    def read_events(self, max_n: int, until_index: int | None = None, through_t_us: int | None = None) -> EventChunk:
+        """Take up to `max_n` unread events (not past `until_index`, nor past the first event later than
+        `through_t_us`) as a copy and advance the cursor."""
         with self._cond:
             start = self._read
             stop = self._head if until_index is None else min(self._head, until_index)
+            if through_t_us is not None and stop > start:
+                stop = min(stop, self._store.search(start, stop, through_t_us + 1) + 1)
             n = max(0, min(max_n, stop - start))
             if n == 0:
                 return EventChunk(empty_events(), start, [], [], False)

@@ -147,15 +147,16 @@ class EdiWorker:
             self._adopt(wait=False)
             return True
         entry = self.ring.peek_frame()
-        limit = entry.end_index if entry is not None else None
+        limit, through = (entry.end_index if entry is not None else None), None
         if entry is not None and self.ring.read_index >= entry.end_index:
             done = self.ring.closed and not self.ring.unread_events
             if self._gate.ready(entry.frame, self.rec.clock_offset_us, done):
                 self.ring.pop_frame()
                 self._on_frame(entry)
                 return True
-            limit = None  # the events of its (late) event-clock window are still to come
-        chunk = self.ring.read_events(_CHUNK_EVENTS, limit)
+            # its (late) event-clock window's events are still to come: read just through them, not past
+            limit, through = None, entry.frame.exposure_end_us + self.rec.clock_offset_us
+        chunk = self.ring.read_events(_CHUNK_EVENTS, limit, through)
         if len(chunk.events) == 0:
             return False
         self._on_chunk(chunk)
@@ -384,8 +385,7 @@ class EdiWorker:
             "skipped_max_fps": self.skipped_max_fps, "frames_not_rendered": self.demand.not_rendered,
             "worker_gaps": self.gaps,
             "c": round((c_on + c_off) / 2, 4), "c_on": round(c_on, 4), "c_off": round(c_off, 4),
-            "reestimations": int(rec.reestimations),
-            "hot_pixels": int(rec.hot_pixels),
+            "reestimations": int(rec.reestimations), "hot_pixels": int(rec.hot_pixels),
             "worker_busy_s": round(self.busy_s, 3),
             "deblur_ms_p50": round(float(np.median(deblur)), 3) if deblur else None,
             "deblur_ms_max": round(float(np.max(deblur)), 3) if deblur else None,

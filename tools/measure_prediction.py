@@ -23,6 +23,7 @@ import numpy as np
 
 from edi_live.cli import build_config, options_from_args
 from edi_live.errors import EdiLiveError, NodeError
+from edi_live.frame_gate import in_event_clock
 from edi_live.node import default_reconstructor
 from edi_live.quality import PredictionResult, PredictionScore
 from edi_live.ring import EventChunk, EventRing, FrameEntry, as_events
@@ -38,15 +39,18 @@ class _ScoredRing(EventRing):
         super().__init__(*args, **kwargs)
         self._score = score
 
-    def read_events(self, max_n: int, until_index: int | None = None) -> EventChunk:
-        chunk = super().read_events(max_n, until_index)
+    def read_events(self, max_n: int, until_index: int | None = None,
+                    through_t_us: int | None = None) -> EventChunk:
+        chunk = super().read_events(max_n, until_index, through_t_us)
         self._score.score.on_events(chunk.events)
         return chunk
 
     def pop_frame(self) -> FrameEntry | None:
         entry = super().pop_frame()
         if entry is not None:
-            self._score.results += self._score.score.on_aps_frame(entry.frame)
+            # as the worker does: the exposure window in the event clock of the offset in use when it is taken
+            frame = in_event_clock(entry.frame, self._score.rec.clock_offset_us if self._score.rec else 0)
+            self._score.results += self._score.score.on_aps_frame(frame)
         return entry
 
 
@@ -54,6 +58,7 @@ class _Collector:
     def __init__(self, mode: str) -> None:
         self.score = PredictionScore(mode)
         self.results: list[PredictionResult] = []
+        self.rec: Any = None  # the worker's reconstructor (its clock offset places the windows)
 
     def sink(self, rec: Any) -> None:
         self.results += self.score.on_emitted(rec)
@@ -71,8 +76,8 @@ def run_recording(path: str, node_args: Sequence[str]) -> tuple[list[PredictionR
     info = source.info
     collector = _Collector(cfg.edi.mode)
     ring = _ScoredRing(collector, cfg.ring.capacity_events, cfg.ring.capacity_frames, "wait")
-    worker = EdiWorker(ring, default_reconstructor(info.width, info.height, cfg.edi), cfg.effective_edi,
-                       [collector.sink])
+    collector.rec = default_reconstructor(info.width, info.height, cfg.edi)
+    worker = EdiWorker(ring, collector.rec, cfg.effective_edi, [collector.sink])
     worker.start()
     try:
         with source:

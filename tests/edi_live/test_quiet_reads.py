@@ -27,8 +27,9 @@ class ReadCountingRing(EventRing):
         super().__init__(*args, **kwargs)
         self.reads_at_us: list[int] = []
 
-    def read_events(self, max_n: int, until_index: int | None = None) -> EventChunk:
-        chunk = super().read_events(max_n, until_index)
+    def read_events(self, max_n: int, until_index: int | None = None,
+                    through_t_us: int | None = None) -> EventChunk:
+        chunk = super().read_events(max_n, until_index, through_t_us)
         if len(chunk.events):
             self.reads_at_us.append(self.watermark_us)
         return chunk

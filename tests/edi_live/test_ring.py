@@ -60,6 +60,22 @@ def test_reads_return_exactly_what_was_pushed_across_wraparound(rng):
     np.testing.assert_array_equal(got, ev)
 
 
+def test_a_read_through_a_time_stops_at_the_first_later_event_across_wraparound(rng):
+    ring = EventRing(capacity_events=64, policy="wait")
+    t = np.cumsum(rng.integers(0, 3, 600))  # repeated times: the stop is after the first event later than the bound
+    ev = make_events(t, rng)
+    got = []
+    for start in range(0, 600, 30):  # 30 per push into 64 slots: the reads cross the wrap many times
+        assert ring.push(Packet(events=ev[start:start + 30]), timeout_s=1.0)
+        pushed = ev[start:start + 30]
+        bound = int(pushed["t"][0]) + int(rng.integers(-2, 40))
+        chunk = ring.read_events(1000, None, bound).events
+        later = np.flatnonzero(pushed["t"] > bound)
+        np.testing.assert_array_equal(chunk, pushed[: later[0] + 1] if later.size else pushed)
+        got += [chunk, drain(ring)]
+    np.testing.assert_array_equal(concat(got), ev)
+
+
 def test_read_is_a_copy_not_a_view(rng):
     ring = EventRing(capacity_events=32, policy="drop_oldest")
     ev = make_events(np.arange(16), rng)

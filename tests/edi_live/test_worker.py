@@ -160,6 +160,23 @@ def test_with_a_clock_offset_the_deblur_waits_for_the_late_events_of_the_exposur
     assert np.all(np.isin(ev["t"][(ev["t"] >= 3000) & (ev["t"] <= 5000)], given["t"]))
 
 
+def test_with_a_clock_offset_the_worker_reads_only_through_the_late_window_before_the_deblur():
+    # everything arrives at once (a replay at --speed 0): reading on past the first event after te + offset
+    # before the deblur would hand the later events to the old reference, and the new one would get no frames
+    t = np.arange(0, 20_000, 4)
+    ev = events_at(t)
+    rec = StandIn()
+    rec.clock_offset_us = 2000
+    worker, rec, out, errors = run_worker([Packet(events=ev, frames=[aps(1000, 3000)])], EdiConfig(every=500),
+                                          rec=rec)
+    assert not errors
+    (frame, given), = rec.frames_given
+    assert given["t"].max() == t[t > 5000][0], "read through the first event after the late window, no further"
+    after = int(np.sum(t > given["t"].max()))
+    latent = [r for r in out if r.kind == "latent" and r.ref_t_us == frame.mid_exposure_us]
+    assert len(latent) == after // 500, "the events after the window make latent frames from the new frame"
+
+
 def test_no_frames_before_the_first_aps_frame():
     worker, rec, out, errors = run_worker([Packet(events=events_at(np.arange(5000)))], EdiConfig(every=100))
     assert not errors and out == [] and rec.events_applied == 0

@@ -221,7 +221,8 @@ def cost_ratio(sim: Simulation, every: int, repeats: int = 5,
 
 
 def modes_suite(quick: bool, realistic: bool):
-    from tools.bench_accuracy import realistic_suite, scene_suite
+    from tools.bench_accuracy import scene_suite
+    from tools.bench_realistic import realistic_suite
 
     if realistic:
         return [(label, cfg) for group, label, cfg in realistic_suite(quick) if group == "mix" or quick]

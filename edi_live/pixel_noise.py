@@ -34,10 +34,14 @@ from numba import njit
 import edi_live.edi as edi
 
 
+PRIOR_S = 0.5  # weight of the sensor-wide rate in each pixel's estimate, in seconds of observation
+
+
 @dataclass(frozen=True, eq=False)
 class NoiseRates:
-    """Per-pixel background-activity rates (Hz, (H, W) float32) of ON and OFF events, and the still time (s) they
-    were observed over (the weight of a saved estimate when a run starts from it)."""
+    """What was observed per pixel ((H, W) float32): the ON and OFF rates (Hz) over the still time `seconds`
+    (0 Hz where a pixel was never still). These are the estimate's sufficient statistics, so that a saved
+    calibration restarts exactly where it stopped; `estimate()` gives the rates the node reports."""
 
     on_hz: np.ndarray
     off_hz: np.ndarray
@@ -46,6 +50,15 @@ class NoiseRates:
     @property
     def shape(self) -> tuple[int, int]:
         return self.on_hz.shape  # type: ignore[return-value]
+
+    def estimate(self, prior_s: float = PRIOR_S) -> tuple[np.ndarray, np.ndarray]:
+        """(ON Hz, OFF Hz) per pixel, each shrunk towards its sensor-wide rate (shrunk_rate, pooled_rate)."""
+        sec = self.seconds.astype(np.float64)
+        out = []
+        for hz in (self.on_hz, self.off_hz):
+            counts = hz * sec
+            out.append(shrunk_rate(counts, sec, pooled_rate(counts, sec), prior_s))
+        return out[0], out[1]
 
 
 def neighbour_sum(counts: np.ndarray) -> np.ndarray:
@@ -163,7 +176,7 @@ class PixelNoise:
     at `memory_s`)."""
 
     def __init__(self, width: int, height: int, *, enabled: bool = True, fixed_hz: float | None = None,
-                 start: NoiseRates | None = None, memory_s: float = 60.0, prior_s: float = 1.0,
+                 start: NoiseRates | None = None, memory_s: float = 60.0, prior_s: float = PRIOR_S,
                  neighbour_events: int = 2, aps_tolerance_dn: float = 4.0, aps_tolerance_rel: float = 0.1,
                  noisy_factor: float = 5.0, summary_every: int = 25) -> None:
         self.width, self.height = width, height
@@ -177,7 +190,7 @@ class PixelNoise:
         self._off = np.zeros(shape, np.float64)
         self._seconds = np.zeros(shape, np.float64)  # decayed still time
         if start is not None and start.shape == shape:
-            sec = np.minimum(np.asarray(start.seconds, np.float64), memory_s)
+            sec = np.minimum(np.asarray(start.seconds, np.float64), memory_s)  # what forgetting would have left
             self._seconds[:] = sec
             self._on[:] = np.asarray(start.on_hz, np.float64) * sec
             self._off[:] = np.asarray(start.off_hz, np.float64) * sec
@@ -202,7 +215,7 @@ class PixelNoise:
         dt = interval_us * 1e-6
         # the noise alone fires some neighbours: do not call a pixel busy for that
         lam = 8.0 * (self.global_on_hz + self.global_off_hz) * dt
-        limit = max(self.neighbour_events, int(math.ceil(lam + 3.0 * math.sqrt(lam))))
+        limit = max(self.neighbour_events, int(math.ceil(lam + math.sqrt(lam))))
         self.last_still = update_still_counts(
             self._on, self._off, self._seconds, n_on, n_off, b_prev, b_cur, mask, neighbour_events=limit,
             aps_tolerance_dn=self.aps_tolerance_dn, aps_tolerance_rel=self.aps_tolerance_rel,
@@ -212,11 +225,11 @@ class PixelNoise:
             self._refresh()
 
     def rates(self) -> NoiseRates | None:
-        """The current per-pixel estimate (None when off, or fixed: a fixed rate is a setting, not a calibration)."""
-        if not self.active or self.updates == 0 and not self._seconds.any():
+        """What was observed so far (None when off, or fixed: a fixed rate is a setting, not a calibration)."""
+        if not self.active or not self._seconds.any():
             return None
-        return NoiseRates(shrunk_rate(self._on, self._seconds, self.global_on_hz, self.prior_s),
-                          shrunk_rate(self._off, self._seconds, self.global_off_hz, self.prior_s),
+        sec = np.maximum(self._seconds, 1e-12)
+        return NoiseRates((self._on / sec).astype(np.float32), (self._off / sec).astype(np.float32),
                           self._seconds.astype(np.float32))
 
     def summary(self) -> dict[str, float | int]:

@@ -119,7 +119,7 @@ class EdiReconstructor:
         return 0 if self._flicker is None else self._flicker.count
 
     def noise_rates(self) -> NoiseRates | None:
-        """Per-pixel ON/OFF noise rates as estimated so far (None when off or given), e.g. to save them."""
+        """Per-pixel ON/OFF noise rates observed so far (None when off or given): .estimate(), or save them."""
         return self._pixel_noise.rates()
 
     @property

@@ -1,6 +1,7 @@
 """Speckle on real recordings: how many pixels of the node's frames stand out from their 3x3 neighbourhood.
 
     python -m tools.measure_speckle FILE.aedat4 [FILE ...] [--after-ms 10] [--threshold 20] [--set KEY=VALUE ...]
+        [--drop-unsupported noisy|all --noise-calibration CAL.json] [--drop-noisy --noise-calibration CAL.json]
 
 A pixel is an outlier when it differs from the median of its 3x3 neighbourhood by more than `--threshold` DN
 (border pixels left out). Per recording, the reconstructor (defaults, or ReconstructorSettings fields given with
@@ -9,6 +10,12 @@ the worker hands them over; the latent frame `--after-ms` after each exposure en
 scored, and so is each APS frame itself (the sensor's own speckle). Prints the mean outlier fraction of both, and
 of the latent outliers the share whose pixel had no event since the reference (inherited from the APS frame) or
 only events without a neighbour event within 5 ms (isolated: likely noise).
+
+The experiment of docs/calibration.md ("Per-pixel noise against speckle"): `--drop-unsupported noisy` takes out,
+before the reconstructor sees them, the events at the noisy pixels of a saved calibration (`edi-live
+--save-calibration`, per-pixel noise rates; pixel_noise.noisy_pixels) that have no neighbour event within 5 ms
+before or after them (an upper bound of what deferring such events could do); `all` does that at every pixel;
+`--drop-noisy` drops every event of the noisy pixels.
 """
 
 from __future__ import annotations
@@ -22,6 +29,8 @@ import cv2
 import numpy as np
 
 import edi_live.edi as edi
+from edi_live import calibration
+from edi_live.pixel_noise import noisy_pixels, pooled_rate
 from edi_live.reconstructor import EdiReconstructor
 from tools.figure import load_recording
 
@@ -35,9 +44,32 @@ def outliers(image: np.ndarray, threshold: float) -> np.ndarray:
     return out
 
 
-def latent_frames(path: Path, settings: dict[str, Any], after_us: int) -> tuple[list, list, np.ndarray]:
-    """(APS frames, [(frame index, latent image, its time)], events) for one recording."""
+def noisy_map(cal_path: Path) -> np.ndarray:
+    """(H, W) bool: the noisy pixels of a saved calibration's per-pixel noise rates."""
+    noise = calibration.load(cal_path).noise
+    if noise is None:
+        raise SystemExit(f"measure_speckle: {cal_path} holds no per-pixel noise rates")
+    sec = noise.seconds.astype(np.float64)
+    counts = (noise.on_hz + noise.off_hz).astype(np.float64) * sec
+    return noisy_pixels(counts, sec, pooled_rate(counts, sec), 5.0, 0.5)
+
+
+def drop_events(events: np.ndarray, w: int, h: int, at: np.ndarray | None, unsupported_only: bool) -> np.ndarray:
+    """`events` without those at pixels `at` ((H, W) bool; None: every pixel) that (if `unsupported_only`) have
+    no neighbour event within 5 ms before or after them."""
+    where = np.ones(events.size, bool) if at is None else at.reshape(-1)[events["y"].astype(np.int64) * w + events["x"]]
+    if unsupported_only:
+        where &= ~edi.supported_events_keep(events, w, h, 5000)
+    return events[~where]
+
+
+def latent_frames(path: Path, settings: dict[str, Any], after_us: int,
+                  drop: tuple[np.ndarray | None, bool] | None = None) -> tuple[list, list, np.ndarray]:
+    """(APS frames, [(frame index, latent image, its time)], events) for one recording; `drop`: (pixels, whether
+    only unsupported events) for drop_events."""
     events, frames = load_recording(path)
+    if drop is not None:
+        events = drop_events(events, frames[0].image.shape[1], frames[0].image.shape[0], *drop)
     h, w = frames[0].image.shape[:2]
     rec = EdiReconstructor(w, h, **settings)
     t = events["t"]
@@ -58,8 +90,9 @@ def latent_frames(path: Path, settings: dict[str, Any], after_us: int) -> tuple[
     return frames, out, events
 
 
-def measure(path: Path, settings: dict[str, Any], after_us: int, threshold: float) -> dict[str, float]:
-    frames, latents, events = latent_frames(path, settings, after_us)
+def measure(path: Path, settings: dict[str, Any], after_us: int, threshold: float,
+            drop: tuple[np.ndarray | None, bool] | None = None) -> dict[str, float]:
+    frames, latents, events = latent_frames(path, settings, after_us, drop)
     h, w = frames[0].image.shape[:2]
     aps = [outliers(f.image, threshold).mean() for f in frames]
     lat, no_event, isolated = [], [], []
@@ -96,13 +129,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threshold", type=float, default=20.0)
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a ReconstructorSettings field, e.g. denoise_us=5000 (repeatable)")
+    ap.add_argument("--drop-unsupported", choices=("noisy", "all"),
+                    help="drop events without a neighbour event within 5 ms, at the noisy pixels or everywhere")
+    ap.add_argument("--drop-noisy", action="store_true", help="drop every event of the noisy pixels")
+    ap.add_argument("--noise-calibration", type=Path, metavar="CAL.json",
+                    help="a saved calibration with per-pixel noise rates: which pixels are noisy")
     args = ap.parse_args(argv)
     settings = dict(_setting(s) for s in args.set)
+    drop = None
+    if args.drop_unsupported == "all":
+        drop = (None, True)
+    elif args.drop_unsupported == "noisy" or args.drop_noisy:
+        if args.noise_calibration is None:
+            ap.error("--drop-unsupported noisy and --drop-noisy need --noise-calibration")
+        drop = (noisy_map(args.noise_calibration), not args.drop_noisy)
+        print(f"noisy pixels in {args.noise_calibration.name}: {int(drop[0].sum())}")
     print(f"settings: {settings or '(defaults)'}; latent frames {args.after_ms:g} ms after each exposure, "
           f"outliers > {args.threshold:g} DN from the 3x3 median")
     print(f"{'recording':32s} {'frames':>6s} {'APS %':>7s} {'latent %':>8s} {'no event':>8s} {'isolated':>8s}")
     for path in args.files:
-        m = measure(path, settings, int(args.after_ms * 1000), args.threshold)
+        m = measure(path, settings, int(args.after_ms * 1000), args.threshold, drop)
         print(f"{path.stem:32s} {m['frames']:6d} {m['aps_pct']:7.3f} {m['latent_pct']:8.3f} "
               f"{m['no_event_share']:8.2f} {m['isolated_share']:8.2f}")
     return 0

@@ -252,3 +252,23 @@ def test_defective_noise_arrays_are_refused_with_one_line(tmp_path):
     path.write_text(json.dumps(data))
     with pytest.raises(ConfigError, match="noise rates 'on_hz' cannot be read"):
         calibration.load(path)
+
+
+def test_the_noise_flags_and_toml_keys_reach_the_reconstructor():
+    from edi_live.cli import options_from_args
+    from edi_live.config import NodeConfig
+    from edi_live.node import default_reconstructor
+
+    def reconstructor(*argv: str) -> EdiReconstructor:
+        flags, _ = options_from_args(["--replay", "x.aedat4", *argv])
+        return default_reconstructor(16, 12, NodeConfig.from_options(flags).edi)
+
+    assert reconstructor().settings.noise_stats is True
+    assert "noise_hz_p50" not in reconstructor("--no-noise-stats").stats()
+    assert reconstructor("--noise-rate-hz", "0.5").stats()["noise_hz_p50"] == 0.5
+    toml = NodeConfig.from_options({"replay": "x.aedat4", "noise_stats": False, "noise_rate_hz": 2})
+    assert toml.edi.noise_stats is False and toml.edi.noise_rate_hz == 2
+    with pytest.raises(ConfigError, match="noise-stats must be true or false"):
+        NodeConfig.from_options({"replay": "x.aedat4", "noise_stats": "no"})  # a TOML string, not a boolean
+    with pytest.raises(ConfigError, match="noise-rate-hz must be a rate"):
+        NodeConfig.from_options({"replay": "x.aedat4", "noise_rate_hz": -1})

@@ -4,8 +4,9 @@ size, so that the next run starts from it.
 
 The per-pixel noise rates are arrays: they go into the same JSON, under "noise", as three (H, W) row-major float16
 little-endian arrays (ON Hz, OFF Hz, and the still seconds each pixel was watched, which weights the saved rate
-when a run starts from it), each zlib-compressed and base64-encoded (~0.2-0.5 MB for a DAVIS346). float16 keeps
-three significant digits, far below the estimate's own Poisson error. A file without "noise" is as valid as before.
+when a run starts from it), each zlib-compressed and base64-encoded (at most ~0.7 MB for a DAVIS346; 43 kB after
+emlb's 0.5 s). float16 keeps three significant digits, far below the estimate's own Poisson error. A file without
+"noise" is as valid as before.
 
 `--calibration FILE` loads one, `--save-calibration FILE` writes the values in use at the end of a run. A live
 camera (USB) picks up its own without flags: it is loaded from, and saved to, `calibration_dir()/LABEL.json`

@@ -236,10 +236,11 @@ class PixelNoise:
 
     def summary(self) -> dict[str, float | int]:
         """noise_hz_p50 / noise_hz_p99 (ON + OFF, Hz per pixel), noise_on_hz_p50, noise_off_hz_p50, noisy_pixels;
-        empty while off or before anything was seen. Computed when asked for after an update (~3 ms at 346x260;
-        the stats ask about once a second), on the caller's thread: a figure may mix two updates, never more."""
-        if self._stale:
-            self._refresh()
+        empty while off or before anything was seen. Refreshed every `summary_every` updates (~4 ms at 346x260),
+        and when asked for during the first 50 (a short recording's end-of-run figures are current): the figures
+        lag by at most `summary_every` frame pairs, and cost nothing while the scene is still (few updates)."""
+        if self._stale and self.updates <= 50:
+            self._refresh()  # on the caller's thread: a figure may mix two updates, never more
         return dict(self._summary)
 
     def _refresh(self) -> None:

@@ -7,7 +7,9 @@ two consecutive APS frames counts at a pixel when (a) its 8 neighbours fired few
 `neighbour_events`, raised when the sensor's noise alone gives more) and (b) its APS value changed by at most
 `aps_tolerance_dn` + `aps_tolerance_rel` x the value. Both tests look away from the pixel's own events, so a
 noisy pixel's rate is not biased by them; an edge that crosses the pixel fires its neighbours too, and a light
-change shows in the APS, so neither inflates the rate.
+change shows in the APS, so neither inflates the rate. What still leaks in: moving low-contrast texture, whose
+single threshold crossings (from a pixel's residual) look like noise (+40 % on moving blocks, docs/calibration.md).
+Nothing is estimated while c is fixed (the reconstructor then forms no frame pairs).
 
 The counts are the ones the c estimator's frame pairs already hold (ON/OFF events per pixel between two reference
 times), so no extra pass over the events is made: the cost is one pass over the pixels per APS frame. With
@@ -20,7 +22,8 @@ the global rate. Pixels whose events are masked (hot, unreliable, flickering) ar
 not seen.
 
 `PixelNoise` is the policy around that (when to update, what to report); `NoiseRates` is what a saved calibration
-stores and a run starts from. Plain numpy; runs on the worker thread inside the reconstructor's on_frame.
+stores and a run starts from. numpy, and one numba kernel for the update (update_still_counts is its reference);
+runs on the worker thread inside the reconstructor's on_frame. Statistics only: no frame depends on them.
 """
 
 from __future__ import annotations
@@ -32,7 +35,6 @@ import numpy as np
 from numba import njit
 
 import edi_live.edi as edi
-
 
 PRIOR_S = 0.5  # weight of the sensor-wide rate in each pixel's estimate, in seconds of observation
 

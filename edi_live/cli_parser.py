@@ -109,8 +109,14 @@ def build_parser() -> argparse.ArgumentParser:
     edi.add_argument("--clock-offset-us", type=int, metavar="US",
                      help="events arrive this much later than the APS exposure they belong to (pixel latency; the "
                           "EDI authors set it by hand); the exposure window moves into the event clock (default: 0)")
+    edi.add_argument("--noise-stats", action=argparse.BooleanOptionalAction,
+                     help="estimate each pixel's background-activity rate (ON and OFF) where the scene is still, "
+                          "shown in the stats and saved with the calibration (default: on while c is estimated)")
+    edi.add_argument("--noise-rate-hz", type=float, metavar="HZ",
+                     help="give every pixel this noise rate (ON + OFF events per second) instead of estimating it")
     edi.add_argument("--calibration", metavar="FILE",
-                     help="start from a saved calibration of this camera (c_on, c_off, black level); a live camera "
+                     help="start from a saved calibration of this camera (c, black level, clock offset, per-pixel "
+                          "noise rates); a live camera "
                           "loads its own from ~/.config/edi-live/calibration/ without this flag")
     edi.add_argument("--save-calibration", metavar="FILE",
                      help="save the calibration in use at the end of the run (a live camera also saves its own)")

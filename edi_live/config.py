@@ -128,6 +128,11 @@ class EdiConfig:
     quality_every: int = 2
     # APS black level (8-bit DN) taken off each frame so the output is linear; None: 0, or a loaded calibration's
     black_level: float | None = None
+    # per-pixel noise rates (edi_live.pixel_noise): estimated from the stream unless off, or given as one rate
+    # (ON + OFF, Hz per pixel); noise_start: a saved calibration's per-pixel rates (set by the node)
+    noise_stats: bool = True
+    noise_rate_hz: float | None = None
+    noise_start: Any = field(default=None, compare=False, repr=False)
     gray: bool = False  # a colour source's frames as grey (h, w) images
     # the Bayer pattern of a colour source: --bayer-pattern, else the source's own (SourceInfo.color_filter)
     color_filter: str | None = None
@@ -164,6 +169,11 @@ class EdiConfig:
                f"flicker-mask must be true or false (got {self.flicker_mask!r})")
         _check(isinstance(self.fused_residual, bool),
                f"fused-residual must be true or false (got {self.fused_residual!r})")
+        _check(isinstance(self.noise_stats, bool), f"noise-stats must be true or false (got {self.noise_stats!r})")
+        _check(self.noise_rate_hz is None or (isinstance(self.noise_rate_hz, (int, float))
+                                              and not isinstance(self.noise_rate_hz, bool)
+                                              and math.isfinite(self.noise_rate_hz) and 0 <= self.noise_rate_hz <= 1e6),
+               f"noise-rate-hz must be a rate in Hz per pixel in [0, 1e6] (got {self.noise_rate_hz!r})")
         _check(self.deblur_thread is None or isinstance(self.deblur_thread, bool),
                f"deblur-thread must be true or false (got {self.deblur_thread!r})")
 
@@ -329,6 +339,8 @@ OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
     "deblur_ahead": ("edi", "deblur_ahead", _bool("deblur-ahead")),
     "flicker_mask": ("edi", "flicker_mask", _bool("flicker-mask")),
     "fused_residual": ("edi", "fused_residual", _bool("fused-residual")),
+    "noise_stats": ("edi", "noise_stats", _bool("noise-stats")),
+    "noise_rate_hz": ("edi", "noise_rate_hz", _num),
     "gray": ("edi", "gray", _bool("gray")),
     "bayer_pattern": ("edi", "color_filter", lambda v: None if v is None else str(v).upper()),
     "publish": ("publisher", "endpoints", _endpoints),

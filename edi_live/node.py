@@ -72,6 +72,8 @@ def default_reconstructor(width: int, height: int, edi: EdiConfig) -> Reconstruc
     kwargs["deblur_ahead"] = bool(edi.deblur_ahead)
     kwargs["mask_flicker_pixels"] = edi.mode != "fused" if edi.flicker_mask is None else bool(edi.flicker_mask)
     kwargs["fused_residual"] = bool(edi.fused_residual)
+    kwargs["noise_stats"], kwargs["noise_rate_hz"], kwargs["noise_start"] = (
+        bool(edi.noise_stats), edi.noise_rate_hz, edi.noise_start)
     if edi.mode == "fused":
         kwargs["joint_pairs"] = fused_mode.JOINT_PAIRS
     return EdiReconstructor(width, height, **kwargs)
@@ -154,7 +156,8 @@ class Node:
                 "source_dropped_events", "source_gaps", "nearest_added_latency_ms_p50",
                 "fused_added_latency_ms_p50", "out_wait_s",
                 "unreliable_pixels", "flicker_pixels", "black_level_dn", "clock_offset_us", "aps_gamma", "clock_offset_estimated",
-                "black_level_estimated", "pred_psnr_db", "still_psnr_db",
+                "black_level_estimated", "noise_hz_p50", "noise_hz_p99", "noise_on_hz_p50", "noise_off_hz_p50",
+                "noisy_pixels", "pred_psnr_db", "still_psnr_db",
                 "pred_gain_db",
                 "pred_psnr_active_db", "still_psnr_active_db", "pred_beats_still_frac", "pred_frames_scored",
                 "dv_frames_sent", "dv_frames_dropped", "dv_frames_late", "dv_frames_clients", "dv_events_sent",
@@ -256,7 +259,9 @@ class Node:
     def _save_calibration(self) -> None:
         """--save-calibration (a failure is the run's error), or a live camera's own file (a failure is a warning)."""
         target = self._calibration_to
-        cal = calibration.from_stats(self.source.info, self.final_stats) if target is not None else None
+        rates = getattr(self.worker.rec, "noise_rates", None) if self.worker is not None else None
+        noise = rates() if target is not None and rates is not None else None
+        cal = calibration.from_stats(self.source.info, self.final_stats, noise) if target is not None else None
         if cal is None:
             return
         try:

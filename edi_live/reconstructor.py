@@ -23,7 +23,8 @@ from edi_live.errors import ConfigError, NodeError
 from edi_live.exposure_ahead import ExposureAhead
 from edi_live.flicker_pixels import FlickerPixels
 from edi_live.latent_state import LatentState
-from edi_live.reconstructor_parts import build_calibration, build_masks, resolve_settings
+from edi_live.pixel_noise import NoiseRates
+from edi_live.reconstructor_parts import build_calibration, build_masks, build_noise, resolve_settings
 from edi_live.reconstructor_settings import ReconstructorSettings
 
 
@@ -49,6 +50,7 @@ class EdiReconstructor:
         self._hot, self._noise, self._unreliable = build_masks(settings, self.width, self.height,
                                                                self._tracker is not None)
         self._flicker = FlickerPixels(self.width, self.height) if settings.mask_flicker_pixels else None
+        self._pixel_noise = build_noise(settings, self.width, self.height)  # statistics only (pixel_noise.py)
         # the next exposure's double integral while it runs (not with the noise filter: it drops events later)
         self._ahead = ExposureAhead(self.width, self.height, settings.deblur_ahead and self._noise is None)
         self._mask: np.ndarray | None = self._hot.mask  # events at these pixels are ignored; replaced, not changed
@@ -115,6 +117,10 @@ class EdiReconstructor:
     def flicker_pixels(self) -> int:
         """Pixels lit by a flickering (mains) lamp now (their events are ignored like hot pixels')."""
         return 0 if self._flicker is None else self._flicker.count
+
+    def noise_rates(self) -> NoiseRates | None:
+        """Per-pixel ON/OFF noise rates observed so far (None when off or given): .estimate(), or save them."""
+        return self._pixel_noise.rates()
 
     @property
     def hot_pixel_mask(self) -> np.ndarray:
@@ -207,6 +213,8 @@ class EdiReconstructor:
         log_prev = self._latent.log_ref
         deblurred, display_current = self._latent.set_reference(img, self._aps, divisor, self._c())
         pair, self._pair = self._pair, None
+        if pair is not None:  # each pixel's noise rate, from the counts of its still intervals
+            self._pixel_noise.update(pair.n_on, pair.n_off, pair.prev.blurry, pair.cur.blurry, f - self._ref_t, mask)
         if pair is not None and self._unreliable is not None and not self.events_ignored:
             # judged on this deblur; the mask holds from here on (the latent image continues from L(f))
             self._unreliable.update(pair.n_on, pair.n_off, log_prev, self._latent.log_ref, pair.prev.informative,
@@ -304,18 +312,9 @@ class EdiReconstructor:
 
     def render_from_reference(self, t_us: int, events: np.ndarray) -> Reconstruction:
         self._need_reference("render_from_reference()")
-        t_us = int(t_us)
-        f = self._ref_t
-        mask = self._mask
-        if t_us >= f:
-            delta = edi.event_delta(events, self.width, self.height, self.c_on, self.c_off, t0=f + 1, t1=t_us,
-                                    mask=mask)
-        else:
-            delta = -edi.event_delta(events, self.width, self.height, self.c_on, self.c_off, t0=t_us + 1, t1=f,
-                                     mask=mask)
-        if self.events_ignored:
-            delta = 0.0
-        return self._reconstruction(self._latent.from_reference(delta), t_us, "latent", int(events.size))
+        image = self._latent.from_reference_events(events, self._ref_t, int(t_us), self._c(), self._mask,
+                                                   ignored=self.events_ignored)
+        return self._reconstruction(image, int(t_us), "latent", int(events.size))
 
     def reference_log(self) -> tuple[np.ndarray, int]:
         """(log L(f) of the current reference, f): the array is replaced at the next frame, never changed, so
@@ -343,7 +342,7 @@ class EdiReconstructor:
             "estimator": self.estimator.name,
             "reestimations": self.reestimations, "ill_conditioned": self.ill_conditioned,
             "hot_pixels": self.hot_pixels, "unreliable_pixels": self.unreliable_pixels,
-            "flicker_pixels": self.flicker_pixels, "frames": self.frames,
+            "flicker_pixels": self.flicker_pixels, "frames": self.frames, **self._pixel_noise.summary(),
             "events_ignored": self.events_ignored, "deblurs_ahead": self._ahead.used,
             "events_applied": self.events_applied, "has_reference": self.has_reference,
             "last_deblur_ms": round(self.last_deblur_ms, 3), "last_estimate_ms": round(self.last_estimate_ms, 3),

@@ -8,6 +8,7 @@ wrong is checked here and refused as a ConfigError (one line for the person at t
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -19,6 +20,7 @@ from edi_live.clock_offset_policy import ClockOffsetPolicy
 from edi_live.contrast_tracking import ContrastTracker
 from edi_live.errors import ConfigError
 from edi_live.pixel_masks import HotPixels, NoiseFilter, UnreliablePixels
+from edi_live.pixel_noise import PixelNoise
 from edi_live.reconstructor_settings import ReconstructorSettings
 
 
@@ -93,3 +95,12 @@ def build_masks(settings: ReconstructorSettings, width: int, height: int,
     unreliable = (UnreliablePixels(width, height, grow_px=2)
                   if settings.mask_unreliable_pixels and estimating else None)
     return hot, noise, unreliable
+
+
+def build_noise(settings: ReconstructorSettings, width: int, height: int) -> PixelNoise:
+    """The per-pixel noise statistics: estimated, fixed (noise_rate_hz) or off (noise_stats False)."""
+    rate = settings.noise_rate_hz
+    if rate is not None and not (isinstance(rate, (int, float)) and math.isfinite(rate) and 0 <= rate <= 1e6):
+        raise ConfigError(f"noise_rate_hz must be a rate in Hz per pixel in [0, 1e6] (got {rate!r})")
+    return PixelNoise(width, height, enabled=settings.noise_stats, fixed_hz=None if rate is None else float(rate),
+                      start=settings.noise_start)

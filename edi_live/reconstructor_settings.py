@@ -5,12 +5,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import edi_live.contrast as contrast
 from edi_live.c_policy import C_RANGE
 from edi_live.colour import DEFAULT_DEMOSAIC, DEMOSAIC_METHODS
 from edi_live.datatypes import COLOR_FILTERS, ColorFilter
 from edi_live.errors import ConfigError
+
+if TYPE_CHECKING:
+    from edi_live.pixel_noise import NoiseRates
 
 
 @dataclass(frozen=True)
@@ -52,6 +56,11 @@ class ReconstructorSettings:
     deblur_ahead: bool = True  # accumulate the next exposure's double integral while it runs (exposure_ahead.py)
     mask_unreliable_pixels: bool = True  # ignore events that contradict the APS frames (needs c estimation)
     mask_flicker_pixels: bool = True  # ignore the events of pixels that flicker at a mains period (flicker_pixels)
+    # per-pixel noise rates (pixel_noise.py): estimated from the frame pairs while c is estimated; a given
+    # noise_rate_hz (ON + OFF, every pixel) replaces the estimate; noise_start: a saved estimate to start from
+    noise_stats: bool = True
+    noise_rate_hz: float | None = None
+    noise_start: NoiseRates | None = field(default=None, compare=False, repr=False)
     # colour sensor (edi_live.colour_edi): the source's Bayer pattern (None: grey, unless a frame says otherwise);
     # EDI runs on the mosaic, output is demosaiced BGR (`demosaic`: colour.DEMOSAIC_METHODS), or grey with `gray`
     color_filter: ColorFilter | None = None

@@ -93,13 +93,26 @@ def format_status(s: dict[str, Any]) -> str:
 
 
 def _camera_short(s: dict[str, Any]) -> str:
-    """The camera values once they differ from an ideal camera's: black level and event clock offset."""
+    """The camera values once they differ from an ideal camera's: black level and event clock offset; the pixels'
+    noise rate (median, 99th percentile, noisy pixels) once estimated."""
     parts = []
     if s.get("black_level_dn"):
         parts.append(f"black {s['black_level_dn']:g} DN")
     if s.get("clock_offset_us"):
         parts.append(f"offset {s['clock_offset_us']} µs")
+    if s.get("noise_hz_p50") is not None:
+        parts.append(f"noise {s['noise_hz_p50']:.2g}/{s.get('noise_hz_p99', 0):.2g} Hz "
+                     f"({s.get('noisy_pixels', 0)} noisy)")
     return "  " + " ".join(parts) if parts else ""
+
+
+def _noise_text(s: dict[str, Any]) -> str:
+    """The summary's per-pixel noise figures, when there are any."""
+    if s.get("noise_hz_p50") is None:
+        return ""
+    return (f"; noise per pixel {s['noise_hz_p50']:.3g} Hz median (ON {s.get('noise_on_hz_p50', 0):.3g}, OFF "
+            f"{s.get('noise_off_hz_p50', 0):.3g}), {s.get('noise_hz_p99', 0):.3g} Hz p99, "
+            f"{s.get('noisy_pixels', 0)} noisy pixels")
 
 
 def _prediction_short(s: dict[str, Any]) -> str:
@@ -139,7 +152,8 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         f"{' (estimated)' if s.get('black_level_estimated') else ''}, "
         f"clock offset {s.get('clock_offset_us', 0)} µs{' (estimated)' if s.get('clock_offset_estimated') else ''}; "
         f"ignored pixels: hot {s.get('hot_pixels', 0)}, "
-        f"unreliable {s.get('unreliable_pixels', 0)}, flicker {s.get('flicker_pixels', 0)}; drops {s.get('drops', 0)} "
+        f"unreliable {s.get('unreliable_pixels', 0)}, flicker {s.get('flicker_pixels', 0)}{_noise_text(s)}; "
+        f"drops {s.get('drops', 0)} "
         f"(ring events {s.get('ring_dropped_events', 0)}, ring frames {s.get('ring_dropped_frames', 0)}, "
         f"publish {s.get('publish_dropped', 0)}, source events {s.get('source_dropped_events', 0)}); "
         f"skipped: static {s.get('skipped_static', 0)}, max-fps {s.get('skipped_max_fps', 0)}",

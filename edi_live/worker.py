@@ -36,6 +36,7 @@ from edi_live.nearest_mode import NearestHoldBack
 from edi_live.quality import PredictionScore
 from edi_live.quiet_reads import QuietReads
 from edi_live.reconstruction import Reconstructor
+from edi_live.reconstructor_stats import reconstructor_stats
 from edi_live.ring import EventChunk, EventRing, FrameEntry
 
 log = logging.getLogger(__name__)
@@ -371,8 +372,6 @@ class EdiWorker:
     # ---------------------------------------------------------------- stats (any thread)
 
     def stats(self) -> dict[str, Any]:
-        rec = self.rec
-        c_on, c_off = float(rec.c_on), float(rec.c_off)
         deblur = list(self._deblur_ms)
         return {
             "events_processed": self.events_in,
@@ -384,16 +383,11 @@ class EdiWorker:
             "noise_only_events": self._scene.noise_only_events,
             "skipped_max_fps": self.skipped_max_fps, "frames_not_rendered": self.demand.not_rendered,
             "worker_gaps": self.gaps,
-            "c": round((c_on + c_off) / 2, 4), "c_on": round(c_on, 4), "c_off": round(c_off, 4),
-            "reestimations": int(rec.reestimations), "hot_pixels": int(rec.hot_pixels),
             "worker_busy_s": round(self.busy_s, 3),
             "deblur_ms_p50": round(float(np.median(deblur)), 3) if deblur else None,
             "deblur_ms_max": round(float(np.max(deblur)), 3) if deblur else None,
             "nearest_added_latency_ms_p50": self._nearest.waited_ms_p50() if self.config.mode == "nearest" else None,
             "fused_added_latency_ms_p50": self._nearest.waited_ms_p50() if self.config.mode == "fused" else None,
-            "unreliable_pixels": int(rec.unreliable_pixels), "black_level_dn": round(float(rec.black_level), 2),
-            "clock_offset_us": int(rec.clock_offset_us), "aps_gamma": float(rec.aps_gamma),
-            **{k: v for k, v in rec.stats().items() if k in ("clock_offset_estimated", "black_level_estimated",
-                                                              "deblurs_ahead", "flicker_pixels")},
+            **reconstructor_stats(self.rec),  # c, camera values, ignored pixels, noise statistics
             **(self.quality.stats() if self.quality is not None else {}),
         }

@@ -9,8 +9,8 @@ deblur model (with its step lag) enters; the residual is measured in events (r /
 shrink just because a large b stretches or a negative b compresses every log ratio. b is profiled on a grid of
 whole DN with c fitted at each b (a robust regression of the log ratio on N); a flat profile is no information.
 
-Only dark pixels carry the black level: a wrong b changes a log ratio by about b (1/(B1 - b) - 1/(B2 - b)), which
-is small next to the count's quantisation error (up to +-c at each frame: a pixel's log level may sit anywhere in
+Only dark pixels carry the black level: a b wrong by e changes a log ratio by about e (1/(B1 - b) - 1/(B2 - b)),
+which is small next to the count's quantisation error (up to +-c at each frame: a pixel's log level may sit anywhere in
 its dead band of +-c around its reference, depending on its history) unless B - b is a few tens of DN. On a scene
 without such pixels the profile is flat and its minimum is set by how that error happens to vary with brightness
 (which a scene of few flat grey levels, such as blocks, does not average out): an estimate is only as good as its
@@ -64,9 +64,11 @@ def quiet_samples(pair: FramePair, taken_off: float, *, b_low: float = 3.0, b_hi
     """The pair's quiet pixels: informative in both frames, no events inside either exposure (not in either frame's
     level table) and at most `max_events` net events between them. Pixels without events count too (leaving them
     out biased b upwards by ~13 DN on an ideal small scene: the |N| >= 1 selection favours ratios quantised up);
-    larger counts are left out because they biased b by ~10 DN on the ideal 'demo' scene (blocks), for a reason
-    not understood yet, while the scenes with a true black level moved by at most 1 DN without them. `taken_off` is the black level already taken off
-    the pair's frames (it is added back, so that samples from frames with different corrections pool)."""
+    larger counts are left out because they moved b by ~10 DN on the ideal 'demo' scene (blocks, no pixel near
+    the black level: any change of the sample moves the minimum of a flat profile, see the module docstring),
+    while the scenes with a true black level moved by at most 1 DN without them. `taken_off` is the black level
+    already taken off the pair's frames (it is added back, so that samples from frames with different corrections
+    pool)."""
     prev, cur = pair.prev, pair.cur
     bp = prev.blurry.reshape(-1)
     bc = cur.blurry.reshape(-1)

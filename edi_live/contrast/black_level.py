@@ -9,6 +9,13 @@ deblur model (with its step lag) enters; the residual is measured in events (r /
 shrink just because a large b stretches or a negative b compresses every log ratio. b is profiled on a grid of
 whole DN with c fitted at each b (a robust regression of the log ratio on N); a flat profile is no information.
 
+Only dark pixels carry the black level: a b wrong by e changes a log ratio by about e (1/(B1 - b) - 1/(B2 - b)),
+which is small next to the count's quantisation error (up to +-c at each frame: a pixel's log level may sit anywhere in
+its dead band of +-c around its reference, depending on its history) unless B - b is a few tens of DN. On a scene
+without such pixels the profile is flat and its minimum is set by how that error happens to vary with brightness
+(which a scene of few flat grey levels, such as blocks, does not average out): an estimate is only as good as its
+support, the moving quiet pixels whose darker frame lies within `SUPPORT_DN` of it.
+
 A power-law APS response is not identified this way: it scales every log ratio alike and folds into c.
 """
 
@@ -21,8 +28,7 @@ import numpy as np
 
 from edi_live.contrast.frames import FramePair
 
-
-
+SUPPORT_DN = 30.0  # a moving quiet pixel supports an estimate b when its darker frame is at most this above b
 
 @dataclass(frozen=True)
 class QuietSamples:
@@ -49,6 +55,8 @@ class BlackLevelFit:
     c: float  # the c fitted with it (a nuisance here: quiet pixels are a biased selection for c)
     z: float  # how clearly it beats the grid points `z_step` DN either side, in standard errors (the weaker side)
     pixels: int
+    moving: int = 0  # quiet pixels with events between the frames (N != 0)
+    support: int = 0  # of those, the ones whose darker frame is within SUPPORT_DN of black_level
 
 
 def quiet_samples(pair: FramePair, taken_off: float, *, b_low: float = 3.0, b_high: float = 250.0,
@@ -56,9 +64,11 @@ def quiet_samples(pair: FramePair, taken_off: float, *, b_low: float = 3.0, b_hi
     """The pair's quiet pixels: informative in both frames, no events inside either exposure (not in either frame's
     level table) and at most `max_events` net events between them. Pixels without events count too (leaving them
     out biased b upwards by ~13 DN on an ideal small scene: the |N| >= 1 selection favours ratios quantised up);
-    larger counts are left out because they biased b by ~10 DN on the ideal 'demo' scene (blocks), for a reason
-    not understood yet, while the scenes with a true black level moved by at most 1 DN without them. `taken_off` is the black level already taken off
-    the pair's frames (it is added back, so that samples from frames with different corrections pool)."""
+    larger counts are left out because they moved b by ~10 DN on the ideal 'demo' scene (blocks, no pixel near
+    the black level: any change of the sample moves the minimum of a flat profile, see the module docstring),
+    while the scenes with a true black level moved by at most 1 DN without them. `taken_off` is the black level
+    already taken off the pair's frames (it is added back, so that samples from frames with different corrections
+    pool)."""
     prev, cur = pair.prev, pair.cur
     bp = prev.blurry.reshape(-1)
     bc = cur.blurry.reshape(-1)
@@ -133,7 +143,10 @@ def fit_black_level(s: QuietSamples, b_range: tuple[float, float] = (0.0, 40.0),
         var = max(float(d.dot(d)) / n - (float(d.sum()) / n) ** 2, 0.0)
         zs.append(float(d.sum()) / (math.sqrt(n * var) + 1e-12))
     z = min(zs) if zs else 0.0
-    return BlackLevelFit(float(b_best), float(c_best), z, s.size)
+    moving = s.net != 0
+    darker = np.minimum(s.b_prev[moving], s.b_cur[moving])
+    support = int(np.count_nonzero(darker <= b_best + SUPPORT_DN))
+    return BlackLevelFit(float(b_best), float(c_best), z, s.size, int(np.count_nonzero(moving)), support)
 
 
 def _log_ratios(s: QuietSamples, b: float) -> tuple[np.ndarray, np.ndarray]:

@@ -52,6 +52,46 @@ def test_an_ideal_small_scene_with_short_exposures_keeps_zero():
     assert rec.black_level <= 2.0
 
 
+@pytest.fixture(scope="module")
+def blocks_scene():
+    # the ideal "blocks translate" scene of the accuracy benchmark: flat grey blocks, none darker than ~55 DN
+    return preset("translate", texture="blocks", velocity_px_s=(300.0, 40.0), c_on=0.2, c_off=0.2, seed=1,
+                  duration_s=0.5, c_sigma=0.03, noise_rate_hz=0.1, ground_truth=False)
+
+
+def test_a_scene_without_dark_pixels_keeps_zero(blocks_scene):
+    # the profile's minimum was 9 DN at z 2.9 here: no quiet moving pixel near the black level supported it
+    sim = simulate(blocks_scene)
+    rec = _run(sim, EdiReconstructor(blocks_scene.width, blocks_scene.height, black_level=None))
+    assert rec.black_level <= 2.0, rec._black.last_fit
+
+
+def test_an_ideal_scene_with_a_small_systematic_error_keeps_zero():
+    # the fit finds 2-3 DN on this ideal scene (c_on != c_off, dark sky); within its systematic error of 0
+    cfg = preset("rotate", texture="astronaut", rotation_deg_s=200.0, c_on=0.25, c_off=0.35, seed=5, duration_s=0.5,
+                 c_sigma=0.03, noise_rate_hz=0.1, ground_truth=False)
+    sim = simulate(cfg)
+    rec = _run(sim, EdiReconstructor(cfg.width, cfg.height, black_level=None))
+    assert rec.black_level < 1.0, rec._black.last_fit  # 2 DN cost 0.54 dB at f on this scene
+
+
+@pytest.mark.xfail(strict=True, reason="known bias: 1 DN read noise pulls the estimate to 6 DN (docs/calibration.md)")
+def test_a_black_level_is_recovered_within_2_dn_with_read_noise(camera_scene):
+    cfg = with_effects(camera_scene, "black_level", "read_noise")  # 10 DN, 1 DN RMS
+    sim = simulate(cfg)
+    rec = _run(sim, EdiReconstructor(cfg.width, cfg.height, black_level=None))
+    assert abs(rec.black_level - cfg.aps_offset_dn) <= 2.0, rec._black.last_fit
+
+
+@pytest.mark.xfail(strict=True, reason="a blocks scene has no pixel near the black level: the estimate (19 DN) is "
+                                       "not supported and 0 DN is kept (docs/calibration.md)")
+def test_a_black_level_is_recovered_within_2_dn_on_blocks(blocks_scene):
+    cfg = with_effects(blocks_scene, "black_level")
+    sim = simulate(cfg)
+    rec = _run(sim, EdiReconstructor(cfg.width, cfg.height, black_level=None))
+    assert abs(rec.black_level - cfg.aps_offset_dn) <= 2.0, rec._black.last_fit
+
+
 def test_a_given_black_level_always_wins(camera_scene):
     cfg = with_effects(camera_scene, "black_level")
     sim = simulate(cfg)

@@ -126,7 +126,8 @@ class EdiConfig:
     clock_offset_us: int | None = None
     # the live prediction figure (edi_live.quality): score one APS frame in N; 0 = off
     quality_every: int = 2
-    # APS black level (8-bit DN) taken off each frame so the output is linear; None: 0, or a loaded calibration's
+    # APS black level (8-bit DN) taken off each frame so the output is linear; None: a loaded calibration's, else
+    # estimated from the stream
     black_level: float | None = None
     # per-pixel noise rates (edi_live.pixel_noise): estimated from the stream unless off, or given as one rate
     # (ON + OFF, Hz per pixel); noise_start: a saved calibration's per-pixel rates (set by the node)

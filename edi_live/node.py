@@ -63,7 +63,7 @@ def default_reconstructor(width: int, height: int, edi: EdiConfig) -> Reconstruc
         kwargs["c_on"], kwargs["c_off"] = edi.c_on, edi.c_off
     if edi.reestimate_every:
         kwargs["reestimate_every"] = edi.reestimate_every
-    kwargs["black_level"] = float(edi.black_level or 0.0)
+    kwargs["black_level"] = None if edi.black_level is None else float(edi.black_level)  # None: estimated
     kwargs["clock_offset_us"] = None if edi.clock_offset_us is None else int(edi.clock_offset_us)  # None: estimated
     kwargs["aps_gamma"] = float(edi.aps_gamma or 1.0)
     if edi.c_start is not None:

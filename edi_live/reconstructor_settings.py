@@ -42,10 +42,10 @@ class ReconstructorSettings:
     hot_rel_factor: float = 10.0
     hot_decay: float = 0.8
     saturation: float | None = None  # APS value at or above which a pixel is clipped (default: full scale)
-    # APS value of no light (8-bit scale), taken off B so that frames are linear. DV's 8-bit frames reach 0 DN,
-    # hence the default. None: estimated from the stream (black_level_policy; needs c estimation and aps_gamma 1);
-    # opt-in only, since it is not yet reliable on every scene (docs/calibration.md)
-    black_level: float | None = 0.0
+    # APS value of no light (8-bit scale), taken off B so that frames are linear. None (the default): estimated
+    # from the stream (black_level_policy; needs c estimation and aps_gamma 1), 0 DN until dark pixels support a
+    # value above 3 DN, as on DV's 8-bit frames that reach 0 DN (docs/calibration.md)
+    black_level: float | None = None
     aps_gamma: float = 1.0  # APS response: value = black + 255 (I/255)^(1/gamma); undone before the deblur
     # events arrive this much later than the APS exposure they belong to (event time = APS time + offset), µs;
     # the frame's exposure window and reference time are moved into the event clock by it

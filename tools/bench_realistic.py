@@ -100,7 +100,6 @@ def run_camera_given(sim: Simulation) -> Outputs:
 
 
 REALISTIC_METHODS = (("blurry frame", run_blurry), ("EDI default (reconstructor)", lambda s: run_reconstructor(s)),
-                     ("EDI node, black level estimated", lambda s: run_reconstructor(s, black_level=None)),
                      ("EDI node, camera given", run_camera_given),
                      ("EDI oracle camera (edi.py)", run_oracle_camera))
 LINEAR_OUTPUT = ("EDI node, camera given", "EDI oracle camera (edi.py)")  # they undo the response: linear frames
@@ -125,18 +124,16 @@ def realistic_table(rows) -> str:
     to the oracle, SSIM, and the mean over the mixed scenes."""
     names = [n for n, _ in REALISTIC_METHODS]
     short = {"blurry frame": "blurry", "EDI default (reconstructor)": "default", "EDI node, camera given": "given",
-             "EDI node, black level estimated": "est. black",
              "EDI oracle camera (edi.py)": "oracle"}
     head = " | ".join(f"{short[n]} PSNR f | {short[n]} PSNR lat" for n in names)
-    lines = [f"| scene | {head} | default - oracle f / lat (dB) | est. black - oracle | given - oracle f / lat (dB) | "
-             f"SSIM f {'/'.join(short[n][0] for n in names)} |", "|---|" + "---:|" * (2 * len(names) + 4)]
+    lines = [f"| scene | {head} | default - oracle f / lat (dB) | given - oracle f / lat (dB) | "
+             f"SSIM f {'/'.join(short[n][0] for n in names)} |", "|---|" + "---:|" * (2 * len(names) + 3)]
 
     def line(label, per):
         vals = " | ".join(f"{per[n].psnr_deblur:.2f} | {per[n].psnr_latent:.2f}" for n in names)
         o = per["EDI oracle camera (edi.py)"]
         gaps = " | ".join(f"{per[n].psnr_deblur - o.psnr_deblur:+.2f} / {per[n].psnr_latent - o.psnr_latent:+.2f}"
-                          for n in ("EDI default (reconstructor)", "EDI node, black level estimated",
-                                    "EDI node, camera given"))
+                          for n in ("EDI default (reconstructor)", "EDI node, camera given"))
         ss_f = "/".join(f"{per[n].ssim_deblur:.3f}" for n in names)
         return f"| {label} | {vals} | {gaps} | {ss_f} |"
     mix = [(lab, per) for g, lab, per in rows if g == "mix"]

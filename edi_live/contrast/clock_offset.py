@@ -44,23 +44,28 @@ class FrameWindow:
 def estimate_clock_offset(events: np.ndarray, prev: FrameWindow, cur: FrameWindow, sample: np.ndarray,
                           c: tuple[float, float], *, black_level: float = 0.0, mask: np.ndarray | None = None,
                           max_offset_us: int = 4000, step_us: int = 250, coarse_step_us: int = 1000,
-                          midlevel_gap_us: int | None = None, b_low: float = 6.0, b_high: float = 250.0,
+                          midlevel_gap_us: int | None = None, complete_until_us: int | None = None,
+                          max_pixels: int | None = None, b_low: float = 6.0, b_high: float = 250.0,
                           delta: float = 0.1, min_pixels: int = 30, min_z: float = 0.0,
                           z_step_us: int = 1000) -> float | None:
     """d in µs (events late by d: event time = APS time + d) within +-max_offset_us, or None when the frames
     say nothing (too few usable pixels, a flat cost, or the best offset at the edge of what the events cover).
     `events`: time-ordered; candidates whose windows the events do not cover are left out (a batch that starts at
-    the first exposure cannot test events early). With midlevel_gap_us, the events' times are first moved as
-    `midlevel_times(events, width, midlevel_gap_us)` would (on the used pixels only: cheaper). `sample`: (H, W)
-    bool pixels to use; `mask`: pixels whose events are ignored. With min_z, the best point must beat both points
-    z_step_us away (those within the covered range) by min_z standard errors of the per-pixel cost difference
-    (paired over pixels), else None: a shallow or noisy cost curve says nothing about the offset."""
+    the first exposure cannot test events early); `complete_until_us`: the events are known to be complete up to
+    then (default: the last event; a sparse stream's last event comes early). With midlevel_gap_us, the events'
+    times are first moved as `midlevel_times(events, width, midlevel_gap_us)` would (on the used pixels only:
+    cheaper). `sample`: (H, W) bool pixels to use, of which those with events near the windows count (at most
+    max_pixels of them, evenly spread: the cost grows with them); `mask`: pixels whose events are ignored. With
+    min_z, the best point must beat both points z_step_us away (those within the covered range) by min_z standard
+    errors of the per-pixel cost difference (paired over pixels), else None: a shallow or noisy cost curve says
+    nothing about the offset."""
     h, w = sample.shape
     if events.size == 0:
         return None
     t = events["t"]
     d_lo = max(-max_offset_us, -((prev.exposure_start_us - int(t[0])) // step_us) * step_us)
-    d_hi = min(max_offset_us, ((int(t[-1]) - cur.exposure_end_us) // step_us) * step_us)
+    until = int(t[-1]) if complete_until_us is None else max(int(t[-1]), complete_until_us)
+    d_hi = min(max_offset_us, ((until - cur.exposure_end_us) // step_us) * step_us)
     if d_hi - d_lo < 2 * step_us:
         return None  # the batch does not cover the windows
     bp = prev.blurry.reshape(-1) - black_level
@@ -69,11 +74,17 @@ def estimate_clock_offset(events: np.ndarray, prev: FrameWindow, cur: FrameWindo
     use &= (bp >= b_low) & (bp <= b_high) & (bc >= b_low) & (bc <= b_high)
     if mask is not None:
         use &= ~mask.reshape(-1)
-    pixels = np.flatnonzero(use)
+    lo, hi = prev.exposure_start_us + d_lo, cur.exposure_end_us + d_hi
+    # pixels without an event near the windows cost the same at every offset: only pixels with events count
+    with_events = np.zeros(h * w, bool)
+    near = events[(t >= lo - (midlevel_gap_us or 0) // 2) & (t <= hi)]
+    with_events[near["y"].astype(np.int64) * w + near["x"]] = True
+    pixels = np.flatnonzero(use & with_events)
+    if max_pixels is not None and pixels.size > max_pixels:
+        pixels = pixels[np.linspace(0, pixels.size - 1, max_pixels).astype(np.int64)]
     if pixels.size < min_pixels:
         return None
     dlog_b = np.log(bc[pixels]) - np.log(bp[pixels])
-    lo, hi = prev.exposure_start_us + d_lo, cur.exposure_end_us + d_hi
     sums = _ExposureSums(events, pixels, w, lo, hi, c, midlevel_gap_us)
     ends = np.array([prev.exposure_start_us, prev.exposure_end_us, cur.exposure_start_us, cur.exposure_end_us])
     spans = (max(prev.exposure_end_us - prev.exposure_start_us, 1), max(cur.exposure_end_us - cur.exposure_start_us, 1))

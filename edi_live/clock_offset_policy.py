@@ -34,7 +34,7 @@ class ClockOffsetSettings:
     per_round: int = 4  # else a round ends after this many fits (their median)
     max_fits: int = 8  # or, short of that, after this many pairs fitted (each costs a few ms): no change
     recheck_every: int = 1000
-    min_change_us: int = 100
+    min_change_us: int = 200  # a pair's fit scatters by ~+-200 µs (ideal camera): smaller moves are noise
     # pixels whose events are kept; a fit uses up to fit_pixels of them that have events. 20000 makes the sparse
     # emlb recording pass (1.74 and 1.45 ms) but its prediction figure drops (+3.71 -> +0.98 dB): see calibration.md
     sample_pixels: int = 3000

@@ -52,6 +52,14 @@ class _Due:
     c: tuple[float, float]
     mask: np.ndarray | None
 
+    @property
+    def run_after_us(self) -> int:
+        """The fit waits for events this late: half a frame interval past the newer exposure (at least the search
+        margin), so that it never runs in the catch-up of a deblur made on the worker's helper thread, which the
+        worker hands on before it sends that deblurred frame."""
+        interval = self.cur.exposure_start_us - self.prev.exposure_start_us
+        return self.cur.exposure_end_us + max(MAX_OFFSET_US, interval // 2)
+
 
 class ClockOffsetPolicy:
     """`collect(events)` with every event batch (runs a due fit); `update(frame, ...)` per APS frame registers it
@@ -100,7 +108,7 @@ class ClockOffsetPolicy:
     def collect(self, events: np.ndarray) -> None:
         """Keep the sample's new events; run the due fits that they complete."""
         self._keep(events)
-        while self._due and self._t_max >= self._due[0].cur.exposure_end_us + MAX_OFFSET_US:
+        while self._due and self._t_max >= self._due[0].run_after_us:
             self._fit(self._due.pop(0))
 
     def update(self, frame: Frame, events: np.ndarray, image: np.ndarray, black_level: float,

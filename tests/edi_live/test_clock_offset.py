@@ -127,26 +127,27 @@ def test_the_fits_residual_is_edis_level_tables_and_counts_between_the_frames(sc
 
 
 def _feed(sim, rec, pieces: int = 1, inside=None):
-    """Feed as the worker does, with the events between frames in `pieces` on_events calls; returns the offset in
-    use at each frame and the deblurred images. `inside(flag)` is told when on_frame starts and ends."""
+    """Feed as the worker does: every event through on_events (in `pieces` calls per frame interval) up to the
+    exposure's end in the event clock, then the frame with its window's events; returns the offset in use at each
+    frame and the deblurred images. `inside(flag)` is told when on_frame starts and ends."""
     ev, frames = sim.events, sim.frames
     t = ev["t"]
-
-    def between(t0, t1):
-        return ev[np.searchsorted(t, t0, "left"):np.searchsorted(t, t1, "right")]
-    used, images = [], []
-    for k, f in enumerate(frames):
-        off = rec.clock_offset_us
+    used, images, fed = [], [], 0
+    for f in frames:
+        while True:  # as the worker's gate: read on until past the exposure's end with the offset now in use
+            off = rec.clock_offset_us
+            end = max(fed, int(np.searchsorted(t, f.exposure_end_us + off, "right")))
+            for part in np.array_split(ev[fed:end], pieces):
+                rec.on_events(part)
+            fed = end
+            if rec.clock_offset_us == off:
+                break
         used.append(off)
         if inside:
             inside(True)
-        images.append(rec.on_frame(f, between(f.exposure_start_us + off, f.exposure_end_us + off)).image)
+        images.append(rec.on_frame(f, ev[np.searchsorted(t, f.exposure_start_us + off, "left"):end]).image)
         if inside:
             inside(False)
-        if k + 1 < len(frames):
-            gap = between(f.exposure_end_us + off + 1, frames[k + 1].exposure_start_us - 1)
-            for part in np.array_split(gap, pieces):
-                rec.on_events(part)
     return used, images
 
 

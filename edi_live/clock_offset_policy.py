@@ -90,6 +90,7 @@ class ClockOffsetPolicy:
         """A cheap copy that keeps the current offset and collects nothing (for a streaming copy)."""
         twin = copy.copy(self)
         twin.given = self.value
+        twin._due, twin._chunks, twin._found = [], [], []  # nothing shared with the original, which goes on
         return twin
 
     @property
@@ -107,6 +108,8 @@ class ClockOffsetPolicy:
 
     def collect(self, events: np.ndarray) -> None:
         """Keep the sample's new events; run the due fits that they complete."""
+        if not self.collecting:
+            return
         self._keep(events)
         while self._due and self._t_max >= self._due[0].run_after_us:
             self._fit(self._due.pop(0))

@@ -182,3 +182,23 @@ def test_the_fit_runs_after_the_frame_in_on_events_and_does_not_depend_on_the_ev
     used7, images7 = _feed(sim, EdiReconstructor(cfg.width, cfg.height, clock_offset_us=None), 7)
     assert used7 == used
     assert all(np.array_equal(a, b) for a, b in zip(images, images7))
+
+
+def test_a_streaming_copy_keeps_the_offset_and_leaves_the_due_fits_to_the_original(scene):
+    from edi_live.reconstructor import EdiReconstructor
+
+    cfg = with_effects(scene, "clock_offset")
+    sim = simulate(cfg)
+    rec = EdiReconstructor(cfg.width, cfg.height, clock_offset_us=None)
+    t = sim.events["t"]
+    f0, f1 = sim.frames[0], sim.frames[1]
+    rec.on_frame(f0, sim.events[np.searchsorted(t, f0.exposure_start_us):np.searchsorted(t, f0.exposure_end_us)])
+    # the worker hands on_frame the events up to its read cursor: here far enough for the pair's fit to be runnable
+    reach = np.searchsorted(t, f1.exposure_end_us + 40_000)
+    rec.on_frame(f1, sim.events[np.searchsorted(t, f1.exposure_start_us):reach])
+    assert rec._clock.due == 1 and rec._clock.fits_run == 0  # never inside on_frame
+    twin = rec.streaming_copy()
+    twin.on_events(sim.events[reach:reach + 1000])  # the copy streams; the original gets these events later
+    assert rec._clock.due == 1 and rec._clock.fits_run == 0 and twin.clock_offset_us == 0
+    rec.on_events(sim.events[reach:reach + 1000])
+    assert rec._clock.due == 0 and rec._clock.fits_run == 1

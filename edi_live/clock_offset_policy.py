@@ -3,13 +3,15 @@
 The math is edi_live.contrast.clock_offset (a fit on two consecutive frames, with the step model's lag taken out
 first); this module owns the decision state. While a round is on it keeps the sample pixels' recent events (from
 the reconstructor's on_events and on_frame, without duplicates) and the frames; each new frame makes the pair it
-closes due, and the fit runs in the first `collect` (on_events) whose events cover that pair's windows with the
-search margin, i.e. after the frame has been deblurred and handed out, never inside `update` (on_frame). A new value
-is in `value` at once, so the next frame's window already uses it; `update` reports it so that the frame pairs
-formed with the old value can be dropped. The round ends with `agree` consecutive fits within `agree_us` of each
-other (their mean) or with `per_round` fits (their median); the offset moves when that differs from the current one
-by at least `min_change_us`. Rounds: from the first frame, then every `recheck_every` frames. A given offset (flag,
-TOML key, saved calibration) is never replaced. Everything depends only on the calls' order and contents.
+closes due, and the fit runs in a `collect` (on_events) whose events cover that pair's windows with the search
+margin, never inside `update` (on_frame) and not in the first batch after the frame unless that reaches half a
+frame interval past it (see _Due.runnable): after the frame has been deblurred and sent. A new value is in `value`
+at once, so the next frame's window already uses it; `update` reports it so that the frame pairs formed with the
+old value can be dropped. The round ends with `agree` consecutive fits within `agree_us` of each other (their
+mean) or with `per_round` fits (their median), or without a change after `max_fits` fits; the offset moves when
+the result differs from the current one by at least `min_change_us`. Rounds: from the first frame, then every
+`recheck_every` frames. A given offset (flag, TOML key, saved calibration) is never replaced. Everything depends
+only on the calls' order and contents (no clock, no thread).
 """
 
 from __future__ import annotations
@@ -52,13 +54,14 @@ class _Due:
     c: tuple[float, float]
     mask: np.ndarray | None
 
-    @property
-    def run_after_us(self) -> int:
-        """The fit waits for events this late: half a frame interval past the newer exposure (at least the search
-        margin), so that it never runs in the catch-up of a deblur made on the worker's helper thread, which the
-        worker hands on before it sends that deblurred frame."""
+    def runnable(self, t_max: int, first_batch: bool) -> bool:
+        """Whether events up to t_max complete the fit's data (the search margin past the newer exposure). In the
+        first batch after the frame, only once they reach half a frame interval past it: that batch may be the
+        worker's catch-up of a deblur made on its helper thread, handed on before that deblurred frame is sent."""
+        if t_max < self.cur.exposure_end_us + MAX_OFFSET_US:
+            return False
         interval = self.cur.exposure_start_us - self.prev.exposure_start_us
-        return self.cur.exposure_end_us + max(MAX_OFFSET_US, interval // 2)
+        return not first_batch or t_max >= self.cur.exposure_end_us + interval // 2
 
 
 class ClockOffsetPolicy:
@@ -78,6 +81,7 @@ class ClockOffsetPolicy:
         self.last_estimates: list[float] = []
         self._found: list[float] = []
         self._announce = False
+        self._batches = 0
         self._end_round()
         self._frames_to_round = 0  # the first round starts with the stream
         sample = np.zeros(width * height, bool)
@@ -111,7 +115,8 @@ class ClockOffsetPolicy:
         if not self.collecting:
             return
         self._keep(events)
-        while self._due and self._t_max >= self._due[0].run_after_us:
+        self._batches += 1
+        while self._due and self._due[0].runnable(self._t_max, self._batches == 1):
             self._fit(self._due.pop(0))
 
     def update(self, frame: Frame, events: np.ndarray, image: np.ndarray, black_level: float,
@@ -121,6 +126,7 @@ class ClockOffsetPolicy:
         if self.given is not None:
             return None
         announce, self._announce = self._announce, False
+        self._batches = 0  # collect() calls since this frame
         if not self.collecting:
             self._frames_to_round -= 1
             return self.value if announce else None

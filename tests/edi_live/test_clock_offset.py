@@ -202,3 +202,21 @@ def test_a_streaming_copy_keeps_the_offset_and_leaves_the_due_fits_to_the_origin
     assert rec._clock.due == 1 and rec._clock.fits_run == 0 and twin.clock_offset_us == 0
     rec.on_events(sim.events[reach:reach + 1000])
     assert rec._clock.due == 0 and rec._clock.fits_run == 1
+
+
+def test_the_first_batch_after_a_frame_runs_no_fit_unless_it_reaches_half_a_frame_interval(scene):
+    """With the deblur thread, the worker hands the original the events of the deblur's duration before it sends
+    that deblurred frame: a fit there would delay the frame."""
+    from edi_live.reconstructor import EdiReconstructor
+
+    sim = simulate(with_effects(scene, "clock_offset"))
+    rec = EdiReconstructor(scene.width, scene.height, clock_offset_us=None)
+    t = sim.events["t"]
+    f0, f1 = sim.frames[0], sim.frames[1]
+    for f in (f0, f1):
+        rec.on_frame(f, sim.events[np.searchsorted(t, f.exposure_start_us):np.searchsorted(t, f.exposure_end_us)])
+    catch_up = np.searchsorted(t, f1.exposure_end_us + 5_000)  # past the 4 ms margin, short of half an interval
+    rec.on_events(sim.events[np.searchsorted(t, f1.exposure_end_us):catch_up])
+    assert rec._clock.due == 1 and rec._clock.fits_run == 0
+    rec.on_events(sim.events[catch_up:catch_up + 1000])
+    assert rec._clock.due == 0 and rec._clock.fits_run == 1

@@ -26,7 +26,7 @@ from edi_live.datatypes import Frame
 from edi_live.errors import ConfigError
 
 MAX_OFFSET_US = 4000  # the search range, +-; the margin of events needed after each pair
-MIDLEVEL_GAP_US = 20_000  # events kept before a window so that its events find their predecessors
+MIDLEVEL_GAP_US = 20_000  # events kept before a pair so that its events find their predecessors; the gaps' cap
 
 
 @dataclass(frozen=True)

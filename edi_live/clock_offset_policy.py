@@ -130,6 +130,8 @@ class ClockOffsetPolicy:
         if not self.collecting:
             self._frames_to_round -= 1
             return self.value if announce else None
+        if self._last is not None and frame.exposure_start_us <= self._last.exposure_start_us:
+            self._drop_data()  # time went backwards (a recording looped): what was kept belongs to another stream
         self._keep(events)
         window = FrameWindow(int(frame.exposure_start_us), int(frame.exposure_end_us), image.astype(np.float64),
                              (image > black_level) & (image < 255))
@@ -207,9 +209,12 @@ class ClockOffsetPolicy:
     def _end_round(self) -> None:
         self._found = []
         self._fits_in_round = 0
+        self._drop_data()
+        self._frames_to_round = self.settings.recheck_every
+
+    def _drop_data(self) -> None:
         self._due: list[_Due] = []
         self._last: FrameWindow | None = None
         self._chunks: list[np.ndarray] = []
         self._t_max = -(2**63)
         self._at_max = np.zeros(0, np.int64)  # pixel keys of the kept events at _t_max
-        self._frames_to_round = self.settings.recheck_every

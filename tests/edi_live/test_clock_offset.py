@@ -5,6 +5,8 @@ the offset is in use from the fourth frame, and the fit never runs inside on_fra
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -77,8 +79,6 @@ def _stream(sim, rec):
 
 
 def test_the_reconstructor_finds_the_offset_when_asked_and_keeps_a_given_one(scene):
-    import dataclasses
-
     from edi_live.reconstructor import EdiReconstructor
 
     cfg = with_effects(dataclasses.replace(scene, duration_s=1.2), "clock_offset")
@@ -93,8 +93,6 @@ def test_the_reconstructor_finds_the_offset_when_asked_and_keeps_a_given_one(sce
 def test_the_fits_residual_is_edis_level_tables_and_counts_between_the_frames(scene):
     """The fit reads each pixel's integral of exp(S) at the window ends; EDI's own functions (level tables of both
     windows moved by d, the counts between the mid-exposures) must give the same residual."""
-    import dataclasses
-
     import edi_live.edi as edi
     from edi_live.contrast.clock_offset import _ExposureSums, _terms
 
@@ -220,3 +218,14 @@ def test_the_first_batch_after_a_frame_runs_no_fit_unless_it_reaches_half_a_fram
     assert rec._clock.due == 1 and rec._clock.fits_run == 0
     rec.on_events(sim.events[catch_up:catch_up + 1000])
     assert rec._clock.due == 0 and rec._clock.fits_run == 1
+
+
+def test_a_new_recording_with_earlier_times_during_the_first_round_still_gets_its_offset(scene):
+    from edi_live.reconstructor import EdiReconstructor
+
+    cfg = with_effects(scene, "clock_offset")
+    rec = EdiReconstructor(cfg.width, cfg.height, clock_offset_us=None)
+    before = dataclasses.replace(scene, duration_s=0.12, seed=5, t0_us=scene.t0_us + 10_000_000)
+    _feed(simulate(before), rec)  # two frames of another recording, 10 s later than the next one
+    used, _ = _feed(simulate(cfg), rec)
+    assert all(abs(u - cfg.event_offset_us) <= 300 for u in used[3:]), used

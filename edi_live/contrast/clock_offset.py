@@ -144,33 +144,34 @@ class _ExposureSums:
         if midlevel_gap_us is not None:
             t = t - _midlevel_shift(r * 2 + p, t, midlevel_gap_us)
         inside = (t >= lo) & (t <= hi)
-        r, t, p = r[inside], t[inside], p[inside]
-        self.span = hi - lo + 2  # one key range per pixel
-        key = r * self.span + (t - lo)
-        order = np.argsort(key, kind="stable")  # by pixel, then time
-        self.key, self.r, self.t = key[order], r[order], t[order]
-        first = np.ones(self.r.size, bool)
-        first[1:] = self.r[1:] != self.r[:-1]
-        self.level = _grouped_cumsum(np.where(p[order], c[0], -c[1]), first)  # S just after each event
-        before = np.zeros(self.r.size)
-        before[1:] = self.level[:-1]
+        n = pixels.size
+        # each pixel starts with a mark at lo (no level change), so that every time has an event at or before it
+        r = np.concatenate([np.arange(n, dtype=np.int64), r[inside]])
+        t = np.concatenate([np.full(n, lo, np.int64), t[inside]])
+        step = np.concatenate([np.zeros(n), np.where(p[inside], c[0], -c[1])])
+        span = hi - lo + 2  # one key range per pixel
+        key = r * span + (t - lo)
+        order = np.argsort(key * 2 + (np.arange(key.size) >= n))  # by pixel, then time; a pixel's mark first
+        self.key, r, t = key[order], r[order], t[order]
+        first = np.ones(r.size, bool)
+        first[1:] = r[1:] != r[:-1]
+        level = _grouped_cumsum(step[order], first)  # S just after each event
+        before = np.zeros(r.size)
+        before[1:] = level[:-1]
         before[first] = 0.0
-        t_before = np.empty_like(self.t)
-        t_before[1:] = self.t[:-1]
+        t_before = np.empty_like(t)
+        t_before[1:] = t[:-1]
         t_before[first] = lo
-        self.integral = _grouped_cumsum(np.exp(before) * (self.t - t_before), first)  # up to each event
-        self.exp_level = np.exp(self.level)
+        integral = _grouped_cumsum(np.exp(before) * (t - t_before), first)  # up to each event
+        self.slope = np.exp(level)
+        self.intercept = integral - self.slope * (t - lo)  # the integral at q is intercept + slope * (q - lo)
         self.lo = lo
-        self.n = pixels.size
-        self.row_key = (np.arange(self.n, dtype=np.int64) * self.span - lo)[:, None]
+        self.n = n
+        self.row_key = (np.arange(n, dtype=np.int64) * span - lo)[:, None]
 
     def at(self, q: np.ndarray) -> np.ndarray:
-        if not self.r.size:
-            return (q - self.lo).astype(np.float64)
-        j = np.searchsorted(self.key, self.row_key + q, "right") - 1
-        jj = np.maximum(j, 0)
-        seen = (j >= 0) & (self.r[jj] == np.arange(self.n)[:, None])  # else no event of that pixel yet: S = 0
-        return np.where(seen, self.integral[jj] + self.exp_level[jj] * (q - self.t[jj]), q - self.lo)
+        j = np.searchsorted(self.key, self.row_key + q, "right") - 1  # at or after the pixel's mark
+        return self.intercept[j] + self.slope[j] * (q - self.lo)
 
 
 def _grouped_cumsum(values: np.ndarray, first: np.ndarray) -> np.ndarray:
@@ -198,7 +199,8 @@ def _terms(sums: _ExposureSums, ends: np.ndarray, spans: tuple[int, int], ds: np
 
 def _midlevel_shift(key: np.ndarray, t: np.ndarray, max_gap_us: int) -> np.ndarray:
     """How far midlevel_times moves each event back (µs). `key`: pixel and polarity; `t`: ascending times."""
-    order = np.argsort(key, kind="stable")  # by pixel and polarity, then time
+    t0 = int(t[0]) if t.size else 0
+    order = np.argsort(key * (int(t[-1]) - t0 + 1) + (t - t0)) if t.size else np.zeros(0, np.int64)  # key, time
     ts = t[order]
     k = key[order]
     same = k[1:] == k[:-1]

@@ -1,11 +1,17 @@
 """When to estimate the event clock offset from the stream, and what to make of the estimates.
 
 The math is edi_live.contrast.clock_offset (a fit on two consecutive frames, with the step model's lag taken out
-first); this module owns the decision state: while an estimate is due it keeps the recent events (from the
-reconstructor's on_events and on_frame, without duplicates) and the last two frames, fits the pair before the
-newest frame once the events cover it with a margin, and after `per_round` estimates moves the offset to their
-median when that differs from the current one by at least `min_change_us`. Rounds: at start-up, then every
-`recheck_every` frames. A given offset (flag, TOML key, saved calibration) is never replaced.
+first); this module owns the decision state. While a round is on it keeps the sample pixels' recent events (from
+the reconstructor's on_events and on_frame, without duplicates) and the frames; each new frame makes the pair it
+closes due, and the fit runs in a `collect` (on_events) whose events cover that pair's windows with the search
+margin, never inside `update` (on_frame) and not in the first batch after the frame unless that reaches half a
+frame interval past it (see _Due.runnable): after the frame has been deblurred and sent. A new value is in `value`
+at once, so the next frame's window already uses it; `update` reports it so that the frame pairs formed with the
+old value can be dropped. The round ends with `agree` consecutive fits within `agree_us` of each other (their
+mean) or with `per_round` fits (their median), or without a change after `max_fits` fits; the offset moves when
+the result differs from the current one by at least `min_change_us`. Rounds: from the first frame, then every
+`recheck_every` frames. A given offset (flag, TOML key, saved calibration) is never replaced. Everything depends
+only on the calls' order and contents (no clock, no thread).
 """
 
 from __future__ import annotations
@@ -15,29 +21,52 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from edi_live.contrast.clock_offset import FrameWindow, estimate_clock_offset, midlevel_times
+from edi_live.contrast.clock_offset import FrameWindow, estimate_clock_offset
 from edi_live.datatypes import Frame
 from edi_live.errors import ConfigError
 
-MAX_OFFSET_US = 4000  # the search range, +-; the margin of events kept around each pair
-MIDLEVEL_GAP_US = 20_000  # events kept before a window so that its events find their predecessors
+MAX_OFFSET_US = 4000  # the search range, +-; the margin of events needed after each pair
+MIDLEVEL_GAP_US = 20_000  # events kept before a pair so that its events find their predecessors; the gaps' cap
 
 
 @dataclass(frozen=True)
 class ClockOffsetSettings:
-    per_round: int = 4
-    # pixels fire their first events from a fresh reference and without a predecessor: the first frames give a
-    # lag of ~0.5 ms on the simulator (~0.1 ms later on)
-    first_round_after: int = 5
-    recheck_every: int = 1000  # a fit costs ~20 ms at 240x180 (~7 deblurs): rounds stay rare
-    min_change_us: int = 100
-    sample_pixels: int = 4000
-    min_z: float = 3.0  # a pair's fit counts only when its best offset beats +-1 ms by this many standard errors
+    agree: int = 2  # this many consecutive fits ...
+    agree_us: int = 300  # ... this close together end a round (their mean)
+    per_round: int = 4  # else a round ends after this many fits (their median)
+    max_fits: int = 8  # or, short of that, after this many pairs fitted (each costs a few ms): no change
+    recheck_every: int = 1000
+    min_change_us: int = 200  # a pair's fit scatters by ~+-200 µs (ideal camera): smaller moves are noise
+    # pixels whose events are kept; a fit uses up to fit_pixels of them that have events. 20000 makes the sparse
+    # emlb recording pass (1.74 and 1.45 ms) but its prediction figure drops (+3.71 -> +0.98 dB): see calibration.md
+    sample_pixels: int = 3000
+    fit_pixels: int = 3000
+    min_z: float = 2.0  # a pair's fit counts only when its best offset beats +-1 ms by this many standard errors
+
+
+@dataclass(frozen=True)
+class _Due:
+    """A frame pair waiting for its fit, with the calibration of the moment it closed."""
+
+    prev: FrameWindow
+    cur: FrameWindow
+    black_level: float
+    c: tuple[float, float]
+    mask: np.ndarray | None
+
+    def runnable(self, t_max: int, first_batch: bool) -> bool:
+        """Whether events up to t_max complete the fit's data (the search margin past the newer exposure). In the
+        first batch after the frame, only once they reach half a frame interval past it: that batch may be the
+        worker's catch-up of a deblur made on its helper thread, handed on before that deblurred frame is sent."""
+        if t_max < self.cur.exposure_end_us + MAX_OFFSET_US:
+            return False
+        interval = self.cur.exposure_start_us - self.prev.exposure_start_us
+        return not first_batch or t_max >= self.cur.exposure_end_us + interval // 2
 
 
 class ClockOffsetPolicy:
-    """`collect(events)` with every event batch; `update(frame, ...)` per APS frame returns the new offset (µs)
-    when it changed."""
+    """`collect(events)` with every event batch (runs a due fit); `update(frame, ...)` per APS frame registers it
+    and returns the offset (µs) when a fit since the previous frame changed it."""
 
     def __init__(self, given: int | None, width: int, height: int,
                  settings: ClockOffsetSettings = ClockOffsetSettings()) -> None:
@@ -48,12 +77,13 @@ class ClockOffsetPolicy:
         self.settings = settings
         self.width, self.height = width, height
         self.estimates = 0
+        self.fits_run = 0
         self.last_estimates: list[float] = []
         self._found: list[float] = []
-        self._frames: list[FrameWindow] = []
-        self._chunks: list[np.ndarray] = []
-        self._t_max = -(2**63)
-        self._frames_to_round = settings.first_round_after  # the stream start is atypical (see settings)
+        self._announce = False
+        self._batches = 0
+        self._end_round()
+        self._frames_to_round = 0  # the first round starts with the stream
         sample = np.zeros(width * height, bool)
         keep = np.random.default_rng(20190617).choice(sample.size, min(sample.size, settings.sample_pixels),
                                                      replace=False)
@@ -64,6 +94,7 @@ class ClockOffsetPolicy:
         """A cheap copy that keeps the current offset and collects nothing (for a streaming copy)."""
         twin = copy.copy(self)
         twin.given = self.value
+        twin._due, twin._chunks, twin._found = [], [], []  # nothing shared with the original, which goes on
         return twin
 
     @property
@@ -74,53 +105,116 @@ class ClockOffsetPolicy:
     def collecting(self) -> bool:
         return self.given is None and self._frames_to_round <= 0
 
+    @property
+    def due(self) -> int:
+        """Frame pairs waiting for their fit."""
+        return len(self._due)
+
     def collect(self, events: np.ndarray) -> None:
-        if not self.collecting or events.size == 0:
+        """Keep the sample's new events; run the due fits that they complete."""
+        if not self.collecting:
             return
-        t = events["t"]
-        if int(t[-1]) <= self._t_max:
-            return
-        new = events[np.searchsorted(t, self._t_max, "right"):]
-        self._t_max = int(new["t"][-1])
-        self._chunks.append(new[self._sample[new["y"], new["x"]]])  # the fit uses the sample's events only
+        self._keep(events)
+        self._batches += 1
+        while self._due and self._due[0].runnable(self._t_max, self._batches == 1):
+            self._fit(self._due.pop(0))
 
     def update(self, frame: Frame, events: np.ndarray, image: np.ndarray, black_level: float,
                c: tuple[float, float], mask: np.ndarray | None) -> int | None:
-        """One APS frame with its batch of events (exposure start to now, may overlap what was collected)."""
+        """One APS frame with its batch of events (exposure start to now, may overlap what was collected). Cheap:
+        the pair this frame closes is fitted later, in collect()."""
         if self.given is not None:
             return None
-        self.collect(events)
+        announce, self._announce = self._announce, False
+        self._batches = 0  # collect() calls since this frame
         if not self.collecting:
             self._frames_to_round -= 1
-            return None
-        self._frames.append(FrameWindow(int(frame.exposure_start_us), int(frame.exposure_end_us),
-                                        image.astype(np.float64), (image > black_level) & (image < 255)))
-        self._frames = self._frames[-3:]
-        if len(self._frames) < 3:
-            return None
-        prev, cur = self._frames[0], self._frames[1]  # the newest frame's events reach past cur's window
-        events = np.concatenate(self._chunks) if self._chunks else None
-        if events is None or events.size == 0:
-            return None
-        self._chunks = [events]
-        if int(events["t"][0]) > prev.exposure_start_us - MAX_OFFSET_US - MIDLEVEL_GAP_US:
-            return None  # collection began too late for this pair's events to find their predecessors
-        keep_from = np.searchsorted(events["t"], cur.exposure_start_us - MAX_OFFSET_US - MIDLEVEL_GAP_US, "left")
-        self._chunks = [events[keep_from:]]
-        d = estimate_clock_offset(midlevel_times(events, self.width, MIDLEVEL_GAP_US), prev, cur, self._sample, c,
-                                  black_level=black_level, mask=mask, max_offset_us=MAX_OFFSET_US,
+            return self.value if announce else None
+        if self._last is not None and frame.exposure_start_us <= self._last.exposure_start_us:
+            self._drop_data()  # time went backwards (a recording looped): what was kept belongs to another stream
+        self._keep(events)
+        window = FrameWindow(int(frame.exposure_start_us), int(frame.exposure_end_us), image.astype(np.float64),
+                             (image > black_level) & (image < 255))
+        if self._last is not None:
+            self._due = self._due[-1:] + [_Due(self._last, window, float(black_level), tuple(c), mask)]
+        self._last = window
+        return self.value if announce else None
+
+    # ---- internals ----
+
+    def _keep(self, events: np.ndarray) -> None:
+        if not self.collecting or events.size == 0:
+            return
+        t = events["t"]
+        if int(t[-1]) < self._t_max:
+            return
+        # batches overlap (an exposure's window, a batch handed on twice) or continue one another, possibly in the
+        # middle of a group of events with the newest time: those are told apart by pixel and polarity
+        i, j = np.searchsorted(t, self._t_max, "left"), np.searchsorted(t, self._t_max, "right")
+        group = events[i:j]
+        fresh = group[~np.isin(self._pixel_key(group), self._at_max)]
+        rest = events[j:]
+        if rest.size:
+            self._t_max = int(rest["t"][-1])
+            self._at_max = self._pixel_key(rest[np.searchsorted(rest["t"], self._t_max, "left"):])
+        elif fresh.size:
+            self._at_max = np.union1d(self._at_max, self._pixel_key(fresh))
+        for part in (fresh, rest):
+            if part.size:
+                self._chunks.append(part[self._sample[part["y"], part["x"]]])  # the fit uses the sample's only
+
+    def _pixel_key(self, events: np.ndarray) -> np.ndarray:
+        return (events["y"].astype(np.int64) * self.width + events["x"]) * 2 + events["p"].astype(np.int64)
+
+    def _fit(self, due: _Due) -> None:
+        if not self._chunks:
+            return
+        events = np.concatenate(self._chunks) if len(self._chunks) > 1 else self._chunks[0]
+        t = events["t"]
+        # events the next pairs need stay (with their predecessors' history); the fit sees only up to its margin,
+        # so that its result does not depend on how far the batches happened to reach
+        self._chunks = [events[np.searchsorted(t, due.cur.exposure_start_us - MAX_OFFSET_US - MIDLEVEL_GAP_US):]]
+        events = events[np.searchsorted(t, due.prev.exposure_start_us - MAX_OFFSET_US - MIDLEVEL_GAP_US):
+                        np.searchsorted(t, due.cur.exposure_end_us + MAX_OFFSET_US, "right")]
+        self.fits_run += 1
+        self._fits_in_round += 1
+        d = estimate_clock_offset(events, due.prev, due.cur, self._sample, due.c, black_level=due.black_level,
+                                  mask=due.mask, max_offset_us=MAX_OFFSET_US, midlevel_gap_us=MIDLEVEL_GAP_US,
+                                  complete_until_us=due.cur.exposure_end_us + MAX_OFFSET_US,
+                                  max_pixels=self.settings.fit_pixels,
                                   min_z=self.settings.min_z)
+        s = self.settings
         if d is None:
-            return None
+            if self._fits_in_round >= s.max_fits:  # these frames say nothing: keep the offset, ask again later
+                self._end_round()
+            return
         self.estimates += 1
         self._found.append(d)
-        if len(self._found) < self.settings.per_round:
-            return None
-        median = int(round(float(np.median(self._found))))
-        self.last_estimates, self._found = self._found, []
-        self._frames, self._chunks, self._t_max = [], [], -(2**63)
+        recent = self._found[-s.agree:]
+        if len(recent) >= s.agree and max(recent) - min(recent) <= s.agree_us:
+            found = float(np.mean(recent))
+        elif len(self._found) >= s.per_round:
+            found = float(np.median(self._found))
+        else:
+            if self._fits_in_round >= s.max_fits:
+                self._end_round()
+            return
+        self.last_estimates = self._found
+        self._end_round()
+        new = int(round(found))
+        if abs(new - self.value) >= s.min_change_us:
+            self.value = new
+            self._announce = True
+
+    def _end_round(self) -> None:
+        self._found = []
+        self._fits_in_round = 0
+        self._drop_data()
         self._frames_to_round = self.settings.recheck_every
-        if abs(median - self.value) < self.settings.min_change_us:
-            return None
-        self.value = median
-        return median
+
+    def _drop_data(self) -> None:
+        self._due: list[_Due] = []
+        self._last: FrameWindow | None = None
+        self._chunks: list[np.ndarray] = []
+        self._t_max = -(2**63)
+        self._at_max = np.zeros(0, np.int64)  # pixel keys of the kept events at _t_max

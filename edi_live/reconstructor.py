@@ -46,7 +46,6 @@ class EdiReconstructor:
         parts = build_calibration(settings, self.width, self.height)
         self._policy, self._tracker, self._black, self._aps, self._clock = (
             parts.policy, parts.tracker, parts.black, parts.aps, parts.clock)
-        self.clock_offset_us = self._clock.value  # read by the worker for its event windows
         self._hot, self._noise, self._unreliable = build_masks(settings, self.width, self.height,
                                                                self._tracker is not None)
         self._flicker = FlickerPixels(self.width, self.height) if settings.mask_flicker_pixels else None
@@ -62,11 +61,9 @@ class EdiReconstructor:
         self._behind: list[np.ndarray] = []  # events on_events kept but did not apply (follow_latent False)
         self._behind_n = 0
         self.events_ignored = False  # set when the c policy finds that the events carry no signal
-        self._ref_t = 0
-        self._exposure = (0, 0)
+        self._ref_t, self._exposure = 0, (0, 0)
         self._t_last = -(2**63)
-        self._pending_events = 0
-        self._arrival_ns = 0
+        self._pending_events, self._arrival_ns = 0, 0
         self._streamer = False  # a streaming_copy(): its applied events are replayed into the original later
         self.frames = 0
         self.events_applied = 0
@@ -78,6 +75,10 @@ class EdiReconstructor:
     @property
     def black_level(self) -> float:  # APS black level (8-bit DN) taken off the frames
         return self._aps.black_level
+
+    @property
+    def clock_offset_us(self) -> int:  # events late vs the APS (the worker's windows); may move between frames
+        return self._clock.value
 
     @property
     def aps_gamma(self) -> float:  # APS response exponent undone before the deblur
@@ -194,7 +195,6 @@ class EdiReconstructor:
             if new_black is not None:
                 self._aps = dataclasses.replace(self._aps, black_level=new_black)
             new_offset = self._clock.update(frame, events, img, self._aps.black_level, self._policy.c, mask)
-            self.clock_offset_us = self._clock.value
             if new_black is not None or new_offset is not None:  # pairs so far used the old values
                 self._tracker.restart() if new_black is not None else self._tracker.mark_gap()
                 self._pair = None

@@ -1,8 +1,11 @@
-"""The event clock offset from two APS frames (edi_live.contrast.clock_offset), on scenes built here with the
-simulator: with the step model's lag taken out first (midlevel_times), a 1.5 ms offset is found within 0.3 ms and
-an ideal camera gives ~0."""
+"""The event clock offset from two APS frames (edi_live.contrast.clock_offset) and the policy that runs it in the
+reconstructor (edi_live.clock_offset_policy), on scenes built here with the simulator: with the step model's lag
+taken out first (midlevel_times), a 1.5 ms offset is found within 0.3 ms and an ideal camera gives ~0; in a stream
+the offset is in use from the fourth frame, and the fit never runs inside on_frame."""
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
@@ -54,7 +57,10 @@ def test_midlevel_times_move_each_event_half_way_back_to_its_predecessor():
     ev["x"] = [1, 2, 1, 1]
     ev["p"] = [1, 1, 1, 1]
     out = midlevel_times(ev, width=4, max_gap_us=10_000)
-    assert sorted(out["t"].tolist()) == [100, 200, 250, 50_000 - 5_000]
+    # pixel 1: its first event has no predecessor, so half the gap to its successor (300 µs) stands in; the last
+    # one's gap is capped; pixel 2's event is alone, so it moves by the cap's half
+    assert out["t"].tolist() == [200 - 5_000, 100 - 150, 400 - 150, 50_000 - 5_000]
+    assert out["x"].tolist() == [2, 1, 1, 1]
 
 
 def _stream(sim, rec):
@@ -73,8 +79,6 @@ def _stream(sim, rec):
 
 
 def test_the_reconstructor_finds_the_offset_when_asked_and_keeps_a_given_one(scene):
-    import dataclasses
-
     from edi_live.reconstructor import EdiReconstructor
 
     cfg = with_effects(dataclasses.replace(scene, duration_s=1.2), "clock_offset")
@@ -84,3 +88,144 @@ def test_the_reconstructor_finds_the_offset_when_asked_and_keeps_a_given_one(sce
     assert rec.stats()["clock_offset_estimated"]
     given = _stream(sim, EdiReconstructor(cfg.width, cfg.height, clock_offset_us=700))
     assert given.clock_offset_us == 700 and not given.stats()["clock_offset_estimated"]
+
+
+def test_the_fits_residual_is_edis_level_tables_and_counts_between_the_frames(scene):
+    """The fit reads each pixel's integral of exp(S) at the window ends; EDI's own functions (level tables of both
+    windows moved by d, the counts between the mid-exposures) must give the same residual."""
+    import edi_live.edi as edi
+    from edi_live.contrast.clock_offset import _ExposureSums, _terms
+
+    cfg = dataclasses.replace(with_effects(scene, "thresholds"), duration_s=0.15)
+    sim = simulate(cfg)
+    h, w = cfg.height, cfg.width
+    prev, cur = sim.frames[0], sim.frames[1]
+    c = (0.21, 0.17)
+    pixels = np.sort(np.random.default_rng(3).choice(h * w, 500, replace=False))
+    keep = np.zeros(h * w, bool)
+    keep[pixels] = True
+    ev = edi.events_at_pixels(sim.events, w, h, keep.reshape(h, w))
+    dlog_b = np.random.default_rng(4).normal(0.0, 0.3, pixels.size)
+    lo, hi = prev.exposure_start_us - 2000, cur.exposure_end_us + 2000
+    sums = _ExposureSums(ev, pixels, w, lo, hi, c, None)
+    ends = np.array([prev.exposure_start_us, prev.exposure_end_us, cur.exposure_start_us, cur.exposure_end_us])
+    spans = (prev.exposure_end_us - prev.exposure_start_us, cur.exposure_end_us - cur.exposure_start_us)
+    ds = np.array([-2000, -250, 0, 1500, 2000])
+    ours = _terms(sums, ends, spans, ds, dlog_b, 0.1)
+    inside = ev[(ev["t"] >= lo) & (ev["t"] <= hi)]
+    for d, row in zip(ds, ours):
+        pred = np.zeros(pixels.size)
+        for frame, sign in ((prev, -1.0), (cur, 1.0)):
+            table = edi.build_level_table(inside, w, h, frame.exposure_start_us + d, frame.exposure_end_us + d,
+                                          segments=True)
+            pred[np.searchsorted(pixels, table.pixels)] += sign * edi.log_divisor(table, *c)
+        n_on, n_off = edi.signed_counts(inside, w, h, t0=prev.mid_exposure_us + d + 1, t1=cur.mid_exposure_us + d)
+        pred += c[0] * n_on[pixels] - c[1] * n_off[pixels]
+        np.testing.assert_allclose(row, np.sqrt(0.01 + (dlog_b - pred) ** 2), rtol=1e-6)
+
+
+def _feed(sim, rec, pieces: int = 1, inside=None):
+    """Feed as the worker does: every event through on_events (in `pieces` calls per frame interval) up to the
+    exposure's end in the event clock, then the frame with its window's events; returns the offset in use at each
+    frame and the deblurred images. `inside(flag)` is told when on_frame starts and ends."""
+    ev, frames = sim.events, sim.frames
+    t = ev["t"]
+    used, images, fed = [], [], 0
+    for f in frames:
+        while True:  # as the worker's gate: read on until past the exposure's end with the offset now in use
+            off = rec.clock_offset_us
+            end = max(fed, int(np.searchsorted(t, f.exposure_end_us + off, "right")))
+            for part in np.array_split(ev[fed:end], pieces):
+                rec.on_events(part)
+            fed = end
+            if rec.clock_offset_us == off:
+                break
+        used.append(off)
+        if inside:
+            inside(True)
+        images.append(rec.on_frame(f, ev[np.searchsorted(t, f.exposure_start_us + off, "left"):end]).image)
+        if inside:
+            inside(False)
+    return used, images
+
+
+def test_a_stream_uses_the_found_offset_from_the_fourth_frame_and_an_ideal_camera_stays_near_zero(scene):
+    from edi_live.reconstructor import EdiReconstructor
+
+    late = with_effects(scene, "clock_offset")
+    used, _ = _feed(simulate(late), EdiReconstructor(late.width, late.height, clock_offset_us=None))
+    assert used[:3] == [0, 0, 0]  # frames 0-1 and 1-2 are the two fits that must agree
+    assert all(abs(u - late.event_offset_us) <= 300 for u in used[3:]), used
+    ideal, _ = _feed(simulate(scene), EdiReconstructor(scene.width, scene.height, clock_offset_us=None))
+    assert all(abs(u) <= 300 for u in ideal), ideal
+
+
+def test_the_fit_runs_after_the_frame_in_on_events_and_does_not_depend_on_the_event_batches(scene, monkeypatch):
+    import edi_live.clock_offset_policy as policy
+    from edi_live.reconstructor import EdiReconstructor
+
+    cfg = with_effects(scene, "clock_offset")
+    sim = simulate(cfg)
+    state = {"in_frame": False, "fits_in_frame": 0, "fits": 0}
+    real = policy.estimate_clock_offset
+
+    def counted(*args, **kwargs):
+        state["fits"] += 1
+        state["fits_in_frame"] += state["in_frame"]
+        return real(*args, **kwargs)
+    monkeypatch.setattr(policy, "estimate_clock_offset", counted)
+    used, images = _feed(sim, EdiReconstructor(cfg.width, cfg.height, clock_offset_us=None), 1,
+                         lambda flag: state.update(in_frame=flag))
+    assert state["fits"] >= 2 and state["fits_in_frame"] == 0
+    used7, images7 = _feed(sim, EdiReconstructor(cfg.width, cfg.height, clock_offset_us=None), 7)
+    assert used7 == used
+    assert all(np.array_equal(a, b) for a, b in zip(images, images7))
+
+
+def test_a_streaming_copy_keeps_the_offset_and_leaves_the_due_fits_to_the_original(scene):
+    from edi_live.reconstructor import EdiReconstructor
+
+    cfg = with_effects(scene, "clock_offset")
+    sim = simulate(cfg)
+    rec = EdiReconstructor(cfg.width, cfg.height, clock_offset_us=None)
+    t = sim.events["t"]
+    f0, f1 = sim.frames[0], sim.frames[1]
+    rec.on_frame(f0, sim.events[np.searchsorted(t, f0.exposure_start_us):np.searchsorted(t, f0.exposure_end_us)])
+    # the worker hands on_frame the events up to its read cursor: here far enough for the pair's fit to be runnable
+    reach = np.searchsorted(t, f1.exposure_end_us + 40_000)
+    rec.on_frame(f1, sim.events[np.searchsorted(t, f1.exposure_start_us):reach])
+    assert rec._clock.due == 1 and rec._clock.fits_run == 0  # never inside on_frame
+    twin = rec.streaming_copy()
+    twin.on_events(sim.events[reach:reach + 1000])  # the copy streams; the original gets these events later
+    assert rec._clock.due == 1 and rec._clock.fits_run == 0 and twin.clock_offset_us == 0
+    rec.on_events(sim.events[reach:reach + 1000])
+    assert rec._clock.due == 0 and rec._clock.fits_run == 1
+
+
+def test_the_first_batch_after_a_frame_runs_no_fit_unless_it_reaches_half_a_frame_interval(scene):
+    """With the deblur thread, the worker hands the original the events of the deblur's duration before it sends
+    that deblurred frame: a fit there would delay the frame."""
+    from edi_live.reconstructor import EdiReconstructor
+
+    sim = simulate(with_effects(scene, "clock_offset"))
+    rec = EdiReconstructor(scene.width, scene.height, clock_offset_us=None)
+    t = sim.events["t"]
+    f0, f1 = sim.frames[0], sim.frames[1]
+    for f in (f0, f1):
+        rec.on_frame(f, sim.events[np.searchsorted(t, f.exposure_start_us):np.searchsorted(t, f.exposure_end_us)])
+    catch_up = np.searchsorted(t, f1.exposure_end_us + 5_000)  # past the 4 ms margin, short of half an interval
+    rec.on_events(sim.events[np.searchsorted(t, f1.exposure_end_us):catch_up])
+    assert rec._clock.due == 1 and rec._clock.fits_run == 0
+    rec.on_events(sim.events[catch_up:catch_up + 1000])
+    assert rec._clock.due == 0 and rec._clock.fits_run == 1
+
+
+def test_a_new_recording_with_earlier_times_during_the_first_round_still_gets_its_offset(scene):
+    from edi_live.reconstructor import EdiReconstructor
+
+    cfg = with_effects(scene, "clock_offset")
+    rec = EdiReconstructor(cfg.width, cfg.height, clock_offset_us=None)
+    before = dataclasses.replace(scene, duration_s=0.12, seed=5, t0_us=scene.t0_us + 10_000_000)
+    _feed(simulate(before), rec)  # two frames of another recording, 10 s later than the next one
+    used, _ = _feed(simulate(cfg), rec)
+    assert all(abs(u - cfg.event_offset_us) <= 300 for u in used[3:]), used

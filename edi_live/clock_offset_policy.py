@@ -42,6 +42,7 @@ class ClockOffsetSettings:
     sample_pixels: int = 3000
     fit_pixels: int = 3000
     min_z: float = 2.0  # a pair's fit counts only when its best offset beats +-1 ms by this many standard errors
+    lag_share: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -182,7 +183,7 @@ class ClockOffsetPolicy:
                                   mask=due.mask, max_offset_us=MAX_OFFSET_US, midlevel_gap_us=MIDLEVEL_GAP_US,
                                   complete_until_us=due.cur.exposure_end_us + MAX_OFFSET_US,
                                   max_pixels=self.settings.fit_pixels,
-                                  min_z=self.settings.min_z)
+                                  min_z=self.settings.min_z, lag_share=self.settings.lag_share)
         s = self.settings
         if d is None:
             if self._fits_in_round >= s.max_fits:  # these frames say nothing: keep the offset, ask again later

@@ -47,7 +47,7 @@ def estimate_clock_offset(events: np.ndarray, prev: FrameWindow, cur: FrameWindo
                           midlevel_gap_us: int | None = None, complete_until_us: int | None = None,
                           max_pixels: int | None = None, b_low: float = 6.0, b_high: float = 250.0,
                           delta: float = 0.1, min_pixels: int = 30, min_z: float = 0.0,
-                          z_step_us: int = 1000) -> float | None:
+                          z_step_us: int = 1000, lag_share: float = 1.0) -> float | None:
     """d in µs (events late by d: event time = APS time + d) within +-max_offset_us, or None when the frames
     say nothing (too few usable pixels, a flat cost, or the best offset at the edge of what the events cover).
     `events`: time-ordered; candidates whose windows the events do not cover are left out (a batch that starts at
@@ -85,7 +85,7 @@ def estimate_clock_offset(events: np.ndarray, prev: FrameWindow, cur: FrameWindo
     if pixels.size < min_pixels:
         return None
     dlog_b = np.log(bc[pixels]) - np.log(bp[pixels])
-    sums = _ExposureSums(events, pixels, w, lo, hi, c, midlevel_gap_us)
+    sums = _ExposureSums(events, pixels, w, lo, hi, c, midlevel_gap_us, lag_share)
     ends = np.array([prev.exposure_start_us, prev.exposure_end_us, cur.exposure_start_us, cur.exposure_end_us])
     spans = (max(prev.exposure_end_us - prev.exposure_start_us, 1), max(cur.exposure_end_us - cur.exposure_start_us, 1))
     cache: dict[int, np.ndarray] = {}
@@ -134,15 +134,16 @@ class _ExposureSums:
     times in [lo, hi] by `at(q)` (q: (n_pixels, k), each row that pixel's). Piecewise linear between events."""
 
     def __init__(self, events: np.ndarray, pixels: np.ndarray, width: int, lo: int, hi: int,
-                 c: tuple[float, float], midlevel_gap_us: int | None) -> None:
+                 c: tuple[float, float], midlevel_gap_us: int | None, lag_share: float = 1.0) -> None:
         rank = np.full(int(pixels.max()) + 1, -1, np.int64)
         rank[pixels] = np.arange(pixels.size)
         flat = np.minimum(events["y"].astype(np.int64) * width + events["x"], rank.size - 1)
         r = rank[flat]
         keep = r >= 0
         r, t, p = r[keep], events["t"][keep].astype(np.int64), events["p"][keep]
-        if midlevel_gap_us is not None:
-            t = t - _midlevel_shift(r * 2 + p, t, midlevel_gap_us)
+        if midlevel_gap_us is not None and lag_share:
+            shift = _midlevel_shift(r * 2 + p, t, midlevel_gap_us)
+            t = t - (shift if lag_share == 1.0 else np.round(lag_share * shift).astype(np.int64))
         inside = (t >= lo) & (t <= hi)
         n = pixels.size
         # each pixel starts with a mark at lo (no level change), so that every time has an event at or before it

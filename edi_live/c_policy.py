@@ -69,6 +69,11 @@ class ContrastPolicy:
     def c(self) -> tuple[float, float]:
         return self.c_on, self.c_off
 
+    @property
+    def estimated(self) -> bool:
+        """Whether c comes from an estimate (since the start or the last restart), not from the initial value."""
+        return self._estimated
+
     def restart(self) -> None:
         """The frames' calibration changed (e.g. the black level): estimate c afresh, forgetting the history."""
         self._estimated = False

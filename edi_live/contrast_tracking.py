@@ -1,6 +1,7 @@
 """What the c policy needs from the stream, gathered per APS frame: each frame's data on a fixed pixel sample (B,
 its informative pixels, its level table), the pairs of consecutive frames with the ON/OFF event counts between
-their reference times, and the policy's decision on them.
+their reference times. The policy decides on them afterwards (edi_live.frame_calibration: after the frame left,
+once c is estimated).
 
 Runs on the worker thread inside the reconstructor's on_frame. The counts between two reference times come from
 the latent state's accumulator (events applied since the previous f) corrected by the batch at hand, so that no
@@ -50,10 +51,10 @@ class ContrastTracker:
 
     def step(self, events: np.ndarray, b: np.ndarray, informative: np.ndarray, window: tuple[int, int, int],
              hot: np.ndarray | None, acc: tuple[np.ndarray, np.ndarray], t_last: int,
-             has_reference: bool) -> contrast.FramePair | None:
-        """Level table of this frame (on the pixel sample unless the estimator needs the whole image), the pair
-        with the previous frame, then the policy's decision. `window` = (ts, te, f); `acc` holds the ON/OFF counts
-        applied since the previous f, up to `t_last`. Returns the new pair, if one was formed."""
+             has_reference: bool) -> tuple[contrast.FrameData, contrast.FramePair | None]:
+        """Level table of this frame (on the pixel sample unless the estimator needs the whole image) and the pair
+        with the previous frame. `window` = (ts, te, f); `acc` holds the ON/OFF counts applied since the previous
+        f, up to `t_last`. Returns (this frame's data for the policy, the new pair if one was formed)."""
         ts, te, f = window
         est = self.policy.estimator
         excluded = self._not_sample if hot is None else (self._not_sample | hot)
@@ -77,9 +78,8 @@ class ContrastTracker:
             n_on, n_off = counts if counts is not None else self._counts_between(events, f, hot, acc, t_last)
             pair = contrast.FramePair(self._prev, cur, n_on, n_off, excluded.reshape(-1))
             self._pairs.append(pair)
-        self.policy.update(cur, list(self._pairs))
         self._prev = cur
-        return pair
+        return cur, pair
 
     def _counts_between(self, events: np.ndarray, f: int, hot: np.ndarray | None, acc: tuple[np.ndarray, np.ndarray],
                         t_last: int) -> tuple[np.ndarray, np.ndarray]:

@@ -47,6 +47,15 @@ class ExposureAhead:
         self._running = edi.RunningDivisor(self.width, self.height, nts, nte, (nts + nte) // 2, c[0], c[1],
                                            mask=mask, event_counts=event_counts)
 
+    def rearm(self, c: tuple[float, float]) -> None:
+        """The next deblur will use c after all (the c policy decided after arm()): start the integral again with
+        it, if no event was fed yet (otherwise the deblur reads the events at the end, as on any mismatch)."""
+        r = self._running
+        if r is None or r.fed_until > -(2**63) or (r.c_on, r.c_off) == (float(c[0]), float(c[1])):
+            return
+        self._running = edi.RunningDivisor(self.width, self.height, r.ts, r.te, r.f, c[0], c[1], mask=r.mask,
+                                           event_counts=r.event_counts)
+
     def feed(self, events: np.ndarray) -> None:
         """The stream's next events (each once, in time order)."""
         if self._running is not None:

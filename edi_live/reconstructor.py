@@ -1,15 +1,15 @@
 """EdiReconstructor: the EDI core's state machine, the one Reconstructor (edi_live.reconstruction) of the node.
 
-Per APS frame it filters the events it trusts (pixel_masks), lets the c policy decide c on the frame's data
-(contrast_tracking, c_policy), deblurs L(f) and restarts the latent image there (latent_state); between frames it
-advances the latent image event by event. The black level and clock offset policies may re-calibrate the frames.
-Knobs: one frozen ReconstructorSettings. Runs on the worker thread (not thread-safe). Time: see reconstruction.py.
+Per APS frame it filters the events it trusts (pixel_masks), deblurs L(f) with the c in force and restarts the
+latent image there (latent_state); between frames it advances the latent image event by event. The c, black level
+and clock offset policies re-calibrate from the frames (frame_calibration); what can wait for the deblurred frame
+to leave runs in settle(), and takes effect at the next frame. Knobs: one frozen ReconstructorSettings. Runs on
+one thread at a time (not thread-safe). Time: see reconstruction.py.
 """
 
 from __future__ import annotations
 
 import copy
-import dataclasses
 import time
 from typing import Any, Sequence
 
@@ -22,16 +22,17 @@ from edi_live.datatypes import Frame, Reconstruction
 from edi_live.errors import ConfigError, NodeError
 from edi_live.exposure_ahead import ExposureAhead
 from edi_live.flicker_pixels import FlickerPixels
+from edi_live.frame_calibration import FrameCalibration
 from edi_live.latent_state import LatentState
-from edi_live.pixel_noise import NoiseRates
 from edi_live.reconstructor_parts import build_calibration, build_masks, build_noise, resolve_settings
 from edi_live.reconstructor_settings import ReconstructorSettings
+from edi_live.reconstructor_view import ReconstructorView
 
 
 _BEHIND_CAP = 1 << 20  # events kept unapplied (follow_latent False) before they are applied anyway
 
 
-class EdiReconstructor:
+class EdiReconstructor(ReconstructorView):
     """Deblurs each APS frame at mid-exposure and advances the latent image event by event.
 
     `EdiReconstructor(w, h, settings)` or, as a shorthand, `EdiReconstructor(w, h, c=0.25, ...)` with
@@ -50,6 +51,8 @@ class EdiReconstructor:
                                                                self._tracker is not None)
         self._flicker = FlickerPixels(self.width, self.height) if settings.mask_flicker_pixels else None
         self._pixel_noise = build_noise(settings, self.width, self.height)  # statistics only (pixel_noise.py)
+        self._calib = None if self._tracker is None else FrameCalibration(self._policy, self._tracker, self._black,
+                                                                          self._clock, self._pixel_noise)
         # the next exposure's double integral while it runs (not with the noise filter: it drops events later)
         self._ahead = ExposureAhead(self.width, self.height, settings.deblur_ahead and self._noise is None)
         self._mask: np.ndarray | None = self._hot.mask  # events at these pixels are ignored; replaced, not changed
@@ -70,62 +73,7 @@ class EdiReconstructor:
         self.last_deblur_ms = 0.0
         self.last_estimate_ms = 0.0
 
-    # ---- state for stats, tools and tests ----
-
-    @property
-    def black_level(self) -> float:  # APS black level (8-bit DN) taken off the frames
-        return self._aps.black_level
-
-    @property
-    def clock_offset_us(self) -> int:  # events late vs the APS (the worker's windows); may move between frames
-        return self._clock.value
-
-    @property
-    def aps_gamma(self) -> float:  # APS response exponent undone before the deblur
-        return self._aps.gamma
-
-    @property
-    def reestimations(self) -> int:
-        return self._policy.reestimations
-
-    @property
-    def ill_conditioned(self) -> int:
-        return self._policy.ill_conditioned
-
-    @property
-    def last_fit(self) -> dict:
-        return self._policy.last_fit
-
-    @property
-    def estimator(self) -> contrast.ContrastEstimator:
-        return self._policy.estimator
-
-    @property
-    def pairs(self) -> list[contrast.FramePair]:
-        """The consecutive-frame pairs the c estimator currently sees (newest last; empty with a fixed c)."""
-        return [] if self._tracker is None else self._tracker.pairs
-
-    @property
-    def hot_pixels(self) -> int:
-        return self._hot.count
-
-    @property
-    def unreliable_pixels(self) -> int:
-        """Pixels whose events currently contradict the APS frames (ignored like hot pixels)."""
-        return 0 if self._unreliable is None else self._unreliable.count
-
-    @property
-    def flicker_pixels(self) -> int:
-        """Pixels lit by a flickering (mains) lamp now (their events are ignored like hot pixels')."""
-        return 0 if self._flicker is None else self._flicker.count
-
-    def noise_rates(self) -> NoiseRates | None:
-        """Per-pixel ON/OFF noise rates observed so far (None when off or given): .estimate(), or save them."""
-        return self._pixel_noise.rates()
-
-    @property
-    def hot_pixel_mask(self) -> np.ndarray:
-        return self._hot.snapshot()
+    # ---- state for stats, tools and tests (more in ReconstructorView) ----
 
     @property
     def latent_log_image(self) -> np.ndarray:
@@ -144,6 +92,7 @@ class EdiReconstructor:
         """A no-op on a streaming_copy(): the caller hands the gap to the original, which owns the pairs."""
         if self._streamer:
             return
+        self.settle()
         self._ahead.drop()
         if self._tracker is not None:
             self._tracker.mark_gap()
@@ -160,7 +109,7 @@ class EdiReconstructor:
         twin._latent = self._latent.streaming_copy()
         twin._hot = copy.copy(self._hot)  # keeps the current mask while the original finds the next one
         twin._noise = self._noise.copy() if self._noise is not None else None
-        twin._tracker = twin._flicker = None  # the original finds pairs and flicker in these events later
+        twin._tracker = twin._flicker = twin._calib = None  # the original finds pairs and flicker in them later
         twin._clock = self._clock.frozen()  # its events reach the original's on_events later
         twin._streamer = True
         return twin
@@ -168,6 +117,7 @@ class EdiReconstructor:
     def on_frame(self, frame: Frame, events: np.ndarray, arrival_ns: int = 0) -> Reconstruction:
         if self._streamer:
             raise NodeError("on_frame() on a streaming_copy(): deblur on the original reconstructor")
+        self.settle()  # the previous frame's calibration, if the caller did not settle it
         t_start = time.perf_counter()
         self._colour, img = colour_edi.read_frame(self._colour, frame, self.settings)
         self._behind, self._behind_n = [], 0  # the latent image restarts at this frame's L(f)
@@ -186,18 +136,10 @@ class EdiReconstructor:
         t_batch_end = int(t_all[-1]) if t_all.size else self._t_last
         if self._noise is not None:
             events = self._noise.exposure(events, self._t_last)
-        if self._tracker is not None:
+        if self._calib is not None:
             t0 = time.perf_counter()
-            b, informative = self._aps.to_float(img)
-            self._pair = self._tracker.step(events, b, informative, (ts, te, f), mask, self._latent.acc, self._t_last,
-                                      self.has_reference)
-            new_black = self._black.update(self._pair, self._aps.black_level)
-            if new_black is not None:
-                self._aps = dataclasses.replace(self._aps, black_level=new_black)
-            new_offset = self._clock.update(frame, events, img, self._aps.black_level, self._policy.c, mask)
-            if new_black is not None or new_offset is not None:  # pairs so far used the old values
-                self._tracker.restart() if new_black is not None else self._tracker.mark_gap()
-                self._pair = None
+            self._pair, self._aps = self._calib.before_deblur(frame, events, img, self._aps, (ts, te, f), mask,
+                                                              self._latent.acc, self._t_last, self.has_reference)
             self.c_on, self.c_off = self._policy.c
             self.events_ignored = self._policy.events_ignored
             self.last_estimate_ms = (time.perf_counter() - t0) * 1e3
@@ -213,8 +155,8 @@ class EdiReconstructor:
         log_prev = self._latent.log_ref
         deblurred, display_current = self._latent.set_reference(img, self._aps, divisor, self._c())
         pair, self._pair = self._pair, None
-        if pair is not None:  # each pixel's noise rate, from the counts of its still intervals
-            self._pixel_noise.update(pair.n_on, pair.n_off, pair.prev.blurry, pair.cur.blurry, f - self._ref_t, mask)
+        if self._calib is not None:  # each pixel's noise rate, from the counts of its still intervals (settle)
+            self._calib.after_deblur(pair, f - self._ref_t, mask)
         if pair is not None and self._unreliable is not None and not self.events_ignored:
             # judged on this deblur; the mask holds from here on (the latent image continues from L(f))
             self._unreliable.update(pair.n_on, pair.n_off, log_prev, self._latent.log_ref, pair.prev.informative,
@@ -248,7 +190,16 @@ class EdiReconstructor:
         self.last_deblur_ms = (time.perf_counter() - t_start) * 1e3
         return self._reconstruction(deblurred, f, "deblurred", n_events)
 
+    def settle(self) -> None:
+        """The latest frame's calibration work that its deblur did not wait for (frame_calibration); on_frame,
+        on_events and mark_gap run it first if the caller did not. A new c applies from the next frame on."""
+        if self._calib is None or self._streamer or not self._calib.pending:
+            return
+        self._calib.settle()
+        self._ahead.rearm(self._policy.c)  # nothing was fed yet: the next exposure's integral, with the next c
+
     def on_events(self, events: np.ndarray, arrival_ns: int = 0) -> None:
+        self.settle()
         if events.size == 0 or not self.has_reference:
             return  # nothing to advance yet; the first APS frame rebuilds everything
         n = int(events.size)
@@ -277,6 +228,7 @@ class EdiReconstructor:
         """The frames of on_events(piece, arrival) + render() per piece, with the propagation's arguments set up
         once per batch, not once per frame (the streaming worker's hot path: ~5 µs of a ~25 µs frame)."""
         self._need_reference("on_events_frames()")
+        self.settle()
         if not cuts:
             self.on_events(events, 0)
             return []
@@ -346,6 +298,7 @@ class EdiReconstructor:
             "events_ignored": self.events_ignored, "deblurs_ahead": self._ahead.used,
             "events_applied": self.events_applied, "has_reference": self.has_reference,
             "last_deblur_ms": round(self.last_deblur_ms, 3), "last_estimate_ms": round(self.last_estimate_ms, 3),
+            "last_settle_ms": round(self._calib.last_settle_ms, 3) if self._calib is not None else 0.0,
         }
 
     # ---- internals ----

@@ -15,9 +15,10 @@ from edi_live.errors import ConfigError, NodeError
 from edi_live.reconstructor import EdiReconstructor
 
 
-def stream(scene, rec, chunk=500, on_latent=None):
+def stream(scene, rec, chunk=500, on_latent=None, settle=True):
     """Feed a scene as a live worker would: events in chunks as they 'arrive'; each APS frame once every event
-    up to its exposure end is in, with every event from its exposure start up to now (overlapping on_events)."""
+    up to its exposure end is in, with every event from its exposure start up to now (overlapping on_events);
+    settle() after each frame (the worker's order) unless `settle` is False."""
     ev = scene.events
     t = ev["t"]
     outs = []
@@ -32,6 +33,8 @@ def stream(scene, rec, chunk=500, on_latent=None):
                 on_latent(rec, int(t[fed - 1]), ev[:fed])
         start = int(np.searchsorted(t, frame.exposure_start_us, side="left"))
         outs.append(rec.on_frame(frame, ev[start:fed]))
+        if settle:
+            rec.settle()
     return outs
 
 

@@ -1,0 +1,95 @@
+"""The calibration work of each APS frame, split into what the frame's deblur needs and what can wait until the
+deblurred frame has left (`settle`).
+
+Before the deblur: this frame's data and its pair with the previous frame (contrast_tracking; the pair also serves
+the unreliable-pixel test of this deblur) and the clock offset policy. After it, on `settle()`: the c policy's
+decision on the new pair (fit test, re-estimation), the black level policy and the pixel-noise statistics. What
+settle decides takes effect at the next frame: c and the black level never change between two frames, and a frame
+is deblurred with the values in force before it. At start-up (no c estimated yet, also after a black-level restart)
+the c decision stays before the deblur that needs it.
+
+Owned by one EdiReconstructor; runs on whatever thread runs its on_frame / settle (never two at once).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+import edi_live.contrast as contrast
+import edi_live.edi as edi
+from edi_live.black_level_policy import BlackLevelPolicy
+from edi_live.c_policy import ContrastPolicy
+from edi_live.clock_offset_policy import ClockOffsetPolicy
+from edi_live.contrast_tracking import ContrastTracker
+from edi_live.datatypes import Frame
+from edi_live.pixel_noise import PixelNoise
+
+
+@dataclasses.dataclass
+class _Due:
+    """One frame's work left for settle()."""
+
+    cur: contrast.FrameData
+    pairs: list[contrast.FramePair] | None  # None: the c policy already ran before the deblur (start-up)
+    pair: contrast.FramePair | None  # the pair formed on the frame (before a clock offset change dropped it)
+    black_taken_off: float
+    noise: tuple | None = None  # pixel_noise.update's arguments, once the deblur has set them
+
+
+class FrameCalibration:
+    """`before_deblur` per frame, `after_deblur` once the frame is deblurred, `settle` when the frame has left."""
+
+    def __init__(self, policy: ContrastPolicy, tracker: ContrastTracker, black: BlackLevelPolicy,
+                 clock: ClockOffsetPolicy, pixel_noise: PixelNoise) -> None:
+        self.policy, self.tracker, self.black, self.clock, self.pixel_noise = policy, tracker, black, clock, pixel_noise
+        self._due: _Due | None = None
+        self._black_next: float | None = None  # decided by settle, used from the next frame on
+        self.last_settle_ms = 0.0
+
+    @property
+    def pending(self) -> bool:
+        return self._due is not None
+
+    def before_deblur(self, frame: Frame, events: np.ndarray, img: np.ndarray, aps: edi.ApsResponse,
+                      window: tuple[int, int, int], mask: np.ndarray | None, acc: tuple[np.ndarray, np.ndarray],
+                      t_last: int, has_reference: bool) -> tuple[contrast.FramePair | None, edi.ApsResponse]:
+        """(the pair formed on this frame, None if there is none or it was dropped; the APS response to deblur
+        with). Call settle() first: a frame must not start while the previous one's work is pending."""
+        if self._black_next is not None:
+            aps, self._black_next = dataclasses.replace(aps, black_level=self._black_next), None
+        b, informative = aps.to_float(img)
+        cur, pair = self.tracker.step(events, b, informative, window, mask, acc, t_last, has_reference)
+        pairs = self.tracker.pairs
+        if self.policy.estimated:
+            self._due = _Due(cur, pairs, pair, aps.black_level)
+        else:  # start-up: this deblur needs the first estimate
+            self.policy.update(cur, pairs)
+            self._due = _Due(cur, None, pair, aps.black_level)
+        if self.clock.update(frame, events, img, aps.black_level, self.policy.c, mask) is not None:
+            self.tracker.mark_gap()  # pairs so far used the old offset
+            pair = None
+        return pair, aps
+
+    def after_deblur(self, pair: contrast.FramePair | None, dt_us: int, mask: np.ndarray | None) -> None:
+        """The deblurred frame's pair (as before_deblur returned it) for the noise statistics."""
+        if self._due is not None and pair is not None:
+            self._due.noise = (pair.n_on, pair.n_off, pair.prev.blurry, pair.cur.blurry, dt_us, mask)
+
+    def settle(self) -> None:
+        """The pending work of the latest frame: the c decision, the black level, the noise statistics."""
+        due, self._due = self._due, None
+        if due is None:
+            return
+        t0 = time.perf_counter()
+        if due.pairs is not None:
+            self.policy.update(due.cur, due.pairs)
+        new_black = self.black.update(due.pair, due.black_taken_off)
+        if new_black is not None:  # pairs so far used the old value; c is estimated afresh
+            self._black_next = new_black
+            self.tracker.restart()
+        elif due.noise is not None:
+            self.pixel_noise.update(*due.noise)
+        self.last_settle_ms = (time.perf_counter() - t0) * 1e3

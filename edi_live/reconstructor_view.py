@@ -1,0 +1,87 @@
+"""Read-only views of an EdiReconstructor's state for stats, tools and tests: the camera values in force, the c
+policy's counters, the pixel masks' counts and the noise statistics.
+
+ReconstructorView is EdiReconstructor's base class; the attributes it reads are set by EdiReconstructor.__init__.
+Reading them from another thread (the stats map) is safe: each read is one plain value.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+import edi_live.contrast as contrast
+import edi_live.edi as edi
+from edi_live.c_policy import ContrastPolicy
+from edi_live.clock_offset_policy import ClockOffsetPolicy
+from edi_live.contrast_tracking import ContrastTracker
+from edi_live.flicker_pixels import FlickerPixels
+from edi_live.pixel_masks import HotPixels, UnreliablePixels
+from edi_live.pixel_noise import NoiseRates, PixelNoise
+
+
+class ReconstructorView:
+    """The read-only properties of an EdiReconstructor."""
+
+    _aps: edi.ApsResponse
+    _clock: ClockOffsetPolicy
+    _policy: ContrastPolicy
+    _tracker: ContrastTracker | None
+    _hot: HotPixels
+    _unreliable: UnreliablePixels | None
+    _flicker: FlickerPixels | None
+    _pixel_noise: PixelNoise
+
+    @property
+    def black_level(self) -> float:  # APS black level (8-bit DN) taken off the frames
+        return self._aps.black_level
+
+    @property
+    def clock_offset_us(self) -> int:  # events late vs the APS (the worker's windows); may move between frames
+        return self._clock.value
+
+    @property
+    def aps_gamma(self) -> float:  # APS response exponent undone before the deblur
+        return self._aps.gamma
+
+    @property
+    def reestimations(self) -> int:
+        return self._policy.reestimations
+
+    @property
+    def ill_conditioned(self) -> int:
+        return self._policy.ill_conditioned
+
+    @property
+    def last_fit(self) -> dict:
+        return self._policy.last_fit
+
+    @property
+    def estimator(self) -> contrast.ContrastEstimator:
+        return self._policy.estimator
+
+    @property
+    def pairs(self) -> list[contrast.FramePair]:
+        """The consecutive-frame pairs the c estimator currently sees (newest last; empty with a fixed c)."""
+        return [] if self._tracker is None else self._tracker.pairs
+
+    @property
+    def hot_pixels(self) -> int:
+        return self._hot.count
+
+    @property
+    def unreliable_pixels(self) -> int:
+        """Pixels whose events currently contradict the APS frames (ignored like hot pixels)."""
+        return 0 if self._unreliable is None else self._unreliable.count
+
+    @property
+    def flicker_pixels(self) -> int:
+        """Pixels lit by a flickering (mains) lamp now (their events are ignored like hot pixels')."""
+        return 0 if self._flicker is None else self._flicker.count
+
+    def noise_rates(self) -> NoiseRates | None:
+        """Per-pixel ON/OFF noise rates observed so far (None when off or given): .estimate(), or save them."""
+        return self._pixel_noise.rates()
+
+    @property
+    def hot_pixel_mask(self) -> np.ndarray:
+        return self._hot.snapshot()

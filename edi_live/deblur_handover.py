@@ -1,7 +1,9 @@
 """Deblurring an APS frame off the worker thread: while the original reconstructor computes the new reference on
 the "edi-deblur" helper thread, the worker streams latent frames from a streaming copy that still holds the
-previous reference. The events the copy applies meanwhile are kept (`catchup`) and replayed into the original
-when the worker adopts it again.
+previous reference. The deblurred frame is handed to the worker as soon as on_frame returns (`ready`); the helper
+thread then runs the reconstructor's settle() (the calibration work the frame did not wait for) and only then
+(`done`) may the worker adopt the original again, replaying into it the events the copy applied meanwhile
+(`catchup`).
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from typing import Callable
 
 import numpy as np
 
-from edi_live.datatypes import Reconstruction
+from edi_live.datatypes import Reconstruction, concat_events
 from edi_live.reconstruction import Reconstructor
 from edi_live.ring import FrameEntry
 
@@ -29,20 +31,51 @@ class PendingDeblur:
         self.gap = False
         self.result: Reconstruction | None = None
         self.error: BaseException | None = None
-        self.deblur_ms = 0.0
-        self.done = threading.Event()
+        self.deblur_ms = self.settle_ms = 0.0
+        self.ready = threading.Event()  # on_frame returned (result or error); settle() may still be running
+        self.done = threading.Event()  # settle() returned too: the master may be adopted
+        self._claimed = False
         self._wake = wake
         self._thread = threading.Thread(target=self._run, args=(events, arrival_ns), name="edi-deblur",
                                         daemon=True)
         self._thread.start()
 
+    def claim_result(self) -> bool:
+        """True exactly once, when on_frame has returned without an error: the worker sends the deblurred frame
+        (or counts it as skipped) then. Worker thread only."""
+        if self._claimed or not self.ready.is_set() or self.error is not None:
+            return False
+        self._claimed = True
+        return True
+
+    def adopt(self, last_arrival_ns: int) -> Reconstructor:
+        """Once `done`: the master, with the events the copy applied meanwhile replayed into it (and then the gap
+        the copy got, if any). Raises the helper thread's error, if there was one."""
+        if self.error is not None:
+            raise self.error
+        if self.catchup:
+            self.master.on_events(concat_events(self.catchup), last_arrival_ns)
+        if self.gap:
+            self.master.mark_gap()
+        return self.master
+
     def _run(self, events: np.ndarray, arrival_ns: int) -> None:
         t0 = time.perf_counter()
         try:
-            self.result = self.master.on_frame(self.entry.frame, events, arrival_ns)
-        except BaseException as exc:  # re-raised on the worker thread when adopted
+            try:
+                self.result = self.master.on_frame(self.entry.frame, events, arrival_ns)
+            except BaseException as exc:  # re-raised on the worker thread when adopted
+                self.error = exc
+            self.deblur_ms = (time.perf_counter() - t0) * 1e3
+            self.ready.set()
+            self._wake()  # the worker sends the frame while this thread settles
+            if self.error is None:
+                t1 = time.perf_counter()
+                self.master.settle()
+                self.settle_ms = (time.perf_counter() - t1) * 1e3
+        except BaseException as exc:
             self.error = exc
         finally:
-            self.deblur_ms = (time.perf_counter() - t0) * 1e3
+            self.ready.set()
             self.done.set()
             self._wake()

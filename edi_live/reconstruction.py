@@ -42,6 +42,12 @@ class Reconstructor(Protocol):
         """Deblur `frame` (L(f) at mid-exposure, kind "deblurred"); it becomes the reference."""
         ...
 
+    def settle(self) -> None:
+        """The per-frame work that on_frame left for after its frame was sent (the c decision and other
+        calibration); what it decides applies from the next on_frame. on_frame, on_events and mark_gap run it first
+        if it is still pending, so a caller that never calls it gets the same frames."""
+        ...
+
     def on_events(self, events: np.ndarray, arrival_ns: int = 0) -> None:
         """Advance the latent image over later events."""
         ...

@@ -26,7 +26,7 @@ import numpy as np
 
 from edi_live.activity import StaticScene
 from edi_live.config import EdiConfig
-from edi_live.datatypes import Reconstruction, concat_events
+from edi_live.datatypes import Reconstruction
 from edi_live.deblur_handover import PendingDeblur
 from edi_live import held_frames
 from edi_live.frame_demand import FrameDemand
@@ -146,6 +146,9 @@ class EdiWorker:
         """Handle one APS frame or one chunk of events. False if there was nothing to do."""
         if self._pending is not None and self._pending.done.is_set():
             self._adopt(wait=False)
+            return True
+        if self._pending is not None and self._pending.claim_result():  # sent before the master settles
+            self._send_deblurred(self._pending)
             return True
         entry = self.ring.peek_frame()
         limit, through = (entry.end_index if entry is not None else None), None
@@ -287,6 +290,9 @@ class EdiWorker:
         self.busy_s += time.perf_counter() - t0
         for rec in sorted(out, key=lambda r: r.t_us):
             self._emit(rec)
+        t0 = time.perf_counter()
+        self.rec.settle()  # the calibration work the deblurred frame did not wait for
+        self.busy_s += time.perf_counter() - t0
 
     def _moving(self, n_exposure_events: int) -> bool:
         """Whether a deblurred frame is worth sending: the scene was active, and a tenth of a latent frame's events
@@ -307,19 +313,16 @@ class EdiWorker:
             if self._abort.is_set():
                 return
         self._pending = None
-        if pending.error is not None:
-            raise pending.error
         t0 = time.perf_counter()
-        master = pending.master
-        if pending.catchup:
-            master.on_events(concat_events(pending.catchup), self._last_arrival_ns)
-        self.rec = master
+        self.rec = pending.adopt(self._last_arrival_ns)  # raises the helper thread's error, if any
         self._deblur_ms.append(pending.deblur_ms)
         self._ref_f_us = pending.entry.frame.mid_exposure_us
-        if pending.gap:
-            self._await_reference = True  # the catch-up spans lost data: wait for the next APS frame
-            master.mark_gap()  # the copy got the gap; the original needs it
+        self._await_reference |= pending.gap  # the catch-up spans lost data: wait for the next APS frame
         self.busy_s += time.perf_counter() - t0
+        if pending.claim_result():  # not sent yet: the deblur ended just now
+            self._send_deblurred(pending)
+
+    def _send_deblurred(self, pending: PendingDeblur) -> None:
         if pending.send and pending.result is not None:
             self._emit(pending.result)
         else:

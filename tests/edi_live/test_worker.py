@@ -42,6 +42,7 @@ class StandIn:
         self.frames_given = []  # (frame, events) passed to on_frame
         self.events_applied = 0
         self.fail_on_frame = fail_on_frame
+        self.settled = 0
 
     def _rec(self, t, kind):
         return Reconstruction(np.zeros((2, 2), np.uint8), int(t), kind, int(self.ref_f), 0, 0, self.c_on,
@@ -55,6 +56,9 @@ class StandIn:
         self.ref_f = frame.mid_exposure_us
         self.t = int(events["t"][-1]) if len(events) else self.ref_f
         return self._rec(self.ref_f, "deblurred")
+
+    def settle(self):
+        self.settled += 1
 
     def on_events(self, events, arrival_ns=0):
         self.events_applied += len(events)
@@ -524,3 +528,73 @@ def test_a_gap_while_a_frame_is_deblurred_on_the_helper_thread():
     assert not errors, errors
     assert worker.sent["deblurred"] == 4 and not worker.rec._streamer
     assert SlowDeblur.gaps_seen >= 1, "the original reconstructor never heard of the gap"
+
+
+class SettleLog(StandIn):
+    """Records, at each settle(), the deblurred frames sent so far; settle() after the second APS frame waits
+    until `release` is set (the sink sets it), so the test sees what the worker does meanwhile."""
+
+    def __init__(self, sent: list, release: threading.Event | None = None) -> None:
+        super().__init__()
+        self.sent, self.release = sent, release
+        self.at_settle: list[list[int]] = []
+        self.released: bool | None = None
+
+    def settle(self):
+        super().settle()
+        self.at_settle.append([r.t_us for r in self.sent if r.kind == "deblurred"])
+        if self.release is not None and len(self.frames_given) == 2:
+            self.released = self.release.wait(10)  # a handshake with the sink, not a pause
+
+
+def test_inline_the_deblurred_frame_is_sent_before_settle_runs():
+    ev, frames, packets = two_frame_packets()
+    out: list = []
+    ring = EventRing(capacity_events=1 << 16, policy="wait")
+    rec = SettleLog(out)
+    worker = EdiWorker(ring, rec, EdiConfig(every=400, deblur_thread=False), [out.append])
+    worker.start()
+    for p in packets:
+        assert ring.push(p, timeout_s=5)
+    ring.close()
+    assert worker.done.wait(10) and worker.error is None
+    f1, f2 = frames[0].mid_exposure_us, frames[1].mid_exposure_us
+    assert rec.settled == 2 and rec.at_settle == [[f1], [f1, f2]], "each settle() after its frame was sent"
+    assert [r.t_us for r in out if r.kind == "deblurred"] == [f1, f2]
+
+
+def test_deblur_thread_sends_the_deblurred_frame_before_settle_and_only_once():
+    """The helper thread's settle() (after the second frame) blocks until the sink has seen the deblurred frame
+    and then a latent frame: the frame left before settle(), and latent frames kept coming from the copy."""
+    ev, frames, packets = two_frame_packets()
+    f1, f2 = frames[0].mid_exposure_us, frames[1].mid_exposure_us
+    out: list = []
+    deblurred_sent, release = threading.Event(), threading.Event()
+    after: list[Reconstruction] = []
+
+    def sink(r: Reconstruction) -> None:
+        out.append(r)
+        if r.kind == "deblurred" and r.t_us == f2:
+            deblurred_sent.set()
+        elif deblurred_sent.is_set() and r.kind == "latent" and not release.is_set():
+            after.append(r)
+            release.set()
+
+    ring = EventRing(capacity_events=1 << 16, policy="wait")
+    rec = SettleLog(out, release)
+    worker = EdiWorker(ring, rec, EdiConfig(every=400, deblur_thread=True), [sink])
+    worker.start()
+    t = ev["t"]
+    head = [p for p in packets if p.events.size and int(p.events["t"][0]) <= frames[1].exposure_end_us + 4_000]
+    for p in head:
+        assert ring.push(p, timeout_s=5)
+    assert deblurred_sent.wait(10), "the deblurred frame was not sent while settle() was pending"
+    for p in packets[len(head):]:
+        assert ring.push(p, timeout_s=5)
+    ring.close()
+    assert worker.done.wait(10) and worker.error is None
+    assert rec.released is True, "settle() ran before the deblurred frame was sent"
+    assert after and after[0].ref_t_us == f1, "latent frames came from the copy while the original settled"
+    assert [r.t_us for r in out if r.kind == "deblurred"] == [f1, f2], "each deblurred frame exactly once"
+    assert worker.sent["deblurred"] == 2 and rec.settled == 2 and worker.rec is rec
+    assert int(np.sum(t > frames[0].exposure_end_us)) == rec.events_applied

@@ -12,6 +12,11 @@ mean) or with `per_round` fits (their median), or without a change after `max_fi
 the result differs from the current one by at least `min_change_us`. Rounds: from the first frame, then every
 `recheck_every` frames. A given offset (flag, TOML key, saved calibration) is never replaced. Everything depends
 only on the calls' order and contents (no clock, no thread).
+
+Two values come out of each round. `physical_us` is the camera's own offset: the fit with the whole step lag taken
+out (recovered within 0.3 ms on the simulator). `value`, the offset in use for the exposure windows, is the same fit
+keeping `use_lag_share` of the lag: EDI's deblur and latent frames use the same step model, so they lag too, and
+windows moved by half the lag scored best against ground truth (ideal scenes +0.16 / +0.29 dB, docs/calibration.md).
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ from edi_live.contrast.clock_offset import FrameWindow, estimate_clock_offset
 from edi_live.datatypes import Frame
 from edi_live.errors import ConfigError
 
-MAX_OFFSET_US = 4000  # the search range, +-; the margin of events needed after each pair
+MAX_OFFSET_US = 8000  # the search range, +-; the margin of events needed after each pair (real DAVIS346: 1-6 ms)
 MIDLEVEL_GAP_US = 20_000  # events kept before a pair so that its events find their predecessors; the gaps' cap
 
 
@@ -37,12 +42,14 @@ class ClockOffsetSettings:
     max_fits: int = 8  # or, short of that, after this many pairs fitted (each costs a few ms): no change
     recheck_every: int = 1000
     min_change_us: int = 200  # a pair's fit scatters by ~+-200 µs (ideal camera): smaller moves are noise
-    # pixels whose events are kept; a fit uses up to fit_pixels of them that have events. 20000 makes the sparse
-    # emlb recording pass (1.74 and 1.45 ms) but its prediction figure drops (+3.71 -> +0.98 dB): see calibration.md
-    sample_pixels: int = 3000
+    # pixels whose events are kept; a fit uses up to fit_pixels of them that have events (3000 let no fit pass on
+    # the sparse real recordings; 20000 finds emlb's offset)
+    sample_pixels: int = 20000
     fit_pixels: int = 3000
     min_z: float = 2.0  # a pair's fit counts only when its best offset beats +-1 ms by this many standard errors
-    lag_share: float = 1.0
+    # the offset in use keeps this share of EDI's step lag (0: all of it, as a fit without the midlevel
+    # correction finds; 1: none, the camera's own offset): 0.5 scored best against ground truth (calibration.md)
+    use_lag_share: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -74,13 +81,15 @@ class ClockOffsetPolicy:
         if given is not None and not (isinstance(given, int) and abs(given) <= 100_000):
             raise ConfigError(f"clock offset must be whole µs within +-100 ms (got {given!r})")
         self.given = given
-        self.value = 0 if given is None else int(given)
+        self.value = 0 if given is None else int(given)  # in use: the camera's offset plus the kept step lag
+        self.physical_us = self.value  # the camera's own offset (events late against the APS exposure)
         self.settings = settings
         self.width, self.height = width, height
         self.estimates = 0
         self.fits_run = 0
         self.last_estimates: list[float] = []
-        self._found: list[float] = []
+        self._found: list[float] = []  # this round's fits: the camera's offset ...
+        self._found_in_use: list[float] = []  # ... and with the kept share of the step lag
         self._announce = False
         self._batches = 0
         self._end_round()
@@ -95,7 +104,7 @@ class ClockOffsetPolicy:
         """A cheap copy that keeps the current offset and collects nothing (for a streaming copy)."""
         twin = copy.copy(self)
         twin.given = self.value
-        twin._due, twin._chunks, twin._found = [], [], []  # nothing shared with the original, which goes on
+        twin._due, twin._chunks, twin._found, twin._found_in_use = [], [], [], []  # nothing shared: it goes on
         return twin
 
     @property
@@ -179,36 +188,41 @@ class ClockOffsetPolicy:
                         np.searchsorted(t, due.cur.exposure_end_us + MAX_OFFSET_US, "right")]
         self.fits_run += 1
         self._fits_in_round += 1
-        d = estimate_clock_offset(events, due.prev, due.cur, self._sample, due.c, black_level=due.black_level,
-                                  mask=due.mask, max_offset_us=MAX_OFFSET_US, midlevel_gap_us=MIDLEVEL_GAP_US,
-                                  complete_until_us=due.cur.exposure_end_us + MAX_OFFSET_US,
-                                  max_pixels=self.settings.fit_pixels,
-                                  min_z=self.settings.min_z, lag_share=self.settings.lag_share)
         s = self.settings
+
+        def fit(share: float) -> float | None:
+            return estimate_clock_offset(events, due.prev, due.cur, self._sample, due.c, black_level=due.black_level,
+                                         mask=due.mask, max_offset_us=MAX_OFFSET_US, midlevel_gap_us=MIDLEVEL_GAP_US,
+                                         complete_until_us=due.cur.exposure_end_us + MAX_OFFSET_US,
+                                         max_pixels=s.fit_pixels, min_z=s.min_z, lag_share=share)
+        d = fit(1.0)
         if d is None:
             if self._fits_in_round >= s.max_fits:  # these frames say nothing: keep the offset, ask again later
                 self._end_round()
             return
+        in_use = fit(s.use_lag_share) if s.use_lag_share != 1.0 else d
         self.estimates += 1
         self._found.append(d)
+        self._found_in_use.append(d if in_use is None else in_use)
         recent = self._found[-s.agree:]
         if len(recent) >= s.agree and max(recent) - min(recent) <= s.agree_us:
-            found = float(np.mean(recent))
+            found, found_in_use = float(np.mean(recent)), float(np.mean(self._found_in_use[-s.agree:]))
         elif len(self._found) >= s.per_round:
-            found = float(np.median(self._found))
+            found, found_in_use = float(np.median(self._found)), float(np.median(self._found_in_use))
         else:
             if self._fits_in_round >= s.max_fits:
                 self._end_round()
             return
         self.last_estimates = self._found
         self._end_round()
-        new = int(round(found))
+        new = int(round(found_in_use))
+        self.physical_us = int(round(found))
         if abs(new - self.value) >= s.min_change_us:
             self.value = new
             self._announce = True
 
     def _end_round(self) -> None:
-        self._found = []
+        self._found, self._found_in_use = [], []
         self._fits_in_round = 0
         self._drop_data()
         self._frames_to_round = self.settings.recheck_every

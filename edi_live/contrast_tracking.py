@@ -44,6 +44,11 @@ class ContrastTracker:
         self._prev = None
         self._pairs.clear()
 
+    def windows_moved(self) -> None:
+        """The exposure windows moved (a new clock offset) with this frame: the pairs formed before are dropped, the
+        frame just taken, built with the new windows, opens the next pair."""
+        self._pairs.clear()
+
     def restart(self) -> None:
         """The frames' black level changed: pairs formed before are not comparable with the next ones."""
         self.mark_gap()

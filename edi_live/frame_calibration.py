@@ -69,7 +69,7 @@ class FrameCalibration:
             self.policy.update(cur, pairs)
             self._due = _Due(cur, None, pair, aps.black_level)
         if self.clock.update(frame, events, img, aps.black_level, self.policy.c, mask) is not None:
-            self.tracker.mark_gap()  # pairs so far used the old offset
+            self.tracker.windows_moved()  # pairs so far used the old offset; this frame opens the next one
             pair = None
         return pair, aps
 

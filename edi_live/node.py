@@ -156,6 +156,7 @@ class Node:
                 "source_dropped_events", "source_gaps", "nearest_added_latency_ms_p50",
                 "fused_added_latency_ms_p50", "out_wait_s",
                 "unreliable_pixels", "flicker_pixels", "black_level_dn", "clock_offset_us", "aps_gamma", "clock_offset_estimated",
+                "clock_offset_physical_us",
                 "black_level_estimated", "noise_hz_p50", "noise_hz_p99", "noise_on_hz_p50", "noise_off_hz_p50",
                 "noisy_pixels", "pred_psnr_db", "still_psnr_db",
                 "pred_gain_db",

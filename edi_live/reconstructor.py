@@ -291,9 +291,10 @@ class EdiReconstructor(ReconstructorView):
         return {
             "c_on": self.c_on, "c_off": self.c_off, "c_fixed": self._fixed, "black_level": self.black_level,
             "black_level_estimated": self._black.estimated, "clock_offset_estimated": self._clock.estimated,
-            "estimator": self.estimator.name,
-            "reestimations": self.reestimations, "ill_conditioned": self.ill_conditioned,
-            "hot_pixels": self.hot_pixels, "unreliable_pixels": self.unreliable_pixels,
+            "clock_offset_physical_us": self._clock.physical_us,
+            "estimator": self.estimator.name, "reestimations": self.reestimations,
+            "ill_conditioned": self.ill_conditioned, "hot_pixels": self.hot_pixels,
+            "unreliable_pixels": self.unreliable_pixels,
             "flicker_pixels": self.flicker_pixels, "frames": self.frames, **self._pixel_noise.summary(),
             "events_ignored": self.events_ignored, "deblurs_ahead": self._ahead.used,
             "events_applied": self.events_applied, "has_reference": self.has_reference,
@@ -331,8 +332,7 @@ class EdiReconstructor(ReconstructorView):
             self._latent.apply(events, self._c(), self._mask, count=False, move=True)
 
     def _frames_one_by_one(self, events: np.ndarray, cuts: Sequence[int], arrivals: Sequence[int]) -> list:
-        out = []
-        i0 = 0
+        out, i0 = [], 0
         for i1, arrival in zip(cuts, arrivals):
             self.on_events(events[i0:i1], arrival)
             out.append(self.render())

@@ -92,6 +92,16 @@ def format_status(s: dict[str, Any]) -> str:
             f"{_prediction_short(s)}")
 
 
+def _offset_text(s: dict[str, Any]) -> str:
+    """How the offset in use came about: estimated, and then the camera's own part beside EDI's step lag."""
+    if not s.get("clock_offset_estimated"):
+        return ""
+    physical = s.get("clock_offset_physical_us")
+    if physical is None or physical == s.get("clock_offset_us", 0):
+        return " (estimated)"
+    return f" (estimated: the camera's {physical} µs + {s.get('clock_offset_us', 0) - physical} µs of step lag)"
+
+
 def _camera_short(s: dict[str, Any]) -> str:
     """The camera values once they differ from an ideal camera's: black level and event clock offset; the pixels'
     noise rate (median, 99th percentile, noisy pixels) once estimated."""
@@ -150,7 +160,7 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         f"  c_on={s.get('c_on', float('nan')):.4f} c_off={s.get('c_off', float('nan')):.4f}, "
         f"re-estimated {s.get('reestimations', 0)} times, black level {s.get('black_level_dn', 0):g} DN"
         f"{' (estimated)' if s.get('black_level_estimated') else ''}, "
-        f"clock offset {s.get('clock_offset_us', 0)} µs{' (estimated)' if s.get('clock_offset_estimated') else ''}; "
+        f"clock offset {s.get('clock_offset_us', 0)} µs{_offset_text(s)}; "
         f"ignored pixels: hot {s.get('hot_pixels', 0)}, "
         f"unreliable {s.get('unreliable_pixels', 0)}, flicker {s.get('flicker_pixels', 0)}{_noise_text(s)}; "
         f"drops {s.get('drops', 0)} "

@@ -18,23 +18,29 @@ from edi_live.reconstructor import EdiReconstructor
 from tools.figure import _fit, _label, load_recording, write_rows
 
 REAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
-DEFAULT = [(REAL / "emlb_demo-01_davis346.aedat4", 6), (REAL / "aestream_davis346.aedat4", 2),
+DEFAULT = [(REAL / "emlb_demo-01_davis346.aedat4", 3), (REAL / "aestream_davis346.aedat4", 2),
            (REAL / "evlib_sample_davis346.aedat4", 2)]
-BEFORE = {"separate_thresholds": False, "mask_unreliable_pixels": False, "mask_flicker_pixels": False}
+BEFORE = {"separate_thresholds": False, "mask_unreliable_pixels": False, "mask_flicker_pixels": False,
+          "black_level": 0.0, "clock_offset_us": 0, "noise_stats": False}
 
 
 def reconstruct(events: np.ndarray, frames: list, index: int, settings: dict) -> tuple:
-    """(deblurred frame `index`, latent 10 ms after its exposure end, reconstructor)."""
+    """(deblurred frame `index`, latent 10 ms after its exposure end, reconstructor). Fed as the worker feeds it:
+    each exposure in the event clock of the offset in use when the frame is taken."""
     rec = EdiReconstructor(frames[0].width, frames[0].height, **settings)
     t = events["t"]
     fed = 0
     out = None
     for frame in frames[: index + 1]:
-        end = int(np.searchsorted(t, frame.exposure_end_us, side="right"))
-        rec.on_events(events[fed:end])
-        fed = end
-        out = rec.on_frame(frame, events[int(np.searchsorted(t, frame.exposure_start_us)):end])
-    later = int(np.searchsorted(t, frames[index].exposure_end_us + 10_000, side="right"))
+        while True:  # read on until past the window's end; a fit in on_events may move the offset
+            off = rec.clock_offset_us
+            end = max(fed, int(np.searchsorted(t, frame.exposure_end_us + off, side="right")))
+            rec.on_events(events[fed:end])
+            fed = end
+            if rec.clock_offset_us == off:
+                break
+        out = rec.on_frame(frame, events[int(np.searchsorted(t, frame.exposure_start_us + off)):end])
+    later = int(np.searchsorted(t, frames[index].exposure_end_us + rec.clock_offset_us + 10_000, side="right"))
     rec.on_events(events[fed:later])
     return out, rec.render(), rec
 
@@ -53,18 +59,18 @@ def row(path: Path, index: int, height: int) -> np.ndarray:
     return np.hstack(_fit(tiles, height))
 
 
-def lamp_detail(height: int) -> np.ndarray:
-    """aestream's ceiling lamp at 3x: the APS frame, and the latent frame 10 ms later before and now."""
-    events, frames = load_recording(REAL / "aestream_davis346.aedat4")
+def detail(name: str, index: int, rows: slice, cols: slice, what: str, height: int) -> np.ndarray:
+    """A 3x crop of one recording: the APS frame, and the latent frame 10 ms later before and now."""
+    events, frames = load_recording(REAL / name)
 
     def zoom(image: np.ndarray) -> np.ndarray:
-        part = image[0:60, 150:270].astype(np.uint8)
+        part = image[rows, cols].astype(np.uint8)
         return cv2.resize(part, (part.shape[1] * 3, part.shape[0] * 3), interpolation=cv2.INTER_NEAREST)
 
-    tiles = [_label(zoom(frames[2].image), "aestream lamp, 3x: APS frame 2")]
-    for name, settings in (("before", BEFORE), ("now", {})):
-        _, latent, _ = reconstruct(events, frames, 2, settings)
-        tiles.append(_label(zoom(latent.image), f"{name}: latent +10 ms"))
+    tiles = [_label(zoom(frames[index].image), f"{what}, 3x: APS frame {index}")]
+    for label, settings in (("before", BEFORE), ("now", {})):
+        _, latent, _ = reconstruct(events, frames, index, settings)
+        tiles.append(_label(zoom(latent.image), f"{label}: latent +10 ms"))
     return np.hstack(_fit(tiles, height))
 
 
@@ -77,7 +83,9 @@ def main(argv: list[str] | None = None) -> int:
     wanted = [(p, 3) for p in args.recordings] or DEFAULT
     rows = [row(p, i, args.height) for p, i in wanted]
     if not args.recordings:
-        rows.append(lamp_detail(args.height))
+        rows.append(detail("emlb_demo-01_davis346.aedat4", 3, slice(105, 175), slice(200, 340), "emlb swinging ball",
+                           args.height))
+        rows.append(detail("aestream_davis346.aedat4", 2, slice(0, 60), slice(150, 270), "aestream lamp", args.height))
     write_rows(rows, args.out)
     return 0
 

@@ -84,7 +84,10 @@ def test_the_reconstructor_finds_the_offset_when_asked_and_keeps_a_given_one(sce
     cfg = with_effects(dataclasses.replace(scene, duration_s=1.2), "clock_offset")
     sim = simulate(cfg)
     rec = _stream(sim, EdiReconstructor(cfg.width, cfg.height, clock_offset_us=None))
-    assert abs(rec.clock_offset_us - cfg.event_offset_us) <= 300, rec._clock.last_estimates
+    physical = rec.stats()["clock_offset_physical_us"]
+    assert abs(physical - cfg.event_offset_us) <= 300, rec._clock.last_estimates
+    # in use: the camera's offset plus half of EDI's step lag, which is positive and about a millisecond here
+    assert physical + 300 <= rec.clock_offset_us <= physical + 3000
     assert rec.stats()["clock_offset_estimated"]
     given = _stream(sim, EdiReconstructor(cfg.width, cfg.height, clock_offset_us=700))
     assert given.clock_offset_us == 700 and not given.stats()["clock_offset_estimated"]
@@ -153,11 +156,15 @@ def test_a_stream_uses_the_found_offset_from_the_fourth_frame_and_an_ideal_camer
     from edi_live.reconstructor import EdiReconstructor
 
     late = with_effects(scene, "clock_offset")
-    used, _ = _feed(simulate(late), EdiReconstructor(late.width, late.height, clock_offset_us=None))
+    rec = EdiReconstructor(late.width, late.height, clock_offset_us=None)
+    used, _ = _feed(simulate(late), rec)
     assert used[:3] == [0, 0, 0]  # frames 0-1 and 1-2 are the two fits that must agree
-    assert all(abs(u - late.event_offset_us) <= 300 for u in used[3:]), used
-    ideal, _ = _feed(simulate(scene), EdiReconstructor(scene.width, scene.height, clock_offset_us=None))
-    assert all(abs(u) <= 300 for u in ideal), ideal
+    assert all(u == rec.clock_offset_us > 0 for u in used[3:]), used
+    assert abs(rec.stats()["clock_offset_physical_us"] - late.event_offset_us) <= 300
+    ideal = EdiReconstructor(scene.width, scene.height, clock_offset_us=None)
+    _feed(simulate(scene), ideal)
+    assert abs(ideal.stats()["clock_offset_physical_us"]) <= 300
+    assert ideal.clock_offset_us < late.event_offset_us  # what it keeps of the step lag only
 
 
 def test_the_fit_runs_after_the_frame_in_on_events_and_does_not_depend_on_the_event_batches(scene, monkeypatch):
@@ -213,7 +220,10 @@ def test_the_first_batch_after_a_frame_runs_no_fit_unless_it_reaches_half_a_fram
     f0, f1 = sim.frames[0], sim.frames[1]
     for f in (f0, f1):
         rec.on_frame(f, sim.events[np.searchsorted(t, f.exposure_start_us):np.searchsorted(t, f.exposure_end_us)])
-    catch_up = np.searchsorted(t, f1.exposure_end_us + 5_000)  # past the 4 ms margin, short of half an interval
+    import edi_live.clock_offset_policy as policy
+
+    # past the search margin, short of half an interval
+    catch_up = np.searchsorted(t, f1.exposure_end_us + policy.MAX_OFFSET_US + 1000)
     rec.on_events(sim.events[np.searchsorted(t, f1.exposure_end_us):catch_up])
     assert rec._clock.due == 1 and rec._clock.fits_run == 0
     rec.on_events(sim.events[catch_up:catch_up + 1000])
@@ -228,4 +238,27 @@ def test_a_new_recording_with_earlier_times_during_the_first_round_still_gets_it
     before = dataclasses.replace(scene, duration_s=0.12, seed=5, t0_us=scene.t0_us + 10_000_000)
     _feed(simulate(before), rec)  # two frames of another recording, 10 s later than the next one
     used, _ = _feed(simulate(cfg), rec)
-    assert all(abs(u - cfg.event_offset_us) <= 300 for u in used[3:]), used
+    assert all(u == rec.clock_offset_us > 0 for u in used[3:]), used
+    assert abs(rec.stats()["clock_offset_physical_us"] - cfg.event_offset_us) <= 300
+
+
+def test_a_new_offset_drops_the_pairs_before_it_and_the_frame_that_took_it_opens_the_next(scene):
+    """The pairs formed with the old windows go; the frame taken with the new offset pairs with the next one, so
+    the c and black-level estimates lose one pair, not two."""
+    from edi_live.reconstructor import EdiReconstructor
+
+    late = with_effects(scene, "clock_offset")
+    rec = EdiReconstructor(late.width, late.height, clock_offset_us=None)
+    seen = []
+    on_frame = rec.on_frame
+
+    def counting(*args, **kwargs):
+        out = on_frame(*args, **kwargs)
+        seen.append((rec.clock_offset_us, len(rec._tracker._pairs)))
+        return out
+
+    rec.on_frame = counting
+    _feed(simulate(late), rec)
+    change = next(i for i in range(1, len(seen)) if seen[i][0] != seen[i - 1][0])
+    assert seen[change - 1][1] >= 1 and seen[change][1] == 0, seen
+    assert seen[change + 1][1] == 1, seen

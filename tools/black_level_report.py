@@ -31,9 +31,10 @@ def estimate(cfg: SceneConfig) -> tuple[float, dict]:
     frames = sim.frames
     for k, f in enumerate(frames):
         rec.on_frame(f, _between(sim.events, f.exposure_start_us, f.exposure_end_us + 1, True))
+        rec.settle()  # the black level policy runs after the frame (its value applies from the next one)
         if k + 1 < len(frames):
             rec.on_events(_between(sim.events, f.exposure_end_us, frames[k + 1].exposure_start_us, False))
-    return rec.black_level, dict(rec._black.last_fit)
+    return rec._black.value, dict(rec._black.last_fit)
 
 
 def scenes(quick: bool) -> list[tuple[str, SceneConfig]]:

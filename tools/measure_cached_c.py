@@ -51,6 +51,7 @@ def run(events: np.ndarray, frames: list, width: int, height: int, *, chunk: int
         start = int(np.searchsorted(t, frame.exposure_start_us, side="left"))
         before = rec.reestimations
         rec.on_frame(frame, events[start:fed])
+        rec.settle()  # this frame's c decision (its c applies from the next frame on)
         re = rec.reestimations > before
         cs.append(rec.c_on)
         flags.append(re)

@@ -2,11 +2,13 @@
 deblurred frame has left (`settle`).
 
 Before the deblur: this frame's data and its pair with the previous frame (contrast_tracking; the pair also serves
-the unreliable-pixel test of this deblur) and the clock offset policy. After it, on `settle()`: the c policy's
-decision on the new pair (fit test, re-estimation), the black level policy and the pixel-noise statistics. What
-settle decides takes effect at the next frame: c and the black level never change between two frames, and a frame
-is deblurred with the values in force before it. At start-up (no c estimated yet, also after a black-level restart)
-the c decision stays before the deblur that needs it.
+the unreliable-pixel test of this deblur, unless the clock offset moved since the previous frame). After it, on
+`settle()`, in the order the reconstructor ran them before settle() existed: the c policy's decision on the new
+pair (fit test, re-estimation), the black level policy, the clock offset policy's registration of the frame (with
+the c and black level just decided, as before) and the pixel-noise statistics. What settle decides takes effect at
+the next frame: c and the black level never change between two frames, and a frame is deblurred with the values
+in force before it. At start-up (no c estimated yet, also after a black-level restart) the c decision stays before
+the deblur that needs it. (The clock offset itself moves in the clock policy's collect(), between frames.)
 
 Owned by one EdiReconstructor; runs on whatever thread runs its on_frame / settle (never two at once).
 """
@@ -36,6 +38,7 @@ class _Due:
     pairs: list[contrast.FramePair] | None  # None: the c policy already ran before the deblur (start-up)
     pair: contrast.FramePair | None  # the pair formed on the frame (before a clock offset change dropped it)
     black_taken_off: float
+    clock: tuple  # clock.update's arguments but the black level and c: (frame, events, image, mask)
     noise: tuple | None = None  # pixel_noise.update's arguments, once the deblur has set them
 
 
@@ -47,6 +50,7 @@ class FrameCalibration:
         self.policy, self.tracker, self.black, self.clock, self.pixel_noise = policy, tracker, black, clock, pixel_noise
         self._due: _Due | None = None
         self._black_next: float | None = None  # decided by settle, used from the next frame on
+        self._offset_used: int | None = None  # the clock offset of the previous frame
         self.last_settle_ms = 0.0
 
     @property
@@ -58,20 +62,18 @@ class FrameCalibration:
                       t_last: int, has_reference: bool) -> tuple[contrast.FramePair | None, edi.ApsResponse]:
         """(the pair formed on this frame, None if there is none or it was dropped; the APS response to deblur
         with). Call settle() first: a frame must not start while the previous one's work is pending."""
+        moved = self._offset_used is not None and self.clock.value != self._offset_used
+        self._offset_used = self.clock.value
         if self._black_next is not None:
             aps, self._black_next = dataclasses.replace(aps, black_level=self._black_next), None
         b, informative = aps.to_float(img)
         cur, pair = self.tracker.step(events, b, informative, window, mask, acc, t_last, has_reference)
         pairs = self.tracker.pairs
-        if self.policy.estimated:
-            self._due = _Due(cur, pairs, pair, aps.black_level)
-        else:  # start-up: this deblur needs the first estimate
+        if not self.policy.estimated:  # start-up: this deblur needs the first estimate
             self.policy.update(cur, pairs)
-            self._due = _Due(cur, None, pair, aps.black_level)
-        if self.clock.update(frame, events, img, aps.black_level, self.policy.c, mask) is not None:
-            self.tracker.windows_moved()  # pairs so far used the old offset; this frame opens the next one
-            pair = None
-        return pair, aps
+            pairs = None
+        self._due = _Due(cur, pairs, pair, aps.black_level, (frame, events, img, mask))
+        return (None if moved else pair), aps  # a pair across an offset change is not judged
 
     def after_deblur(self, pair: contrast.FramePair | None, dt_us: int, mask: np.ndarray | None) -> None:
         """The deblurred frame's pair (as before_deblur returned it) for the noise statistics."""
@@ -87,9 +89,14 @@ class FrameCalibration:
         if due.pairs is not None:
             self.policy.update(due.cur, due.pairs)
         new_black = self.black.update(due.pair, due.black_taken_off)
+        frame, events, img, mask = due.clock
+        black = due.black_taken_off if new_black is None else new_black
+        moved = self.clock.update(frame, events, img, black, self.policy.c, mask) is not None
         if new_black is not None:  # pairs so far used the old value; c is estimated afresh
             self._black_next = new_black
             self.tracker.restart()
+        elif moved:
+            self.tracker.windows_moved()  # pairs so far used the old offset; this frame opens the next one
         elif due.noise is not None:
             self.pixel_noise.update(*due.noise)
         self.last_settle_ms = (time.perf_counter() - t0) * 1e3

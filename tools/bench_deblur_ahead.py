@@ -4,6 +4,9 @@ The reconstructor is fed as the worker feeds it: the events in chunks as they co
 end with every event from its exposure start on. Both variants run alternately on the same recording; the table
 gives each run's median on_frame wall time (ms, the first 4 frames left out: the prediction needs three regular
 windows) and the ratio of the two in each pair (median, min, max), so a shared machine's load cancels out.
+It also gives the thread CPU time per frame of on_frame (what the deblurred frame waits for) and of settle() (the
+calibration work run after the frame was sent, as the worker does): their sum is what a frame waited for before
+settle() existed. Medians per run over the frames after the first 4.
 
     python -m tools.bench_deblur_ahead RECORDING.aedat4 [--repeat 5] [--c 0.2]
 """
@@ -11,6 +14,7 @@ windows) and the ratio of the two in each pair (median, min, max), so a shared m
 from __future__ import annotations
 
 import argparse
+import time
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +24,9 @@ from edi_live.reconstructor import EdiReconstructor
 from tools.figure import load_recording
 
 
-def deblur_ms(events: np.ndarray, frames: list, rec: EdiReconstructor, chunk: int = 1000) -> list[float]:
+def deblur_ms(events: np.ndarray, frames: list, rec: EdiReconstructor, chunk: int = 1000,
+              cpu: list | None = None) -> list[float]:
+    """on_frame wall ms per frame; `cpu`, if a list, gets (on_frame, settle) thread CPU ms per frame."""
     t = events["t"]
     out, pos = [], 0
     for f in frames:
@@ -29,7 +35,12 @@ def deblur_ms(events: np.ndarray, frames: list, rec: EdiReconstructor, chunk: in
             nxt = min(pos + chunk, end)
             rec.on_events(events[pos:nxt])
             pos = nxt
+        c0 = time.thread_time()
         rec.on_frame(f, edi.window(events[:pos], f.exposure_start_us, None))
+        c1 = time.thread_time()
+        rec.settle()  # the worker's order: after the frame was sent
+        if cpu is not None:
+            cpu.append(((c1 - c0) * 1e3, (time.thread_time() - c1) * 1e3))
         out.append(rec.last_deblur_ms)
     return out
 
@@ -45,17 +56,29 @@ def main(argv: list[str] | None = None) -> None:
     knobs = {} if args.c is None else {"c": args.c}
     runs: dict[bool, list[float]] = {True: [], False: []}
     used = 0
+    split: list[tuple[float, float, float]] = []  # per ahead run: medians of on_frame, settle, their sum (CPU ms)
     for _ in range(args.repeat):
         for ahead in (True, False):
             rec = EdiReconstructor(w, h, deblur_ahead=ahead, clock_offset_us=0, **knobs)
-            runs[ahead].append(float(np.median(deblur_ms(events, frames, rec)[4:])))
-            used = rec.stats()["deblurs_ahead"] if ahead else used
+            cpu: list[tuple[float, float]] = []
+            runs[ahead].append(float(np.median(deblur_ms(events, frames, rec, cpu=cpu)[4:])))
+            if ahead:
+                used = rec.stats()["deblurs_ahead"]
+                a = np.array(cpu[4:]).reshape(-1, 2)
+                split.append((float(np.median(a[:, 0])), float(np.median(a[:, 1])), float(np.median(a.sum(1)))))
     ratio = np.array(runs[False]) / np.array(runs[True])
     print(f"{args.recording.name}: {len(frames)} APS frames, {used} deblurred from the running integral; "
           f"c {'fixed ' + str(args.c) if args.c is not None else 'estimated'}, clock offset given (0)")
     print("on_frame ms, median per run: ahead " + " ".join(f"{v:.2f}" for v in runs[True])
           + " | read at the end " + " ".join(f"{v:.2f}" for v in runs[False]))
     print(f"read-at-the-end / ahead: median {np.median(ratio):.2f} (min {ratio.min():.2f}, max {ratio.max():.2f})")
+    sp = np.array(split)
+    print("thread CPU ms per frame (ahead runs, median per run): on_frame " + " ".join(f"{v:.2f}" for v in sp[:, 0])
+          + " | settle " + " ".join(f"{v:.2f}" for v in sp[:, 1])
+          + " | on_frame + settle " + " ".join(f"{v:.2f}" for v in sp[:, 2]))
+    share = sp[:, 0] / sp[:, 2]
+    print(f"on_frame / (on_frame + settle): median {np.median(share):.2f} (min {share.min():.2f}, "
+          f"max {share.max():.2f})")
 
 
 if __name__ == "__main__":

@@ -201,7 +201,8 @@ def test_a_streaming_copy_keeps_the_offset_and_leaves_the_due_fits_to_the_origin
     # the worker hands on_frame the events up to its read cursor: here far enough for the pair's fit to be runnable
     reach = np.searchsorted(t, f1.exposure_end_us + 40_000)
     rec.on_frame(f1, sim.events[np.searchsorted(t, f1.exposure_start_us):reach])
-    assert rec._clock.due == 1 and rec._clock.fits_run == 0  # never inside on_frame
+    rec.settle()  # the worker's order: the frame is registered with the clock policy after it was sent
+    assert rec._clock.due == 1 and rec._clock.fits_run == 0  # never inside on_frame or settle
     twin = rec.streaming_copy()
     twin.on_events(sim.events[reach:reach + 1000])  # the copy streams; the original gets these events later
     assert rec._clock.due == 1 and rec._clock.fits_run == 0 and twin.clock_offset_us == 0
@@ -254,6 +255,7 @@ def test_a_new_offset_drops_the_pairs_before_it_and_the_frame_that_took_it_opens
 
     def counting(*args, **kwargs):
         out = on_frame(*args, **kwargs)
+        rec.settle()  # the worker's order; the frame's pairs are dropped there
         seen.append((rec.clock_offset_us, len(rec._tracker._pairs)))
         return out
 

@@ -90,8 +90,9 @@ def test_a_given_black_level_makes_the_frames_linear():
     cfg = SceneConfig(width=120, height=90, duration_s=0.4, texture="camera", velocity_px_s=(150.0, 40.0),
                       aps_offset_dn=10.0, seed=3)
     sim = simulate(cfg)
-    plain, _ = stream(sim, EdiReconstructor(cfg.width, cfg.height, black_level=0.0))
-    given, _ = stream(sim, EdiReconstructor(cfg.width, cfg.height, black_level=10.0))
+    # an exact clock, held so (stream() feeds the APS clock; the frames are compared at their mid-exposures)
+    plain, _ = stream(sim, EdiReconstructor(cfg.width, cfg.height, black_level=0.0, clock_offset_us=0))
+    given, _ = stream(sim, EdiReconstructor(cfg.width, cfg.height, black_level=10.0, clock_offset_us=0))
     assert all(o.black_level == 10.0 for o in given)
 
     def error(outs):  # mean absolute error against the simulator's sharp frame at each mid-exposure
@@ -178,8 +179,8 @@ def test_a_given_aps_response_makes_the_frames_linear():
     cfg = SceneConfig(width=120, height=90, duration_s=0.4, texture="camera", velocity_px_s=(150.0, 40.0),
                       aps_gamma=1.15, seed=3)
     sim = simulate(cfg)
-    plain, _ = stream(sim, EdiReconstructor(cfg.width, cfg.height))
-    given, _ = stream(sim, EdiReconstructor(cfg.width, cfg.height, aps_gamma=1.15))
+    plain, _ = stream(sim, EdiReconstructor(cfg.width, cfg.height, clock_offset_us=0))  # exact clock, as above
+    given, _ = stream(sim, EdiReconstructor(cfg.width, cfg.height, aps_gamma=1.15, clock_offset_us=0))
     assert all(o.aps_gamma == 1.15 for o in given)
 
     def error(outs):

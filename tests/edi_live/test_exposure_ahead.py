@@ -122,3 +122,20 @@ def test_hot_pixel_counts_are_the_same_when_a_running_integral_is_not_used(drive
     for a, b in zip(got[0] + got[1], want[0] + want[1]):
         assert np.array_equal(a, b)
     assert np.array_equal(ahead._hot._counts, plain._hot._counts)  # the frames to come depend on them
+
+
+def test_a_combined_mask_that_does_not_change_does_not_stop_the_deblur_ahead():
+    """Hot and flickering pixels make the ignored-pixel mask a combination of masks; rebuilt as a new array at
+    every exposure end, it never was the very mask the next integral was armed with, so no deblur ran ahead."""
+    from edi_live.simulation import preset
+
+    sim = simulate(preset("demo", duration_s=0.6))  # its noise makes a few hot and a few flicker-timed pixels
+    cfg = sim.config
+    ahead = EdiReconstructor(cfg.width, cfg.height, clock_offset_us=0)
+    plain = EdiReconstructor(cfg.width, cfg.height, deblur_ahead=False, clock_offset_us=0)
+    got, want = _drive(sim, ahead), _drive(sim, plain)
+    stats = ahead.stats()
+    assert stats["flicker_pixels"] > 0 and stats["hot_pixels"] > 0, "two masks combined"
+    for a, b in zip(got[0] + got[1], want[0] + want[1]):
+        assert np.array_equal(a, b)
+    assert stats["deblurs_ahead"] >= len(sim.frames) - 4

@@ -29,7 +29,8 @@ RESTRICTED = {
 PURE_MATH = ("edi_live/edi/", "edi_live/contrast/", "edi_live/reconstructor.py", "edi_live/reconstruction.py",
              "edi_live/c_policy.py", "edi_live/contrast_tracking.py", "edi_live/latent_state.py",
              "edi_live/pixel_masks.py", "edi_live/quality.py", "edi_live/ring.py", "edi_live/ring_buffer.py",
-             "edi_live/ring_wake.py", "edi_live/ring_items.py",
+             "edi_live/ring_wake.py", "edi_live/ring_items.py", "edi_live/frame_calibration.py",
+             "edi_live/reconstructor_view.py",
              "edi_live/reconstructor_settings.py", "edi_live/colour.py", "edi_live/colour_edi.py",
              "edi_live/black_level_policy.py", "edi_live/clock_offset_policy.py", "edi_live/reconstructor_parts.py",
              "edi_live/exposure_ahead.py", "edi_live/flicker_pixels.py", "edi_live/pixel_noise.py")
@@ -37,7 +38,8 @@ PURE_MATH_ALLOWED = {"numpy", "cv2", "numba", "edi_live"}
 PURE_MATH_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.errors", "edi_live.edi", "edi_live.contrast",
                          "edi_live.c_policy", "edi_live.contrast_tracking", "edi_live.latent_state",
                          "edi_live.pixel_masks", "edi_live.reconstruction", "edi_live.ring_buffer", "edi_live.ring_wake",
-                         "edi_live.ring_items", "edi_live.reconstructor_settings", "edi_live.colour",  # "colour" covers colour_edi
+                         "edi_live.ring_items", "edi_live.frame_calibration", "edi_live.reconstructor_view",
+                         "edi_live.reconstructor_settings", "edi_live.colour",  # "colour" covers colour_edi
                          "edi_live.black_level_policy", "edi_live.clock_offset_policy", "edi_live.reconstructor_parts",
                          "edi_live.exposure_ahead", "edi_live.flicker_pixels", "edi_live.pixel_noise")
 DRIVERS_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.source", "edi_live.errors", "edi_live.aedat4",

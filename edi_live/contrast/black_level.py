@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from edi_live.contrast.frames import FramePair
+from edi_live.contrast.vectors import dot
 
 SUPPORT_DN = 30.0  # a moving quiet pixel supports an estimate b when its darker frame is at most this above b
 
@@ -100,15 +101,15 @@ def fit_c(s: QuietSamples, b: float, delta: float = 0.5, iterations: int = 5) ->
     ratio given N; fitting N on the ratio (minimising the residual in events over c) inflates c by 50 % here."""
     d, ok = _log_ratios(s, b)
     n = np.where(ok, s.net, 0.0)
-    nn = float(n.dot(n))
+    nn = dot(n, n)
     if nn <= 0:
         return float("nan")
-    c = float(d.dot(n)) / nn
+    c = dot(d, n) / nn
     for _ in range(iterations):
         if not c > 0:
             return float("nan")
         w = 1.0 / np.sqrt(1.0 + ((d - c * n) / (c * delta)) ** 2)
-        c = float((w * d).dot(n)) / max(float((w * n).dot(n)), 1e-12)
+        c = dot(w * d, n) / max(dot(w * n, n), 1e-12)
     return c if c > 0 else float("nan")
 
 
@@ -140,7 +141,7 @@ def fit_black_level(s: QuietSamples, b_range: tuple[float, float] = (0.0, 40.0),
             continue
         d = black_level_terms(s, side, at(side)[0]) - base  # > 0 where b_best explains the pixel better
         n = d.size
-        var = max(float(d.dot(d)) / n - (float(d.sum()) / n) ** 2, 0.0)
+        var = max(dot(d, d) / n - (float(d.sum()) / n) ** 2, 0.0)
         zs.append(float(d.sum()) / (math.sqrt(n * var) + 1e-12))
     z = min(zs) if zs else 0.0
     moving = s.net != 0

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from edi_live.contrast.vectors import dot
 from edi_live.datatypes import EVENT_DTYPE
 
 
@@ -114,7 +115,7 @@ def estimate_clock_offset(events: np.ndarray, prev: FrameWindow, cur: FrameWindo
         for d in sides:
             diff = cache[d] - cache[d_best]
             n = diff.size
-            var = max(float(diff.dot(diff)) / n - (float(diff.sum()) / n) ** 2, 0.0)
+            var = max(dot(diff, diff) / n - (float(diff.sum()) / n) ** 2, 0.0)
             zs.append(float(diff.sum()) / (np.sqrt(n * var) + 1e-12))
         if not zs or min(zs) < min_z:
             return None

@@ -14,6 +14,7 @@ import numpy as np
 import edi_live.edi as edi
 from edi_live.contrast.frames import FramePair
 from edi_live.contrast.search import Cost, golden_section, grid_then_golden
+from edi_live.contrast.vectors import dot
 
 
 @dataclass
@@ -169,7 +170,7 @@ class ConsistencyContrast:
         for alt in alternatives:
             d = base - cost.terms(*alt)
             total = float(d.sum())
-            var = max(float(d.dot(d)) / n - (total / n) ** 2, 0.0)
+            var = max(dot(d, d) / n - (total / n) ** 2, 0.0)
             zs.append(total / (math.sqrt(n * var) + tiny))
         return max(zs) if best else min(zs)
 

@@ -132,3 +132,11 @@ def test_fit_score_and_information_are_in_standard_errors():
         _, pr = pairs_of(slow)
         info.append(est.information(pr, (0.25, 0.25)))
     assert info[0] < info[1]
+
+
+def test_the_estimators_dot_product_is_the_plain_sum_of_products(rng):
+    from edi_live.contrast.vectors import dot
+
+    a, b = rng.normal(size=50_000), rng.normal(size=50_000)
+    assert dot(a, b) == pytest.approx(float(np.sum(a * b)), rel=1e-9)
+    assert dot(a[:0], b[:0]) == 0.0

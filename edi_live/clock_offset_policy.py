@@ -3,11 +3,11 @@
 The math is edi_live.contrast.clock_offset (a fit on two consecutive frames, with the step model's lag taken out
 first); this module owns the decision state. While a round is on it keeps the sample pixels' recent events (from
 the reconstructor's on_events and on_frame, without duplicates) and the frames; each new frame makes the pair it
-closes due, and the fit runs in a `collect` (on_events) whose events cover that pair's windows with the search
-margin, never inside `update` (on_frame) and not in the first batch after the frame unless that reaches half a
-frame interval past it (see _Due.runnable): after the frame has been deblurred and sent. A new value is in `value`
-at once, so the next frame's window already uses it; `update` reports it so that the frame pairs formed with the
-old value can be dropped. The round ends with `agree` consecutive fits within `agree_us` of each other (their
+closes due. `update` runs in the reconstructor's settle(), after the frame's deblur has been sent (on the deblur
+thread when the worker has one, never between latent frames): it registers the frame and fits the due pairs whose
+windows the kept events cover with the search margin, in practice the pair before, one frame later. A new value is
+in `value` at once, so the next frame's window uses it; the next `update` reports it, so that the frame pairs formed
+with the old value are dropped and that frame, taken with the new windows, opens the next pair. The round ends with `agree` consecutive fits within `agree_us` of each other (their
 mean) or with `per_round` fits (their median), or without a change after `max_fits` fits; the offset moves when
 the result differs from the current one by at least `min_change_us`. Rounds: from the first frame, then every
 `recheck_every` frames. A given offset (flag, TOML key, saved calibration) is never replaced. Everything depends
@@ -62,14 +62,9 @@ class _Due:
     c: tuple[float, float]
     mask: np.ndarray | None
 
-    def runnable(self, t_max: int, first_batch: bool) -> bool:
-        """Whether events up to t_max complete the fit's data (the search margin past the newer exposure). In the
-        first batch after the frame, only once they reach half a frame interval past it: that batch may be the
-        worker's catch-up of a deblur made on its helper thread, handed on before that deblurred frame is sent."""
-        if t_max < self.cur.exposure_end_us + MAX_OFFSET_US:
-            return False
-        interval = self.cur.exposure_start_us - self.prev.exposure_start_us
-        return not first_batch or t_max >= self.cur.exposure_end_us + interval // 2
+    def runnable(self, t_max: int) -> bool:
+        """Whether events up to t_max complete the fit's data (the search margin past the newer exposure)."""
+        return t_max >= self.cur.exposure_end_us + MAX_OFFSET_US
 
 
 class ClockOffsetPolicy:
@@ -91,7 +86,6 @@ class ClockOffsetPolicy:
         self._found: list[float] = []  # this round's fits: the camera's offset ...
         self._found_in_use: list[float] = []  # ... and with the kept share of the step lag
         self._announce = False
-        self._batches = 0
         self._end_round()
         self._frames_to_round = 0  # the first round starts with the stream
         sample = np.zeros(width * height, bool)
@@ -121,13 +115,9 @@ class ClockOffsetPolicy:
         return len(self._due)
 
     def collect(self, events: np.ndarray) -> None:
-        """Keep the sample's new events; run the due fits that they complete."""
-        if not self.collecting:
-            return
-        self._keep(events)
-        self._batches += 1
-        while self._due and self._due[0].runnable(self._t_max, self._batches == 1):
-            self._fit(self._due.pop(0))
+        """Keep the sample's new events (the fits run in update, off the stream of latent frames)."""
+        if self.collecting:
+            self._keep(events)
 
     def update(self, frame: Frame, events: np.ndarray, image: np.ndarray, black_level: float,
                c: tuple[float, float], mask: np.ndarray | None) -> int | None:
@@ -136,7 +126,6 @@ class ClockOffsetPolicy:
         if self.given is not None:
             return None
         announce, self._announce = self._announce, False
-        self._batches = 0  # collect() calls since this frame
         if not self.collecting:
             self._frames_to_round -= 1
             return self.value if announce else None
@@ -148,6 +137,8 @@ class ClockOffsetPolicy:
         if self._last is not None:
             self._due = self._due[-1:] + [_Due(self._last, window, float(black_level), tuple(c), mask)]
         self._last = window
+        while self._due and self._due[0].runnable(self._t_max):  # the pairs the events kept so far complete
+            self._fit(self._due.pop(0))
         return self.value if announce else None
 
     # ---- internals ----

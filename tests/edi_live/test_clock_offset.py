@@ -5,6 +5,8 @@ the offset is in use from the fourth frame, and the fit never runs inside on_fra
 
 from __future__ import annotations
 
+import collections
+
 import dataclasses
 
 import numpy as np
@@ -149,17 +151,19 @@ def _feed(sim, rec, pieces: int = 1, inside=None):
         images.append(rec.on_frame(f, ev[np.searchsorted(t, f.exposure_start_us + off, "left"):end]).image)
         if inside:
             inside(False)
+        rec.settle()  # the worker's order: the frame's calibration work after the frame was sent
     return used, images
 
 
-def test_a_stream_uses_the_found_offset_from_the_fourth_frame_and_an_ideal_camera_stays_near_zero(scene):
+def test_a_stream_uses_the_found_offset_from_the_fifth_frame_and_an_ideal_camera_stays_near_zero(scene):
     from edi_live.reconstructor import EdiReconstructor
 
     late = with_effects(scene, "clock_offset")
     rec = EdiReconstructor(late.width, late.height, clock_offset_us=None)
     used, _ = _feed(simulate(late), rec)
-    assert used[:3] == [0, 0, 0]  # frames 0-1 and 1-2 are the two fits that must agree
-    assert all(u == rec.clock_offset_us > 0 for u in used[3:]), used
+    # frames 0-1 and 1-2 are the two fits that must agree, each run in the settle() one frame after the pair closed
+    assert used[:4] == [0, 0, 0, 0]
+    assert all(u == rec.clock_offset_us > 0 for u in used[4:]), used
     assert abs(rec.stats()["clock_offset_physical_us"] - late.event_offset_us) <= 300
     ideal = EdiReconstructor(scene.width, scene.height, clock_offset_us=None)
     _feed(simulate(scene), ideal)
@@ -167,29 +171,41 @@ def test_a_stream_uses_the_found_offset_from_the_fourth_frame_and_an_ideal_camer
     assert ideal.clock_offset_us < late.event_offset_us  # what it keeps of the step lag only
 
 
-def test_the_fit_runs_after_the_frame_in_on_events_and_does_not_depend_on_the_event_batches(scene, monkeypatch):
+def test_the_fit_runs_in_settle_never_among_latent_frames_and_does_not_depend_on_the_event_batches(scene,
+                                                                                                   monkeypatch):
+    """settle() runs after the deblurred frame was sent (on the deblur thread when there is one); on_events runs
+    between latent frames, which a fit of several ms would hold up."""
     import edi_live.clock_offset_policy as policy
     from edi_live.reconstructor import EdiReconstructor
 
     cfg = with_effects(scene, "clock_offset")
     sim = simulate(cfg)
-    state = {"in_frame": False, "fits_in_frame": 0, "fits": 0}
+    state = {"where": None, "fits": collections.Counter()}
     real = policy.estimate_clock_offset
 
     def counted(*args, **kwargs):
-        state["fits"] += 1
-        state["fits_in_frame"] += state["in_frame"]
+        state["fits"][state["where"]] += 1
         return real(*args, **kwargs)
     monkeypatch.setattr(policy, "estimate_clock_offset", counted)
-    used, images = _feed(sim, EdiReconstructor(cfg.width, cfg.height, clock_offset_us=None), 1,
-                         lambda flag: state.update(in_frame=flag))
-    assert state["fits"] >= 2 and state["fits_in_frame"] == 0
+    rec = EdiReconstructor(cfg.width, cfg.height, clock_offset_us=None)
+    for name in ("on_frame", "on_events", "settle"):
+        method = getattr(rec, name)
+
+        def traced(*args, _method=method, _name=name, **kwargs):
+            outer, state["where"] = state["where"], state["where"] or _name
+            try:
+                return _method(*args, **kwargs)
+            finally:
+                state["where"] = outer
+        setattr(rec, name, traced)
+    used, images = _feed(sim, rec, 1)
+    assert state["fits"]["settle"] >= 2 and state["fits"]["on_events"] == 0 and state["fits"]["on_frame"] == 0
     used7, images7 = _feed(sim, EdiReconstructor(cfg.width, cfg.height, clock_offset_us=None), 7)
     assert used7 == used
     assert all(np.array_equal(a, b) for a, b in zip(images, images7))
 
 
-def test_a_streaming_copy_keeps_the_offset_and_leaves_the_due_fits_to_the_original(scene):
+def test_a_streaming_copy_keeps_the_offset_and_runs_no_fit(scene):
     from edi_live.reconstructor import EdiReconstructor
 
     cfg = with_effects(scene, "clock_offset")
@@ -198,37 +214,22 @@ def test_a_streaming_copy_keeps_the_offset_and_leaves_the_due_fits_to_the_origin
     t = sim.events["t"]
     f0, f1 = sim.frames[0], sim.frames[1]
     rec.on_frame(f0, sim.events[np.searchsorted(t, f0.exposure_start_us):np.searchsorted(t, f0.exposure_end_us)])
-    # the worker hands on_frame the events up to its read cursor: here far enough for the pair's fit to be runnable
-    reach = np.searchsorted(t, f1.exposure_end_us + 40_000)
-    rec.on_frame(f1, sim.events[np.searchsorted(t, f1.exposure_start_us):reach])
-    rec.settle()  # the worker's order: the frame is registered with the clock policy after it was sent
-    assert rec._clock.due == 1 and rec._clock.fits_run == 0  # never inside on_frame or settle
-    twin = rec.streaming_copy()
-    twin.on_events(sim.events[reach:reach + 1000])  # the copy streams; the original gets these events later
-    assert rec._clock.due == 1 and rec._clock.fits_run == 0 and twin.clock_offset_us == 0
-    rec.on_events(sim.events[reach:reach + 1000])
-    assert rec._clock.due == 0 and rec._clock.fits_run == 1
-
-
-def test_the_first_batch_after_a_frame_runs_no_fit_unless_it_reaches_half_a_frame_interval(scene):
-    """With the deblur thread, the worker hands the original the events of the deblur's duration before it sends
-    that deblurred frame: a fit there would delay the frame."""
-    from edi_live.reconstructor import EdiReconstructor
-
-    sim = simulate(with_effects(scene, "clock_offset"))
-    rec = EdiReconstructor(scene.width, scene.height, clock_offset_us=None)
-    t = sim.events["t"]
-    f0, f1 = sim.frames[0], sim.frames[1]
-    for f in (f0, f1):
-        rec.on_frame(f, sim.events[np.searchsorted(t, f.exposure_start_us):np.searchsorted(t, f.exposure_end_us)])
-    import edi_live.clock_offset_policy as policy
-
-    # past the search margin, short of half an interval
-    catch_up = np.searchsorted(t, f1.exposure_end_us + policy.MAX_OFFSET_US + 1000)
-    rec.on_events(sim.events[np.searchsorted(t, f1.exposure_end_us):catch_up])
+    rec.settle()
+    end1 = np.searchsorted(t, f1.exposure_end_us)
+    rec.on_frame(f1, sim.events[np.searchsorted(t, f1.exposure_start_us):end1])
+    rec.settle()  # the pair 0-1 is due; its events do not reach the search margin yet
     assert rec._clock.due == 1 and rec._clock.fits_run == 0
-    rec.on_events(sim.events[catch_up:catch_up + 1000])
-    assert rec._clock.due == 0 and rec._clock.fits_run == 1
+    reach = np.searchsorted(t, f1.exposure_end_us + 40_000)
+    twin = rec.streaming_copy()
+    twin.on_events(sim.events[end1:reach])  # the copy streams; the original gets these events later
+    twin.settle()
+    assert rec._clock.due == 1 and rec._clock.fits_run == 0 and twin.clock_offset_us == 0
+    rec.on_events(sim.events[end1:reach])
+    assert rec._clock.fits_run == 0, "no fit among latent frames"
+    f2 = sim.frames[2]
+    rec.on_frame(f2, sim.events[np.searchsorted(t, f2.exposure_start_us):reach])
+    rec.settle()
+    assert rec._clock.fits_run == 1 and rec._clock.due == 1  # the pair 0-1 fitted, 1-2 waits
 
 
 def test_a_new_recording_with_earlier_times_during_the_first_round_still_gets_its_offset(scene):
@@ -239,7 +240,7 @@ def test_a_new_recording_with_earlier_times_during_the_first_round_still_gets_it
     before = dataclasses.replace(scene, duration_s=0.12, seed=5, t0_us=scene.t0_us + 10_000_000)
     _feed(simulate(before), rec)  # two frames of another recording, 10 s later than the next one
     used, _ = _feed(simulate(cfg), rec)
-    assert all(u == rec.clock_offset_us > 0 for u in used[3:]), used
+    assert all(u == rec.clock_offset_us > 0 for u in used[4:]), used
     assert abs(rec.stats()["clock_offset_physical_us"] - cfg.event_offset_us) <= 300
 
 
@@ -254,9 +255,10 @@ def test_a_new_offset_drops_the_pairs_before_it_and_the_frame_that_took_it_opens
     on_frame = rec.on_frame
 
     def counting(*args, **kwargs):
+        taken_with = rec.clock_offset_us
         out = on_frame(*args, **kwargs)
         rec.settle()  # the worker's order; the frame's pairs are dropped there
-        seen.append((rec.clock_offset_us, len(rec._tracker._pairs)))
+        seen.append((taken_with, len(rec._tracker._pairs)))
         return out
 
     rec.on_frame = counting

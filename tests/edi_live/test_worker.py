@@ -386,16 +386,22 @@ def two_frame_packets():
     return ev, frames, packets
 
 
-def test_deblur_thread_keeps_latent_frames_flowing_and_hands_every_event_to_the_new_reference():
-    ev, frames, packets = two_frame_packets()
+def stream_to_the_end(rec, config: EdiConfig, packets, sinks):
+    """A worker on `rec` fed every packet through a ring, then closed; returns it once it has finished."""
     ring = EventRing(capacity_events=1 << 16, policy="wait")
-    rec, out = SlowDeblur(), []
-    worker = EdiWorker(ring, rec, EdiConfig(every=400, deblur_thread=True), [out.append])
+    worker = EdiWorker(ring, rec, config, sinks)
     worker.start()
     for p in packets:
         assert ring.push(p, timeout_s=5)
     ring.close()
     assert worker.done.wait(10) and worker.error is None
+    return worker
+
+
+def test_deblur_thread_keeps_latent_frames_flowing_and_hands_every_event_to_the_new_reference():
+    ev, frames, packets = two_frame_packets()
+    rec, out = SlowDeblur(), []
+    worker = stream_to_the_end(rec, EdiConfig(every=400, deblur_thread=True), packets, [out.append])
     assert worker.rec is rec, "the reconstructor itself takes over again after the deblur"
     assert len(rec.frames_given) == 2
     after_first = int(np.sum(ev["t"] > frames[0].exposure_end_us))
@@ -550,14 +556,8 @@ class SettleLog(StandIn):
 def test_inline_the_deblurred_frame_is_sent_before_settle_runs():
     ev, frames, packets = two_frame_packets()
     out: list = []
-    ring = EventRing(capacity_events=1 << 16, policy="wait")
     rec = SettleLog(out)
-    worker = EdiWorker(ring, rec, EdiConfig(every=400, deblur_thread=False), [out.append])
-    worker.start()
-    for p in packets:
-        assert ring.push(p, timeout_s=5)
-    ring.close()
-    assert worker.done.wait(10) and worker.error is None
+    worker = stream_to_the_end(rec, EdiConfig(every=400, deblur_thread=False), packets, [out.append])
     f1, f2 = frames[0].mid_exposure_us, frames[1].mid_exposure_us
     assert rec.settled == 2 and rec.at_settle == [[f1], [f1, f2]], "each settle() after its frame was sent"
     assert [r.t_us for r in out if r.kind == "deblurred"] == [f1, f2]

@@ -153,6 +153,8 @@ class EdiWorker:
         entry = self.ring.peek_frame()
         limit, through = (entry.end_index if entry is not None else None), None
         if entry is not None and self.ring.read_index >= entry.end_index:
+            if self._pending is not None:
+                return False  # the original's settle() may move the clock offset: gate with it (its end pokes)
             done = self.ring.closed and not self.ring.unread_events
             if self._gate.ready(entry.frame, self.rec.clock_offset_us, done):
                 self.ring.pop_frame()

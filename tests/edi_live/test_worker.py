@@ -598,3 +598,52 @@ def test_deblur_thread_sends_the_deblurred_frame_before_settle_and_only_once():
     assert [r.t_us for r in out if r.kind == "deblurred"] == [f1, f2], "each deblurred frame exactly once"
     assert worker.sent["deblurred"] == 2 and rec.settled == 2 and worker.rec is rec
     assert int(np.sum(t > frames[0].exposure_end_us)) == rec.events_applied
+
+
+class SignalRing(EventRing):
+    """Once `armed`, sets `signal` when the worker waits for data or takes the frame starting at `watch_us`."""
+
+    def __init__(self, watch_us: int, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.watch_us, self.armed, self.signal = watch_us, False, threading.Event()
+
+    def wait(self, since_version: int, timeout_s: float, wake=None) -> bool:
+        if self.armed:
+            self.signal.set()
+        return super().wait(since_version, timeout_s, wake)
+
+    def pop_frame(self):
+        entry = super().pop_frame()
+        if self.armed and entry is not None and entry.frame.exposure_start_us == self.watch_us:
+            self.signal.set()
+        return entry
+
+
+def test_a_clock_offset_moved_by_settle_on_the_helper_thread_holds_for_the_next_frame():
+    """settle() of the second frame (on the helper thread) moves the offset to 3 ms while the worker streams on
+    the copy (which keeps 0) up to the third frame. The third frame must then be gated and cut with the
+    original's new offset: its event-clock window [43000, 45000] complete, nothing before 43000."""
+    offset = 3000
+    frames = [aps(0, 2_000), aps(20_000, 22_000), aps(40_000, 42_000)]
+    ev = events_at(np.arange(0, 80_000, 5))
+    ring = SignalRing(40_000, capacity_events=1 << 16, capacity_frames=16, policy="wait")
+    for p in packets_by_frame(ev, frames):
+        assert ring.push(p, timeout_s=5)
+    ring.close()
+
+    class MovesOffset(StandIn):
+        def settle(self):
+            super().settle()
+            if len(self.frames_given) == 2:
+                self.clock_offset_us = offset
+                ring.armed = True  # the worker now takes the third frame, or waits for this settle()
+                assert ring.signal.wait(10)
+
+    rec, errors = MovesOffset(), []
+    worker = EdiWorker(ring, rec, EdiConfig(every=400, deblur_thread=True), [], on_error=errors.append)
+    worker.start()
+    assert worker.done.wait(20) and not errors, errors
+    frame, given = rec.frames_given[2]
+    t = given["t"]
+    assert t.min() >= 43_000 and t.max() > 45_000, (t.min(), t.max())
+    assert np.all(np.isin(ev["t"][(ev["t"] >= 43_000) & (ev["t"] <= 45_000)], t))

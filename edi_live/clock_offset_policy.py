@@ -97,7 +97,7 @@ class ClockOffsetPolicy:
     def frozen(self) -> "ClockOffsetPolicy":
         """A cheap copy that keeps the current offset and collects nothing (for a streaming copy)."""
         twin = copy.copy(self)
-        twin.given = self.value
+        twin._frames_to_round = 2**62  # never collects; `given` stays, so an estimated offset still reads so
         twin._due, twin._chunks, twin._found, twin._found_in_use = [], [], [], []  # nothing shared: it goes on
         return twin
 

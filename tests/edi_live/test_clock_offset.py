@@ -266,3 +266,19 @@ def test_a_new_offset_drops_the_pairs_before_it_and_the_frame_that_took_it_opens
     change = next(i for i in range(1, len(seen)) if seen[i][0] != seen[i - 1][0])
     assert seen[change - 1][1] >= 1 and seen[change][1] == 0, seen
     assert seen[change + 1][1] == 1, seen
+
+
+def test_a_frozen_copy_still_reports_an_estimated_offset_and_keeps_nothing():
+    # the worker's stats come from the streaming copy while the helper thread deblurs: an estimated offset must
+    # not read as given there (the status line drops "(estimated)" and the camera's part)
+    from edi_live.clock_offset_policy import ClockOffsetPolicy
+
+    policy = ClockOffsetPolicy(None, 8, 6)
+    twin = policy.frozen()
+    assert twin.estimated and twin.value == policy.value
+    ev = np.zeros(50, EVENT_DTYPE)
+    ev["t"] = np.arange(50)
+    ev["x"], ev["y"] = np.arange(50) % 8, np.arange(50) % 6
+    twin.collect(ev)
+    assert not twin.collecting and twin._chunks == [] and policy._chunks == []
+    assert not ClockOffsetPolicy(1500, 8, 6).frozen().estimated

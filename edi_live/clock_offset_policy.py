@@ -68,8 +68,8 @@ class _Due:
 
 
 class ClockOffsetPolicy:
-    """`collect(events)` with every event batch (runs a due fit); `update(frame, ...)` per APS frame registers it
-    and returns the offset (µs) when a fit since the previous frame changed it."""
+    """`collect(events)` with every event batch (keeps them); `update(frame, ...)` per APS frame registers it, runs
+    the due fits and returns the offset (µs) when a fit at the previous update changed it."""
 
     def __init__(self, given: int | None, width: int, height: int,
                  settings: ClockOffsetSettings = ClockOffsetSettings()) -> None:
@@ -121,8 +121,8 @@ class ClockOffsetPolicy:
 
     def update(self, frame: Frame, events: np.ndarray, image: np.ndarray, black_level: float,
                c: tuple[float, float], mask: np.ndarray | None) -> int | None:
-        """One APS frame with its batch of events (exposure start to now, may overlap what was collected). Cheap:
-        the pair this frame closes is fitted later, in collect()."""
+        """One APS frame with its batch of events (exposure start to now, may overlap what was collected): it
+        closes a pair, and the due pairs the kept events now cover are fitted here (the reconstructor's settle)."""
         if self.given is not None:
             return None
         announce, self._announce = self._announce, False

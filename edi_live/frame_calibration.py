@@ -8,7 +8,7 @@ pair (fit test, re-estimation), the black level policy, the clock offset policy'
 the c and black level just decided, as before) and the pixel-noise statistics. What settle decides takes effect at
 the next frame: c and the black level never change between two frames, and a frame is deblurred with the values
 in force before it. At start-up (no c estimated yet, also after a black-level restart) the c decision stays before
-the deblur that needs it. (The clock offset itself moves in the clock policy's collect(), between frames.)
+the deblur that needs it. (A new clock offset is in use from the next frame on; its pairs start there.)
 
 Owned by one EdiReconstructor; runs on whatever thread runs its on_frame / settle (never two at once).
 """

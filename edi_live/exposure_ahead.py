@@ -28,6 +28,7 @@ class ExposureAhead:
         self._running: edi.RunningDivisor | None = None
         self.used = 0  # deblurs finished from the running integral
         self.missed = 0  # deblurs that read the events at exposure end although a prediction was running
+        self.remasked = 0  # of the used ones, those whose mask changed on the way (running integral re-masked)
 
     def arm(self, ts: int, te: int, c: tuple[float, float], mask: np.ndarray | None,
             event_counts: np.ndarray | None, seen_until: int) -> None:
@@ -69,8 +70,11 @@ class ExposureAhead:
         if running is None:
             return None
         if not running.matches(ts, te, f, c[0], c[1], mask, event_counts):
-            self.missed += 1
-            return None
+            if not running.matches(ts, te, f, c[0], c[1], running.mask, event_counts):
+                self.missed += 1
+                return None
+            running.remask(mask, events)  # only the mask changed (flicker or unreliable pixels flagged since)
+            self.remasked += 1
         running.feed_from(events)
         self.used += 1
         return running

@@ -60,6 +60,36 @@ class RunningDivisor:
                                                                         int(ref_t_us), float(c_on), float(c_off))
                 and mask is self.mask and event_counts is self.event_counts)
 
+    def remask(self, mask: np.ndarray | None, events: np.ndarray) -> None:
+        """Adopt another mask (pixels flagged or released since the start), as if it had been given from the start:
+        pixels masked since leave the integral (their events only counted, as masked ones are), pixels unmasked
+        since are integrated from `events`, the time-ordered batch that holds every event fed so far of theirs."""
+        if self._parts is not None:  # the reference keeps every event and applies the mask at the finish
+            self.mask = mask
+            return
+        npix = self.width * self.height
+        old = np.zeros(npix, bool) if self.mask is None else np.asarray(self.mask, bool).reshape(-1)
+        new = np.zeros(npix, bool) if mask is None else np.asarray(mask, bool).reshape(-1)
+        gone = np.flatnonzero(new & ~old & ((self._seen == 1) | (self._seen == 2)))
+        if self._two:  # a masked row counts all its events in `on`, an active one ON and OFF apart
+            self._state["on"][gone] += self._state["off"][gone]
+        self._seen[gone] = 3 if self.event_counts is not None else 0  # (one threshold: `n` holds them all)
+        self._n_act -= gone.size
+        back = ~new & old
+        self._seen[back] = 0
+        self.mask = mask
+        self._m, self._use_m = _backend.mask_arg(mask)
+        if back.any():
+            t = events["t"]
+            lo, hi = time_index(t, self.fed_until, "left"), time_index(t, self.fed_until, "right")
+            fed = window(events[:lo + min(hi - lo, self._at_until)], self.ts, self.te)
+            fed = fed[(fed["x"] < self.width) & (fed["y"] < self.height)]
+            mine = fed[back[fed["y"].astype(np.int64) * self.width + fed["x"]]]
+            if mine.size:
+                fed_before = self.events_fed
+                self._feed_window(mine)
+                self.events_fed = fed_before  # not new events of the stream
+
     def feed(self, events: np.ndarray) -> None:
         """The next events of the stream, in time order, none of them fed before."""
         t = events["t"]

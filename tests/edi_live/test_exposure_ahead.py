@@ -139,3 +139,19 @@ def test_a_combined_mask_that_does_not_change_does_not_stop_the_deblur_ahead():
     for a, b in zip(got[0] + got[1], want[0] + want[1]):
         assert np.array_equal(a, b)
     assert stats["deblurs_ahead"] >= len(sim.frames) - 4
+
+
+def test_a_mask_that_changes_between_exposures_is_taken_over_by_the_running_integral():
+    """A lamp's pixels are flagged and released by the flicker detector from one exposure to the next, so the mask
+    the next integral was armed with is rarely the deblur's: the integral adopts the new one (remask) and the
+    frames stay bit-identical to reading the events at exposure end."""
+    sim = _scene(seed=4, width=64, height=48, duration_s=0.4, flicker_hz=100.0)
+    cfg = sim.config
+    ahead = EdiReconstructor(cfg.width, cfg.height, clock_offset_us=0)
+    plain = EdiReconstructor(cfg.width, cfg.height, deblur_ahead=False, clock_offset_us=0)
+    got, want = _drive(sim, ahead), _drive(sim, plain)
+    assert ahead.stats()["flicker_pixels"] > 0, "the lamp's pixels are masked"
+    for a, b in zip(got[0] + got[1], want[0] + want[1]):
+        assert np.array_equal(a, b)
+    assert ahead._ahead.remasked > 0
+    assert ahead.stats()["deblurs_ahead"] >= len(sim.frames) - 5

@@ -94,3 +94,40 @@ class _nothing:
 
     def __exit__(self, *exc):
         return False
+
+
+@pytest.mark.parametrize("reference", [False, True])
+@pytest.mark.parametrize("c_on, c_off", [(0.2, 0.2), (0.25, 0.17)])
+@pytest.mark.parametrize("counting", [False, True])
+def test_a_mask_changed_part_way_equals_that_mask_from_the_start(rng, reference, c_on, c_off, counting):
+    """Pixels flagged or released while the exposure's events were being fed: remask() then the rest of the
+    events give what log_divisor_events gives with the new mask on all of them, bit for bit."""
+    ev = _events(rng)
+    ts, te = 5_000, 37_000
+    f = (ts + te) // 2
+    armed = np.zeros(W * H, bool)
+    armed[rng.integers(0, W * H, 40)] = True
+    new = armed.copy()
+    new[rng.integers(0, W * H, 30)] = True  # flagged since
+    new[np.flatnonzero(armed)[:15]] = False  # released since
+    with edi.numpy_reference() if reference else _nothing():
+        counts_once = np.zeros(W * H, np.int64) if counting else None
+        counts_run = np.zeros(W * H, np.int64) if counting else None
+        acc_once = (np.zeros(W * H, np.int64), np.zeros(W * H, np.int64))
+        acc_run = (np.zeros(W * H, np.int64), np.zeros(W * H, np.int64))
+        once = edi.log_divisor_events(ev, W, H, ts, te, f, c_on, c_off, mask=new, event_counts=counts_once,
+                                      counts_after_f=acc_once)
+        run = edi.RunningDivisor(W, H, ts, te, f, c_on, c_off, mask=armed, event_counts=counts_run)
+        cut = int(np.searchsorted(ev["t"], (ts + te) // 2 + 3_000))  # part way, past f
+        run.feed(ev[:cut])
+        run.remask(new, ev)  # the deblur's batch: every event from before the exposure on
+        run.feed_from(ev)
+        got = run.finish(counts_after_f=acc_run)
+    order_once, order_run = np.argsort(once[0]), np.argsort(got[0])
+    assert np.array_equal(once[0][order_once], got[0][order_run])
+    assert np.array_equal(once[1][order_once], got[1][order_run])
+    if once[2] is not None:
+        assert np.array_equal(once[2][order_once], got[2][order_run])
+    if counting:
+        assert np.array_equal(counts_once, counts_run)
+    assert all(np.array_equal(a, b) for a, b in zip(acc_once, acc_run))

@@ -6,8 +6,8 @@ the reconstructor's on_events and on_frame, without duplicates) and the frames; 
 closes due. `update` runs in the reconstructor's settle(), after the frame's deblur has been sent (on the deblur
 thread when the worker has one, never between latent frames): it registers the frame and fits the due pairs whose
 windows the kept events cover with the search margin, in practice the pair before, one frame later. A new value is
-in `value` at once, so the next frame's window uses it; the next `update` reports it, so that the frame pairs formed
-with the old value are dropped and that frame, taken with the new windows, opens the next pair. The round ends with `agree` consecutive fits within `agree_us` of each other (their
+in `value` at once, so the next frame's window uses it (edi_live.frame_calibration then drops the frame pairs
+formed with the old value, and that frame, taken with the new windows, opens the next pair). The round ends with `agree` consecutive fits within `agree_us` of each other (their
 mean) or with `per_round` fits (their median), or without a change after `max_fits` fits; the offset moves when
 the result differs from the current one by at least `min_change_us`. Rounds: from the first frame, then every
 `recheck_every` frames. A given offset (flag, TOML key, saved calibration) is never replaced. Everything depends
@@ -68,8 +68,8 @@ class _Due:
 
 
 class ClockOffsetPolicy:
-    """`collect(events)` with every event batch (keeps them); `update(frame, ...)` per APS frame registers it, runs
-    the due fits and returns the offset (µs) when a fit at the previous update changed it."""
+    """`collect(events)` with every event batch (keeps them); `update(frame, ...)` per APS frame registers it and
+    runs the due fits; `value` is the offset (µs) in use."""
 
     def __init__(self, given: int | None, width: int, height: int,
                  settings: ClockOffsetSettings = ClockOffsetSettings()) -> None:
@@ -85,7 +85,6 @@ class ClockOffsetPolicy:
         self.last_estimates: list[float] = []
         self._found: list[float] = []  # this round's fits: the camera's offset ...
         self._found_in_use: list[float] = []  # ... and with the kept share of the step lag
-        self._announce = False
         self._end_round()
         self._frames_to_round = 0  # the first round starts with the stream
         sample = np.zeros(width * height, bool)
@@ -120,15 +119,14 @@ class ClockOffsetPolicy:
             self._keep(events)
 
     def update(self, frame: Frame, events: np.ndarray, image: np.ndarray, black_level: float,
-               c: tuple[float, float], mask: np.ndarray | None) -> int | None:
+               c: tuple[float, float], mask: np.ndarray | None) -> None:
         """One APS frame with its batch of events (exposure start to now, may overlap what was collected): it
         closes a pair, and the due pairs the kept events now cover are fitted here (the reconstructor's settle)."""
         if self.given is not None:
-            return None
-        announce, self._announce = self._announce, False
+            return
         if not self.collecting:
             self._frames_to_round -= 1
-            return self.value if announce else None
+            return
         if self._last is not None and frame.exposure_start_us <= self._last.exposure_start_us:
             self._drop_data()  # time went backwards (a recording looped): what was kept belongs to another stream
         self._keep(events)
@@ -139,7 +137,6 @@ class ClockOffsetPolicy:
         self._last = window
         while self._due and self._due[0].runnable(self._t_max):  # the pairs the events kept so far complete
             self._fit(self._due.pop(0))
-        return self.value if announce else None
 
     # ---- internals ----
 
@@ -210,7 +207,6 @@ class ClockOffsetPolicy:
         self.physical_us = int(round(found))
         if abs(new - self.value) >= s.min_change_us:
             self.value = new
-            self._announce = True
 
     def _end_round(self) -> None:
         self._found, self._found_in_use = [], []

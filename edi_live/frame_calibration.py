@@ -39,6 +39,7 @@ class _Due:
     pair: contrast.FramePair | None  # the pair formed on the frame (before a clock offset change dropped it)
     black_taken_off: float
     clock: tuple  # clock.update's arguments but the black level and c: (frame, events, image, mask)
+    moved: bool  # the clock offset changed since the previous frame: its windows are not the pairs' before
     noise: tuple | None = None  # pixel_noise.update's arguments, once the deblur has set them
 
 
@@ -72,7 +73,7 @@ class FrameCalibration:
         if not self.policy.estimated:  # start-up: this deblur needs the first estimate
             self.policy.update(cur, pairs)
             pairs = None
-        self._due = _Due(cur, pairs, pair, aps.black_level, (frame, events, img, mask))
+        self._due = _Due(cur, pairs, pair, aps.black_level, (frame, events, img, mask), moved)
         return (None if moved else pair), aps  # a pair across an offset change is not judged
 
     def after_deblur(self, pair: contrast.FramePair | None, dt_us: int, mask: np.ndarray | None) -> None:
@@ -91,11 +92,11 @@ class FrameCalibration:
         new_black = self.black.update(due.pair, due.black_taken_off)
         frame, events, img, mask = due.clock
         black = due.black_taken_off if new_black is None else new_black
-        moved = self.clock.update(frame, events, img, black, self.policy.c, mask) is not None
+        self.clock.update(frame, events, img, black, self.policy.c, mask)
         if new_black is not None:  # pairs so far used the old value; c is estimated afresh
             self._black_next = new_black
             self.tracker.restart()
-        elif moved:
+        elif due.moved:
             self.tracker.windows_moved()  # pairs so far used the old offset; this frame opens the next one
         elif due.noise is not None:
             self.pixel_noise.update(*due.noise)

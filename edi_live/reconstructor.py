@@ -305,13 +305,9 @@ class EdiReconstructor(ReconstructorView):
     # ---- internals ----
 
     def _combined_mask(self) -> np.ndarray | None:
-        """The pixels whose events are ignored. The same array as before when nothing changed: the running
-        integral of the next exposure (exposure_ahead) is used only with the very mask it was armed with."""
         masks = [] if self._hot.mask is None else [self._hot.mask]
         masks += [m.mask for m in (self._unreliable, self._flicker) if m is not None and m.count]
-        new = None if not masks else masks[0] if len(masks) == 1 else np.logical_or.reduce(masks)
-        old = self._mask
-        return old if new is not None and old is not None and np.array_equal(new, old) else new
+        return None if not masks else masks[0] if len(masks) == 1 else np.logical_or.reduce(masks)
 
     def _observe_flicker(self, events: np.ndarray) -> None:
         """Pixels flickering in `events` join the mask first; the latent image restarts there (flicker_pixels)."""

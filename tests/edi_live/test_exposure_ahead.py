@@ -125,8 +125,9 @@ def test_hot_pixel_counts_are_the_same_when_a_running_integral_is_not_used(drive
 
 
 def test_a_combined_mask_that_does_not_change_does_not_stop_the_deblur_ahead():
-    """Hot and flickering pixels make the ignored-pixel mask a combination of masks; rebuilt as a new array at
-    every exposure end, it never was the very mask the next integral was armed with, so no deblur ran ahead."""
+    """Hot and flickering pixels make the ignored-pixel mask a combination of masks, rebuilt as a new array at
+    every exposure end: never the very mask the next integral was armed with, it once stopped every deblur ahead
+    (now the integral adopts it, RunningDivisor.remask)."""
     from edi_live.simulation import preset
 
     sim = simulate(preset("demo", duration_s=0.6))  # its noise makes a few hot and a few flicker-timed pixels

@@ -114,11 +114,10 @@ class LatentState:
                               mask: np.ndarray | None, *, ignored: bool = False) -> np.ndarray:
         """uint8 image at t_us from L(f) and the events between f and t_us (either side of f; none if `ignored`),
         without touching the latent state."""
-        delta: np.ndarray | float = 0.0
         if ignored:
-            pass
-        elif t_us >= f:
-            delta = edi.event_delta(events, self.width, self.height, c[0], c[1], t0=f + 1, t1=t_us, mask=mask)
-        else:
-            delta = -edi.event_delta(events, self.width, self.height, c[0], c[1], t0=t_us + 1, t1=f, mask=mask)
-        return self.from_reference(delta)
+            return self.from_reference(0.0)
+        if t_us >= f:
+            return self.from_reference(edi.event_delta(events, self.width, self.height, c[0], c[1], t0=f + 1,
+                                                       t1=t_us, mask=mask))
+        return self.from_reference(-edi.event_delta(events, self.width, self.height, c[0], c[1], t0=t_us + 1,
+                                                    t1=f, mask=mask))

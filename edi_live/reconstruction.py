@@ -8,11 +8,14 @@ time order. Events before the first APS frame are ignored (there is no reference
 
 from __future__ import annotations
 
-from typing import Any, Protocol, Sequence, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
 from edi_live.datatypes import Frame, Reconstruction
+
+if TYPE_CHECKING:
+    from edi_live.pixel_noise import NoiseRates
 
 
 @runtime_checkable
@@ -85,3 +88,7 @@ class Reconstructor(Protocol):
         ...
 
     def stats(self) -> dict[str, Any]: ...
+
+    def noise_rates(self) -> "NoiseRates | None":
+        """The per-pixel noise rates to save with a calibration; None when they are not estimated."""
+        ...

@@ -7,8 +7,8 @@ from __future__ import annotations
 from typing import Any
 
 # keys of the reconstructor's own stats() that the stats map passes on unchanged
-PASSED_ON = ("clock_offset_estimated", "clock_offset_physical_us", "black_level_estimated", "deblurs_ahead", "flicker_pixels",
-             "noise_hz_p50", "noise_hz_p99", "noise_on_hz_p50", "noise_off_hz_p50", "noisy_pixels")
+PASSED_ON = ("clock_offset_estimated", "clock_offset_physical_us", "black_level_estimated", "deblurs_ahead",
+             "flicker_pixels", "noise_hz_p50", "noise_hz_p99", "noise_on_hz_p50", "noise_off_hz_p50", "noisy_pixels")
 
 
 def reconstructor_stats(rec: Any) -> dict[str, Any]:

@@ -60,6 +60,9 @@ class StandIn:
     def settle(self):
         self.settled += 1
 
+    def noise_rates(self):
+        return None
+
     def on_events(self, events, arrival_ns=0):
         self.events_applied += len(events)
         self.t = int(events["t"][-1])

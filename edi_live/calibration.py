@@ -103,14 +103,14 @@ def load(path: Path | str) -> Calibration:
     return cal
 
 
-_NOISE_ARRAYS = (("on_hz", "on_hz"), ("off_hz", "off_hz"), ("seconds", "seconds"))
+_NOISE_ARRAYS = ("on_hz", "off_hz", "seconds")  # NoiseRates fields, saved under the same keys
 _NOISE_ENCODING = "zlib+base64 float16 little-endian, row-major (height, width)"
 
 
 def _encode_noise(noise: NoiseRates) -> dict[str, Any]:
     out: dict[str, Any] = {"encoding": _NOISE_ENCODING, "shape": list(noise.shape)}
-    for key, attr in _NOISE_ARRAYS:
-        raw = np.ascontiguousarray(np.clip(getattr(noise, attr), 0, 65000), "<f2").tobytes()
+    for key in _NOISE_ARRAYS:
+        raw = np.ascontiguousarray(np.clip(getattr(noise, key), 0, 65000), "<f2").tobytes()
         out[key] = base64.b64encode(zlib.compress(raw, 6)).decode("ascii")
     return out
 
@@ -121,7 +121,7 @@ def _decode_noise(data: Any, shape: tuple[int, int], path: Path | str) -> NoiseR
         raise ConfigError(f"calibration {path}: its per-pixel noise rates are not {_NOISE_ENCODING} arrays of "
                           f"{shape[1]}x{shape[0]}")
     arrays = []
-    for key, _ in _NOISE_ARRAYS:
+    for key in _NOISE_ARRAYS:
         try:
             raw = zlib.decompress(base64.b64decode(str(data[key]), validate=True))
         except (KeyError, binascii.Error, zlib.error, ValueError) as exc:

@@ -82,9 +82,6 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
 
         t0 = int(events["t"][0])  # an exposure over these events (fused mode's block above moved t_us on)
         log_divisor_events(events, width, height, t0, t0 + 10_000, None, 0.2, 0.15)
-        from edi_live.contrast.clock_offset import warm_up_kernels  # the clock-offset fit's, run after ~10 frames
-
-        warm_up_kernels()
         # the worker's noise-or-activity test: its filter kernel over ring slices (strided fields) and one event
         from edi_live.activity import SceneActivity
 

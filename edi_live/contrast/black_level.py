@@ -31,6 +31,7 @@ from edi_live.contrast.vectors import dot
 
 SUPPORT_DN = 30.0  # a moving quiet pixel supports an estimate b when its darker frame is at most this above b
 
+
 @dataclass(frozen=True)
 class QuietSamples:
     """Raw APS values (8-bit DN, black level not taken off) of quiet pixels in two frames and the net event count

@@ -28,7 +28,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from edi_live.contrast.vectors import dot
-from edi_live.datatypes import EVENT_DTYPE
 
 
 @dataclass(frozen=True)
@@ -230,19 +229,3 @@ def midlevel_times(events: np.ndarray, width: int, max_gap_us: int = 10_000) -> 
     out["t"] = events["t"] - _midlevel_shift(key, events["t"].astype(np.int64), max_gap_us)
     return out[np.argsort(out["t"], kind="stable")]
 
-
-def warm_up_kernels() -> None:
-    """Run the fit once on a tiny synthetic pair (one and two thresholds): numpy only now, so this just checks that
-    the fit runs before a stream starts."""
-    w, h = 8, 6
-    rng = np.random.default_rng(1)
-    events = np.zeros(400, EVENT_DTYPE)
-    events["t"] = np.sort(rng.integers(0, 60_000, events.size))
-    events["x"] = rng.integers(0, w, events.size)
-    events["y"] = rng.integers(0, h, events.size)
-    events["p"] = rng.integers(0, 2, events.size).astype(bool)
-    image = np.full((h, w), 100.0)
-    frames = [FrameWindow(t0, t0 + 10_000, image, np.ones((h, w), bool)) for t0 in (10_000, 35_000)]
-    for c in ((0.2, 0.2), (0.2, 0.15)):
-        estimate_clock_offset(midlevel_times(events, w), *frames, np.ones((h, w), bool), c, min_pixels=1,
-                              max_offset_us=2000, min_z=3.0)

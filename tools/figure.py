@@ -67,6 +67,34 @@ def load_recording(path: Path) -> tuple[np.ndarray, list]:
     return (concat_events(events) if events else np.zeros(0, EVENT_DTYPE)), frames
 
 
+class WorkerFeed:
+    """Feeds a reconstructor a recording as the worker does: every event once, in time order; each APS frame once
+    the events of its window in the event clock (the clock offset in use) are in, with its calibration settled
+    right after (so the offset for the next frame is known before its events are read)."""
+
+    def __init__(self, rec: EdiReconstructor, events: np.ndarray) -> None:
+        self.rec, self.events, self._t, self._fed = rec, events, events["t"], 0
+
+    def _feed_to(self, t_us: int) -> None:
+        end = max(self._fed, int(np.searchsorted(self._t, t_us, side="right")))
+        self.rec.on_events(self.events[self._fed:end])
+        self._fed = end
+
+    def frame(self, frame) -> object:
+        """The frame's deblurred Reconstruction."""
+        off = self.rec.clock_offset_us
+        self._feed_to(frame.exposure_end_us + off)
+        out = self.rec.on_frame(frame, self.events[int(np.searchsorted(self._t, frame.exposure_start_us + off)):
+                                                   self._fed])
+        self.rec.settle()
+        return out
+
+    def latent(self, t_us: int) -> object:
+        """The latent Reconstruction at APS-clock time t_us (later than everything fed so far)."""
+        self._feed_to(t_us + self.rec.clock_offset_us)
+        return self.rec.render()
+
+
 def real_row(path: Path, height: int, frame_index: int = 3) -> list[np.ndarray]:
     ev, frames = load_recording(path)
     rec, out = _deblur_through(frames[: frame_index + 1], ev)

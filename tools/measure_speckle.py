@@ -32,7 +32,7 @@ import edi_live.edi as edi
 from edi_live import calibration
 from edi_live.pixel_noise import noisy_pixels, pooled_rate
 from edi_live.reconstructor import EdiReconstructor
-from tools.figure import load_recording
+from tools.figure import WorkerFeed, load_recording
 
 
 def outliers(image: np.ndarray, threshold: float) -> np.ndarray:
@@ -65,28 +65,20 @@ def drop_events(events: np.ndarray, w: int, h: int, at: np.ndarray | None, unsup
 
 def latent_frames(path: Path, settings: dict[str, Any], after_us: int,
                   drop: tuple[np.ndarray | None, bool] | None = None) -> tuple[list, list, np.ndarray]:
-    """(APS frames, [(frame index, latent image, its time)], events) for one recording; `drop`: (pixels, whether
-    only unsupported events) for drop_events."""
+    """(APS frames, [(frame index, latent image, its reference time, its time)], events) for one recording, times
+    in the event clock; `drop`: (pixels, whether only unsupported events) for drop_events."""
     events, frames = load_recording(path)
     if drop is not None:
         events = drop_events(events, frames[0].image.shape[1], frames[0].image.shape[0], *drop)
     h, w = frames[0].image.shape[:2]
-    rec = EdiReconstructor(w, h, **settings)
-    t = events["t"]
-    fed = 0
+    feed = WorkerFeed(EdiReconstructor(w, h, **settings), events)
     out = []
     for k, frame in enumerate(frames):
-        end = int(np.searchsorted(t, frame.exposure_end_us, side="right"))
-        rec.on_events(events[fed:end])
-        fed = end
-        rec.on_frame(frame, events[int(np.searchsorted(t, frame.exposure_start_us)):end])
+        feed.frame(frame)
         if k == 0:
             continue
-        t_lat = frame.exposure_end_us + after_us
-        later = int(np.searchsorted(t, t_lat, side="right"))
-        rec.on_events(events[fed:later])
-        fed = later
-        out.append((k, rec.render().image, t_lat))
+        latent = feed.latent(frame.exposure_end_us + after_us)
+        out.append((k, latent.image, latent.ref_t_us, frame.exposure_end_us + after_us + feed.rec.clock_offset_us))
     return frames, out, events
 
 
@@ -97,10 +89,9 @@ def measure(path: Path, settings: dict[str, Any], after_us: int, threshold: floa
     aps = [outliers(f.image, threshold).mean() for f in frames]
     lat, no_event, isolated = [], [], []
     t = events["t"]
-    for k, image, t_lat in latents:
+    for k, image, f, t_lat in latents:
         bad = outliers(image, threshold)
         lat.append(bad.mean())
-        f = frames[k].mid_exposure_us
         window = events[int(np.searchsorted(t, f, side="right")):int(np.searchsorted(t, t_lat, side="right"))]
         counts = np.bincount(window["y"].astype(np.int64) * w + window["x"], minlength=w * h).reshape(h, w)
         supported = edi.supported_events_keep(window, w, h, 5000)

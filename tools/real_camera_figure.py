@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from edi_live.reconstructor import EdiReconstructor
-from tools.figure import _fit, _label, load_recording, write_rows
+from tools.figure import WorkerFeed, _fit, _label, load_recording, write_rows
 
 REAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
 DEFAULT = [(REAL / "emlb_demo-01_davis346.aedat4", 3), (REAL / "aestream_davis346.aedat4", 2),
@@ -28,21 +28,11 @@ def reconstruct(events: np.ndarray, frames: list, index: int, settings: dict) ->
     """(deblurred frame `index`, latent 10 ms after its exposure end, reconstructor). Fed as the worker feeds it:
     each exposure in the event clock of the offset in use when the frame is taken."""
     rec = EdiReconstructor(frames[0].width, frames[0].height, **settings)
-    t = events["t"]
-    fed = 0
+    feed = WorkerFeed(rec, events)
     out = None
     for frame in frames[: index + 1]:
-        while True:  # read on until past the window's end; a fit in on_events may move the offset
-            off = rec.clock_offset_us
-            end = max(fed, int(np.searchsorted(t, frame.exposure_end_us + off, side="right")))
-            rec.on_events(events[fed:end])
-            fed = end
-            if rec.clock_offset_us == off:
-                break
-        out = rec.on_frame(frame, events[int(np.searchsorted(t, frame.exposure_start_us + off)):end])
-    later = int(np.searchsorted(t, frames[index].exposure_end_us + rec.clock_offset_us + 10_000, side="right"))
-    rec.on_events(events[fed:later])
-    return out, rec.render(), rec
+        out = feed.frame(frame)
+    return out, feed.latent(frames[index].exposure_end_us + 10_000), rec
 
 
 def row(path: Path, index: int, height: int) -> np.ndarray:

@@ -244,8 +244,8 @@ class EdiReconstructor(ReconstructorView):
             if arrivals[k]:
                 self._arrival_ns = arrivals[k]
             i0 = cuts[k - 1] if k else 0
-            rec = self._reconstruction(self._latent.display.copy(), int(t[i1 - 1]), "latent",
-                                       self._pending_events + i1 - i0)
+            rec = self._reconstruction(self._latent_image(), int(t[i1 - 1]), "latent",
+                                       self._pending_events + i1 - i0, shown=True)
             self._pending_events = 0
             return rec
 
@@ -260,7 +260,7 @@ class EdiReconstructor(ReconstructorView):
         n = self._pending_events
         self._pending_events = 0
         self._catch_up()
-        return self._reconstruction(self._latent.display.copy(), self._t_last, "latent", n)
+        return self._reconstruction(self._latent_image(), self._t_last, "latent", n, shown=True)
 
     def render_from_reference(self, t_us: int, events: np.ndarray) -> Reconstruction:
         self._need_reference("render_from_reference()")
@@ -344,8 +344,18 @@ class EdiReconstructor(ReconstructorView):
         if not self.has_reference:
             raise NodeError(f"{what} called before the first APS frame was deblurred (check has_reference first)")
 
-    def _reconstruction(self, image: np.ndarray, t_us: int, kind: str, n_events: int) -> Reconstruction:
-        return Reconstruction(image=image if self._colour is None else self._colour.output(image), t_us=int(t_us),
+    def _latent_image(self) -> np.ndarray:
+        """The latent display as output: a copy (grey), or its demosaic (a new array: no copy needed first)."""
+        if self._colour is None:
+            return self._latent.display.copy()
+        return self._colour.output(self._latent.display)
+
+    def _reconstruction(self, image: np.ndarray, t_us: int, kind: str, n_events: int,
+                        shown: bool = False) -> Reconstruction:
+        """`shown`: `image` is already in output form (see _latent_image)."""
+        if self._colour is not None and not shown:
+            image = self._colour.output(image)
+        return Reconstruction(image=image, t_us=int(t_us),
                               kind=kind, ref_t_us=int(self._ref_t), exposure_start_us=self._exposure[0],
                               exposure_end_us=self._exposure[1], c_on=float(self.c_on), c_off=float(self.c_off),
                               n_events=int(n_events), arrival_ns=int(self._arrival_ns), black_level=self.black_level,

@@ -1,6 +1,6 @@
 """A live quality figure that needs no ground truth: how well the node's own output predicted each APS frame.
 
-Owns the per-APS-frame prediction score and its running summaries. Pure numpy; no threads, no I/O. The worker
+Owns the per-APS-frame prediction score and its running summaries. No threads, no I/O. The worker
 owns one `PredictionScore` and calls it on its own thread: `on_events(events)` for every event chunk it reads,
 `on_aps_frame(frame)` when it takes an APS frame from the ring, `on_emitted(rec)` for every Reconstruction it
 sends. `stats()` may be called from any thread (it returns a copy of a dict replaced, never changed, in place).
@@ -43,7 +43,8 @@ Definition, for every APS frame k+1 (window W = [exposure_start, exposure_end] o
   arrives, or at finish(). So calling on_aps_frame before or after the frame's own deblur is both fine.
 
 Cost: storing an emitted frame keeps a reference (no copy; receivers never modify emitted images). Each frame
-is integrated at most once per window it overlaps (one int32 multiply-add over the pixels); frames outside
+is integrated at most once per window it overlaps (one compiled int32 multiply-add over the pixels,
+edi_live.hold_average); frames outside
 every window (readout gaps) cost nothing. Per APS frame: one copy of B, four masked MSEs. on_events: O(events).
 A held APS frame costs no arithmetic on its pixels (converted only if a later window needs it as B_k).
 Memory: the frames since the oldest window that may still need them, at most `max_frames`.
@@ -61,12 +62,11 @@ from typing import Any
 import numpy as np
 
 from edi_live.datatypes import ColorFilter, Frame, Reconstruction
+from edi_live.hold_average import hold_average
 
 PSNR_CAP_DB = 100.0
 SCORED_MODES = ("causal",)
 _PEAK = 255.0
-_INT32_WINDOW_US = (2**31 - 1) // 255  # longest window whose µs-weighted uint8 sum fits int32
-_FLOAT32_EXACT_US = 2**24 // 255  # ... and whose sums are still exact float32 integers
 
 
 @dataclass(frozen=True, slots=True)
@@ -312,24 +312,16 @@ class PredictionScore:
             return None, 0, (covered / span if span > 0 else 0.0)
         if w.end == w.start:
             return self._img[honest[first]].astype(np.float64), 1, 1.0
-        acc_type = np.int32 if w.end - w.start <= _INT32_WINDOW_US else np.int64
-        acc = np.zeros(self._shape, acc_type)
-        part = np.empty(self._shape, acc_type)
-        used = 0
+        images, holds = [], []
         for j in range(first, len(honest)):
             a = max(times[j], w.start)
             if a >= w.end and j > first:
                 break
             b = min(times[j + 1], w.end) if j + 1 < len(honest) else w.end
-            if b <= a:
-                continue
-            np.multiply(self._img[honest[j]], acc_type(b - a), out=part, dtype=acc_type)
-            acc += part
-            used += 1
-        span = w.end - w.start
-        if span <= _FLOAT32_EXACT_US:  # every sum and the quotient of a constant output are exact in float32
-            return np.divide(acc, np.float32(span), dtype=np.float32), used, 1.0
-        return acc / float(span), used, 1.0
+            if b > a:
+                images.append(self._img[honest[j]])
+                holds.append(b - a)
+        return hold_average(images, holds, w.end - w.start), len(images), 1.0
 
     def _score(self, w: _Window) -> PredictionResult:
         prediction, used, coverage = self._integrate(w)

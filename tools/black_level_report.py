@@ -16,7 +16,8 @@ import numpy as np
 
 from edi_live.reconstructor import EdiReconstructor
 from edi_live.simulation import SceneConfig, simulate, with_effects
-from tools.bench_accuracy import realistic_suite, scene_suite
+from tools.bench_accuracy import scene_suite
+from tools.bench_realistic import realistic_suite
 
 
 def _between(ev: np.ndarray, t0: int, t1: int, left: bool) -> np.ndarray:

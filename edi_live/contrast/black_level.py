@@ -26,9 +26,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from edi_live.contrast import _kernels_black_level
 from edi_live.contrast.frames import FramePair
 from edi_live.contrast.vectors import dot
+from edi_live.edi import have_numba
 
+_MISS = 50.0  # the residual (in events) of a pixel that a black level b hides (at or below b + 1 DN)
 SUPPORT_DN = 30.0  # a moving quiet pixel supports an estimate b when its darker frame is at most this above b
 
 
@@ -91,7 +94,7 @@ def black_level_terms(s: QuietSamples, b: float, c: float, delta: float = 0.5) -
     """Per-pixel robust residual (pseudo-Huber, in events) of log((B2 - b) / (B1 - b)) against c * N; pixels at or
     below b + 1 DN get the largest term (a b that hides a pixel explains it worst)."""
     d, ok = _log_ratios(s, b)
-    r = np.full(s.size, 50.0)
+    r = np.full(s.size, _MISS)
     r[ok] = d[ok] / c - s.net[ok]
     return np.sqrt(delta * delta + r * r) - delta
 
@@ -124,8 +127,12 @@ def fit_black_level(s: QuietSamples, b_range: tuple[float, float] = (0.0, 40.0),
 
     def at(b: float) -> tuple[float, float]:
         if b not in cache:
-            c = fit_c(s, b)
-            cache[b] = (c, float(np.sum(black_level_terms(s, b, c))) if c == c else math.inf)
+            if have_numba():
+                c, cost = _kernels_black_level.profile_point(s.b_prev, s.b_cur, s.net, float(b), 0.5, 5, _MISS)
+            else:
+                c = fit_c(s, b)
+                cost = float(np.sum(black_level_terms(s, b, c))) if c == c else math.inf
+            cache[b] = (c, cost)
         return cache[b]
 
     # coarse pass every 4 DN, then every DN around the best

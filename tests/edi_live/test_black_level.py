@@ -103,3 +103,25 @@ def test_a_given_black_level_always_wins(camera_scene):
 def test_a_fixed_c_does_not_estimate_the_black_level(camera_scene):
     rec = EdiReconstructor(camera_scene.width, camera_scene.height, c=0.2, black_level=None)
     assert rec.black_level == 0.0 and not rec.stats()["black_level_estimated"]
+
+
+def test_compiled_profile_point_equals_the_numpy_reference():
+    """The kernel behind fit_black_level gives fit_c's c and the summed black_level_terms at every grid point,
+    including b values that hide pixels (the large miss term) and one where no pixel is left (c undefined)."""
+    from edi_live.contrast import _kernels_black_level
+    from edi_live.contrast.black_level import QuietSamples, black_level_terms, fit_c
+
+    rng = np.random.default_rng(5)
+    n = 4000
+    b_prev = rng.uniform(3, 250, n)
+    net = rng.integers(-3, 4, n).astype(np.float64)
+    b_cur = np.clip((b_prev - 8) * np.exp(0.2 * net + rng.normal(0, 0.05, n)) + 8, 3, 250)
+    s = QuietSamples(b_prev, b_cur, net)
+    for b in (0.0, 4.0, 8.0, 11.0, 40.0, 300.0):
+        c_ref = fit_c(s, b)
+        c, cost = _kernels_black_level.profile_point(b_prev, b_cur, net, b, 0.5, 5, 50.0)
+        if c_ref == c_ref:
+            assert c == pytest.approx(c_ref, rel=1e-9)
+            assert cost == pytest.approx(float(np.sum(black_level_terms(s, b, c_ref))), rel=1e-9)
+        else:
+            assert c != c and cost == np.inf

@@ -118,22 +118,10 @@ class UnreliablePixels:
         it keeps firing (`busy`, flat: its events in the latest exposure, masked or not, at least min_events), its
         score is held rather than decayed, so a flickering lamp stays marked instead of blooming again each time
         the score would have run out."""
-        active = np.flatnonzero((n_on + n_off) >= self.min_events)
-        if busy is None:
-            self._score *= self.decay
-        else:
-            held = self._own.reshape(-1) & (busy.reshape(-1) >= self.min_events)
-            self._score *= np.where(held, np.float32(1.0), np.float32(self.decay))
-        if active.size:
-            pred = c[0] * n_on[active] - c[1] * n_off[active]
-            both = informative_prev.reshape(-1)[active] & informative_cur.reshape(-1)[active]
-            obs = log_cur.reshape(-1)[active] - log_prev.reshape(-1)[active]
-            size = np.abs(pred)
-            bad = np.where(both, (size >= self.min_change) & (np.abs(pred - obs) > self.relative * size),
-                           size > self.saturated_limit)
-            self._score[active[bad]] += 1.0
-        marked = self._own.reshape(-1)
-        own = np.where(marked, self._score >= self.release, self._score >= 1.0).reshape(self._shape)
+        own = edi.update_contradictions(
+            self._score, self._own, n_on, n_off, log_prev, log_cur, informative_prev, informative_cur, c, busy,
+            min_events=self.min_events, min_change=self.min_change, relative=self.relative,
+            saturated_limit=self.saturated_limit, decay=self.decay, release=self.release).reshape(self._shape)
         self._own = own
         if len(self._grow) > 1 and own.any():
             # a lamp's halo contradicts the frames less clearly than its core, but just as surely

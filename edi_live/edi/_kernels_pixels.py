@@ -141,3 +141,30 @@ def flicker_cycles(t, x, y, p, width, height, bits, times, lo_us, hi_us, cycles,
             changes[0] += 1
         bits[q] = b
     return n
+
+
+@njit(cache=True, nogil=True)
+def contradictions(score, own, n_on, n_off, log_prev, log_cur, inf_prev, inf_cur, c_on, c_off, busy, use_busy,
+                   min_events, min_change, relative, saturated_limit, decay, release, out):
+    """pixels.update_contradictions in one pass (float32 score and thresholds as numpy computes them)."""
+    decay32 = np.float32(decay)
+    release32 = np.float32(release)
+    one = np.float32(1.0)
+    count = 0
+    for q in range(score.size):
+        if not (use_busy and own[q] and busy[q] >= min_events):
+            score[q] *= decay32
+        if n_on[q] + n_off[q] >= min_events:
+            pred = c_on * n_on[q] - c_off * n_off[q]
+            size = abs(pred)
+            if inf_prev[q] and inf_cur[q]:
+                obs = log_cur[q] - log_prev[q]
+                bad = size >= min_change and abs(pred - obs) > relative * size
+            else:
+                bad = size > saturated_limit
+            if bad:
+                score[q] += one
+        o = score[q] >= release32 if own[q] else score[q] >= one
+        out[q] = o
+        count += o
+    return count

@@ -173,3 +173,39 @@ def flicker_cycles(events: np.ndarray, state: FlickerState, *, min_period_us: in
             s.changes[0] += 1
         s.bits[q] = b
     return s.flagged_now[:n].copy()
+
+
+def update_contradictions(score: np.ndarray, own: np.ndarray, n_on: np.ndarray, n_off: np.ndarray,
+                          log_prev: np.ndarray, log_cur: np.ndarray, informative_prev: np.ndarray,
+                          informative_cur: np.ndarray, c: tuple[float, float], busy: np.ndarray | None, *,
+                          min_events: int, min_change: float, relative: float, saturated_limit: float, decay: float,
+                          release: float) -> np.ndarray:
+    """One frame pair of the unreliable-pixel score (pixel_masks.UnreliablePixels): flat float32 `score` decays
+    (except at `own` pixels still `busy`) and gains 1 where the pair's events contradict the frames. Returns the
+    new flat bool `own`: score >= release where it was own, >= 1 elsewhere."""
+    n_on, n_off = n_on.reshape(-1), n_off.reshape(-1)
+    own = own.reshape(-1)
+    if _backend.have_numba():
+        out = np.empty(score.size, bool)
+        use_busy = busy is not None
+        _kernels_pixels.contradictions(score, own, n_on, n_off, log_prev.reshape(-1), log_cur.reshape(-1),
+                                       informative_prev.reshape(-1), informative_cur.reshape(-1), float(c[0]),
+                                       float(c[1]), busy.reshape(-1) if use_busy else n_on, use_busy,
+                                       int(min_events), float(min_change), float(relative),
+                                       float(saturated_limit), float(decay), float(release), out)
+        return out
+    active = np.flatnonzero((n_on + n_off) >= min_events)
+    if busy is None:
+        score *= decay
+    else:
+        held = own & (busy.reshape(-1) >= min_events)
+        score *= np.where(held, np.float32(1.0), np.float32(decay))
+    if active.size:
+        pred = c[0] * n_on[active] - c[1] * n_off[active]
+        both = informative_prev.reshape(-1)[active] & informative_cur.reshape(-1)[active]
+        obs = log_cur.reshape(-1)[active] - log_prev.reshape(-1)[active]
+        size = np.abs(pred)
+        bad = np.where(both, (size >= min_change) & (np.abs(pred - obs) > relative * size), size > saturated_limit)
+        score[active[bad]] += 1.0
+    return np.where(own, score >= release, score >= 1.0)
+

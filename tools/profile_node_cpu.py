@@ -2,6 +2,8 @@
 
     python -m tools.profile_node_cpu profile [--input FILE] [--every 1000]   # cProfile of worker + publisher
     python -m tools.profile_node_cpu ab ../main [--input FILE] --repeat 5    # node CPU: this checkout vs another
+    python -m tools.profile_node_cpu worker [../main] [--input FILE]        # worker-thread CPU: vs another
+                                                                              # checkout, or calibration off vs on
 
 `profile` runs the worker synchronously on one thread over a ring filled with the whole recording (decoded
 beforehand, so the pump is not in it), every frame submitted to a real Publisher with one subscriber process
@@ -261,10 +263,71 @@ def ab(other: Path, paths: list[Path], every: int, repeat: int, passes: int, sub
         print(f"  old CPU / new CPU per pair: median {np.median(ratios):.2f}x ({min(ratios):.2f}-{max(ratios):.2f})")
 
 
+_WORKER_CHILD = """
+import json, sys, time
+import drivers
+from edi_live.config import EdiConfig
+from edi_live.node import default_reconstructor
+from edi_live.ring import EventRing
+from edi_live.worker import EdiWorker
+path, every, passes, extra = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), json.loads(sys.argv[4])
+def filled():
+    src = drivers.open_source("replay", path=path, speed=0, loop=passes > 1)
+    ring = EventRing(1 << 26, 1 << 14, "wait")
+    with src:
+        for packet in src:
+            if packet is not None:
+                ring.push(packet)
+            if passes > 1 and src.loops >= passes:
+                break
+    ring.close()
+    return ring, src.info
+cfg = EdiConfig(every=every, deblur_thread=False, **extra)
+for counted in (False, True):  # the first run loads the kernels
+    ring, info = filled()
+    worker = EdiWorker(ring, default_reconstructor(info.width, info.height, cfg), cfg, [])
+    c0 = time.thread_time()
+    worker._run()
+    cpu_s = time.thread_time() - c0
+print(json.dumps({"cpu_s": cpu_s, "events": worker.events_in}))
+"""
+
+
+def worker_ab(runs: dict[str, tuple[Path, dict]], path: Path, every: int, repeat: int, passes: int) -> None:
+    """Worker-thread CPU (ring filled beforehand, no publisher, APS deblur on the worker) of two variants in
+    alternating child processes: (checkout, EdiConfig options) each."""
+    names = list(runs)
+    print(f"\n## worker-thread CPU: {path.name}, --every {every}, {passes} pass(es), {repeat} alternating pairs")
+    cpu: dict[str, list[float]] = {k: [] for k in names}
+    events = 0
+    for i in range(repeat):
+        for name in (names if i % 2 == 0 else names[::-1]):
+            cwd, extra = runs[name]
+            out = subprocess.run([sys.executable, "-c", _WORKER_CHILD, str(path), str(every), str(passes),
+                                  json.dumps(extra)], cwd=cwd, capture_output=True, text=True)
+            if out.returncode != 0:
+                raise SystemExit(f"{name} run failed:\n{out.stderr[-2000:]}")
+            got = json.loads(out.stdout.strip().splitlines()[-1])
+            cpu[name].append(got["cpu_s"])
+            events = got["events"]
+    for name in names:
+        per = [events / c / 1e6 for c in cpu[name]]
+        print(f"  {name}: CPU s {[round(c, 3) for c in cpu[name]]}; M events per worker-CPU-s median "
+              f"{np.median(per):.2f} ({min(per):.2f}-{max(per):.2f})")
+    ratios = [b / a for a, b in zip(cpu[names[0]], cpu[names[1]])]
+    print(f"  {names[1]} / {names[0]} CPU per pair: median {np.median(ratios):.3f} "
+          f"({min(ratios):.3f}-{max(ratios):.3f})")
+
+
+CALIBRATION_OFF = {"flicker_mask": False, "noise_stats": False, "quality_every": 0, "black_level": 0.0,
+                   "clock_offset_us": 0}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m tools.profile_node_cpu", description=__doc__.split("\n")[0])
-    ap.add_argument("mode", choices=("profile", "split", "ab"))
-    ap.add_argument("other", nargs="?", type=Path, help="ab: the other checkout (the old code)")
+    ap.add_argument("mode", choices=("profile", "split", "ab", "worker"))
+    ap.add_argument("other", nargs="?", type=Path,
+                    help="ab, worker: the other checkout (the old code); worker without it: calibration off vs on")
     ap.add_argument("--input", type=Path, action="append", help="recording(s) (default: simulated 240x180)")
     ap.add_argument("--every", type=int, default=1000)
     ap.add_argument("--repeat", type=int, default=5)
@@ -280,6 +343,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.mode == "profile":
         for path in args.input:
             profile(path, args.every, {"c": args.c} if args.c else {}, args.top)
+    elif args.mode == "worker":
+        here = Path(__file__).resolve().parent.parent
+        runs = ({"old": (args.other.resolve(), {}), "new": (here, {})} if args.other is not None else
+                {"calibration off": (here, CALIBRATION_OFF), "calibration on": (here, {})})
+        for path in args.input:
+            worker_ab(runs, path.resolve(), args.every, args.repeat, args.passes)
     elif args.mode == "split":
         for path in args.input:
             split(path, args.every, {"c": args.c} if args.c else {}, args.repeat)

@@ -1,5 +1,6 @@
 """numba kernels of the fused (two-frame) latent image: the plan per pair of frames, event propagation with
-per-pixel ON/OFF steps, and the time term; the display through the bucket tables (to_uint8's rounding, no exp).
+per-pixel ON/OFF steps, and the time term, or all of a pair's frames in one call with the residual estimate's
+changes (edi_live.edi.residual_schedule); the display through the bucket tables (to_uint8's rounding, no exp).
 
 Private to edi_live.edi (see edi_live.edi.fused and its numpy reference).
 """
@@ -86,3 +87,63 @@ def shift_time(flat, term, dtau, lo, hi, disp, v0, scale, bucket_u8, bucket_thr)
             v = hi
         flat[q] = v
         disp[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)
+
+
+@njit(cache=True, nogil=True)
+def render_frames(x, y, p, tt, pos, width, height, mask, use_mask, frames, dtau, flat, step_on, step_off, term,
+                  res, disp, offsets, q_sorted, v_sorted, lo, hi, out, v0, scale, bucket_u8, bucket_thr):
+    """The fused frames at `frames` (ascending): per frame, the events up to it (from index pos) moved by their
+    pixel's steps, the time term moved by dtau[j] (0: not moved), the residual changes of the frame, and the
+    display u8(flat + res) copied to out[j]. flat, res and disp are updated in place."""
+    n = frames.size
+    for j in range(n):
+        t_j = frames[j]
+        while pos < tt.size and tt[pos] <= t_j:
+            i = pos
+            pos += 1
+            if x[i] >= width or y[i] >= height:
+                continue
+            q = np.int64(y[i]) * width + x[i]
+            if use_mask and mask[q]:
+                continue
+            v = flat[q] + (step_on[q] if p[i] else step_off[q])
+            if v < lo:
+                v = lo
+            elif v > hi:
+                v = hi
+            flat[q] = v
+            w = v + res[q]
+            if w < lo:
+                w = lo
+            elif w > hi:
+                w = hi
+            disp[q] = _u8(w, v0, scale, bucket_u8, bucket_thr)
+        if dtau[j] != 0.0:
+            for q in range(flat.size):
+                k = term[q]
+                if k == 0.0:
+                    continue
+                v = flat[q] + dtau[j] * k
+                if v < lo:
+                    v = lo
+                elif v > hi:
+                    v = hi
+                flat[q] = v
+                w = v + res[q]
+                if w < lo:
+                    w = lo
+                elif w > hi:
+                    w = hi
+                disp[q] = _u8(w, v0, scale, bucket_u8, bucket_thr)
+        for k in range(offsets[j], offsets[j + 1]):
+            q = q_sorted[k]
+            r = v_sorted[k]
+            res[q] = r
+            w = flat[q] + r
+            if w < lo:
+                w = lo
+            elif w > hi:
+                w = hi
+            disp[q] = _u8(w, v0, scale, bucket_u8, bucket_thr)
+        out[j, :] = disp
+    return pos

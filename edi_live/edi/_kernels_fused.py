@@ -91,11 +91,20 @@ def shift_time(flat, term, dtau, lo, hi, disp, v0, scale, bucket_u8, bucket_thr)
 
 @njit(cache=True, nogil=True)
 def render_frames(x, y, p, tt, pos, width, height, mask, use_mask, frames, dtau, flat, step_on, step_off, term,
-                  res, disp, offsets, q_sorted, v_sorted, lo, hi, out, v0, scale, bucket_u8, bucket_thr):
+                  res, disp, init_disp, offsets, q_sorted, v_sorted, lo, hi, out, v0, scale, bucket_u8, bucket_thr):
     """The fused frames at `frames` (ascending): per frame, the events up to it (from index pos) moved by their
     pixel's steps, the time term moved by dtau[j] (0: not moved), the residual changes of the frame, and the
-    display u8(flat + res) copied to out[j]. flat, res and disp are updated in place."""
+    display u8(flat + res) copied to out[j]. flat, res and disp are updated in place (`init_disp`: disp made
+    u8(flat + res) first, when res does not start at 0)."""
     n = frames.size
+    if init_disp:
+        for q in range(flat.size):
+            w = flat[q] + res[q]
+            if w < lo:
+                w = lo
+            elif w > hi:
+                w = hi
+            disp[q] = _u8(w, v0, scale, bucket_u8, bucket_thr)
     for j in range(n):
         t_j = frames[j]
         while pos < tt.size and tt[pos] <= t_j:

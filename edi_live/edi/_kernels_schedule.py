@@ -27,10 +27,13 @@ def _value(t, ta, ca, tb, cb, seen_from, seen_to, table_a, table_b, a_unknown):
 
 @njit(cache=True, nogil=True)
 def _gallop(times, lo, hi, value):
-    """The first index in [lo, hi) with times[index] >= value (hi if none): a step, then binary search."""
-    if lo >= hi or times[lo] >= value:
-        return lo
-    lo += 1
+    """The first index in [lo, hi) with times[index] >= value (hi if none): a few steps (the next change is
+    mostly a frame or two on), then binary search."""
+    stop = min(hi, lo + 4)
+    while lo < stop:
+        if times[lo] >= value:
+            return lo
+        lo += 1
     while lo < hi:
         mid = (lo + hi) >> 1
         if times[mid] < value:
@@ -43,15 +46,14 @@ def _gallop(times, lo, hi, value):
 @njit(cache=True, nogil=True)
 def schedule(x, y, p, tt, start, width, height, mask, use_mask, last_t, last_p, snap_t, snap_last_t, snap_last_p,
              frames, span, forget_after, never, c_on, c_off, table_a, table_b, a_unknown, samples, s_row, s_from,
-             s_to, acc, ent_f, ent_q, ent_v):
+             s_to, acc, cur, ent_f, ent_q, ent_v):
     """Walk the events start.. (time-ordered, all after last_t) from each pixel's last event before them
     (last_t, last_p: time and polarity 1 ON / 2 OFF / 0 none; updated in place to the end of the events) and
-    emit, per pixel, the frames at which its residual estimate changes and the new value (ent_*, each pixel's in
-    time order; the estimate is 0 at every pixel before the first frame). snap_last_*: each pixel's last event at
+    emit, per pixel, the frames at which its residual estimate changes from cur and the new value (ent_*, each
+    pixel's in time order; cur holds the estimate before the first frame and is left at the last frame's). snap_last_*: each pixel's last event at
     or before snap_t. acc[s_row[s]] += the estimate at samples[s] (ascending; seen s_from[s]..s_to[s]). Returns
     the number of entries (more than ent_f.size: they did not fit, nothing else is valid)."""
     npx = width * height
-    cur = np.zeros(npx, np.float32)
     n_ent = 0
     snapped = False
     n = frames.size
@@ -59,8 +61,8 @@ def schedule(x, y, p, tt, start, width, height, mask, use_mask, last_t, last_p, 
     n_ev = tt.size
     n_s = samples.size
     # the first frame / sample at or after each pixel's last event (all of the carried ones are before both)
-    f_after = np.zeros(npx, np.int64)
-    s_after = np.zeros(npx, np.int64)
+    f_after = np.zeros(npx, np.int32)
+    s_after = np.zeros(npx, np.int32)
     jf = 0  # the first frame / sample at or after the current event (times ascend)
     js = 0
     for i in range(start, n_ev + npx):  # each event closes its pixel's gap; then every pixel's open gap
@@ -98,31 +100,37 @@ def schedule(x, y, p, tt, start, width, height, mask, use_mask, last_t, last_p, 
             if j < jf:
                 forget = ta + forget_after + 1  # from here on the last event is not seen: 0
                 known = tb - span  # from here on the next event is seen
-                length = tb - ta
-                per_bin = length / nb
-                while True:
-                    t_j = frames[j]
-                    if t_j >= forget:
-                        v = np.float32(0.0)
-                        nxt = never
-                    elif t_j < known:
-                        v = a_unknown * ca
-                        nxt = min(known, forget)
-                    else:
-                        b = min(int((t_j - ta) * (nb / length)), nb - 1)
-                        v = table_a[b] * ca + table_b[b] * cb
-                        # a little before the next bin's boundary: float rounding must not let it be passed over
-                        nxt = forget if b == nb - 1 else min(forget, ta + np.int64((b + 1) * per_bin) - 1)
+                t_j = frames[j]
+                if t_j < known and t_j < forget:  # the next event not seen yet
+                    v = a_unknown * ca
                     if v != cur[q]:
                         if n_ent < ent_f.size:
-                            ent_f[n_ent] = j
-                            ent_q[n_ent] = q
-                            ent_v[n_ent] = v
+                            ent_f[n_ent], ent_q[n_ent], ent_v[n_ent] = j, q, v
                         n_ent += 1
                         cur[q] = v
-                    j = _gallop(frames, j + 1, jf, nxt)
-                    if j >= jf:
-                        break
+                    j = _gallop(frames, j + 1, jf, min(known, forget))
+                if j < jf and frames[j] < forget:  # both seen: the table's bin of x
+                    length = tb - ta
+                    to_bin = nb / length  # one division per gap
+                    per_bin = length * (1.0 / nb)
+                    while True:
+                        b = min(int((frames[j] - ta) * to_bin), nb - 1)
+                        v = table_a[b] * ca + table_b[b] * cb
+                        if v != cur[q]:
+                            if n_ent < ent_f.size:
+                                ent_f[n_ent], ent_q[n_ent], ent_v[n_ent] = j, q, v
+                            n_ent += 1
+                            cur[q] = v
+                        # a little before the next bin's boundary: float rounding must not let it be passed over
+                        nxt = forget if b == nb - 1 else min(forget, ta + np.int64((b + 1) * per_bin) - 1)
+                        j = _gallop(frames, j + 1, jf, nxt)
+                        if j >= jf or frames[j] >= forget:
+                            break
+                if j < jf and cur[q] != 0.0:  # forgotten
+                    if n_ent < ent_f.size:
+                        ent_f[n_ent], ent_q[n_ent], ent_v[n_ent] = j, q, np.float32(0.0)
+                    n_ent += 1
+                    cur[q] = 0.0
         if i < n_ev:
             last_t[q] = tb
             last_p[q] = 1 if p[i] else 2

@@ -280,9 +280,11 @@ def _pair_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, in
         span = int(RESIDUAL_SPAN * (f1 - f0))
         ch = residual_changes(events, w, h, c, mask, f0, f1, span, inside, carry)
         ref0, ref1, offsets, q, v = log0 - ch.held0, log1 - ch.held1, ch.offsets, ch.q, ch.v
+        res = ch.start.copy()
     else:
         ref0, ref1 = log0, log1
         offsets, q, v = np.zeros(n + 1, np.int64), np.zeros(0, np.int32), np.zeros(0, np.float32)
+        res = np.zeros(h * w, np.float32)
     plan = fusion_plan(ref0, ref1, events, f0, f1, c[0], c[1], informative[0], informative[1], mask=mask)
     dtau, before = np.zeros(n, np.float32), 0.0
     for j, t_us in enumerate(inside.tolist()):
@@ -295,7 +297,7 @@ def _pair_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, in
     m, use_m = _backend.mask_arg(mask)
     _kernels_fused.render_frames(events["x"], events["y"], events["p"], t, pos, w, h, m, use_m, inside, dtau,
                                  plan.start.reshape(-1).copy(), plan.step_on, plan.step_off, plan.time_term,
-                                 np.zeros(h * w, np.float32), plan.start_u8.reshape(-1).copy(), offsets, q, v,
+                                 res, plan.start_u8.reshape(-1).copy(), bool(res.any()), offsets, q, v,
                                  np.float32(LOG_MIN), np.float32(LOG_MAX), out, *render_buckets())
     ends = np.searchsorted(t, inside, side="right")
     counts = np.diff(ends, prepend=pos)

@@ -29,13 +29,16 @@ FORGET_SPANS = 10  # a pixel's last event is seen for this many spans (edi_live.
 @dataclass
 class ResidualCarry:
     """What the last pair's pass left: every pixel's last event at or before f_us (time, polarity 1 ON / 2 OFF /
-    0 none; masked pixels' events left out) and the held residual of the frame at f_us, valid for that c, mask
-    and span. Owned by whoever renders consecutive pairs (the reconstructor); `clear` after lost data."""
+    0 none; masked pixels' events left out), the held residual of the frame at f_us and the estimate at the last
+    frame rendered (the next pair's frames start from it, so its first frame changes only what changed), valid
+    for that c, mask and span. Owned by whoever renders consecutive pairs (the reconstructor); `clear` after lost
+    data."""
 
     f_us: int | None = None
     last_t: np.ndarray | None = None
     last_p: np.ndarray | None = None
     held: np.ndarray | None = None
+    residual: np.ndarray | None = None
     c: tuple[float, float] | None = None
     mask: np.ndarray | None = None
     span: int = 0
@@ -57,11 +60,12 @@ class ResidualCarry:
 
 @dataclass(frozen=True)
 class ResidualChanges:
-    """held0/held1: the residual the references hold (H, W) float32; frame j's changes: pixels
-    q[offsets[j]:offsets[j + 1]] take values v[...] (flat indices; 0 everywhere before frame 0)."""
+    """held0/held1: the residual the references hold (H, W) float32; `start`: the estimate before frame 0 (flat
+    float32); frame j's changes: pixels q[offsets[j]:offsets[j + 1]] take values v[...] (flat indices)."""
 
     held0: np.ndarray
     held1: np.ndarray
+    start: np.ndarray
     offsets: np.ndarray
     q: np.ndarray
     v: np.ndarray
@@ -102,6 +106,7 @@ def residual_changes(events: np.ndarray, width: int, height: int, c: tuple[float
     acc = np.zeros((len(refs), n_px), np.float32)
     m, use_m = _backend.mask_arg(mask)
     frames = np.ascontiguousarray(frames, np.int64)
+    start_res = carry.residual if warm else np.zeros(n_px, np.float32)
     snap_t, snap_p = np.empty(n_px, np.int64), np.empty(n_px, np.int8)
     capacity = 3 * (t.size - start) + 2 * n_px
     while True:
@@ -109,11 +114,12 @@ def residual_changes(events: np.ndarray, width: int, height: int, c: tuple[float
         ent_v = np.empty(capacity, np.float32)
         lt, lp = last_t.copy(), last_p.copy()
         acc[:] = 0.0
+        cur = start_res.copy()
         n_ent = _kernels_schedule.schedule(
             events["x"], events["y"], events["p"], t, start, width, height, m, use_m, lt, lp, np.int64(f1_us), snap_t,
             snap_p, frames, np.int64(span), np.int64(FORGET_SPANS * span), np.int64(_NEVER), np.float32(c[0]),
             np.float32(c[1]), TABLE_A, TABLE_B, np.float32(A_UNKNOWN), np.array(samples, np.int64),
-            np.array(s_row, np.int64), np.array(s_from, np.int64), np.array(s_to, np.int64), acc, ent_f, ent_q, ent_v)
+            np.array(s_row, np.int64), np.array(s_from, np.int64), np.array(s_to, np.int64), acc, cur, ent_f, ent_q, ent_v)
         if n_ent <= capacity:
             break
         capacity = 2 * n_ent
@@ -124,7 +130,7 @@ def residual_changes(events: np.ndarray, width: int, height: int, c: tuple[float
     q_sorted, v_sorted = np.empty(n_ent, np.int32), np.empty(n_ent, np.float32)
     _kernels_schedule.by_frame(ent_f, ent_q, ent_v, n_ent, frames.size, offsets, q_sorted, v_sorted)
     if carry is not None:
-        carry.f_us, carry.last_t, carry.last_p, carry.held = int(f1_us), snap_t, snap_p, held1
+        carry.f_us, carry.last_t, carry.last_p, carry.held, carry.residual = int(f1_us), snap_t, snap_p, held1, cur
         carry.c, carry.span = (float(c[0]), float(c[1])), span
         carry.mask = None if mask is None else np.array(mask, bool)
-    return ResidualChanges(held0, held1, offsets, q_sorted, v_sorted)
+    return ResidualChanges(held0, held1, start_res, offsets, q_sorted, v_sorted)

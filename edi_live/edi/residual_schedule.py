@@ -31,7 +31,9 @@ class ResidualCarry:
     """What the last pair's pass left: every pixel's last event at or before f_us (time, polarity 1 ON / 2 OFF /
     0 none; masked pixels' events left out), the held residual of the frame at f_us and the estimate at the last
     frame rendered (the next pair's frames start from it, so its first frame changes only what changed), valid
-    for that c, mask and span. Owned by whoever renders consecutive pairs (the reconstructor); `clear` after lost
+    for that c and mask. The held residual is averaged over the span of the pair in which the frame was the newer
+    one (the per-frame reference path, without a carry, takes the current pair's span for both frames: the same on
+    regular frame intervals). Owned by whoever renders consecutive pairs (the reconstructor); `clear` after lost
     data."""
 
     f_us: int | None = None
@@ -41,17 +43,13 @@ class ResidualCarry:
     residual: np.ndarray | None = None
     c: tuple[float, float] | None = None
     mask: np.ndarray | None = None
-    span: int = 0
 
     def clear(self) -> None:
         self.f_us = None
 
-    def warm(self, f0_us: int, c: tuple[float, float], mask: np.ndarray | None, span: int) -> bool:
-        """True when the pair starting at f0 can start from this carry: the same frame, c and mask, and a span
-        within 1 % of the one the held residual was averaged over."""
+    def warm(self, f0_us: int, c: tuple[float, float], mask: np.ndarray | None) -> bool:
+        """True when the pair starting at f0 can start from this carry: the same frame, c and mask."""
         if self.f_us is None or self.f_us != int(f0_us) or self.c != (float(c[0]), float(c[1])):
-            return False
-        if abs(span - self.span) > span // 100:
             return False
         if (mask is None) != (self.mask is None):
             return False
@@ -86,7 +84,7 @@ def residual_changes(events: np.ndarray, width: int, height: int, c: tuple[float
     before f0 to the newer frame's exposure end, or from just after f0 when `carry` is warm for this pair (it is
     then updated for the next one). Needs the numba kernels."""
     n_px = width * height
-    warm = carry is not None and carry.warm(f0_us, c, mask, span)
+    warm = carry is not None and carry.warm(f0_us, c, mask)
     t = events["t"]
     if warm:
         last_t, last_p = carry.last_t.copy(), carry.last_p.copy()
@@ -131,6 +129,6 @@ def residual_changes(events: np.ndarray, width: int, height: int, c: tuple[float
     _kernels_schedule.by_frame(ent_f, ent_q, ent_v, n_ent, frames.size, offsets, q_sorted, v_sorted)
     if carry is not None:
         carry.f_us, carry.last_t, carry.last_p, carry.held, carry.residual = int(f1_us), snap_t, snap_p, held1, cur
-        carry.c, carry.span = (float(c[0]), float(c[1])), span
+        carry.c = (float(c[0]), float(c[1]))
         carry.mask = None if mask is None else np.array(mask, bool)
     return ResidualChanges(held0, held1, start_res, offsets, q_sorted, v_sorted)

@@ -48,7 +48,7 @@ def test_scheduled_frames_equal_the_per_frame_reference_and_the_carry_changes_no
         with edi.numpy_reference():
             ref = edi.fused_frames(current, previous, informative, times, events, c, mask)
         cold = edi.fused_frames(current, previous, informative, times, events, c, mask)
-        warm_pairs += carry.warm(f0, c, mask, int(edi.RESIDUAL_SPAN * (current[1] - f0)))
+        warm_pairs += carry.warm(f0, c, mask)
         after_f0 = edi.window(events, f0 + 1, None) if carry.f_us == f0 else events
         warm = edi.fused_frames(current, previous, informative, times, after_f0, c, mask, carry=carry)
         assert [t for _, t, _ in cold] == times and [n for *_, n in cold] == [n for *_, n in ref]
@@ -62,12 +62,14 @@ def test_scheduled_frames_equal_the_per_frame_reference_and_the_carry_changes_no
 
 def test_the_carry_is_cold_after_a_change_of_c_mask_or_frame():
     carry = ResidualCarry()
-    assert not carry.warm(1000, (0.2, 0.2), None, 300)
-    carry.f_us, carry.c, carry.span, carry.mask = 1000, (0.2, 0.2), 300, None
-    assert carry.warm(1000, (0.2, 0.2), None, 300)
-    assert not carry.warm(1001, (0.2, 0.2), None, 300)
-    assert not carry.warm(1000, (0.21, 0.2), None, 300)
-    assert not carry.warm(1000, (0.2, 0.2), np.zeros((2, 2), bool), 300)
-    assert not carry.warm(1000, (0.2, 0.2), None, 330)
+    assert not carry.warm(1000, (0.2, 0.2), None)
+    carry.f_us, carry.c, carry.mask = 1000, (0.2, 0.2), None
+    assert carry.warm(1000, (0.2, 0.2), None)
+    assert not carry.warm(1001, (0.2, 0.2), None)
+    assert not carry.warm(1000, (0.21, 0.2), None)
+    assert not carry.warm(1000, (0.2, 0.2), np.zeros((2, 2), bool))
+    carry.mask = np.zeros((2, 2), bool)
+    assert carry.warm(1000, (0.2, 0.2), np.zeros((2, 2), bool))
+    assert not carry.warm(1000, (0.2, 0.2), np.eye(2, dtype=bool))
     carry.clear()
-    assert not carry.warm(1000, (0.2, 0.2), None, 300)
+    assert not carry.warm(1000, (0.2, 0.2), carry.mask)

@@ -43,9 +43,20 @@ class ResidualCarry:
     residual: np.ndarray | None = None
     c: tuple[float, float] | None = None
     mask: np.ndarray | None = None
+    _scratch: dict | None = None
 
     def clear(self) -> None:
         self.f_us = None
+
+    def scratch(self, name: str, size: int, dtype: type) -> np.ndarray:
+        """A work array of at least `size` kept from pair to pair (its pages are not faulted in again each
+        time), contents undefined."""
+        if self._scratch is None:
+            self._scratch = {}
+        a = self._scratch.get(name)
+        if a is None or a.size < size:
+            a = self._scratch[name] = np.empty(max(size, 0 if a is None else 2 * a.size), dtype)
+        return a[:size]
 
     def warm(self, f0_us: int, c: tuple[float, float], mask: np.ndarray | None) -> bool:
         """True when the pair starting at f0 can start from this carry: the same frame, c and mask."""
@@ -87,7 +98,7 @@ def residual_changes(events: np.ndarray, width: int, height: int, c: tuple[float
     warm = carry is not None and carry.warm(f0_us, c, mask)
     t = events["t"]
     if warm:
-        last_t, last_p = carry.last_t.copy(), carry.last_p.copy()
+        last_t, last_p = carry.last_t, carry.last_p
         start = time_index(t, int(f0_us), "right")
         refs = [f1_us]
     else:
@@ -107,10 +118,12 @@ def residual_changes(events: np.ndarray, width: int, height: int, c: tuple[float
     start_res = carry.residual if warm else np.zeros(n_px, np.float32)
     snap_t, snap_p = np.empty(n_px, np.int64), np.empty(n_px, np.int8)
     capacity = 3 * (t.size - start) + 2 * n_px
+    work = carry if carry is not None else ResidualCarry()
     while True:
-        ent_f, ent_q = np.empty(capacity, np.int32), np.empty(capacity, np.int32)
-        ent_v = np.empty(capacity, np.float32)
-        lt, lp = last_t.copy(), last_p.copy()
+        ent_f, ent_q = work.scratch("f", capacity, np.int32), work.scratch("q", capacity, np.int32)
+        ent_v = work.scratch("v", capacity, np.float32)
+        lt, lp = work.scratch("last_t", n_px, np.int64), work.scratch("last_p", n_px, np.int8)
+        lt[:], lp[:] = last_t, last_p
         acc[:] = 0.0
         cur = start_res.copy()
         n_ent = _kernels_schedule.schedule(
@@ -120,12 +133,12 @@ def residual_changes(events: np.ndarray, width: int, height: int, c: tuple[float
             np.array(s_row, np.int64), np.array(s_from, np.int64), np.array(s_to, np.int64), acc, cur, ent_f, ent_q, ent_v)
         if n_ent <= capacity:
             break
-        capacity = 2 * n_ent
+        capacity = 2 * n_ent  # the entries did not fit: again, from the same start
     acc /= np.float32(EXPOSURE_SAMPLES)
     held1 = acc[-1].reshape(height, width)
     held0 = carry.held if warm else acc[0].reshape(height, width)
     offsets = np.empty(frames.size + 1, np.int64)
-    q_sorted, v_sorted = np.empty(n_ent, np.int32), np.empty(n_ent, np.float32)
+    q_sorted, v_sorted = work.scratch("q_sorted", n_ent, np.int32), work.scratch("v_sorted", n_ent, np.float32)
     _kernels_schedule.by_frame(ent_f, ent_q, ent_v, n_ent, frames.size, offsets, q_sorted, v_sorted)
     if carry is not None:
         carry.f_us, carry.last_t, carry.last_p, carry.held, carry.residual = int(f1_us), snap_t, snap_p, held1, cur

@@ -50,9 +50,10 @@ def schedule(x, y, p, tt, start, width, height, mask, use_mask, last_t, last_p, 
     """Walk the events start.. (time-ordered, all after last_t) from each pixel's last event before them
     (last_t, last_p: time and polarity 1 ON / 2 OFF / 0 none; updated in place to the end of the events) and
     emit, per pixel, the frames at which its residual estimate changes from cur and the new value (ent_*, each
-    pixel's in time order; cur holds the estimate before the first frame and is left at the last frame's). snap_last_*: each pixel's last event at
-    or before snap_t. acc[s_row[s]] += the estimate at samples[s] (ascending; seen s_from[s]..s_to[s]). Returns
-    the number of entries (more than ent_f.size: they did not fit, nothing else is valid)."""
+    pixel's in time order; cur holds the estimate before the first frame and is left at the last frame's).
+    snap_last_*: each pixel's last event at or before snap_t. acc[s_row[s]] += the estimate at samples[s]
+    (ascending; seen s_from[s]..s_to[s]). Returns the number of entries (more than ent_f.size: they did not fit,
+    nothing else is valid)."""
     npx = width * height
     n_ent = 0
     snapped = False

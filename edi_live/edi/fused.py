@@ -29,7 +29,10 @@ On top, each frame adds the sub-threshold residual estimate r(t) between a pixel
 and the references enter the plan less what they already hold of it (its mean over RESIDUAL_SPAN of an interval
 either side of their mid-exposure): log L(t) = fused(log L_k - r_k, log L_{k+1} - r_{k+1}; t) + r(t). Both use
 only the events of fixed time ranges around t (residual_seen), so a frame near a reference comes out the same from
-either pair of frames. The frames at exactly f_k and f_{k+1} are the deblurred frames themselves.
+either pair of frames. The frames at exactly f_k and f_{k+1} are the deblurred frames themselves. With the kernels
+a pair's frames are rendered in one call, the estimate from its schedule of changes
+(edi_live.edi.residual_schedule; a ResidualCarry passed from pair to pair spares most of the context before f_k); the
+numpy reference renders frame by frame with ResidualTracker.
 """
 
 from __future__ import annotations
@@ -224,8 +227,8 @@ def fused_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, in
     plain forward EDI, for times after the current f); `informative`: where the previous / current APS frame is
     neither clipped nor black; `events`: at least those from the earlier reference to the last time (with
     `residual`, the sub-threshold residual estimate between events: four intervals before f0 to the new frame's
-    exposure end, or from just after f0 when `carry`, what the previous pair left, is warm for this pair: see
-    edi_live.edi.residual_schedule)."""
+    exposure end, or from just after carry.snap_us when `carry`, what the previous pair left, is warm for this
+    pair: see edi_live.edi.residual_schedule)."""
     if previous is not None and _backend.have_numba():
         return _pair_frames(current, previous, informative, times, events, c, mask, residual, carry)
     log1, f1 = current

@@ -15,7 +15,7 @@ next crossing late in the gap (B rising from 0 to about 0.7). Without a next eve
 without a last event in the window: 0 (the step). A and B in NBINS bins of x are the least-squares fit of the
 simulator's true residual (ideal scenes of tools/bench_accuracy, first 0.2 s; tools/fit_residual.py refits
 them). `ResidualTracker` streams a window's events and gives the estimate at ascending times in O(active pixels)
-per time; `exposure_residual` averages it near a reference frame, which is what that frame's deblurred value
+per time (the reference for edi_live.edi.residual_schedule, which the fused frames use); `exposure_residual` averages it near a reference frame, which is what that frame's deblurred value
 already holds of the residual (it averages the truth over its exposure).
 """
 

@@ -32,8 +32,9 @@ def _pairs(sim, mask=None):
 
 @pytest.mark.parametrize("masked", [False, True])
 def test_scheduled_frames_equal_the_per_frame_reference_and_the_carry_changes_nothing(masked):
+    # exposures shorter than the held residual's span: the later window sees events near f0 the earlier did not
     sim = simulate(SceneConfig(width=64, height=48, duration_s=0.3, texture="camera", velocity_px_s=(200.0, 50.0),
-                               noise_rate_hz=0.5, seed=11, c_on=0.2, c_off=0.16))
+                               noise_rate_hz=0.5, seed=11, c_on=0.2, c_off=0.16, exposure_us=8_000))
     mask = None
     if masked:
         mask = np.zeros((48, 64), bool)
@@ -48,9 +49,10 @@ def test_scheduled_frames_equal_the_per_frame_reference_and_the_carry_changes_no
         with edi.numpy_reference():
             ref = edi.fused_frames(current, previous, informative, times, events, c, mask)
         cold = edi.fused_frames(current, previous, informative, times, events, c, mask)
-        warm_pairs += carry.warm(f0, c, mask)
-        after_f0 = edi.window(events, f0 + 1, None) if carry.f_us == f0 else events
-        warm = edi.fused_frames(current, previous, informative, times, after_f0, c, mask, carry=carry)
+        span = int(edi.RESIDUAL_SPAN * (current[1] - f0))
+        warm_pairs += carry.warm(f0, span, mask)
+        short = edi.window(events, carry.snap_us + 1, None) if carry.warm(f0, span, mask) else events
+        warm = edi.fused_frames(current, previous, informative, times, short, c, mask, carry=carry)
         assert [t for _, t, _ in cold] == times and [n for *_, n in cold] == [n for *_, n in ref]
         for (a, *_), (b, *_), (r, *_) in zip(cold, warm, ref):
             np.testing.assert_array_equal(a, b)  # the carry from the last pair: the same frames
@@ -60,16 +62,16 @@ def test_scheduled_frames_equal_the_per_frame_reference_and_the_carry_changes_no
     assert warm_pairs == len(pairs) - 1
 
 
-def test_the_carry_is_cold_after_a_change_of_c_mask_or_frame():
+def test_the_carry_is_cold_after_a_change_of_frame_or_mask_or_a_longer_interval():
     carry = ResidualCarry()
-    assert not carry.warm(1000, (0.2, 0.2), None)
-    carry.f_us, carry.c, carry.mask = 1000, (0.2, 0.2), None
-    assert carry.warm(1000, (0.2, 0.2), None)
-    assert not carry.warm(1001, (0.2, 0.2), None)
-    assert not carry.warm(1000, (0.21, 0.2), None)
-    assert not carry.warm(1000, (0.2, 0.2), np.zeros((2, 2), bool))
+    assert not carry.warm(1000, 300, None)
+    carry.f_us, carry.snap_us, carry.mask = 1000, 600, None
+    assert carry.warm(1000, 300, None)
+    assert not carry.warm(1001, 300, None)
+    assert not carry.warm(1000, 400, None)  # the held residual of f0 would need events before the snapshot
+    assert not carry.warm(1000, 300, np.zeros((2, 2), bool))
     carry.mask = np.zeros((2, 2), bool)
-    assert carry.warm(1000, (0.2, 0.2), np.zeros((2, 2), bool))
-    assert not carry.warm(1000, (0.2, 0.2), np.eye(2, dtype=bool))
+    assert carry.warm(1000, 300, np.zeros((2, 2), bool))
+    assert not carry.warm(1000, 300, np.eye(2, dtype=bool))
     carry.clear()
-    assert not carry.warm(1000, (0.2, 0.2), carry.mask)
+    assert not carry.warm(1000, 300, carry.mask)

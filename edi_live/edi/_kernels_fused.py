@@ -121,12 +121,12 @@ def render_frames(x, y, p, tt, pos, width, height, mask, use_mask, frames, dtau,
             elif v > hi:
                 v = hi
             flat[q] = v
-            w = v + res[q]
-            if w < lo:
-                w = lo
-            elif w > hi:
-                w = hi
-            disp[q] = _u8(w, v0, scale, bucket_u8, bucket_thr)
+            v = v + res[q]
+            if v < lo:
+                v = lo
+            elif v > hi:
+                v = hi
+            disp[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)
         if dtau[j] != 0.0:
             for q in range(flat.size):
                 k = term[q]
@@ -138,12 +138,12 @@ def render_frames(x, y, p, tt, pos, width, height, mask, use_mask, frames, dtau,
                 elif v > hi:
                     v = hi
                 flat[q] = v
-                w = v + res[q]
-                if w < lo:
-                    w = lo
-                elif w > hi:
-                    w = hi
-                disp[q] = _u8(w, v0, scale, bucket_u8, bucket_thr)
+                v = v + res[q]
+                if v < lo:
+                    v = lo
+                elif v > hi:
+                    v = hi
+                disp[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)
         for k in range(offsets[j], offsets[j + 1]):
             q = q_sorted[k]
             r = v_sorted[k]
@@ -154,5 +154,6 @@ def render_frames(x, y, p, tt, pos, width, height, mask, use_mask, frames, dtau,
             elif w > hi:
                 w = hi
             disp[q] = _u8(w, v0, scale, bucket_u8, bucket_thr)
-        out[j, :] = disp
+        for q in range(disp.size):  # an explicit loop: numba's slice assignment copies ~8x slower
+            out[j, q] = disp[q]
     return pos

@@ -44,6 +44,13 @@ def _gallop(times, lo, hi, value):
 
 
 @njit(cache=True, nogil=True)
+def _copy_state(last_t, last_p, to_t, to_p):
+    for q in range(last_t.size):  # an explicit loop: numba's slice assignment copies several times slower
+        to_t[q] = last_t[q]
+        to_p[q] = last_p[q]
+
+
+@njit(cache=True, nogil=True)
 def schedule(x, y, p, tt, start, width, height, mask, use_mask, last_t, last_p, snap_t, snap_last_t, snap_last_p,
              frames, span, forget_after, never, c_on, c_off, table_a, table_b, a_unknown, samples, s_row, s_from,
              s_to, acc, cur, ent_f, ent_q, ent_v):
@@ -70,8 +77,7 @@ def schedule(x, y, p, tt, start, width, height, mask, use_mask, last_t, last_p, 
         if i < n_ev:
             tb = tt[i]
             if not snapped and tb > snap_t:
-                snap_last_t[:] = last_t
-                snap_last_p[:] = last_p
+                _copy_state(last_t, last_p, snap_last_t, snap_last_p)
                 snapped = True
             if x[i] >= width or y[i] >= height:
                 continue
@@ -85,8 +91,7 @@ def schedule(x, y, p, tt, start, width, height, mask, use_mask, last_t, last_p, 
                 js += 1
         else:
             if not snapped:
-                snap_last_t[:] = last_t
-                snap_last_p[:] = last_p
+                _copy_state(last_t, last_p, snap_last_t, snap_last_p)
                 snapped = True
             q = np.int64(i - n_ev)
             tb, cb = never, np.float32(0.0)

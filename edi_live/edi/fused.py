@@ -30,7 +30,7 @@ and the references enter the plan less what they already hold of it (its mean ov
 either side of their mid-exposure): log L(t) = fused(log L_k - r_k, log L_{k+1} - r_{k+1}; t) + r(t). Both use
 only the events of fixed time ranges around t (residual_seen), so a frame near a reference comes out the same from
 either pair of frames. The frames at exactly f_k and f_{k+1} are the deblurred frames themselves. With the kernels
-a pair's frames are rendered in one call, the estimate from its schedule of changes
+a pair's frames with the estimate are rendered in one call, from its schedule of changes
 (edi_live.edi.residual_schedule; a ResidualCarry passed from pair to pair spares most of the context before f_k); the
 numpy reference renders frame by frame with ResidualTracker.
 """
@@ -229,8 +229,8 @@ def fused_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, in
     `residual`, the sub-threshold residual estimate between events: four intervals before f0 to the new frame's
     exposure end, or from just after carry.snap_us when `carry`, what the previous pair left, is warm for this
     pair: see edi_live.edi.residual_schedule)."""
-    if previous is not None and _backend.have_numba():
-        return _pair_frames(current, previous, informative, times, events, c, mask, residual, carry)
+    if previous is not None and residual and _backend.have_numba():
+        return _residual_frames(current, previous, informative, times, events, c, mask, carry)
     log1, f1 = current
     tracker = None
     if previous is not None and not residual:
@@ -268,26 +268,20 @@ def fused_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, in
     return out
 
 
-def _pair_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, int],
-                 informative: tuple[np.ndarray, np.ndarray], times: Sequence[int], events: np.ndarray,
-                 c: tuple[float, float], mask: np.ndarray | None, residual: bool,
-                 carry: ResidualCarry | None) -> list[tuple[np.ndarray, int, int]]:
-    """fused_frames between two references with the kernels: the frames inside the pair in one call, the
-    residual estimate from its schedule of changes (the same images as the per-frame path)."""
+def _residual_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, int],
+                     informative: tuple[np.ndarray, np.ndarray], times: Sequence[int], events: np.ndarray,
+                     c: tuple[float, float], mask: np.ndarray | None,
+                     carry: ResidualCarry | None) -> list[tuple[np.ndarray, int, int]]:
+    """fused_frames between two references with the residual estimate, with the kernels: the frames inside the
+    pair in one call, the estimate from its schedule of changes (the same images as the per-frame path)."""
     (log1, f1), (log0, f0) = current, previous
     h, w = log0.shape
     times = [int(t) for t in times]
     inside = np.array([t for t in times if f0 < t < f1], np.int64)
     n = inside.size
-    if residual:
-        span = int(RESIDUAL_SPAN * (f1 - f0))
-        ch = residual_changes(events, w, h, c, mask, f0, f1, span, inside, carry)
-        ref0, ref1, offsets, q, v = log0 - ch.held0, log1 - ch.held1, ch.offsets, ch.q, ch.v
-        res = ch.start.copy()
-    else:
-        ref0, ref1 = log0, log1
-        offsets, q, v = np.zeros(n + 1, np.int64), np.zeros(0, np.int32), np.zeros(0, np.float32)
-        res = np.zeros(h * w, np.float32)
+    span = int(RESIDUAL_SPAN * (f1 - f0))
+    ch = residual_changes(events, w, h, c, mask, f0, f1, span, inside, carry)
+    ref0, ref1, res = log0 - ch.held0, log1 - ch.held1, ch.start.copy()
     plan = fusion_plan(ref0, ref1, events, f0, f1, c[0], c[1], informative[0], informative[1], mask=mask)
     dtau, before = np.zeros(n, np.float32), 0.0
     for j, t_us in enumerate(inside.tolist()):
@@ -300,10 +294,10 @@ def _pair_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, in
     m, use_m = _backend.mask_arg(mask)
     _kernels_fused.render_frames(events["x"], events["y"], events["p"], t, pos, w, h, m, use_m, inside, dtau,
                                  plan.start.reshape(-1).copy(), plan.step_on, plan.step_off, plan.time_term,
-                                 res, plan.start_u8.reshape(-1).copy(), bool(res.any()), offsets, q, v,
+                                 res, plan.start_u8.reshape(-1).copy(), bool(res.any()), ch.offsets, ch.q, ch.v,
                                  np.float32(LOG_MIN), np.float32(LOG_MAX), out, *render_buckets())
-    ends = np.searchsorted(t, inside, side="right")
-    counts = np.diff(ends, prepend=pos)
+    ends = [time_index(t, t_us, "right") for t_us in inside.tolist()]  # np.searchsorted would copy the strided t
+    counts = np.diff(np.array(ends, np.int64), prepend=pos)
     result, j = [], 0
     for t_us in times:
         if f0 < t_us < f1:

@@ -53,7 +53,7 @@ def render_fused(rec: Reconstructor, ring: EventRing, hold, ref_f_us: int, frame
     if previous is None or not done:
         return [render_held(rec, ring, hold, ref_f_us, t, a) for t, a in done]
     (log0, f0), image0 = previous
-    # four intervals of context before f0 and what arrived after f1: the residual estimate needs each pixel's
-    # last event before and next event after a time (edi_live.edi.residual)
-    events = ring.window(f0 - 4 * (ref_f_us - f0), frame.exposure_end_us + 1, end_index=ring.read_index)
+    # context before f0 (the residual estimate needs each pixel's last event, unless the last pair's pass carries
+    # on) and what arrived after f1 (its next event after a time): edi_live.edi.residual_schedule
+    events = ring.window(rec.fused_events_from(f0, ref_f_us), frame.exposure_end_us + 1, end_index=ring.read_index)
     return _stamped(rec.render_fused((log0, f0), image0, frame.image, [t for t, _ in done], events), done, hold)

@@ -72,6 +72,10 @@ class Reconstructor(Protocol):
         """(log L(f) of the current reference, f): kept by fused mode for the next pair."""
         ...
 
+    def fused_events_from(self, f0_us: int, f1_us: int) -> int:
+        """The earliest event time render_fused needs for the pair of references at f0 and f1."""
+        ...
+
     def render_fused(self, previous: tuple[np.ndarray, int] | None, previous_image: np.ndarray | None,
                      current_image: np.ndarray | None, times: Sequence[int], events: np.ndarray) -> list[Reconstruction]:
         """Latent frames at `times` between the previous reference and the current one, from both (previous None:

@@ -57,6 +57,7 @@ class EdiReconstructor(ReconstructorView):
         self._ahead = ExposureAhead(self.width, self.height, settings.deblur_ahead and self._noise is None)
         self._mask: np.ndarray | None = self._hot.mask  # events at these pixels are ignored; replaced, not changed
         self._latent = LatentState(self.width, self.height)
+        self._carry = edi.ResidualCarry()  # fused mode: what one pair's residual estimate leaves for the next
         self._colour: colour_edi.ColourPlan | None = None  # colour: EDI on the Bayer mosaic, demosaiced for output
         self._pair: contrast.FramePair | None = None  # formed on this frame, judged after its deblur
         self.has_reference = False
@@ -94,6 +95,7 @@ class EdiReconstructor(ReconstructorView):
             return
         self.settle()
         self._ahead.drop()
+        self._carry.clear()
         if self._tracker is not None:
             self._tracker.mark_gap()
         if self._flicker is not None and self._flicker.count:
@@ -284,8 +286,18 @@ class EdiReconstructor(ReconstructorView):
             self._aps.to_float(colour_edi.as_mosaic(self._colour, current_image))[1])
         frames = edi.fused_frames(self.reference_log(), previous, informative, times,
                                   events[:0] if self.events_ignored else events, self._c(), self._mask,
-                                  residual=self.settings.fused_residual)
+                                  residual=self.settings.fused_residual,
+                                  carry=None if self.events_ignored else self._carry)
         return [self._reconstruction(image, t, "latent", n) for image, t, n in frames]
+
+    def fused_events_from(self, f0_us: int, f1_us: int) -> int:
+        """The earliest event time render_fused needs for the pair (f0, f1): four intervals of context for the
+        residual estimate, or a little before f0 when the last pair's pass can be carried on (edi.residual_schedule)."""
+        if not self.settings.fused_residual:
+            return int(f0_us) + 1
+        if self._carry.warm(f0_us, int(edi.RESIDUAL_SPAN * (f1_us - f0_us)), self._mask):
+            return self._carry.snap_us + 1
+        return int(f0_us) - 4 * (int(f1_us) - int(f0_us))
 
     def stats(self) -> dict:
         return {

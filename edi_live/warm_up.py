@@ -54,8 +54,9 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
             # again on strided event fields: the reconstructor may have judged the random events a still scene
             from edi_live import edi
 
-            edi.fused_frames(rec.reference_log(), previous, (image > 0, image > 0), [previous[1] + 5_000], both,
-                             (0.2, 0.2), None)
+            for residual in (False, True):  # the per-frame path, and the residual estimate's one-call kernels
+                edi.fused_frames(rec.reference_log(), previous, (image > 0, image > 0), [previous[1] + 5_000], both,
+                                 (0.2, 0.2), None, residual=residual)
             t_us += 20_000
         # the running double integral (deblur ahead): fed ring slices (strided fields) and single events
         from edi_live.edi import RunningDivisor

@@ -269,7 +269,8 @@ def main(argv: list[str] | None = None) -> int:
 
         sim = simulate(cfg)
         for title, runs in (("true c given", None),
-                            ("c estimated", (("causal", 0), ("fused", 0), ("fused", JOINT_PAIRS)))):
+                            ("c estimated", (("causal", 0), ("fused", 0), ("fused", JOINT_PAIRS),
+                                             ("fused+residual", JOINT_PAIRS)))):
             cpu = cost_ratio(sim, args.every, args.repeats, runs)
             base = next(iter(cpu.values()))
             print(f"worker CPU ms per latent frame on '{label}' (--every {args.every}), {title}, median [min, max] "

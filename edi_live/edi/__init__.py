@@ -29,11 +29,12 @@ Modules: selection (time windows, pixel picks, counts), levels (level table, log
 integral of an exposure accumulated while its events arrive).
 """
 
-from edi_live.edi import _kernels_fused, _kernels_levels, _kernels_pixels, _kernels_stream
+from edi_live.edi import _kernels_fused, _kernels_levels, _kernels_pixels, _kernels_schedule, _kernels_stream
 from edi_live.edi._backend import (DARK_FLOOR, LEVEL_CAP, LOG_MAX, LOG_MIN, have_numba, numpy_reference)
 from edi_live.edi.deblur import ApsResponse, blurry_to_float, deblur, deblur_log, finish_frame_u8, log_divisor_events
-from edi_live.edi.fused import (FusedPropagator, FusionPlan, event_mass, forward_plan, fused_frames, fused_log,
-                                fusion_plan, fusion_weights, time_share)
+from edi_live.edi.fused import (RESIDUAL_SPAN, FusedPropagator, FusionPlan, event_mass, forward_plan, fused_frames,
+                                fused_log, fusion_plan, fusion_weights, time_share)
+from edi_live.edi.residual_schedule import ResidualCarry
 from edi_live.edi.latent import (Propagator, event_delta, propagate_log, render_buckets, to_uint8, u8_tables)
 from edi_live.edi.levels import LevelTable, build_level_table, empty_table, log_divisor
 from edi_live.edi.pairs import consistency_cost, pair_candidates
@@ -50,7 +51,7 @@ def compiled_signatures() -> dict[str, set[str]]:
     """Each kernel's compiled argument-type signatures so far (to check that a warm-up covered what a run needs:
     a kernel met with new argument types compiles on the spot, which stalls a stream)."""
     found = {}
-    for module in (_kernels_fused, _kernels_levels, _kernels_pixels, _kernels_stream):
+    for module in (_kernels_fused, _kernels_levels, _kernels_pixels, _kernels_schedule, _kernels_stream):
         for name, fn in vars(module).items():
             signatures = getattr(fn, "signatures", None)
             if signatures is not None:
@@ -61,7 +62,7 @@ def compiled_signatures() -> dict[str, set[str]]:
 __all__ = [
     "ApsResponse", "DARK_FLOOR", "FlickerState", "flicker_cycles", "FusedPropagator", "FusionPlan", "LEVEL_CAP", "LOG_MAX", "LOG_MIN", "LevelTable",
     "Propagator", "RunningDivisor", "add_counts", "compiled_signatures", "event_mass", "forward_plan", "fused_frames", "fused_log",
-    "fusion_plan", "fusion_weights",
+    "fusion_plan", "fusion_weights", "RESIDUAL_SPAN", "ResidualCarry",
     "time_share",
     "background_activity_keep", "blurry_to_float", "build_level_table", "consistency_cost", "deblur", "deblur_log",
     "decay_hot_counts", "empty_table", "event_delta", "events_at_pixels", "finish_frame_u8", "flat_index",

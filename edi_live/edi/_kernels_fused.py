@@ -1,5 +1,6 @@
 """numba kernels of the fused (two-frame) latent image: the plan per pair of frames, event propagation with
-per-pixel ON/OFF steps, and the time term; the display through the bucket tables (to_uint8's rounding, no exp).
+per-pixel ON/OFF steps, and the time term, or all of a pair's frames in one call with the residual estimate's
+changes (edi_live.edi.residual_schedule); the display through the bucket tables (to_uint8's rounding, no exp).
 
 Private to edi_live.edi (see edi_live.edi.fused and its numpy reference).
 """
@@ -86,3 +87,73 @@ def shift_time(flat, term, dtau, lo, hi, disp, v0, scale, bucket_u8, bucket_thr)
             v = hi
         flat[q] = v
         disp[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)
+
+
+@njit(cache=True, nogil=True)
+def render_frames(x, y, p, tt, pos, width, height, mask, use_mask, frames, dtau, flat, step_on, step_off, term,
+                  res, disp, init_disp, offsets, q_sorted, v_sorted, lo, hi, out, v0, scale, bucket_u8, bucket_thr):
+    """The fused frames at `frames` (ascending): per frame, the events up to it (from index pos) moved by their
+    pixel's steps, the time term moved by dtau[j] (0: not moved), the residual changes of the frame, and the
+    display u8(flat + res) copied to out[j]. flat, res and disp are updated in place (`init_disp`: disp made
+    u8(flat + res) first, when res does not start at 0)."""
+    n = frames.size
+    if init_disp:
+        for q in range(flat.size):
+            w = flat[q] + res[q]
+            if w < lo:
+                w = lo
+            elif w > hi:
+                w = hi
+            disp[q] = _u8(w, v0, scale, bucket_u8, bucket_thr)
+    for j in range(n):
+        t_j = frames[j]
+        while pos < tt.size and tt[pos] <= t_j:
+            i = pos
+            pos += 1
+            if x[i] >= width or y[i] >= height:
+                continue
+            q = np.int64(y[i]) * width + x[i]
+            if use_mask and mask[q]:
+                continue
+            v = flat[q] + (step_on[q] if p[i] else step_off[q])
+            if v < lo:
+                v = lo
+            elif v > hi:
+                v = hi
+            flat[q] = v
+            v = v + res[q]
+            if v < lo:
+                v = lo
+            elif v > hi:
+                v = hi
+            disp[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)
+        if dtau[j] != 0.0:
+            for q in range(flat.size):
+                k = term[q]
+                if k == 0.0:
+                    continue
+                v = flat[q] + dtau[j] * k
+                if v < lo:
+                    v = lo
+                elif v > hi:
+                    v = hi
+                flat[q] = v
+                v = v + res[q]
+                if v < lo:
+                    v = lo
+                elif v > hi:
+                    v = hi
+                disp[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)
+        for k in range(offsets[j], offsets[j + 1]):
+            q = q_sorted[k]
+            r = v_sorted[k]
+            res[q] = r
+            w = flat[q] + r
+            if w < lo:
+                w = lo
+            elif w > hi:
+                w = hi
+            disp[q] = _u8(w, v0, scale, bucket_u8, bucket_thr)
+        for q in range(disp.size):  # an explicit loop: numba's slice assignment copies ~8x slower
+            out[j, q] = disp[q]
+    return pos

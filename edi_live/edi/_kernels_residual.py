@@ -97,8 +97,7 @@ def residual_at(t, active, last_t, last_c, next_t, next_c, table_a, table_b, a_u
             out[q] = a_unknown * ca
             continue
         span = tb - ta
-        x = (t - ta) / span if span > 0 else 1.0
-        i = min(max(int(x * nb), 0), nb - 1)
+        i = min(max(int((t - ta) * (nb / span)), 0), nb - 1) if span > 0 else nb - 1
         out[q] = table_a[i] * ca + table_b[i] * next_c[q]
 
 
@@ -131,8 +130,7 @@ def residual_paint(t, active, last_t, last_c, next_t, next_c, table_a, table_b, 
                 r = a_unknown * ca
             else:
                 span = tb - ta
-                x = (t - ta) / span if span > 0 else 1.0
-                i = min(max(int(x * nb), 0), nb - 1)
+                i = min(max(int((t - ta) * (nb / span)), 0), nb - 1) if span > 0 else nb - 1
                 r = table_a[i] * ca + table_b[i] * next_c[q]
         out[q] = r
         v = flat[q] + r

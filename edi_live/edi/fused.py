@@ -29,7 +29,10 @@ On top, each frame adds the sub-threshold residual estimate r(t) between a pixel
 and the references enter the plan less what they already hold of it (its mean over RESIDUAL_SPAN of an interval
 either side of their mid-exposure): log L(t) = fused(log L_k - r_k, log L_{k+1} - r_{k+1}; t) + r(t). Both use
 only the events of fixed time ranges around t (residual_seen), so a frame near a reference comes out the same from
-either pair of frames. The frames at exactly f_k and f_{k+1} are the deblurred frames themselves.
+either pair of frames. The frames at exactly f_k and f_{k+1} are the deblurred frames themselves. With the kernels
+a pair's frames with the estimate are rendered in one call, from its schedule of changes
+(edi_live.edi.residual_schedule; a ResidualCarry passed from pair to pair spares most of the context before f_k); the
+numpy reference renders frame by frame with ResidualTracker.
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ from edi_live.edi import _backend, _kernels_fused, _kernels_residual
 from edi_live.edi._backend import LOG_MAX, LOG_MIN
 from edi_live.edi.latent import event_delta, render_buckets, to_uint8
 from edi_live.edi.residual import ResidualTracker, exposure_residual
+from edi_live.edi.residual_schedule import ResidualCarry, residual_changes
 from edi_live.edi.selection import select, time_index, window
 
 
@@ -216,14 +220,17 @@ class FusedPropagator:
 
 def fused_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, int] | None,
                  informative: tuple[np.ndarray, np.ndarray] | None, times: Sequence[int], events: np.ndarray,
-                 c: tuple[float, float], mask: np.ndarray | None, *,
-                 residual: bool = True) -> list[tuple[np.ndarray, int, int]]:
+                 c: tuple[float, float], mask: np.ndarray | None, *, residual: bool = True,
+                 carry: ResidualCarry | None = None) -> list[tuple[np.ndarray, int, int]]:
     """The latent images at `times` (ascending) in one propagation pass over the events: (uint8 image, t, events
     since the previous image) per time. `current`/`previous`: (log L(f), f) of the two references (previous None:
     plain forward EDI, for times after the current f); `informative`: where the previous / current APS frame is
     neither clipped nor black; `events`: at least those from the earlier reference to the last time (with
     `residual`, the sub-threshold residual estimate between events: four intervals before f0 to the new frame's
-    exposure end; ~5x the cost of a frame without it)."""
+    exposure end, or from just after carry.snap_us when `carry`, what the previous pair left, is warm for this
+    pair: see edi_live.edi.residual_schedule)."""
+    if previous is not None and residual and _backend.have_numba():
+        return _residual_frames(current, previous, informative, times, events, c, mask, carry)
     log1, f1 = current
     tracker = None
     if previous is not None and not residual:
@@ -259,6 +266,46 @@ def fused_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, in
         out.append((prop.display.copy(), t_us, max(0, end - pos)))
         pos = max(pos, end)
     return out
+
+
+def _residual_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, int],
+                     informative: tuple[np.ndarray, np.ndarray], times: Sequence[int], events: np.ndarray,
+                     c: tuple[float, float], mask: np.ndarray | None,
+                     carry: ResidualCarry | None) -> list[tuple[np.ndarray, int, int]]:
+    """fused_frames between two references with the residual estimate, with the kernels: the frames inside the
+    pair in one call, the estimate from its schedule of changes (the same images as the per-frame path)."""
+    (log1, f1), (log0, f0) = current, previous
+    h, w = log0.shape
+    times = [int(t) for t in times]
+    inside = np.array([t for t in times if f0 < t < f1], np.int64)
+    n = inside.size
+    span = int(RESIDUAL_SPAN * (f1 - f0))
+    ch = residual_changes(events, w, h, c, mask, f0, f1, span, inside, carry)
+    ref0, ref1, res = log0 - ch.held0, log1 - ch.held1, ch.start.copy()
+    plan = fusion_plan(ref0, ref1, events, f0, f1, c[0], c[1], informative[0], informative[1], mask=mask)
+    dtau, before = np.zeros(n, np.float32), 0.0
+    for j, t_us in enumerate(inside.tolist()):
+        tau_q = time_share((t_us - f0) / (f1 - f0))
+        if tau_q != before:
+            dtau[j], before = np.float32(tau_q - before), tau_q
+    out = np.empty((n, h * w), np.uint8)
+    t = events["t"]
+    pos = time_index(t, f0, "right")
+    m, use_m = _backend.mask_arg(mask)
+    _kernels_fused.render_frames(events["x"], events["y"], events["p"], t, pos, w, h, m, use_m, inside, dtau,
+                                 plan.start.reshape(-1).copy(), plan.step_on, plan.step_off, plan.time_term,
+                                 res, plan.start_u8.reshape(-1).copy(), bool(res.any()), ch.offsets, ch.q, ch.v,
+                                 np.float32(LOG_MIN), np.float32(LOG_MAX), out, *render_buckets())
+    ends = [time_index(t, t_us, "right") for t_us in inside.tolist()]  # np.searchsorted would copy the strided t
+    counts = np.diff(np.array(ends, np.int64), prepend=pos)
+    result, j = [], 0
+    for t_us in times:
+        if f0 < t_us < f1:
+            result.append((out[j].reshape(h, w), t_us, max(0, int(counts[j]))))
+            j += 1
+        else:  # the video passes through the deblurred frames
+            result.append((to_uint8(log1 if t_us >= f1 else log0), t_us, 0))
+    return result
 
 
 def residual_seen(t_us: int, span: int) -> tuple[int, int]:

@@ -15,7 +15,7 @@ next crossing late in the gap (B rising from 0 to about 0.7). Without a next eve
 without a last event in the window: 0 (the step). A and B in NBINS bins of x are the least-squares fit of the
 simulator's true residual (ideal scenes of tools/bench_accuracy, first 0.2 s; tools/fit_residual.py refits
 them). `ResidualTracker` streams a window's events and gives the estimate at ascending times in O(active pixels)
-per time; `exposure_residual` averages it near a reference frame, which is what that frame's deblurred value
+per time (the reference for edi_live.edi.residual_schedule, which the fused frames use); `exposure_residual` averages it near a reference frame, which is what that frame's deblurred value
 already holds of the residual (it averages the truth over its exposure).
 """
 
@@ -196,8 +196,8 @@ def _residual_numpy(t: int, last_t: np.ndarray, last_c: np.ndarray, next_t: np.n
     unknown = has_a & (next_t > seen_to)
     out[unknown] = np.float32(A_UNKNOWN) * last_c[unknown]
     both = has_a & ~unknown
-    span = (next_t - last_t).astype(np.float64)
-    x = np.where(span > 0, (t - last_t) / np.where(span > 0, span, 1.0), 1.0)
-    i = np.clip((x * TABLE_A.size).astype(np.int64), 0, TABLE_A.size - 1)
+    span = next_t - last_t
+    x = np.where(span > 0, (t - last_t) * (TABLE_A.size / np.where(span > 0, span, 1)), TABLE_A.size)
+    i = np.clip(x.astype(np.int64), 0, TABLE_A.size - 1)  # as the kernels: (t - t_a) * (bins / span), no x
     out[both] = (TABLE_A[i] * last_c + TABLE_B[i] * next_c)[both]
     return out

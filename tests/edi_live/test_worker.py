@@ -89,6 +89,9 @@ class StandIn:
     def reference_log(self):
         return np.zeros((2, 2), np.float32), self.ref_f
 
+    def fused_events_from(self, f0_us, f1_us):
+        return f0_us - 4 * (f1_us - f0_us)
+
     def render_fused(self, previous, previous_image, current_image, times, events):
         return [self._rec(t, "latent") for t in times]
 

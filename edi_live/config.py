@@ -119,7 +119,7 @@ class EdiConfig:
     # ignore pixels that flicker at a mains period (flicker_pixels.py); None: on, except in fused mode (its next frame
     # already takes a lamp's drift out, and the mask would cost it 0.3 dB on the realistic simulator)
     flicker_mask: bool | None = None
-    fused_residual: bool = False  # fused mode: estimate the log change below one threshold between events
+    fused_residual: bool = True  # fused mode: estimate the log change below one threshold between events
     c_start: tuple[float, float] | None = None  # (c_on, c_off) from a saved calibration (set by the node)
     aps_gamma: float | None = None  # APS response exponent; None: 1, or a loaded calibration's
     # events arrive this many µs later than the APS exposure they belong to; None: 0, or a loaded calibration's

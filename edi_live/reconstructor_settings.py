@@ -52,7 +52,7 @@ class ReconstructorSettings:
     # None: estimated from the stream (clock_offset_policy; needs c estimation, else 0)
     clock_offset_us: int | None = None
     denoise_us: int = 0  # background-activity filter window; 0 = off
-    fused_residual: bool = False  # fused mode: add the sub-threshold residual estimate (+2 dB, ~3x the cost)
+    fused_residual: bool = True  # fused mode: add the sub-threshold residual estimate (+1.4 dB; docs/modes.md)
     deblur_ahead: bool = True  # accumulate the next exposure's double integral while it runs (exposure_ahead.py)
     mask_unreliable_pixels: bool = True  # ignore events that contradict the APS frames (needs c estimation)
     mask_flicker_pixels: bool = True  # ignore the events of pixels that flicker at a mains period (flicker_pixels)

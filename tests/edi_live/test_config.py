@@ -244,7 +244,7 @@ def test_the_flicker_mask_switch_reaches_the_reconstructor():
 def test_the_fused_residual_switch_reaches_the_reconstructor():
     from edi_live.node import default_reconstructor
 
-    plain = NodeConfig.from_options({"device": "auto", "mode": "fused"})
-    residual = NodeConfig.from_options({"device": "auto", "mode": "fused", "fused_residual": True})
+    default = NodeConfig.from_options({"device": "auto", "mode": "fused"})
+    plain = NodeConfig.from_options({"device": "auto", "mode": "fused", "fused_residual": False})
+    assert default_reconstructor(16, 12, default.edi).settings.fused_residual is True
     assert default_reconstructor(16, 12, plain.edi).settings.fused_residual is False
-    assert default_reconstructor(16, 12, residual.edi).settings.fused_residual is True

@@ -22,7 +22,7 @@ A power-law APS response is not identified this way: it scales every log ratio a
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -38,11 +38,14 @@ SUPPORT_DN = 30.0  # a moving quiet pixel supports an estimate b when its darker
 @dataclass(frozen=True)
 class QuietSamples:
     """Raw APS values (8-bit DN, black level not taken off) of quiet pixels in two frames and the net event count
-    between them (flat float64 arrays of one length)."""
+    between them (flat float64 arrays of one length). `noise_diff` / `noise_level`: a sample of the APS noise
+    (black_level_noise.neighbour_differences), one entry per pair of neighbouring event-free pixels."""
 
     b_prev: np.ndarray
     b_cur: np.ndarray
     net: np.ndarray
+    noise_diff: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    noise_level: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def size(self) -> int:
@@ -51,7 +54,7 @@ class QuietSamples:
     @staticmethod
     def join(parts: "list[QuietSamples]") -> "QuietSamples":
         return QuietSamples(*(np.concatenate([getattr(p, k) for p in parts]) if parts else np.zeros(0)
-                              for k in ("b_prev", "b_cur", "net")))
+                              for k in ("b_prev", "b_cur", "net", "noise_diff", "noise_level")))
 
 
 @dataclass(frozen=True)

@@ -121,13 +121,22 @@ def simex_black_level(s: QuietSamples, sigma: float, seed: int = 0) -> tuple[flo
     """(the noise-free extrapolation of the profile's minimum, the minima at lambda = 0, 1, 2) for APS noise
     `sigma`; the samples' |N| selection is the caller's (fit_black_level's)."""
     rng = np.random.default_rng(seed)
-    xs, ys = [0.0], [profile_minimum(s.b_prev, s.b_cur, s.net)]
+    b0 = profile_minimum(s.b_prev, s.b_cur, s.net)
+    # added noise only lowers the minimum: search below b0 first (a third of the grid), the whole range if it
+    # ends on the window's edge
+    window = (max(SIMEX_RANGE[0], math.floor(b0) - 24.0), min(SIMEX_RANGE[1], math.ceil(b0) + 8.0))
+
+    def noisy_minimum(extra: float) -> float:
+        bp = s.b_prev + extra * rng.standard_normal(s.size)
+        bc = s.b_cur + extra * rng.standard_normal(s.size)
+        b = profile_minimum(bp, bc, s.net, window)
+        at_edge = (b <= window[0] and window[0] > SIMEX_RANGE[0]) or (b >= window[1] and window[1] < SIMEX_RANGE[1])
+        return profile_minimum(bp, bc, s.net) if at_edge else b
+
+    xs, ys = [0.0], [b0]
     for lam in SIMEX_LAMBDAS:
-        extra = math.sqrt(lam) * sigma
-        runs = [profile_minimum(s.b_prev + extra * rng.standard_normal(s.size),
-                                s.b_cur + extra * rng.standard_normal(s.size), s.net) for _ in range(SIMEX_DRAWS)]
         xs.append(lam)
-        ys.append(float(np.mean(runs)))
+        ys.append(float(np.mean([noisy_minimum(math.sqrt(lam) * sigma) for _ in range(SIMEX_DRAWS)])))
     return float(np.polyval(np.polyfit(xs, ys, 2), -1.0)), ys
 
 

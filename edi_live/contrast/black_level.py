@@ -46,6 +46,7 @@ class QuietSamples:
     net: np.ndarray
     noise_diff: np.ndarray = field(default_factory=lambda: np.zeros(0))
     noise_level: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    noise_step: np.ndarray = field(default_factory=lambda: np.zeros(0))  # how far apart the two pixels are
 
     @property
     def size(self) -> int:
@@ -54,7 +55,7 @@ class QuietSamples:
     @staticmethod
     def join(parts: "list[QuietSamples]") -> "QuietSamples":
         return QuietSamples(*(np.concatenate([getattr(p, k) for p in parts]) if parts else np.zeros(0)
-                              for k in ("b_prev", "b_cur", "net", "noise_diff", "noise_level")))
+                              for k in ("b_prev", "b_cur", "net", "noise_diff", "noise_level", "noise_step")))
 
 
 @dataclass(frozen=True)

@@ -36,12 +36,12 @@ SIMEX_DRAWS = 4
 SIMEX_RANGE = (-20.0, 60.0)  # a noisy fit may put b below 0: the trend in lambda must not be cut off there
 
 
-def neighbour_differences(pair: FramePair, taken_off: float, b_low: float = 3.0, b_high: float = 250.0,
-                          keep: int = 4000) -> tuple[np.ndarray, np.ndarray]:
-    """(D(x) - D(x'), the brighter frame value of the two pixels) for every horizontal and vertical pair of
-    neighbouring pixels x, x' that are informative in both frames, within [b_low, b_high] DN and without any event
-    from the first exposure's start to the second's end; D = B2 - B1 (values raw, `taken_off` added back). Only
-    the `keep` darkest pairs are returned."""
+def neighbour_differences(pair: FramePair, taken_off: float, step: int = 1, b_low: float = 3.0,
+                          b_high: float = 250.0, keep: int = 4000) -> tuple[np.ndarray, np.ndarray]:
+    """(D(x) - D(x'), the brighter frame value of the two pixels) for every pair of pixels x, x' `step` apart in a
+    row or a column that are informative in both frames, within [b_low, b_high] DN and without any event from the
+    first exposure's start to the second's end; D = B2 - B1 (values raw, `taken_off` added back). Only the `keep`
+    darkest pairs are returned."""
     prev, cur = pair.prev, pair.cur
     w = prev.blurry.shape[1]
     bp = prev.blurry.reshape(-1)
@@ -53,12 +53,12 @@ def neighbour_differences(pair: FramePair, taken_off: float, b_low: float = 3.0,
         ok &= ~pair.mask
     for frame in (prev, cur):
         ok[frame.table.pixels[:frame.table.n_active]] = False
-    idx = np.flatnonzero(ok[:-1])
-    right = idx[ok[idx + 1] & (idx % w != w - 1)]
-    idx = np.flatnonzero(ok[:-w])
-    below = idx[ok[idx + w]]
+    idx = np.flatnonzero(ok[:-step])
+    right = idx[ok[idx + step] & (idx % w < w - step)]
+    idx = np.flatnonzero(ok[:-step * w])
+    below = idx[ok[idx + step * w]]
     first = np.concatenate([right, below])
-    second = np.concatenate([right + 1, below + w])
+    second = np.concatenate([right + step, below + step * w])
     level = np.maximum(np.maximum(bp[first], bc[first]), np.maximum(bp[second], bc[second]))
     if first.size > keep:  # a still scene would pool every pixel: only the dark ones are used (read_noise_dn)
         darkest = np.argpartition(level, keep - 1)[:keep]
@@ -69,14 +69,20 @@ def neighbour_differences(pair: FramePair, taken_off: float, b_low: float = 3.0,
 
 def read_noise_dn(s: QuietSamples, black_level: float) -> float | None:
     """The APS noise sigma (DN RMS, rounding included) on the neighbour pairs within SUPPORT_DN of the black level
-    (the darkest MIN_NOISE_PAIRS pairs when fewer are there); None with fewer pairs than that in all."""
-    e, level = s.noise_diff, s.noise_level
-    if e.size < MIN_NOISE_PAIRS:
-        return None
-    near = level <= black_level + SUPPORT_DN
-    if np.count_nonzero(near) < MIN_NOISE_PAIRS:
-        near = level <= np.partition(level, MIN_NOISE_PAIRS - 1)[MIN_NOISE_PAIRS - 1]
-    return math.sqrt(_clipped_mean_square(e[near]) / 4.0)
+    (the darkest MIN_NOISE_PAIRS pairs when fewer are there), the smaller of the values from pixels 1 and 2 apart
+    (texture only adds to either; in a Bayer mosaic direct neighbours see different colours); None with fewer
+    than MIN_NOISE_PAIRS pairs."""
+    found = []
+    for step in np.unique(s.noise_step):
+        of_step = s.noise_step == step
+        e, level = s.noise_diff[of_step], s.noise_level[of_step]
+        if e.size < MIN_NOISE_PAIRS:
+            continue
+        near = level <= black_level + SUPPORT_DN
+        if np.count_nonzero(near) < MIN_NOISE_PAIRS:
+            near = level <= np.partition(level, MIN_NOISE_PAIRS - 1)[MIN_NOISE_PAIRS - 1]
+        found.append(math.sqrt(_clipped_mean_square(e[near]) / 4.0))
+    return min(found) if found else None
 
 
 def _clipped_mean_square(x: np.ndarray, k: float = 3.0, iterations: int = 5) -> float:
@@ -141,9 +147,11 @@ def simex_black_level(s: QuietSamples, sigma: float, seed: int = 0) -> tuple[flo
 
 
 def samples_with_noise(pair: FramePair, taken_off: float) -> QuietSamples:
-    """black_level.quiet_samples of the pair with its neighbour_differences attached."""
-    diff, level = neighbour_differences(pair, taken_off)
-    return dataclasses.replace(quiet_samples(pair, taken_off), noise_diff=diff, noise_level=level)
+    """black_level.quiet_samples of the pair with its neighbour_differences 1 and 2 pixels apart attached."""
+    parts = [neighbour_differences(pair, taken_off, step) for step in (1, 2)]
+    return dataclasses.replace(quiet_samples(pair, taken_off), noise_diff=np.concatenate([d for d, _ in parts]),
+                               noise_level=np.concatenate([v for _, v in parts]),
+                               noise_step=np.repeat([1.0, 2.0], [d.size for d, _ in parts]))
 
 
 def noise_corrected(s: QuietSamples, black_level: float) -> tuple[float, float | None]:

@@ -12,7 +12,8 @@ import pytest
 import edi_live.contrast as contrast
 import edi_live.edi as edi
 from edi_live.contrast.black_level import QuietSamples
-from edi_live.contrast.black_level_noise import neighbour_differences, read_noise_dn, simex_black_level
+from edi_live.contrast.black_level_noise import (neighbour_differences, read_noise_dn, samples_with_noise,
+                                                 simex_black_level)
 from edi_live.datatypes import EVENT_DTYPE
 
 H, W = 60, 80
@@ -26,12 +27,17 @@ def _smooth_field(rng: np.random.Generator, lo: float, hi: float) -> np.ndarray:
     return lo + (hi - lo) * f
 
 
-def _pair(sigma: float, rng: np.random.Generator, black: float = 0.0, events_in: np.ndarray | None = None):
-    """Two 8-bit frames of one smooth scene whose log intensity changes by up to +-0.1 between them (a
+def _pair(sigma: float, rng: np.random.Generator, black: float = 0.0, events_in: np.ndarray | None = None,
+          bayer: bool = False, change: float = 0.1):
+    """Two 8-bit frames of one smooth scene whose log intensity changes by up to +-`change` between them (a
     sub-threshold change, no events), with Gaussian noise `sigma` DN; pixels in `events_in` get one ON event
-    between the frames and a large change (an edge moved there)."""
-    light = _smooth_field(rng, 15.0, 200.0)
-    change = np.exp(_smooth_field(rng, -0.1, 0.1))
+    between the frames and a large change (an edge moved there). `bayer`: seen through an RGGB mosaic whose
+    red and blue pixels get 0.4 and 1.6 times the green light."""
+    light = _smooth_field(rng, 15.0, 120.0)
+    if bayer:
+        light[0::2, 0::2] *= 0.4
+        light[1::2, 1::2] *= 1.6
+    change = np.exp(_smooth_field(rng, -change, change))
     second = light * change
     if events_in is not None:
         second = np.where(events_in, light * 3.0, second)
@@ -51,10 +57,21 @@ def _pair(sigma: float, rng: np.random.Generator, black: float = 0.0, events_in:
 def test_the_read_noise_is_measured_apart_from_the_scene_change(sigma):
     rng = np.random.default_rng(int(sigma * 10) + 1)
     diff, level = neighbour_differences(_pair(sigma, rng), 0.0)
-    s = QuietSamples(np.zeros(0), np.zeros(0), np.zeros(0), diff, level)
+    s = QuietSamples(np.zeros(0), np.zeros(0), np.zeros(0), diff, level, np.ones(diff.size))
     expected = math.sqrt(sigma ** 2 + 1.0 / 12.0)  # the 8-bit rounding is noise too
     got = read_noise_dn(s, 0.0)
     assert got == pytest.approx(expected, rel=0.2, abs=0.15)
+
+
+def test_a_bayer_mosaic_is_measured_on_same_colour_neighbours():
+    rng = np.random.default_rng(3)
+    s = samples_with_noise(_pair(1.0, rng, bayer=True, change=0.3), 0.0)
+    direct = s.noise_step == 1  # direct neighbours differ in colour: their changes differ by the texture
+    alone = QuietSamples(np.zeros(0), np.zeros(0), np.zeros(0), s.noise_diff[direct], s.noise_level[direct],
+                         s.noise_step[direct])
+    expected = math.sqrt(1.0 + 1.0 / 12.0)
+    assert read_noise_dn(alone, 0.0) > 1.3 * expected  # what direct neighbours alone would say
+    assert read_noise_dn(s, 0.0) == pytest.approx(expected, rel=0.2)
 
 
 def test_pixels_with_events_do_not_enter_the_noise_sample():
@@ -63,7 +80,7 @@ def test_pixels_with_events_do_not_enter_the_noise_sample():
     moved[:, ::3] = True  # every third column: an edge passed (large change, one event)
     pair = _pair(1.0, rng, events_in=moved)
     diff, level = neighbour_differences(pair, 0.0, keep=10 ** 6)
-    s = QuietSamples(np.zeros(0), np.zeros(0), np.zeros(0), diff, level)
+    s = QuietSamples(np.zeros(0), np.zeros(0), np.zeros(0), diff, level, np.ones(diff.size))
     still = ~moved
     assert diff.size == np.count_nonzero(still[:, :-1] & still[:, 1:]) + np.count_nonzero(still[:-1] & still[1:])
     assert read_noise_dn(s, 0.0) == pytest.approx(math.sqrt(1.0 + 1.0 / 12.0), rel=0.2)

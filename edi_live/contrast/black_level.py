@@ -16,6 +16,9 @@ without such pixels the profile is flat and its minimum is set by how that error
 (which a scene of few flat grey levels, such as blocks, does not average out): an estimate is only as good as its
 support, the moving quiet pixels whose darker frame lies within `SUPPORT_DN` of it.
 
+APS noise biases the minimum low (a dark pixel's log ratio gets noisier as b grows); black_level_noise.py measures
+the noise and corrects an estimate for it.
+
 A power-law APS response is not identified this way: it scales every log ratio alike and folds into c.
 """
 

@@ -5,15 +5,18 @@ samples of recent frame pairs, when an estimate is due, whether it carries infor
 whose median is the black level. A given value (flag, TOML key, saved calibration) is never replaced.
 
 Rules: every pair adds its quiet pixels to a pool of the last `pool_pairs` pairs. At start-up an estimate is due
-once the pool holds `min_pairs` pairs and `min_pixels` pixels, and again each time it has grown by that much
-until it is full (a single pair is too noisy: +-3 DN on the simulator); after that every `recheck_every` pairs.
+once the pool holds `min_pairs` pairs and `min_pixels` pixels (a single pair is too noisy: +-3 DN on the simulator),
+and again on every `startup_step`-th pair after that until it is full; after that every `recheck_every` pairs.
 An estimate is kept only when its cost beats the values 4 DN either side by `info_z` standard error(s) and dark
 pixels support it (at least `min_support` moving quiet pixels, and `support_fraction` of them, have their darker
 frame within black_level.SUPPORT_DN of it: without such pixels the profile's z measures the scene's texture, not
 the black level; the ideal 'blocks' scene gave 9 DN at z 2.9 with 31 of 1916); it enters a history of `history`
 estimates whose median is the black level. An estimate of at most `zero_below_dn` enters as 0 DN: that is the
 fit's systematic error on supported scenes (2-3 DN on the ideal astronaut scene, -1 to -2 on the camera scene with
-10 DN), and 0 is what DV's 8-bit frames reach.
+10 DN), and 0 is what DV's 8-bit frames reach. An estimate above that is first corrected for the APS noise
+(contrast/black_level_noise.py: the noise measured on neighbouring event-free pixels, then SIMEX), which pulls the
+profile's minimum low (10 DN was found as 7 with 1 DN RMS noise); the pairs' noise samples are taken only while
+the pool fills and in the `pool_pairs` pairs before a recheck.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ import numpy as np
 
 from edi_live.contrast import FramePair
 from edi_live.contrast.black_level import QuietSamples, fit_black_level, quiet_samples
+from edi_live.contrast.black_level_noise import noise_corrected, samples_with_noise
 
 MAX_BLACK_DN = 60.0  # estimates are searched on [0, this]; a larger offset is not a black level but a setting
 
@@ -34,12 +38,14 @@ class BlackLevelSettings:
     pool_pairs: int = 12
     min_pairs: int = 2
     min_pixels: int = 300
+    startup_step: int = 1  # until the pool is full, an estimate on every new pair after the first `min_pairs`
     recheck_every: int = 100  # once the pool is full; a fit costs ~15 ms at 240x180 and the black level is steady
     info_z: float = 2.5
     min_support: int = 50
     support_fraction: float = 0.05
     zero_below_dn: float = 3.0
     history: int = 3
+    noise_correction: bool = True  # correct a kept estimate for the APS noise (contrast/black_level_noise.py)
 
 
 class BlackLevelPolicy:
@@ -63,7 +69,10 @@ class BlackLevelPolicy:
     def update(self, pair: FramePair | None, taken_off: float) -> float | None:
         if self.given is not None or pair is None:
             return None
-        self._pool.append(quiet_samples(pair, taken_off))
+        # the noise sample costs a few ms a pair: taken only from the pairs the next estimate will pool
+        soon = len(self._pool) < self._pool.maxlen or self._since >= self.settings.recheck_every - self._pool.maxlen
+        noise = self.settings.noise_correction and soon
+        self._pool.append(samples_with_noise(pair, taken_off) if noise else quiet_samples(pair, taken_off))
         self._since += 1
         startup = due = bool(self._startup_marks and len(self._pool) >= self._startup_marks[0])
         if due:
@@ -92,7 +101,12 @@ class BlackLevelPolicy:
             return None
         if startup:  # a start-up estimate saw more pairs than the one before: it supersedes it
             self._history.clear()
-        self._history.append(fit.black_level if fit.black_level > self.settings.zero_below_dn else 0.0)
+        value = fit.black_level
+        if self.settings.noise_correction and value > self.settings.zero_below_dn:
+            corrected, sigma = noise_corrected(samples, fit.black_level)
+            value = float(min(max(round(corrected), 0.0), MAX_BLACK_DN))
+            self.last_fit.update(corrected=value, noise_dn=None if sigma is None else round(sigma, 2))
+        self._history.append(value if value > self.settings.zero_below_dn else 0.0)
         new = float(np.median(self._history))
         self.last_fit["decision"] = "update"
         if new == self.value:
@@ -102,5 +116,5 @@ class BlackLevelPolicy:
 
     def _startup_schedule(self) -> list[int]:
         s = self.settings
-        marks = list(range(max(1, s.min_pairs), max(1, s.pool_pairs) + 1, max(1, s.min_pairs)))
+        marks = list(range(max(1, s.min_pairs), max(1, s.pool_pairs) + 1, max(1, s.startup_step)))
         return marks or [1]

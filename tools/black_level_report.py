@@ -1,6 +1,7 @@
 """What the APS black-level estimate does on the accuracy benchmark's scenes: per scene the true black level, the
-value the reconstructor ends with when it estimates it (black_level=None), and its last fit (the profile's z, the
-moving quiet pixels near the estimate that support it, the policy's decision). Also a few variants of the camera
+value the reconstructor ends with when it estimates it (black_level=None), and its last fit (the profile's minimum,
+that value corrected for the APS noise and the noise measured, the profile's z, the moving quiet pixels near the
+estimate that support it, the policy's decision). Also a few variants of the camera
 and blocks scenes with a 10 DN black level and read noise. Documents docs/calibration.md's black-level findings.
 
     python -m tools.black_level_report [--quick]
@@ -54,11 +55,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="the benchmark's quick scene lists")
     args = ap.parse_args(argv)
-    print("| scene | true (DN) | estimate (DN) | last fit | z | support / moving | decision |")
-    print("|---|---:|---:|---:|---:|---:|---|")
+    print("| scene | true (DN) | estimate (DN) | last fit | noise-corrected | APS noise (DN) | z | support / moving | "
+          "decision |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---|")
     for label, cfg in scenes(args.quick):
         value, fit = estimate(cfg)
-        print(f"| {label} | {cfg.aps_offset_dn:g} | {value:g} | {fit.get('black_level', '-')} | {fit.get('z', '-')} | "
+        print(f"| {label} | {cfg.aps_offset_dn:g} | {value:g} | {fit.get('black_level', '-')} | "
+              f"{fit.get('corrected', '-')} | {fit.get('noise_dn', '-')} | {fit.get('z', '-')} | "
               f"{fit.get('support', '-')} / {fit.get('moving', '-')} | {fit.get('decision', '-')} |", flush=True)
     return 0
 

@@ -16,13 +16,16 @@ without such pixels the profile is flat and its minimum is set by how that error
 (which a scene of few flat grey levels, such as blocks, does not average out): an estimate is only as good as its
 support, the moving quiet pixels whose darker frame lies within `SUPPORT_DN` of it.
 
+APS noise biases the minimum low (a dark pixel's log ratio gets noisier as b grows); black_level_noise.py measures
+the noise and corrects an estimate for it.
+
 A power-law APS response is not identified this way: it scales every log ratio alike and folds into c.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -38,11 +41,15 @@ SUPPORT_DN = 30.0  # a moving quiet pixel supports an estimate b when its darker
 @dataclass(frozen=True)
 class QuietSamples:
     """Raw APS values (8-bit DN, black level not taken off) of quiet pixels in two frames and the net event count
-    between them (flat float64 arrays of one length)."""
+    between them (flat float64 arrays of one length). `noise_diff` / `noise_level`: a sample of the APS noise
+    (black_level_noise.neighbour_differences), one entry per pair of neighbouring event-free pixels."""
 
     b_prev: np.ndarray
     b_cur: np.ndarray
     net: np.ndarray
+    noise_diff: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    noise_level: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    noise_step: np.ndarray = field(default_factory=lambda: np.zeros(0))  # how far apart the two pixels are
 
     @property
     def size(self) -> int:
@@ -51,7 +58,7 @@ class QuietSamples:
     @staticmethod
     def join(parts: "list[QuietSamples]") -> "QuietSamples":
         return QuietSamples(*(np.concatenate([getattr(p, k) for p in parts]) if parts else np.zeros(0)
-                              for k in ("b_prev", "b_cur", "net")))
+                              for k in ("b_prev", "b_cur", "net", "noise_diff", "noise_level", "noise_step")))
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from edi_live.edi._kernels_stream import _u8
+from edi_live.edi._kernels_stream import _clip, _u8
 
 
 @njit(cache=True, nogil=True)
@@ -23,10 +23,7 @@ def propagate_steps(x, y, p, width, height, mask, use_mask, flat, step_on, step_
         if use_mask and mask[q]:
             continue
         v = flat[q] + (step_on[q] if p[i] else step_off[q])
-        if v < lo:
-            v = lo
-        elif v > hi:
-            v = hi
+        v = _clip(v, lo, hi)
         flat[q] = v
         disp[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)
 
@@ -62,10 +59,7 @@ def plan_pixels(r0, r1, e01, mass, inf0, inf1, a, c_on, c_off, lo, hi, start, st
             share = d / (mass[q] + a)
         elif inf1[q]:  # only frame k+1 informative: it is taken whole
             s = s + d
-        if s < lo:
-            s = lo
-        elif s > hi:
-            s = hi
+        s = _clip(s, lo, hi)
         start[q] = s
         start_u8[q] = _u8(s, v0, scale, bucket_u8, bucket_thr)
         step_on[q] = c_on * (one + share)
@@ -81,10 +75,7 @@ def shift_time(flat, term, dtau, lo, hi, disp, v0, scale, bucket_u8, bucket_thr)
         if t == 0.0:
             continue
         v = flat[q] + dtau * t
-        if v < lo:
-            v = lo
-        elif v > hi:
-            v = hi
+        v = _clip(v, lo, hi)
         flat[q] = v
         disp[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)
 
@@ -100,10 +91,7 @@ def render_frames(x, y, p, tt, pos, width, height, mask, use_mask, frames, dtau,
     if init_disp:
         for q in range(flat.size):
             w = flat[q] + res[q]
-            if w < lo:
-                w = lo
-            elif w > hi:
-                w = hi
+            w = _clip(w, lo, hi)
             disp[q] = _u8(w, v0, scale, bucket_u8, bucket_thr)
     for j in range(n):
         t_j = frames[j]
@@ -116,16 +104,10 @@ def render_frames(x, y, p, tt, pos, width, height, mask, use_mask, frames, dtau,
             if use_mask and mask[q]:
                 continue
             v = flat[q] + (step_on[q] if p[i] else step_off[q])
-            if v < lo:
-                v = lo
-            elif v > hi:
-                v = hi
+            v = _clip(v, lo, hi)
             flat[q] = v
             v = v + res[q]
-            if v < lo:
-                v = lo
-            elif v > hi:
-                v = hi
+            v = _clip(v, lo, hi)
             disp[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)
         if dtau[j] != 0.0:
             for q in range(flat.size):
@@ -133,26 +115,17 @@ def render_frames(x, y, p, tt, pos, width, height, mask, use_mask, frames, dtau,
                 if k == 0.0:
                     continue
                 v = flat[q] + dtau[j] * k
-                if v < lo:
-                    v = lo
-                elif v > hi:
-                    v = hi
+                v = _clip(v, lo, hi)
                 flat[q] = v
                 v = v + res[q]
-                if v < lo:
-                    v = lo
-                elif v > hi:
-                    v = hi
+                v = _clip(v, lo, hi)
                 disp[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)
         for k in range(offsets[j], offsets[j + 1]):
             q = q_sorted[k]
             r = v_sorted[k]
             res[q] = r
             w = flat[q] + r
-            if w < lo:
-                w = lo
-            elif w > hi:
-                w = hi
+            w = _clip(w, lo, hi)
             disp[q] = _u8(w, v0, scale, bucket_u8, bucket_thr)
         for q in range(disp.size):  # an explicit loop: numba's slice assignment copies ~8x slower
             out[j, q] = disp[q]

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from edi_live.edi._kernels_stream import _u8
+from edi_live.edi._kernels_stream import _clip, _u8
 
 
 @njit(cache=True, nogil=True)
@@ -107,10 +107,7 @@ def render_with(flat, res, active, lo, hi, disp, v0, scale, bucket_u8, bucket_th
     for k in range(active.size):
         q = active[k]
         v = flat[q] + res[q]
-        if v < lo:
-            v = lo
-        elif v > hi:
-            v = hi
+        v = _clip(v, lo, hi)
         disp[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)
 
 
@@ -134,8 +131,5 @@ def residual_paint(t, active, last_t, last_c, next_t, next_c, table_a, table_b, 
                 r = table_a[i] * ca + table_b[i] * next_c[q]
         out[q] = r
         v = flat[q] + r
-        if v < lo:
-            v = lo
-        elif v > hi:
-            v = hi
+        v = _clip(v, lo, hi)
         disp[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)

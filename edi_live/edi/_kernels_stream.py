@@ -23,10 +23,7 @@ def propagate(x, y, p, width, height, mask, use_mask, flat, d_on, d_off, lo, hi,
             continue
         on = p[i]
         v = flat[q] + (d_on if on else d_off)
-        if v < lo:
-            v = lo
-        elif v > hi:
-            v = hi
+        v = _clip(v, lo, hi)
         flat[q] = v
         if use_disp:
             z = gain * math.exp(min(v, 6.0)) + 0.5
@@ -179,6 +176,16 @@ def divisor_finish(width, height, ts, te, c, count_all, use_count_all, state, se
         r += 1
     return pixels, log_d, delta_end
 
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _clip(v, lo, hi):
+    """v held within [lo, hi] (the log-intensity state's bounds)."""
+    if v < lo:
+        return lo
+    if v > hi:
+        return hi
+    return v
 
 
 @njit(cache=True, nogil=True)

@@ -13,19 +13,26 @@ from numba import njit
 from edi_live.edi._kernels_stream import _clip, _u8
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _step(i, x, y, p, width, height, mask, use_mask, flat, step_on, step_off, lo, hi):
+    """Event i moves its pixel's flat[q] by the pixel's ON or OFF step; returns q, or -1 for an event off the
+    sensor or masked."""
+    if x[i] >= width or y[i] >= height:
+        return -1
+    q = np.int64(y[i]) * width + x[i]
+    if use_mask and mask[q]:
+        return -1
+    flat[q] = _clip(flat[q] + (step_on[q] if p[i] else step_off[q]), lo, hi)
+    return q
+
+
 @njit(cache=True, nogil=True)
 def propagate_steps(x, y, p, width, height, mask, use_mask, flat, step_on, step_off, lo, hi, disp, v0, scale,
                     bucket_u8, bucket_thr):
     for i in range(x.size):
-        if x[i] >= width or y[i] >= height:
-            continue
-        q = np.int64(y[i]) * width + x[i]
-        if use_mask and mask[q]:
-            continue
-        v = flat[q] + (step_on[q] if p[i] else step_off[q])
-        v = _clip(v, lo, hi)
-        flat[q] = v
-        disp[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)
+        q = _step(i, x, y, p, width, height, mask, use_mask, flat, step_on, step_off, lo, hi)
+        if q >= 0:
+            disp[q] = _u8(flat[q], v0, scale, bucket_u8, bucket_thr)
 
 
 @njit(cache=True, nogil=True)
@@ -96,19 +103,10 @@ def render_frames(x, y, p, tt, pos, width, height, mask, use_mask, frames, dtau,
     for j in range(n):
         t_j = frames[j]
         while pos < tt.size and tt[pos] <= t_j:
-            i = pos
+            q = _step(pos, x, y, p, width, height, mask, use_mask, flat, step_on, step_off, lo, hi)
             pos += 1
-            if x[i] >= width or y[i] >= height:
-                continue
-            q = np.int64(y[i]) * width + x[i]
-            if use_mask and mask[q]:
-                continue
-            v = flat[q] + (step_on[q] if p[i] else step_off[q])
-            v = _clip(v, lo, hi)
-            flat[q] = v
-            v = v + res[q]
-            v = _clip(v, lo, hi)
-            disp[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)
+            if q >= 0:
+                disp[q] = _u8(_clip(flat[q] + res[q], lo, hi), v0, scale, bucket_u8, bucket_thr)
         if dtau[j] != 0.0:
             for q in range(flat.size):
                 k = term[q]

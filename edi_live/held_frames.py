@@ -55,5 +55,7 @@ def render_fused(rec: Reconstructor, ring: EventRing, hold, ref_f_us: int, frame
     (log0, f0), image0 = previous
     # context before f0 (the residual estimate needs each pixel's last event, unless the last pair's pass carries
     # on) and what arrived after f1 (its next event after a time): edi_live.edi.residual_schedule
-    events = ring.window(rec.fused_events_from(f0, ref_f_us), frame.exposure_end_us + 1, end_index=ring.read_index)
+    # every time here is in the event clock: the frame's exposure end is moved by the offset that placed ref_f_us
+    end = ref_f_us + (frame.exposure_end_us - frame.mid_exposure_us) + 1
+    events = ring.window(rec.fused_events_from(f0, ref_f_us), end, end_index=ring.read_index)
     return _stamped(rec.render_fused((log0, f0), image0, frame.image, [t for t, _ in done], events), done, hold)

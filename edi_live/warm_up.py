@@ -89,5 +89,29 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
         activity = SceneActivity(width, height)
         activity.update(events[:10])
         activity.update(events[10:11])
+        # the prediction figure's frame average and the black-level profile (their first fits come frames later)
+        from edi_live.contrast import _kernels_black_level
+        from edi_live.hold_average import hold_average
+
+        hold_average([image, image], [1, 1], 2)
+        b = np.linspace(5.0, 200.0, 64)
+        _kernels_black_level.profile_point(b, b + 1.0, np.ones(64), 2.0, 0.5, 5, 50.0)
     except Exception:  # noqa: BLE001 - warm-up only; see docstring
         log.debug("kernel warm-up failed", exc_info=True)
+
+
+def compiled_signatures() -> dict[str, set[str]]:
+    """Each numba kernel's compiled argument-type signatures so far, across the packages (edi_live.edi's own
+    kernels and the compiled parts of the calibration and the prediction figure): what a warm-up must cover."""
+    from edi_live import edi, hold_average
+    from edi_live.contrast import _kernels_black_level
+    from edi_live.edi import _kernels_residual
+
+    found = edi.compiled_signatures()
+    for module in (_kernels_residual, _kernels_black_level, hold_average):
+        for name, fn in vars(module).items():
+            signatures = getattr(fn, "signatures", None)
+            if signatures is not None:
+                found[f"{module.__name__.rsplit('.', 1)[-1]}.{name}"] = set(map(str, signatures))
+    return found
+

@@ -259,10 +259,9 @@ def test_edi_kernels_are_warmed_up_before_the_source_starts(real_recordings):
 _NO_NEW_KERNELS = r"""
 import sys
 from edi_live.cli import main
-from edi_live.edi import compiled_signatures
 from edi_live.config import EdiConfig
 from edi_live.node import default_reconstructor
-from edi_live.warm_up import warm_up
+from edi_live.warm_up import compiled_signatures, warm_up
 
 def kernels():
     return compiled_signatures()

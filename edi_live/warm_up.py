@@ -105,10 +105,9 @@ def compiled_signatures() -> dict[str, set[str]]:
     kernels and the compiled parts of the calibration and the prediction figure): what a warm-up must cover."""
     from edi_live import edi, hold_average
     from edi_live.contrast import _kernels_black_level
-    from edi_live.edi import _kernels_residual
 
     found = edi.compiled_signatures()
-    for module in (_kernels_residual, _kernels_black_level, hold_average):
+    for module in (_kernels_black_level, hold_average):
         for name, fn in vars(module).items():
             signatures = getattr(fn, "signatures", None)
             if signatures is not None:

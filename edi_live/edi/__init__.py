@@ -29,7 +29,8 @@ Modules: selection (time windows, pixel picks, counts), levels (level table, log
 integral of an exposure accumulated while its events arrive).
 """
 
-from edi_live.edi import _kernels_fused, _kernels_levels, _kernels_pixels, _kernels_schedule, _kernels_stream
+from edi_live.edi import (_kernels_fused, _kernels_levels, _kernels_pixels, _kernels_residual, _kernels_schedule,
+                          _kernels_stream)
 from edi_live.edi._backend import (DARK_FLOOR, LEVEL_CAP, LOG_MAX, LOG_MIN, have_numba, numpy_reference)
 from edi_live.edi.deblur import ApsResponse, blurry_to_float, deblur, deblur_log, finish_frame_u8, log_divisor_events
 from edi_live.edi.fused import (RESIDUAL_SPAN, FusedPropagator, FusionPlan, event_mass, forward_plan, fused_frames,
@@ -51,7 +52,8 @@ def compiled_signatures() -> dict[str, set[str]]:
     """Each kernel's compiled argument-type signatures so far (to check that a warm-up covered what a run needs:
     a kernel met with new argument types compiles on the spot, which stalls a stream)."""
     found = {}
-    for module in (_kernels_fused, _kernels_levels, _kernels_pixels, _kernels_schedule, _kernels_stream):
+    for module in (_kernels_fused, _kernels_levels, _kernels_pixels, _kernels_residual, _kernels_schedule,
+                   _kernels_stream):
         for name, fn in vars(module).items():
             signatures = getattr(fn, "signatures", None)
             if signatures is not None:

@@ -28,8 +28,11 @@ def _add_scaled(acc: np.ndarray, image: np.ndarray, weight: int) -> None:
 def hold_average(images: Sequence[np.ndarray], holds: Sequence[int], span: int) -> np.ndarray:
     """Σ images[j] * holds[j] / span over uint8 images of one shape (holds in µs, summing to `span` > 0 when the
     images cover the window): float32 when exact in it, else float64."""
+    if not images or len(holds) != len(images):
+        raise ValueError(f"hold_average needs one hold per image and at least one image (got {len(images)} "
+                         f"images, {len(holds)} holds)")
     shape = images[0].shape
-    acc_type = np.int32 if span <= INT32_SPAN_US else np.int64
+    acc_type = np.int32 if max(span, sum(holds)) <= INT32_SPAN_US else np.int64  # the sum never wraps
     acc = np.zeros(int(np.prod(shape)), acc_type)
     for image, hold in zip(images, holds):
         _add_scaled(acc, np.ascontiguousarray(image).reshape(-1), acc_type(hold))

@@ -114,6 +114,7 @@ class EdiReconstructor(ReconstructorView):
         twin._tracker = twin._flicker = twin._calib = None  # the original finds pairs and flicker in them later
         twin._clock = self._clock.frozen()  # its events reach the original's on_events later
         twin._streamer = True
+        twin._carry = edi.ResidualCarry()  # the carry's scratch belongs to the original's thread
         return twin
 
     def on_frame(self, frame: Frame, events: np.ndarray, arrival_ns: int = 0) -> Reconstruction:

@@ -72,7 +72,9 @@ class ResidualCarry:
 @dataclass(frozen=True)
 class ResidualChanges:
     """held0/held1: the residual the references hold (H, W) float32; `start`: the estimate before frame 0 (flat
-    float32); frame j's changes: pixels q[offsets[j]:offsets[j + 1]] take values v[...] (flat indices)."""
+    float32); frame j's changes: pixels q[offsets[j]:offsets[j + 1]] take values v[...] (flat indices). With a
+    carry, q and v are views of its scratch memory: valid until the next residual_changes call with that carry
+    (the caller renders the pair's frames first; copying them would cost ~0.2 ms a pair)."""
 
     held0: np.ndarray
     held1: np.ndarray

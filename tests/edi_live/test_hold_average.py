@@ -1,6 +1,7 @@
 """hold_average against a float64 numpy sum, exactness on constant images, and the wide-window integer path."""
 
 import numpy as np
+import pytest
 
 from edi_live.hold_average import FLOAT32_EXACT_SPAN_US, INT32_SPAN_US, hold_average
 
@@ -40,3 +41,14 @@ def test_non_contiguous_images():
     view = base[:, ::2]
     out = hold_average([view, view], [1, 3], 4)
     np.testing.assert_array_equal(out, view.astype(np.float32))
+
+
+def test_holds_longer_than_the_span_do_not_wrap_around():
+    image = np.full((2, 2), 255, np.uint8)
+    out = hold_average([image], [INT32_SPAN_US + 5], INT32_SPAN_US)  # a sum beyond int32
+    np.testing.assert_allclose(out, 255.0 * (INT32_SPAN_US + 5) / INT32_SPAN_US)
+
+
+def test_no_image_is_an_error_not_an_index_error():
+    with pytest.raises(ValueError, match="at least one image"):
+        hold_average([], [], 10)

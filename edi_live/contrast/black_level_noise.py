@@ -34,6 +34,7 @@ MIN_NOISE_PAIRS = 50  # neighbour pairs needed for a read-noise estimate
 SIMEX_LAMBDAS = (1.0, 2.0)
 SIMEX_DRAWS = 4
 SIMEX_RANGE = (-20.0, 60.0)  # a noisy fit may put b below 0: the trend in lambda must not be cut off there
+SIMEX_MAX_SAMPLES = 30_000  # ~9 profile searches each: ~40 ms at 10k samples, ~0.5 s at 100k
 
 
 def neighbour_differences(pair: FramePair, taken_off: float, step: int = 1, b_low: float = 3.0,
@@ -127,6 +128,7 @@ def simex_black_level(s: QuietSamples, sigma: float, seed: int = 0) -> tuple[flo
     """(the noise-free extrapolation of the profile's minimum, the minima at lambda = 0, 1, 2) for APS noise
     `sigma`; the samples' |N| selection is the caller's (fit_black_level's)."""
     rng = np.random.default_rng(seed)
+    s = _capped(s, SIMEX_MAX_SAMPLES, rng)
     b0 = profile_minimum(s.b_prev, s.b_cur, s.net)
     # added noise only lowers the minimum: search below b0 first (a third of the grid), the whole range if it
     # ends on the window's edge
@@ -144,6 +146,17 @@ def simex_black_level(s: QuietSamples, sigma: float, seed: int = 0) -> tuple[flo
         xs.append(lam)
         ys.append(float(np.mean([noisy_minimum(math.sqrt(lam) * sigma) for _ in range(SIMEX_DRAWS)])))
     return float(np.polyval(np.polyfit(xs, ys, 2), -1.0)), ys
+
+
+def _capped(s: QuietSamples, cap: int, rng: np.random.Generator) -> QuietSamples:
+    """At most `cap` samples: every moving one (they carry the black level) and a random share of the others."""
+    if s.size <= cap:
+        return s
+    moving = np.flatnonzero(s.net != 0)
+    still = np.flatnonzero(s.net == 0)
+    keep = np.sort(np.concatenate([moving, rng.choice(still, max(0, min(still.size, cap - moving.size)),
+                                                      replace=False)]))
+    return QuietSamples(s.b_prev[keep], s.b_cur[keep], s.net[keep])
 
 
 def samples_with_noise(pair: FramePair, taken_off: float) -> QuietSamples:

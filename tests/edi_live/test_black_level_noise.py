@@ -103,3 +103,19 @@ def test_simex_undoes_the_noise_bias_of_the_profile():
     assert steps[2] < steps[1] < raw  # more noise, lower minimum: the bias being undone
     assert abs(corrected - black) < abs(raw - black)
     assert abs(corrected - black) <= 2.0, (raw, corrected)
+
+
+def test_the_noise_correction_works_on_a_capped_sample_that_keeps_every_moving_pixel():
+    """A large pool (a still, mostly event-free sensor) is cut to SIMEX_MAX_SAMPLES before the correction's ~9
+    profile searches: all pixels with a net count stay (they carry the black level), the rest are sampled."""
+    from edi_live.contrast.black_level import QuietSamples
+    from edi_live.contrast.black_level_noise import _capped
+
+    rng = np.random.default_rng(0)
+    n = 100_000
+    net = np.where(rng.random(n) < 0.05, rng.integers(-3, 4, n), 0).astype(np.float64)
+    s = QuietSamples(rng.uniform(3, 250, n), rng.uniform(3, 250, n), net)
+    capped = _capped(s, 30_000, np.random.default_rng(1))
+    assert capped.size == 30_000
+    assert np.count_nonzero(capped.net) == np.count_nonzero(net)
+    assert _capped(s, n, np.random.default_rng(1)) is s

@@ -55,7 +55,8 @@ def feed_worker(sim: Simulation, mode: str, every: int, c: tuple[float, float] |
     cfg = sim.config
     mode, residual = mode.split("+")[0], mode.endswith("+residual")
     ring = EventRing(capacity_events=1 << 22, capacity_frames=64, policy="wait")
-    settings = {"fused_residual": residual, "mask_flicker_pixels": mode != "fused"}  # the node's defaults per mode
+    # "fused" is --no-fused-residual, "fused+residual" the node's fused default; the flicker mask as the node sets it
+    settings = {"fused_residual": residual, "mask_flicker_pixels": mode != "fused"}
     rec = (EdiReconstructor(cfg.width, cfg.height, c_on=c[0], c_off=c[1], **settings) if c is not None
            else EdiReconstructor(cfg.width, cfg.height, joint_pairs=joint_pairs, **settings))
     out: list = []

@@ -276,8 +276,8 @@ def filled():
     ring = EventRing(1 << 26, 1 << 14, "wait")
     with src:
         for packet in src:
-            if packet is not None:
-                ring.push(packet)
+            if packet is not None and not ring.push(packet, timeout_s=1.0):
+                sys.exit("the recording does not fit the ring (2**26 events, 2**14 frames): fewer --passes")
             if passes > 1 and src.loops >= passes:
                 break
     ring.close()
@@ -304,7 +304,7 @@ def worker_ab(runs: dict[str, tuple[Path, dict]], path: Path, every: int, repeat
         for name in (names if i % 2 == 0 else names[::-1]):
             cwd, extra = runs[name]
             out = subprocess.run([sys.executable, "-c", _WORKER_CHILD, str(path), str(every), str(passes),
-                                  json.dumps(extra)], cwd=cwd, capture_output=True, text=True)
+                                  json.dumps(extra)], cwd=cwd, capture_output=True, text=True, timeout=1800)
             if out.returncode != 0:
                 raise SystemExit(f"{name} run failed:\n{out.stderr[-2000:]}")
             got = json.loads(out.stdout.strip().splitlines()[-1])
@@ -345,8 +345,9 @@ def main(argv: list[str] | None = None) -> int:
             profile(path, args.every, {"c": args.c} if args.c else {}, args.top)
     elif args.mode == "worker":
         here = Path(__file__).resolve().parent.parent
-        runs = ({"old": (args.other.resolve(), {}), "new": (here, {})} if args.other is not None else
-                {"calibration off": (here, CALIBRATION_OFF), "calibration on": (here, {})})
+        given = {"c": args.c} if args.c else {}
+        runs = ({"old": (args.other.resolve(), given), "new": (here, given)} if args.other is not None else
+                {"calibration off": (here, {**CALIBRATION_OFF, **given}), "calibration on": (here, given)})
         for path in args.input:
             worker_ab(runs, path.resolve(), args.every, args.repeat, args.passes)
     elif args.mode == "split":

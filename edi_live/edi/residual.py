@@ -167,7 +167,7 @@ class ResidualTracker:
 
 def exposure_residual(tracker: ResidualTracker, t0: int, t1: int, samples: int = 4) -> np.ndarray:
     """The mean residual estimate over `samples` times evenly inside [t0, t1] (the tracker must not be past t0),
-    flat float32, from the events in [t0 - (t1 - t0), t1] only: the same value whichever window holds them."""
+    flat float32, from the events in [t0 - 5 (t1 - t0), t1] only: the same value whichever window holds them."""
     acc = np.zeros_like(tracker.residual)
     seen = (t0 - 5 * (t1 - t0), t1)
     for j in range(samples):

@@ -129,13 +129,13 @@ class Oracle:
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    from tools.bench_accuracy import psnr as _psnr
+    from tools.accuracy_harness import psnr as _psnr
 
     return _psnr(a, b)
 
 
 def ssim(a: np.ndarray, b: np.ndarray) -> float:
-    from tools.bench_accuracy import ssim as _ssim
+    from tools.accuracy_harness import ssim as _ssim
 
     return _ssim(a, b)
 
@@ -222,7 +222,7 @@ def cost_ratio(sim: Simulation, every: int, repeats: int = 5,
 
 
 def modes_suite(quick: bool, realistic: bool):
-    from tools.bench_accuracy import scene_suite
+    from tools.accuracy_harness import scene_suite
     from tools.bench_realistic import realistic_suite
 
     if realistic:

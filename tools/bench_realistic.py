@@ -26,8 +26,7 @@ import time
 import numpy as np
 
 from edi_live.simulation import EFFECTS, SceneConfig, Simulation, linearise_aps, preset, simulate, with_effects
-from tools.bench_accuracy import (Outputs, Score, _edi_on, _texture, run_blurry, run_reconstructor,
-                                  score)
+from tools.accuracy_harness import Outputs, Score, _edi_on, _texture, run_blurry, run_reconstructor, score
 
 def realistic_suite(quick: bool = False) -> list[tuple[str, str, SceneConfig]]:
     """(group, label, config): the realistic-camera scenes. 'mix': scenes with different mixes of effects (the

@@ -17,7 +17,7 @@ import numpy as np
 
 from edi_live.reconstructor import EdiReconstructor
 from edi_live.simulation import SceneConfig, simulate, with_effects
-from tools.bench_accuracy import scene_suite
+from tools.accuracy_harness import scene_suite
 from tools.bench_realistic import realistic_suite
 
 

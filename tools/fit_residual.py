@@ -66,7 +66,7 @@ def rms_after(rows: np.ndarray, table: np.ndarray) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from tools.bench_accuracy import scene_suite
+    from tools.accuracy_harness import scene_suite
 
     ap = argparse.ArgumentParser(prog="python -m tools.fit_residual", description=__doc__.split("\n\n")[0])
     ap.add_argument("--duration", type=float, default=0.2)

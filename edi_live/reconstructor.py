@@ -166,7 +166,7 @@ class EdiReconstructor(ReconstructorView):
                                     pair.cur.informative, self._c(), busy=frame_counts)
             self._mask = self._combined_mask()
             if self._unreliable.count:
-                self._latent.fall_back_to_aps(self._unreliable.mask, img, self._aps, deblurred)
+                self._latent.fall_back_to_aps(self._unreliable.mask, pair.cur.blurry, deblurred)
                 mask = self._mask
         t = events["t"]
         # the events after the point the latent image has reached (te with the f -> te jump, else f); with the

@@ -34,6 +34,7 @@ class ContrastTracker:
         self._not_sample = not_sample.reshape(height, width)
         self._prev: contrast.FrameData | None = None
         self._pairs: collections.deque = collections.deque(maxlen=max(1, history_pairs))
+        self._todo: tuple | None = None  # what complete() needs to finish the latest frame's data
 
     @property
     def pairs(self) -> list[contrast.FramePair]:
@@ -57,34 +58,36 @@ class ContrastTracker:
     def step(self, events: np.ndarray, b: np.ndarray, informative: np.ndarray, window: tuple[int, int, int],
              hot: np.ndarray | None, acc: tuple[np.ndarray, np.ndarray], t_last: int,
              has_reference: bool) -> tuple[contrast.FrameData, contrast.FramePair | None]:
-        """Level table of this frame (on the pixel sample unless the estimator needs the whole image) and the pair
-        with the previous frame. `window` = (ts, te, f); `acc` holds the ON/OFF counts applied since the previous
-        f, up to `t_last`. Returns (this frame's data for the policy, the new pair if one was formed)."""
+        """This frame's data and the pair with the previous frame. `window` = (ts, te, f); `acc` holds the ON/OFF
+        counts applied since the previous f, up to `t_last`. Returns (this frame's data for the policy, the new
+        pair if one was formed). The frame's level table is not built yet: only the policy reads it, so it waits
+        for complete() (frame_calibration calls it after the deblurred frame has left, or at once at start-up)."""
         ts, te, f = window
-        est = self.policy.estimator
         excluded = self._not_sample if hot is None else (self._not_sample | hot)
-        pair_due = self._prev is not None and has_reference
-        counts = None
-        w, h = self.width, self.height
-        if est.needs_full_image:
-            table = edi.build_level_table(events, w, h, ts, te, f, mask=hot, segments=est.separate)
-        else:  # the sample's events first (one cheap pass), so the table build touches only them
-            if pair_due and edi.have_numba() and ts < te:
-                sample, counts = self._sample_and_counts(events, excluded, window, hot, acc, t_last)
-            else:
-                sample = edi.events_at_pixels(events, w, h, ~excluded, ts, te)
-            table = edi.build_level_table(sample, w, h, ts, te, f, segments=est.separate)
-        em = None
-        if est.needs_full_image:
-            em = contrast.event_map(events, w, h, f, ts, te, 0.25 * max(te - ts, 1))
-        cur = contrast.FrameData(b, informative, table, em)
+        cur = contrast.FrameData(b, informative, None)  # type: ignore[arg-type]  # the table: complete()
+        self._todo = (cur, events, window, hot, excluded)
         pair = None
-        if pair_due:
-            n_on, n_off = counts if counts is not None else self._counts_between(events, f, hot, acc, t_last)
+        if self._prev is not None and has_reference:
+            n_on, n_off = self._counts_between(events, f, hot, acc, t_last)
             pair = contrast.FramePair(self._prev, cur, n_on, n_off, excluded.reshape(-1))
             self._pairs.append(pair)
         self._prev = cur
         return cur, pair
+
+    def complete(self) -> None:
+        """The level table (on the pixel sample unless the estimator needs the whole image) and event map of the
+        frame of the latest step(); a no-op when done. Call before the policy reads that frame or its pairs."""
+        if self._todo is None:
+            return
+        (cur, events, (ts, te, f), hot, excluded), self._todo = self._todo, None
+        est = self.policy.estimator
+        w, h = self.width, self.height
+        if est.needs_full_image:
+            cur.table = edi.build_level_table(events, w, h, ts, te, f, mask=hot, segments=est.separate)
+            cur.event_map = contrast.event_map(events, w, h, f, ts, te, 0.25 * max(te - ts, 1))
+        else:  # the sample's events first (one cheap pass), so the table build touches only them
+            sample = edi.events_at_pixels(events, w, h, ~excluded, ts, te)
+            cur.table = edi.build_level_table(sample, w, h, ts, te, f, segments=est.separate)
 
     def _counts_between(self, events: np.ndarray, f: int, hot: np.ndarray | None, acc: tuple[np.ndarray, np.ndarray],
                         t_last: int) -> tuple[np.ndarray, np.ndarray]:
@@ -97,23 +100,6 @@ class ContrastTracker:
         np.maximum(n_on, 0, out=n_on)
         np.maximum(n_off, 0, out=n_off)
         return n_on, n_off
-
-    def _sample_and_counts(self, events: np.ndarray, excluded: np.ndarray, window: tuple[int, int, int],
-                           hot: np.ndarray | None, acc: tuple[np.ndarray, np.ndarray], t_last: int) \
-            -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
-        """The sample's events in [ts, te] and the counts of _counts_between, in one pass."""
-        ts, te, f = window
-        t = events["t"]
-        s0, s1 = edi.time_index(t, ts, "left"), edi.time_index(t, te, "right")
-        t0, t1, sign = _count_range(f, t_last)
-        c0, c1 = (edi.time_index(t, t0, "left"), edi.time_index(t, t1, "right")) if t1 >= t0 else (s0, s0)
-        c1 = max(c0, c1)
-        n_on, n_off = acc[0].copy(), acc[1].copy()
-        idx = edi.sample_and_count(events, self.width, self.height, (~excluded).reshape(-1), (s0, s1), hot,
-                                   (n_on, n_off), (c0, c1), sign)
-        np.maximum(n_on, 0, out=n_on)
-        np.maximum(n_off, 0, out=n_off)
-        return events[idx], (n_on, n_off)
 
 
 def _count_range(f: int, t_last: int) -> tuple[int, int, int]:

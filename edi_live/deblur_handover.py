@@ -1,7 +1,8 @@
 """Deblurring an APS frame off the worker thread: while the original reconstructor computes the new reference on
 the "edi-deblur" helper thread, the worker streams latent frames from a streaming copy that still holds the
-previous reference. The deblurred frame is handed to the worker as soon as on_frame returns (`ready`); the helper
-thread then runs the reconstructor's settle() (the calibration work the frame did not wait for) and only then
+previous reference. The deblurred frame is handed to the worker as soon as on_frame has it (`ready`: on_frame's
+callback, before it readies its state for the events after the frame); the helper thread then finishes on_frame,
+runs the reconstructor's settle() (the calibration work the frame did not wait for) and only then
 (`done`) may the worker adopt the original again, replaying into it the events the copy applied meanwhile
 (`catchup`).
 """
@@ -32,7 +33,7 @@ class PendingDeblur:
         self.result: Reconstruction | None = None
         self.error: BaseException | None = None
         self.deblur_ms = self.settle_ms = 0.0
-        self.ready = threading.Event()  # on_frame returned (result or error); settle() may still be running
+        self.ready = threading.Event()  # the frame (or an error) is out; on_frame and settle() may still run
         self.done = threading.Event()  # settle() returned too: the master may be adopted
         self._claimed = False
         self._wake = wake
@@ -61,14 +62,22 @@ class PendingDeblur:
 
     def _run(self, events: np.ndarray, arrival_ns: int) -> None:
         t0 = time.perf_counter()
-        try:
-            try:
-                self.result = self.master.on_frame(self.entry.frame, events, arrival_ns)
-            except BaseException as exc:  # re-raised on the worker thread when adopted
-                self.error = exc
+
+        def frame_ready(result: Reconstruction) -> None:  # inside on_frame: the frame is complete, its state not
+            self.result = result
             self.deblur_ms = (time.perf_counter() - t0) * 1e3
             self.ready.set()
-            self._wake()  # the worker sends the frame while this thread settles
+            self._wake()  # the worker sends the frame while this thread finishes on_frame and settles
+
+        try:
+            try:
+                result = self.master.on_frame(self.entry.frame, events, arrival_ns, ready=frame_ready)
+                if not self.ready.is_set():  # a reconstructor that does not call `ready`
+                    frame_ready(result)
+            except BaseException as exc:  # re-raised on the worker thread when adopted
+                self.error = exc
+            self.ready.set()
+            self._wake()
             if self.error is None:
                 t1 = time.perf_counter()
                 self.master.settle()

@@ -71,6 +71,7 @@ class FrameCalibration:
         cur, pair = self.tracker.step(events, b, informative, window, mask, acc, t_last, has_reference)
         pairs = self.tracker.pairs
         if not self.policy.estimated:  # start-up: this deblur needs the first estimate
+            self.tracker.complete()
             self.policy.update(cur, pairs)
             pairs = None
         self._due = _Due(cur, pairs, pair, aps.black_level, (frame, events, img, mask), moved)
@@ -87,6 +88,7 @@ class FrameCalibration:
         if due is None:
             return
         t0 = time.perf_counter()
+        self.tracker.complete()  # the frame's level table: the policies below read it, the deblur did not
         if due.pairs is not None:
             self.policy.update(due.cur, due.pairs)
         new_black = self.black.update(due.pair, due.black_taken_off)

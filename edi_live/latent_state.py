@@ -84,11 +84,10 @@ class LatentState:
             np.clip(lat, edi.LOG_MIN, edi.LOG_MAX, out=lat)
         return edi.to_uint8(self.log_ref), False
 
-    def fall_back_to_aps(self, pixels: np.ndarray, image: np.ndarray, aps: edi.ApsResponse,
-                         deblurred: np.ndarray) -> None:
-        """At `pixels` ((H, W) bool), undo the events: L(f) = B and the latent image restarts there (the reference
-        of this frame only; it is this state's own array until the next frame)."""
-        b, _ = aps.to_float(image)
+    def fall_back_to_aps(self, pixels: np.ndarray, b: np.ndarray, deblurred: np.ndarray) -> None:
+        """At `pixels` ((H, W) bool), undo the events: L(f) = B (`b`: the frame's ApsResponse.to_float) and the
+        latent image restarts there (the reference of this frame only; it is this state's own array until the
+        next frame)."""
         idx = np.flatnonzero(pixels)
         log_b = np.clip(np.log(np.maximum(b.reshape(-1)[idx], edi.DARK_FLOOR)), edi.LOG_MIN, edi.LOG_MAX)
         self.log_ref.reshape(-1)[idx] = log_b

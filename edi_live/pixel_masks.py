@@ -125,15 +125,5 @@ class UnreliablePixels:
         self._own = own
         if len(self._grow) > 1 and own.any():
             # a lamp's halo contradicts the frames less clearly than its core, but just as surely
-            own = _dilate(own, self._grow)
+            own = edi.dilate(own, self._grow)  # ~0.17 ms as 21 numpy shifts at 240x180, ~0.02 compiled
         self._mask = own
-
-
-def _dilate(mask: np.ndarray, offsets: list[tuple[int, int]]) -> np.ndarray:
-    """mask OR-ed with itself shifted by every (dy, dx) offset (no wrap-around at the borders)."""
-    out = mask.copy()
-    h, w = mask.shape
-    for dy, dx in offsets:
-        out[max(dy, 0):h + min(dy, 0), max(dx, 0):w + min(dx, 0)] |= \
-            mask[max(-dy, 0):h + min(-dy, 0), max(-dx, 0):w + min(-dx, 0)]
-    return out

@@ -8,7 +8,7 @@ time order. Events before the first APS frame are ignored (there is no reference
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Protocol, Sequence, runtime_checkable
+from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
@@ -41,8 +41,12 @@ class Reconstructor(Protocol):
         """Pixels whose events are ignored because they contradict the APS frames."""
         ...
 
-    def on_frame(self, frame: Frame, events: np.ndarray, arrival_ns: int = 0) -> Reconstruction:
-        """Deblur `frame` (L(f) at mid-exposure, kind "deblurred"); it becomes the reference."""
+    def on_frame(self, frame: Frame, events: np.ndarray, arrival_ns: int = 0,
+                 ready: Callable[[Reconstruction], None] | None = None) -> Reconstruction:
+        """Deblur `frame` (L(f) at mid-exposure, kind "deblurred"); it becomes the reference. `ready`, if given, is
+        called (on this thread) with the frame it returns as soon as the frame is complete, possibly before on_frame
+        has finished its state: the caller may send it then, but must not touch the reconstructor until on_frame
+        returns."""
         ...
 
     def settle(self) -> None:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import copy
 import time
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -117,7 +117,8 @@ class EdiReconstructor(ReconstructorView):
         twin._carry = edi.ResidualCarry()  # the carry's scratch belongs to the original's thread
         return twin
 
-    def on_frame(self, frame: Frame, events: np.ndarray, arrival_ns: int = 0) -> Reconstruction:
+    def on_frame(self, frame: Frame, events: np.ndarray, arrival_ns: int = 0,
+                 ready: Callable[[Reconstruction], None] | None = None) -> Reconstruction:
         if self._streamer:
             raise NodeError("on_frame() on a streaming_copy(): deblur on the original reconstructor")
         self.settle()  # the previous frame's calibration, if the caller did not settle it
@@ -166,8 +167,19 @@ class EdiReconstructor(ReconstructorView):
                                     pair.cur.informative, self._c(), busy=frame_counts)
             self._mask = self._combined_mask()
             if self._unreliable.count:
-                self._latent.fall_back_to_aps(self._unreliable.mask, img, self._aps, deblurred)
+                self._latent.fall_back_to_aps(self._unreliable.mask, pair.cur.blurry, deblurred)
                 mask = self._mask
+        self.has_reference = True
+        self._ref_t = f
+        self._exposure = (ts, te)
+        self.frames += 1
+        self.events_applied += n_new
+        n_events = self._pending_events + n_new
+        self._pending_events = 0
+        self._arrival_ns = arrival_ns or self._arrival_ns
+        out = self._reconstruction(deblurred, f, "deblurred", n_events)
+        if ready is not None:
+            ready(out)  # the frame is complete: what follows only readies the state for the events after it
         t = events["t"]
         # the events after the point the latent image has reached (te with the f -> te jump, else f); with the
         # jump, the divisor pass already added (f, te] to the counts the consistency pairs need
@@ -179,19 +191,11 @@ class EdiReconstructor(ReconstructorView):
         if frame_counts is not None:
             self._hot.end_exposure(te - ts)
             self._mask = self._combined_mask()
-        self.has_reference = True
-        self._ref_t = f
-        self._exposure = (ts, te)
         self._t_last = max(self._t_last, t_batch_end, f)
         self._ahead.arm(ts, te, self._c(), self._mask, self._hot.frame_counts if self._hot.enabled else None,
                         self._t_last)
-        self.frames += 1
-        self.events_applied += n_new
-        n_events = self._pending_events + n_new
-        self._pending_events = 0
-        self._arrival_ns = arrival_ns or self._arrival_ns
         self.last_deblur_ms = (time.perf_counter() - t_start) * 1e3
-        return self._reconstruction(deblurred, f, "deblurred", n_events)
+        return out
 
     def settle(self) -> None:
         """The latest frame's calibration work that its deblur did not wait for (frame_calibration); on_frame,

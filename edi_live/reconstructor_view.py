@@ -61,8 +61,12 @@ class ReconstructorView:
 
     @property
     def pairs(self) -> list[contrast.FramePair]:
-        """The consecutive-frame pairs the c estimator currently sees (newest last; empty with a fixed c)."""
-        return [] if self._tracker is None else self._tracker.pairs
+        """The consecutive-frame pairs the c estimator currently sees (newest last; empty with a fixed c), with the
+        latest frame's level table built even if settle() has not run yet."""
+        if self._tracker is None:
+            return []
+        self._tracker.complete()
+        return self._tracker.pairs
 
     @property
     def hot_pixels(self) -> int:

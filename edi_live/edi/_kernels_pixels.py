@@ -168,3 +168,19 @@ def contradictions(score, own, n_on, n_off, log_prev, log_cur, inf_prev, inf_cur
         out[q] = o
         count += o
     return count
+
+
+@njit(cache=True, nogil=True)
+def dilate(mask, dy, dx, out):
+    """out (zeroed, same (H, W) shape as mask) = mask OR-ed with itself shifted by every (dy[j], dx[j]), clipped at
+    the borders: each marked pixel stamps the offsets around it (marked pixels are few; no pass per offset)."""
+    h, w = mask.shape
+    for y in range(h):
+        for x in range(w):
+            if not mask[y, x]:
+                continue
+            for j in range(dy.size):
+                yy = y + dy[j]
+                xx = x + dx[j]
+                if 0 <= yy < h and 0 <= xx < w:
+                    out[yy, xx] = True

@@ -175,6 +175,22 @@ def flicker_cycles(events: np.ndarray, state: FlickerState, *, min_period_us: in
     return s.flagged_now[:n].copy()
 
 
+def dilate(mask: np.ndarray, offsets: list[tuple[int, int]]) -> np.ndarray:
+    """(H, W) bool: `mask` OR-ed with itself shifted by every (dy, dx) offset, without wrap-around at the borders
+    (a new array; `mask` is not changed)."""
+    if _backend.have_numba():
+        out = np.zeros(mask.shape, bool)
+        off = np.asarray(offsets, np.int64).reshape(-1, 2)
+        _kernels_pixels.dilate(np.ascontiguousarray(mask, bool), off[:, 0].copy(), off[:, 1].copy(), out)
+        return out
+    out = mask.copy()
+    h, w = mask.shape
+    for dy, dx in offsets:
+        out[max(dy, 0):h + min(dy, 0), max(dx, 0):w + min(dx, 0)] |= \
+            mask[max(-dy, 0):h + min(-dy, 0), max(-dx, 0):w + min(-dx, 0)]
+    return out
+
+
 def update_contradictions(score: np.ndarray, own: np.ndarray, n_on: np.ndarray, n_off: np.ndarray,
                           log_prev: np.ndarray, log_cur: np.ndarray, informative_prev: np.ndarray,
                           informative_cur: np.ndarray, c: tuple[float, float], busy: np.ndarray | None, *,

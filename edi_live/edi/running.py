@@ -14,7 +14,7 @@ import numpy as np
 from edi_live.datatypes import concat_events
 from edi_live.edi import _backend, _kernels_stream
 from edi_live.edi.deblur import log_divisor_events
-from edi_live.edi.selection import time_index, window
+from edi_live.edi.selection import events_at_pixels, time_index, window
 
 
 class RunningDivisor:
@@ -82,9 +82,9 @@ class RunningDivisor:
         if back.any():
             t = events["t"]
             lo, hi = time_index(t, self.fed_until, "left"), time_index(t, self.fed_until, "right")
-            fed = window(events[:lo + min(hi - lo, self._at_until)], self.ts, self.te)
-            fed = fed[(fed["x"] < self.width) & (fed["y"] < self.height)]
-            mine = fed[back[fed["y"].astype(np.int64) * self.width + fed["x"]]]
+            # one compiled pass over the exposure's events (a numpy gather over them took ~1 ms at 85k events)
+            mine = events_at_pixels(events[:lo + min(hi - lo, self._at_until)], self.width, self.height, back,
+                                    self.ts, self.te)
             if mine.size:
                 fed_before = self.events_fed
                 self._feed_window(mine)

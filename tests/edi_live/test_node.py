@@ -239,7 +239,7 @@ def test_edi_kernels_are_warmed_up_before_the_source_starts(real_recordings):
     order: list[str] = []
 
     class Recording(StandIn):
-        def on_frame(self, frame, events, arrival_ns=0):
+        def on_frame(self, frame, events, arrival_ns=0, ready=None):
             order.append("on_frame")
             return super().on_frame(frame, events, arrival_ns)
 

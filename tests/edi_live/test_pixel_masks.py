@@ -99,3 +99,26 @@ def test_contradiction_kernel_equals_the_numpy_reference(with_busy):
         assert np.array_equal(s_kernel, s_ref) and np.array_equal(own_kernel, own_ref)
         assert own_ref.any() and not own_ref.all()
         score0, own0 = s_ref, own_ref
+
+
+def test_dilation_kernel_equals_the_numpy_reference_at_the_borders():
+    """The compiled dilation of the unreliable-pixel mask gives the numpy shifts' result, with marked pixels on
+    every border and corner (no wrap-around) and offsets of a radius-2 disk."""
+    import edi_live.edi as edi
+
+    rng = np.random.default_rng(5)
+    grow = UnreliablePixels(9, 7, grow_px=2)._grow
+    mask = rng.random((7, 9)) < 0.08
+    mask[0, 0] = mask[6, 8] = mask[3, 0] = mask[0, 5] = True
+    got = edi.dilate(mask, grow)
+    with edi.numpy_reference():
+        want = edi.dilate(mask, grow)
+    assert np.array_equal(got, want) and want.sum() > mask.sum()
+    # an independent oracle: each pixel is marked iff some marked pixel lies within the disk around it
+    ys, xs = np.nonzero(mask)
+    oracle = np.zeros_like(mask)
+    for y in range(7):
+        for x in range(9):
+            oracle[y, x] = any((y - yy, x - xx) in grow for yy, xx in zip(ys, xs))
+    assert np.array_equal(got, oracle)
+    assert not edi.dilate(np.zeros((7, 9), bool), grow).any()

@@ -56,6 +56,29 @@ def test_deblurs_and_estimates_c_while_streaming(brick):
     assert rec.stats()["reestimations"] == rec.reestimations
 
 
+def test_ready_gets_the_deblurred_frame_before_the_latent_state_is_readied(brick):
+    """on_frame's `ready` callback receives the very frame on_frame returns, before on_frame applies the events
+    after the frame (the latent image still stands at the reference then), and ground-truth sharpness holds."""
+    rec = EdiReconstructor(brick.width, brick.height)
+    given = []
+
+    def ready(out):  # what the latent state holds at that moment
+        given.append((out, rec._latent.log_lat.copy()))
+
+    ev, fed = brick.events, 0
+    for k, frame in enumerate(brick.frames):
+        start = int(np.searchsorted(ev["t"], frame.exposure_start_us, side="left"))
+        end = int(np.searchsorted(ev["t"], frame.exposure_end_us + 3000, side="right"))  # events past te too
+        rec.on_events(ev[fed:max(fed, start)])
+        out = rec.on_frame(frame, ev[start:end], ready=ready)
+        fed = end
+        rec.settle()
+        assert given[-1][0] is out
+        assert psnr(out.image, brick.sharp_mid[k]) > psnr(frame.image, brick.sharp_mid[k]) + 2.0 or k == 0
+    # events after te were in the batch: the latent image moved on after `ready`
+    assert not np.array_equal(given[-1][1], rec._latent.log_lat)
+
+
 def test_counts_between_frames_are_exact_despite_overlapping_batches(brick):
     rec = EdiReconstructor(brick.width, brick.height)  # c estimated: the reconstructor forms frame pairs
     stream(brick, rec, chunk=333)

@@ -48,7 +48,7 @@ class StandIn:
         return Reconstruction(np.zeros((2, 2), np.uint8), int(t), kind, int(self.ref_f), 0, 0, self.c_on,
                               self.c_off, 0)
 
-    def on_frame(self, frame, events, arrival_ns=0):
+    def on_frame(self, frame, events, arrival_ns=0, ready=None):
         if self.fail_on_frame:
             raise RuntimeError("boom")
         self.frames_given.append((frame, events.copy()))
@@ -376,7 +376,7 @@ def test_frames_without_events_are_not_deblurred_again_on_a_static_scene():
 
 
 class SlowDeblur(StandIn):
-    def on_frame(self, frame, events, arrival_ns=0):
+    def on_frame(self, frame, events, arrival_ns=0, ready=None):
         if self.has_reference:
             threading.Event().wait(0.05)  # a long deblur: latent frames must not wait for it
         return super().on_frame(frame, events, arrival_ns)
@@ -434,7 +434,7 @@ def test_deblur_inline_when_the_reconstructor_cannot_be_copied():
 
 def test_deblur_thread_failure_reaches_on_error():
     class FailSecond(StandIn):
-        def on_frame(self, frame, events, arrival_ns=0):
+        def on_frame(self, frame, events, arrival_ns=0, ready=None):
             if self.has_reference:
                 raise RuntimeError("second frame failed")
             return super().on_frame(frame, events, arrival_ns)
@@ -510,7 +510,7 @@ def test_a_gap_while_a_frame_is_deblurred_on_the_helper_thread():
     class SlowDeblur(EdiReconstructor):
         gaps_seen = 0
 
-        def on_frame(self, frame, events, arrival_ns=0):
+        def on_frame(self, frame, events, arrival_ns=0, ready=None):
             if self.has_reference and not self._streamer:
                 time.sleep(0.3)  # a slow deblur: the gap and the next frame arrive meanwhile
             return super().on_frame(frame, events, arrival_ns)
@@ -653,3 +653,27 @@ def test_a_clock_offset_moved_by_settle_on_the_helper_thread_holds_for_the_next_
     t = given["t"]
     assert t.min() >= 43_000 and t.max() > 45_000, (t.min(), t.max())
     assert np.all(np.isin(ev["t"][(ev["t"] >= 43_000) & (ev["t"] <= 45_000)], t))
+
+
+def test_the_deblurred_frame_is_sent_while_on_frame_still_readies_its_state():
+    """On the helper thread the deblurred frame goes out as soon as on_frame hands it to `ready`, not when
+    on_frame returns: here on_frame returns only once the worker has sent that frame (bounded wait, no sleep)."""
+    sent = threading.Event()
+    seen_before_return = []
+
+    class ReadyEarly(StandIn):
+        def on_frame(self, frame, events, arrival_ns=0, ready=None):
+            rec = super().on_frame(frame, events, arrival_ns)
+            if ready is not None and len(self.frames_given) == 2:  # the second frame: on the helper thread
+                ready(rec)
+                seen_before_return.append(sent.wait(10))
+            return rec
+
+    def sink(rec):
+        if rec.kind == "deblurred" and rec.t_us == aps(20_000, 22_000).mid_exposure_us:
+            sent.set()
+
+    ev, frames, packets = two_frame_packets()
+    worker = stream_to_the_end(ReadyEarly(), EdiConfig(every=400, deblur_thread=True), packets, [sink])
+    assert worker.error is None
+    assert seen_before_return == [True]

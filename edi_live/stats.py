@@ -166,7 +166,8 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         f"drops {s.get('drops', 0)} "
         f"(ring events {s.get('ring_dropped_events', 0)}, ring frames {s.get('ring_dropped_frames', 0)}, "
         f"publish {s.get('publish_dropped', 0)}, source events {s.get('source_dropped_events', 0)}); "
-        f"skipped: static {s.get('skipped_static', 0)}, max-fps {s.get('skipped_max_fps', 0)}",
+        f"skipped: static {s.get('skipped_static', 0)} (APS frames not deblurred: "
+        f"{s.get('skipped_static_deblur', 0)}), max-fps {s.get('skipped_max_fps', 0)}",
     ]
     if s.get("warm_up_s"):
         lines.append(f"  start-up: EDI kernels compiled or loaded in {s['warm_up_s']:.2f} s (once per process, "

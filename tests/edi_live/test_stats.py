@@ -89,3 +89,9 @@ def test_camera_values_show_in_the_status_line_and_summary_with_where_they_came_
     assert "black 10 DN" in format_status(s) and "offset 1500 µs" in format_status(s)
     summary = format_summary(s, 1.0)
     assert "black level 10 DN," in summary and "clock offset 1500 µs (estimated)" in summary
+
+
+def test_summary_accounts_for_aps_frames_a_still_scene_did_not_deblur():
+    # "4 APS frames in" with 3 deblurred must say where the fourth went
+    summary = format_summary({**STATS, "aps_frames_in": 4, "frames_deblurred": 3, "skipped_static_deblur": 1}, 1.0)
+    assert "APS frames not deblurred: 1" in summary

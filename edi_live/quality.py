@@ -61,6 +61,7 @@ from typing import Any
 
 import numpy as np
 
+import edi_live.edi as edi
 from edi_live.datatypes import ColorFilter, Frame, Reconstruction
 from edi_live.hold_average import hold_average
 
@@ -200,13 +201,7 @@ class PredictionScore:
         if not self.enabled or self._events_map is None or len(events) == 0:
             return
         h, w = self._shape[:2]
-        x, y = events["x"], events["y"]
-        idx = y.astype(np.intp)
-        idx *= w
-        idx += x
-        if x.max() >= w or y.max() >= h:  # not from this sensor: ignored rather than marked elsewhere
-            idx = idx[(x < w) & (y < h)]
-        self._events_map[idx] = True
+        edi.mark_event_pixels(events, w, h, self._events_map)  # off-sensor events: ignored, not marked elsewhere
         self._events_fed = True
 
     def on_aps_frame(self, frame: Frame) -> list[PredictionResult]:

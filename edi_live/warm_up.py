@@ -89,17 +89,20 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
         activity = SceneActivity(width, height)
         activity.update(events[:10])
         activity.update(events[10:11])
-        # the prediction figure's frame average and the black-level profile (their first fits come frames later)
+        # the prediction figure (its frame average; the pixels with events, on ring slices and one event), the
+        # black-level profile (its first fit comes frames later) and the unreliable-pixel mask's dilation (only
+        # once a pixel is flagged, which the scene above never does)
+        from edi_live import edi as edi_math
         from edi_live.contrast import _kernels_black_level
         from edi_live.hold_average import hold_average
 
         hold_average([image, image], [1, 1], 2)
-        # the unreliable-pixel mask's dilation: only once a pixel is flagged, which the scene above never does
-        from edi_live import edi as edi_math
-
-        edi_math.dilate(np.zeros((height, width), bool), [(0, 0), (0, 1)])
+        marks = np.zeros(npix, bool)
+        edi_math.mark_event_pixels(events[:10], width, height, marks)
+        edi_math.mark_event_pixels(events[10:11], width, height, marks)
         b = np.linspace(5.0, 200.0, 64)
         _kernels_black_level.profile_point(b, b + 1.0, np.ones(64), 2.0, 0.5, 5, 50.0)
+        edi_math.dilate(np.zeros((height, width), bool), [(0, 0), (0, 1)])
     except Exception:  # noqa: BLE001 - warm-up only; see docstring
         log.debug("kernel warm-up failed", exc_info=True)
 

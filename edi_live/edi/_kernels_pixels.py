@@ -184,3 +184,11 @@ def dilate(mask, dy, dx, out):
                 xx = x + dx[j]
                 if 0 <= yy < h and 0 <= xx < w:
                     out[yy, xx] = True
+
+
+@njit(cache=True, nogil=True)
+def mark_pixels(x, y, width, height, out):
+    """out[q] = True at every event's pixel on the sensor (flat bool)."""
+    for i in range(x.size):
+        if x[i] < width and y[i] < height:
+            out[np.int64(y[i]) * width + x[i]] = True

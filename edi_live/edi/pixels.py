@@ -225,3 +225,13 @@ def update_contradictions(score: np.ndarray, own: np.ndarray, n_on: np.ndarray, 
         score[active[bad]] += 1.0
     return np.where(own, score >= release, score >= 1.0)
 
+
+def mark_event_pixels(events: np.ndarray, width: int, height: int, out: np.ndarray) -> None:
+    """Set flat bool `out` True at the pixels of `events`; events off the (width, height) sensor are ignored."""
+    x, y = events["x"], events["y"]
+    if _backend.have_numba():
+        _kernels_pixels.mark_pixels(x, y, width, height, out)
+        return
+    keep = (x < width) & (y < height)
+    out[y[keep].astype(np.intp) * width + x[keep]] = True
+

@@ -358,3 +358,21 @@ def test_a_colour_source_is_scored_in_the_layout_of_its_output(gray):
     for r in results:
         assert r.psnr_pred_db == r.psnr_still_db  # the held previous frame is exactly the baseline
         assert r.active_px == (1 if gray else 3)  # the one pixel with events, in each of its colours
+
+
+def test_event_pixels_are_marked_by_the_kernel_as_by_the_numpy_reference():
+    """The prediction figure's pixels-with-events map: compiled marking equals numpy's, off-sensor events ignored."""
+    import edi_live.edi as edi
+    from edi_live.datatypes import EVENT_DTYPE
+
+    rng = np.random.default_rng(4)
+    ev = np.zeros(500, EVENT_DTYPE)
+    ev["x"], ev["y"] = rng.integers(0, 40, 500), rng.integers(0, 30, 500)  # some beyond a 32x24 sensor
+    kernel, ref = np.zeros(32 * 24, bool), np.zeros(32 * 24, bool)
+    edi.mark_event_pixels(ev, 32, 24, kernel)
+    with edi.numpy_reference():
+        edi.mark_event_pixels(ev, 32, 24, ref)
+    on = (ev["x"] < 32) & (ev["y"] < 24)
+    expected = np.zeros(32 * 24, bool)
+    expected[ev["y"][on].astype(int) * 32 + ev["x"][on]] = True
+    assert np.array_equal(kernel, expected) and np.array_equal(ref, expected)

@@ -3,7 +3,9 @@ its informative pixels, its level table), the pairs of consecutive frames with t
 their reference times. The policy decides on them afterwards (edi_live.frame_calibration: after the frame left,
 once c is estimated).
 
-Runs on the worker thread inside the reconstructor's on_frame. The counts between two reference times come from
+`step` runs inside the reconstructor's on_frame (the pair and its counts, which that deblur's unreliable-pixel test
+needs); `complete` builds the frame's level table later, in settle(), on the thread that runs on_frame (the worker's
+or the deblur helper's). The counts between two reference times come from
 the latent state's accumulator (events applied since the previous f) corrected by the batch at hand, so that no
 event is counted twice or missed.
 """

@@ -9,6 +9,7 @@ runs the reconstructor's settle() (the calibration work the frame did not wait f
 
 from __future__ import annotations
 
+import inspect
 import threading
 import time
 from typing import Callable
@@ -42,8 +43,9 @@ class PendingDeblur:
         self._thread.start()
 
     def claim_result(self) -> bool:
-        """True exactly once, when on_frame has returned without an error: the worker sends the deblurred frame
-        (or counts it as skipped) then. Worker thread only."""
+        """True at most once, when the deblurred frame is ready and no error was seen yet: the worker sends it (or
+        counts it as skipped) then. An error raised by on_frame after its `ready` call is still reported at
+        adopt(); whether the frame went out before it depends on timing. Worker thread only."""
         if self._claimed or not self.ready.is_set() or self.error is not None:
             return False
         self._claimed = True
@@ -71,13 +73,16 @@ class PendingDeblur:
 
         try:
             try:
-                result = self.master.on_frame(self.entry.frame, events, arrival_ns, ready=frame_ready)
+                if _takes_ready(self.master):
+                    result = self.master.on_frame(self.entry.frame, events, arrival_ns, ready=frame_ready)
+                else:  # a Reconstructor written before the `ready` seam: its frame leaves when on_frame returns
+                    result = self.master.on_frame(self.entry.frame, events, arrival_ns)
                 if not self.ready.is_set():  # a reconstructor that does not call `ready`
                     frame_ready(result)
             except BaseException as exc:  # re-raised on the worker thread when adopted
                 self.error = exc
-            self.ready.set()
-            self._wake()
+                self.ready.set()
+                self._wake()
             if self.error is None:
                 t1 = time.perf_counter()
                 self.master.settle()
@@ -88,3 +93,13 @@ class PendingDeblur:
             self.ready.set()
             self.done.set()
             self._wake()
+
+
+def _takes_ready(rec: Reconstructor) -> bool:
+    """Whether rec.on_frame accepts the `ready` callback (a parameter of that name, or **kwargs)."""
+    try:
+        params = inspect.signature(rec.on_frame).parameters.values()
+    except (TypeError, ValueError):
+        return False
+    return any(p.name == "ready" or p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
+

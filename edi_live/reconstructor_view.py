@@ -2,7 +2,8 @@
 policy's counters, the pixel masks' counts and the noise statistics.
 
 ReconstructorView is EdiReconstructor's base class; the attributes it reads are set by EdiReconstructor.__init__.
-Reading them from another thread (the stats map) is safe: each read is one plain value.
+Reading them from another thread (the stats map) is safe: each read is one plain value. Except `pairs`, which
+completes a pending level table first: call it from the thread that runs the reconstructor.
 """
 
 from __future__ import annotations

@@ -70,6 +70,12 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
                 run.feed(events[:-1])
                 run.feed_from(events[-1:])
                 run.finish((np.zeros(npix, np.int64), np.zeros(npix, np.int64)) if counts is not None else None)
+        # its re-mask picks a released pixel's events with the pixel-sample kernel, which with a fixed c (no c
+        # tracker) nothing else has compiled: ring slices, one event, none
+        from edi_live.edi import events_at_pixels
+
+        for batch in (events, events[-1:], events[:0]):
+            events_at_pixels(batch, width, height, np.ones(npix, bool), t_lo, t_hi)
         # exposures without events (a dark or still scene), first and later: empty field views count as
         # C-contiguous, another specialisation
         empty = np.zeros(0, EVENT_DTYPE)

@@ -42,7 +42,7 @@ from edi_live.edi.pairs import consistency_cost, pair_candidates
 from edi_live.edi.running import RunningDivisor
 from edi_live.edi.pixels import (FlickerState, background_activity_keep, decay_hot_counts, dilate, flicker_cycles,
                                  hot_pixel_mask, isolated_event_mask, mark_event_pixels, new_activity_map,
-                                 sample_and_count, supported_events_keep, update_contradictions)
+                                 supported_events_keep, update_contradictions)
 from edi_live.edi.selection import (add_counts, events_at_pixels, flat_index, select, signed_counts, time_index,
                                     window)
 
@@ -69,6 +69,6 @@ __all__ = [
     "background_activity_keep", "blurry_to_float", "build_level_table", "consistency_cost", "deblur", "deblur_log",
     "decay_hot_counts", "dilate", "empty_table", "event_delta", "events_at_pixels", "finish_frame_u8", "flat_index",
     "have_numba", "hot_pixel_mask", "isolated_event_mask", "mark_event_pixels", "log_divisor", "log_divisor_events", "new_activity_map",
-    "numpy_reference", "pair_candidates", "propagate_log", "render_buckets", "sample_and_count", "select",
+    "numpy_reference", "pair_candidates", "propagate_log", "render_buckets", "select",
     "signed_counts", "supported_events_keep", "time_index", "to_uint8", "u8_tables", "update_contradictions", "window",
 ]

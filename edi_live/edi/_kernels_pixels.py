@@ -1,5 +1,5 @@
-"""numba kernels over pixels: the background-activity filter, the hot-pixel statistics, and event selection by
-pixel sample (with the ON/OFF counts the c estimator needs, in the same pass).
+"""numba kernels over pixels: the background-activity filter, the hot-pixel statistics, the flicker cycles, the
+unreliable-pixel score and dilation, and the marking of pixels with events.
 
 Private to edi_live.edi (see its public functions and their numpy references).
 """
@@ -66,37 +66,6 @@ def select_pixels(x, y, width, height, keep):
             out[m] = i
             m += 1
     return out[:m]
-
-
-@njit(cache=True, nogil=True)
-def select_and_count(x, y, p, width, height, keep, s0, s1, mask, use_mask, out_on, out_off, c0, c1, sign):
-    """select_pixels on events [s0, s1) and count_events on events [c0, c1) (indices into the same arrays) in
-    one pass over their union, which must be contiguous (the ranges overlap or touch)."""
-    out = np.empty(max(s1 - s0, 0), dtype=np.int64)
-    m = 0
-    cuts = np.array([min(s0, c0), s0, s1, c0, c1, max(s1, c1)], dtype=np.int64)
-    cuts.sort()
-    for j in range(cuts.size - 1):  # pieces where both range tests are constant: a branch-light loop for each
-        a = cuts[j]
-        b = cuts[j + 1]
-        if a >= b:
-            continue
-        do_sel = s0 <= a < s1
-        do_cnt = c0 <= a < c1
-        for i in range(a, b):
-            if x[i] >= width or y[i] >= height:
-                continue
-            q = np.int64(y[i]) * width + x[i]
-            if do_sel and keep[q]:
-                out[m] = i
-                m += 1
-            if do_cnt and not (use_mask and mask[q]):
-                on = np.int64(p[i])
-                out_on[q] += sign * on
-                out_off[q] += sign - sign * on
-    return out[:m]
-
-
 
 
 @njit(cache=True, nogil=True)
@@ -172,8 +141,8 @@ def contradictions(score, own, n_on, n_off, log_prev, log_cur, inf_prev, inf_cur
 
 @njit(cache=True, nogil=True)
 def dilate(mask, dy, dx, out):
-    """out (zeroed, same (H, W) shape as mask) = mask OR-ed with itself shifted by every (dy[j], dx[j]), clipped at
-    the borders: each marked pixel stamps the offsets around it (marked pixels are few; no pass per offset)."""
+    """out (a copy of mask, (H, W)) |= mask shifted by every (dy[j], dx[j]), clipped at the borders: each marked
+    pixel stamps the offsets around it (marked pixels are few; no pass per offset)."""
     h, w = mask.shape
     for y in range(h):
         for x in range(w):

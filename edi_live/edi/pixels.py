@@ -1,5 +1,5 @@
-"""Per-pixel bookkeeping around the EDI: hot-pixel statistics, background-activity (noise) filters, and picking a
-pixel sample's events together with the ON/OFF counts the c estimator needs.
+"""Per-pixel bookkeeping around the EDI: hot-pixel statistics, background-activity (noise) and flicker filters, the
+unreliable-pixel score and its dilation, and marking the pixels that had events.
 
 All inputs are time-ordered events of EVENT_DTYPE; masks are (H, W) bool or flat bool of H*W.
 """
@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from edi_live.edi import _backend, _kernels_pixels
-from edi_live.edi.selection import add_counts, select
+from edi_live.edi.selection import select
 
 
 def hot_pixel_mask(counts: np.ndarray, duration_us: float, *, min_rate_hz: float = 300.0,
@@ -90,26 +90,6 @@ def decay_hot_counts(hot_counts: np.ndarray, frame_counts: np.ndarray, decay: fl
     return hot_pixel_mask(hot_counts, duration_us, min_rate_hz=min_rate_hz, rel_factor=rel_factor)
 
 
-def sample_and_count(events: np.ndarray, width: int, height: int, keep: np.ndarray, select_range: tuple[int, int],
-                     mask: np.ndarray | None, counts: tuple[np.ndarray, np.ndarray], count_range: tuple[int, int],
-                     sign: int) -> np.ndarray:
-    """Indices of the events in `select_range` (index range [s0, s1)) whose pixel is marked in `keep` (flat
-    bool), and, in the same pass, `counts` (flat int64 n_on, n_off) += sign * the ON/OFF counts of the unmasked
-    events in `count_range` ([c0, c1)). The two ranges must overlap or touch."""
-    (s0, s1), (c0, c1) = select_range, count_range
-    n_on, n_off = counts
-    if _backend.have_numba():
-        m, use_m = _backend.mask_arg(mask)
-        return _kernels_pixels.select_and_count(events["x"], events["y"], events["p"], width, height,
-                                                keep.view(np.uint8), s0, s1, m, use_m, n_on, n_off, c0, c1, sign)
-    add_counts(events[c0:c1], width, height, n_on, n_off, mask=mask, sign=sign)
-    part = events[s0:s1]
-    x, y = part["x"], part["y"]
-    inside = (x < width) & (y < height)
-    idx = np.where(inside, y.astype(np.int64) * width + x, 0)
-    return s0 + np.flatnonzero(inside & keep[idx])
-
-
 class FlickerState:
     """Per-pixel state of `flicker_cycles` (flat over width * height pixels)."""
 
@@ -179,7 +159,7 @@ def dilate(mask: np.ndarray, offsets: list[tuple[int, int]]) -> np.ndarray:
     """(H, W) bool: `mask` OR-ed with itself shifted by every (dy, dx) offset, without wrap-around at the borders
     (a new array; `mask` is not changed)."""
     if _backend.have_numba():
-        out = np.zeros(mask.shape, bool)
+        out = np.array(mask, dtype=bool, order="C")  # the mask itself is in the result, whatever the offsets
         off = np.asarray(offsets, np.int64).reshape(-1, 2)
         _kernels_pixels.dilate(np.ascontiguousarray(mask, bool), off[:, 0].copy(), off[:, 1].copy(), out)
         return out

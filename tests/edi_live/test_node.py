@@ -267,11 +267,12 @@ def kernels():
     return compiled_signatures()
 
 if __name__ == "__main__":
-    warm_up(default_reconstructor, EdiConfig(mode=sys.argv[2]))
+    fixed_c = sys.argv[3:] and float(sys.argv[4])  # "--c C": a fixed c (no c tracker)
+    warm_up(default_reconstructor, EdiConfig(mode=sys.argv[2], c=fixed_c or None))
     before = kernels()
     try:  # the CLI's replay: frames decoded in the child arrive read-only; 1 ms packets give 1-event slices
         main(["--replay", sys.argv[1], "--no-publish", "--speed", "8", "--every", "7", "--log-level", "error",
-              "--mode", sys.argv[2]])
+              "--mode", sys.argv[2]] + sys.argv[3:])
     except SystemExit as exc:
         assert not exc.code, exc.code
     # separate thresholds (the default estimator fits them when the data call for it) use their own kernel
@@ -288,18 +289,19 @@ if __name__ == "__main__":
 """
 
 
-@pytest.mark.parametrize("name, mode", [("emlb_demo-01_davis346.aedat4", "causal"),
-                                        ("evlib_sample_davis346.aedat4", "causal"),
-                                        ("emlb_demo-01_davis346.aedat4", "fused")])
-def test_the_warm_up_covers_every_kernel_specialisation_a_replay_needs(real_recordings, name, mode):
+@pytest.mark.parametrize("name, mode, extra", [("emlb_demo-01_davis346.aedat4", "causal", []),
+                                               ("evlib_sample_davis346.aedat4", "causal", []),
+                                               ("emlb_demo-01_davis346.aedat4", "fused", []),
+                                               ("emlb_demo-01_davis346.aedat4", "causal", ["--c", "0.2"])])
+def test_the_warm_up_covers_every_kernel_specialisation_a_replay_needs(real_recordings, name, mode, extra):
     """A numba kernel met with new argument types (a read-only frame, a one-event slice, an exposure without
     events) is compiled on the spot, seconds with a cold cache, stalling the worker mid-stream. After the node's
     warm-up a real replay must need no new specialisation. Run in a fresh interpreter, so that other tests' calls
     do not hide a gap. (evlib's first exposures hold no events.)"""
     # -c with the repository as the working directory: the interpreter imports this checkout's packages
     recording = str(real_recordings[name])
-    done = subprocess.run([sys.executable, "-c", _NO_NEW_KERNELS, recording, mode], capture_output=True, text=True,
-                          timeout=120, cwd=str(Path(__file__).resolve().parents[2]))
+    done = subprocess.run([sys.executable, "-c", _NO_NEW_KERNELS, recording, mode, *extra], capture_output=True,
+                          text=True, timeout=120, cwd=str(Path(__file__).resolve().parents[2]))
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip().splitlines()[-1] == "{}", f"compiled during the replay: {done.stdout[-2000:]}"
 

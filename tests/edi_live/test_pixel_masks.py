@@ -122,3 +122,15 @@ def test_dilation_kernel_equals_the_numpy_reference_at_the_borders():
             oracle[y, x] = any((y - yy, x - xx) in grow for yy, xx in zip(ys, xs))
     assert np.array_equal(got, oracle)
     assert not edi.dilate(np.zeros((7, 9), bool), grow).any()
+
+
+@pytest.mark.parametrize("offsets", [[(0, 1)], [], [(1, 1), (-1, -1)]])
+def test_dilation_keeps_the_mask_itself_for_any_offsets(offsets):
+    """dilate is mask OR-ed with its shifts: with offsets that leave out (0, 0) the mask itself stays in."""
+    import edi_live.edi as edi
+
+    mask = np.random.default_rng(6).random((5, 6)) < 0.2
+    got = edi.dilate(mask, offsets)
+    with edi.numpy_reference():
+        want = edi.dilate(mask, offsets)
+    assert np.array_equal(got, want) and (got >= mask).all()

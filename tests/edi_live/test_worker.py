@@ -437,7 +437,7 @@ def test_deblur_thread_failure_reaches_on_error():
         def on_frame(self, frame, events, arrival_ns=0, ready=None):
             if self.has_reference:
                 raise RuntimeError("second frame failed")
-            return super().on_frame(frame, events, arrival_ns)
+            return super().on_frame(frame, events, arrival_ns, ready=ready)
 
     ev, frames, packets = two_frame_packets()
     worker, rec, out, errors = run_worker(packets, EdiConfig(every=400, deblur_thread=True), rec=FailSecond())
@@ -513,7 +513,7 @@ def test_a_gap_while_a_frame_is_deblurred_on_the_helper_thread():
         def on_frame(self, frame, events, arrival_ns=0, ready=None):
             if self.has_reference and not self._streamer:
                 time.sleep(0.3)  # a slow deblur: the gap and the next frame arrive meanwhile
-            return super().on_frame(frame, events, arrival_ns)
+            return super().on_frame(frame, events, arrival_ns, ready=ready)
 
         def mark_gap(self):
             if not self._streamer:
@@ -677,3 +677,18 @@ def test_the_deblurred_frame_is_sent_while_on_frame_still_readies_its_state():
     worker = stream_to_the_end(ReadyEarly(), EdiConfig(every=400, deblur_thread=True), packets, [sink])
     assert worker.error is None
     assert seen_before_return == [True]
+
+
+def test_a_reconstructor_without_the_ready_seam_still_deblurs_on_the_helper_thread():
+    """A Reconstructor written before on_frame took `ready` (a plugged-in reconstructor_factory) keeps working with
+    the deblur thread: its frame leaves when on_frame returns."""
+    class OldProtocol(StandIn):
+        def on_frame(self, frame, events, arrival_ns=0):
+            return super().on_frame(frame, events, arrival_ns)
+
+    _, frames, packets = two_frame_packets()
+    for threaded in (False, True):
+        worker, rec, out, errors = run_worker(packets, EdiConfig(every=400, deblur_thread=threaded),
+                                              rec=OldProtocol())
+        assert not errors, errors
+        assert sum(r.kind == "deblurred" for r in out) == len(frames)

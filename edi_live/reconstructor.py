@@ -296,13 +296,13 @@ class EdiReconstructor(ReconstructorView):
         return [self._reconstruction(image, t, "latent", n) for image, t, n in frames]
 
     def fused_events_from(self, f0_us: int, f1_us: int) -> int:
-        """The earliest event time render_fused needs for the pair (f0, f1): four intervals of context for the
-        residual estimate, or a little before f0 when the last pair's pass can be carried on (edi.residual_schedule)."""
+        """The earliest event time render_fused needs for the pair (f0, f1): edi.RESIDUAL_COLD_CONTEXT intervals of
+        context for the residual estimate, or a little before f0 when the last pair's pass can be carried on."""
         if not self.settings.fused_residual:
             return int(f0_us) + 1
         if self._carry.warm(f0_us, int(edi.RESIDUAL_SPAN * (f1_us - f0_us)), self._mask):
             return self._carry.snap_us + 1
-        return int(f0_us) - 4 * (int(f1_us) - int(f0_us))
+        return int(f0_us) - edi.RESIDUAL_COLD_CONTEXT * (int(f1_us) - int(f0_us))
 
     def stats(self) -> dict:
         return {

@@ -35,7 +35,7 @@ from edi_live.edi._backend import (DARK_FLOOR, LEVEL_CAP, LOG_MAX, LOG_MIN, have
 from edi_live.edi.deblur import ApsResponse, blurry_to_float, deblur, deblur_log, finish_frame_u8, log_divisor_events
 from edi_live.edi.fused import (RESIDUAL_SPAN, FusedPropagator, FusionPlan, event_mass, forward_plan, fused_frames,
                                 fused_log, fusion_plan, fusion_weights, time_share)
-from edi_live.edi.residual_schedule import ResidualCarry
+from edi_live.edi.residual_schedule import COLD_CONTEXT as RESIDUAL_COLD_CONTEXT, ResidualCarry
 from edi_live.edi.latent import (Propagator, event_delta, propagate_log, render_buckets, to_uint8, u8_tables)
 from edi_live.edi.levels import LevelTable, build_level_table, empty_table, log_divisor
 from edi_live.edi.pairs import consistency_cost, pair_candidates
@@ -64,7 +64,7 @@ def compiled_signatures() -> dict[str, set[str]]:
 __all__ = [
     "ApsResponse", "DARK_FLOOR", "FlickerState", "flicker_cycles", "FusedPropagator", "FusionPlan", "LEVEL_CAP", "LOG_MAX", "LOG_MIN", "LevelTable",
     "Propagator", "RunningDivisor", "add_counts", "compiled_signatures", "event_mass", "forward_plan", "fused_frames", "fused_log",
-    "fusion_plan", "fusion_weights", "RESIDUAL_SPAN", "ResidualCarry",
+    "fusion_plan", "fusion_weights", "RESIDUAL_COLD_CONTEXT", "RESIDUAL_SPAN", "ResidualCarry",
     "time_share",
     "background_activity_keep", "blurry_to_float", "build_level_table", "consistency_cost", "deblur", "deblur_log",
     "decay_hot_counts", "dilate", "empty_table", "event_delta", "events_at_pixels", "finish_frame_u8", "flat_index",

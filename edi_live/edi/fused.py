@@ -226,9 +226,9 @@ def fused_frames(current: tuple[np.ndarray, int], previous: tuple[np.ndarray, in
     since the previous image) per time. `current`/`previous`: (log L(f), f) of the two references (previous None:
     plain forward EDI, for times after the current f); `informative`: where the previous / current APS frame is
     neither clipped nor black; `events`: at least those from the earlier reference to the last time (with
-    `residual`, the sub-threshold residual estimate between events: four intervals before f0 to the new frame's
-    exposure end, or from just after carry.snap_us when `carry`, what the previous pair left, is warm for this
-    pair: see edi_live.edi.residual_schedule)."""
+    `residual`, the sub-threshold residual estimate between events: residual_schedule.COLD_CONTEXT intervals before
+    f0 to the new frame's exposure end, or from just after carry.snap_us when `carry`, what the previous pair left,
+    is warm for this pair: see edi_live.edi.residual_schedule)."""
     if previous is not None and residual and _backend.have_numba():
         return _residual_frames(current, previous, informative, times, events, c, mask, carry)
     log1, f1 = current

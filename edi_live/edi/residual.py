@@ -165,13 +165,20 @@ class ResidualTracker:
         return idx
 
 
-def exposure_residual(tracker: ResidualTracker, t0: int, t1: int, samples: int = 4) -> np.ndarray:
-    """The mean residual estimate over `samples` times evenly inside [t0, t1] (the tracker must not be past t0),
-    flat float32, from the events in [t0 - 5 (t1 - t0), t1] only: the same value whichever window holds them."""
+EXPOSURE_SAMPLES = 4  # times exposure_residual averages the estimate at
+
+
+def exposure_samples(t0: int, t1: int, samples: int = EXPOSURE_SAMPLES) -> tuple[list[int], tuple[int, int]]:
+    """(the `samples` times evenly inside [t0, t1] at which exposure_residual takes the estimate, the seen range
+    [t0 - 5 (t1 - t0), t1] of the events it uses: the same value whichever window holds them)."""
+    return [t0 + (t1 - t0) * (2 * j + 1) // (2 * samples) for j in range(samples)], (t0 - 5 * (t1 - t0), t1)
+
+
+def exposure_residual(tracker: ResidualTracker, t0: int, t1: int, samples: int = EXPOSURE_SAMPLES) -> np.ndarray:
+    """The mean residual estimate at exposure_samples(t0, t1) (the tracker must not be past t0), flat float32."""
     acc = np.zeros_like(tracker.residual)
-    seen = (t0 - 5 * (t1 - t0), t1)
-    for j in range(samples):
-        t = t0 + (t1 - t0) * (2 * j + 1) // (2 * samples)
+    times, seen = exposure_samples(t0, t1, samples)
+    for t in times:
         acc += tracker.at(t, seen)
     acc /= np.float32(samples)
     return acc

@@ -22,10 +22,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from edi_live.edi import _backend, _kernels_schedule
-from edi_live.edi.residual import _NEVER, A_UNKNOWN, TABLE_A, TABLE_B
+from edi_live.edi.residual import _NEVER, A_UNKNOWN, EXPOSURE_SAMPLES, TABLE_A, TABLE_B, exposure_samples
 from edi_live.edi.selection import time_index
 
-EXPOSURE_SAMPLES = 4  # as edi_live.edi.residual.exposure_residual
+COLD_CONTEXT = 4  # intervals of events before f0 a pair needs without a warm carry (> the held residual's 3.3)
 SNAP_BACK = 0.4  # the carry's snapshot: this share of the interval before the newer frame (> RESIDUAL_SPAN)
 FORGET_SPANS = 10  # a pixel's last event is seen for this many spans (edi_live.edi.fused.residual_seen)
 
@@ -84,19 +84,12 @@ class ResidualChanges:
     v: np.ndarray
 
 
-def exposure_times(f_us: int, span: int) -> tuple[list[int], int, int]:
-    """The times exposure_residual averages the estimate at around a reference at f, and its seen range."""
-    t0, t1 = f_us - span, f_us + span
-    times = [t0 + (t1 - t0) * (2 * j + 1) // (2 * EXPOSURE_SAMPLES) for j in range(EXPOSURE_SAMPLES)]
-    return times, t0 - 5 * (t1 - t0), t1
-
-
 def residual_changes(events: np.ndarray, width: int, height: int, c: tuple[float, float], mask: np.ndarray | None,
                      f0_us: int, f1_us: int, span: int, frames: np.ndarray,
                      carry: ResidualCarry | None = None) -> ResidualChanges:
     """The schedule of the estimate at `frames` (ascending, inside (f0, f1)) with the seen ranges of
-    edi_live.edi.fused.residual_seen, and the held residuals of both references. `events`: from four intervals
-    before f0 to the newer frame's exposure end, or from just after carry.snap_us when `carry` is warm for this
+    edi_live.edi.fused.residual_seen, and the held residuals of both references. `events`: from COLD_CONTEXT
+    intervals before f0 to the newer frame's exposure end, or from just after carry.snap_us when `carry` is warm for this
     pair (it is updated for the next one either way). Needs the numba kernels."""
     n_px = width * height
     warm = carry is not None and carry.warm(f0_us, span, mask)
@@ -110,7 +103,7 @@ def residual_changes(events: np.ndarray, width: int, height: int, c: tuple[float
     refs = [f0_us, f1_us]
     samples, s_row, s_from, s_to = [], [], [], []
     for row, f in enumerate(refs):
-        ts, lo, hi = exposure_times(int(f), span)
+        ts, (lo, hi) = exposure_samples(int(f) - span, int(f) + span)
         samples += ts
         s_row += [row] * len(ts)
         s_from += [lo] * len(ts)

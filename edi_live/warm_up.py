@@ -28,6 +28,8 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
     frozen = image.copy()
     frozen.setflags(write=False)  # numba compiles read-only arrays separately (a decoded frame can be one)
     try:
+        from edi_live import edi
+
         rec = make_reconstructor(width, height, edi_config)
         t_us = 0
         for k in range(3):  # three frames: the c estimator needs frame pairs
@@ -52,30 +54,24 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
             both = concat_events([events, later])
             rec.render_fused(previous, image, image, [previous[1] + 5_000, t_us + 4_000], both)
             # again on strided event fields: the reconstructor may have judged the random events a still scene
-            from edi_live import edi
-
             for residual in (False, True):  # the per-frame path, and the residual estimate's one-call kernels
                 edi.fused_frames(rec.reference_log(), previous, (image > 0, image > 0), [previous[1] + 5_000], both,
                                  (0.2, 0.2), None, residual=residual)
             t_us += 20_000
         # the running double integral (deblur ahead): fed ring slices (strided fields) and single events
-        from edi_live.edi import RunningDivisor
-
         npix = width * height
         t_lo, t_hi = int(events["t"][0]), int(events["t"][-1])
         for c_off in (0.2, 0.15):
             for mask, counts in ((None, None), (np.zeros(npix, bool), np.zeros(npix, np.int64))):
-                run = RunningDivisor(width, height, t_lo, t_hi, (t_lo + t_hi) // 2, 0.2, c_off, mask=mask,
+                run = edi.RunningDivisor(width, height, t_lo, t_hi, (t_lo + t_hi) // 2, 0.2, c_off, mask=mask,
                                      event_counts=counts)
                 run.feed(events[:-1])
                 run.feed_from(events[-1:])
                 run.finish((np.zeros(npix, np.int64), np.zeros(npix, np.int64)) if counts is not None else None)
         # its re-mask picks a released pixel's events with the pixel-sample kernel, which with a fixed c (no c
         # tracker) nothing else has compiled: ring slices, one event, none
-        from edi_live.edi import events_at_pixels
-
         for batch in (events, events[-1:], events[:0]):
-            events_at_pixels(batch, width, height, np.ones(npix, bool), t_lo, t_hi)
+            edi.events_at_pixels(batch, width, height, np.ones(npix, bool), t_lo, t_hi)
         # exposures without events (a dark or still scene), first and later: empty field views count as
         # C-contiguous, another specialisation
         empty = np.zeros(0, EVENT_DTYPE)
@@ -85,10 +81,8 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
             first.on_frame(Frame(image, k * 20_000, k * 20_000 + 10_000), empty)
         # separate thresholds have their own single-pass divisor kernel: the first estimate with c_on != c_off
         # must not compile it mid-stream
-        from edi_live.edi import log_divisor_events
-
         t0 = int(events["t"][0])  # an exposure over these events (fused mode's block above moved t_us on)
-        log_divisor_events(events, width, height, t0, t0 + 10_000, None, 0.2, 0.15)
+        edi.log_divisor_events(events, width, height, t0, t0 + 10_000, None, 0.2, 0.15)
         # the worker's noise-or-activity test: its filter kernel over ring slices (strided fields) and one event
         from edi_live.activity import SceneActivity
 
@@ -98,17 +92,16 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
         # the prediction figure (its frame average; the pixels with events, on ring slices and one event), the
         # black-level profile (its first fit comes frames later) and the unreliable-pixel mask's dilation (only
         # once a pixel is flagged, which the scene above never does)
-        from edi_live import edi as edi_math
         from edi_live.contrast import _kernels_black_level
         from edi_live.hold_average import hold_average
 
         hold_average([image, image], [1, 1], 2)
         marks = np.zeros(npix, bool)
-        edi_math.mark_event_pixels(events[:10], width, height, marks)
-        edi_math.mark_event_pixels(events[10:11], width, height, marks)
+        edi.mark_event_pixels(events[:10], width, height, marks)
+        edi.mark_event_pixels(events[10:11], width, height, marks)
         b = np.linspace(5.0, 200.0, 64)
         _kernels_black_level.profile_point(b, b + 1.0, np.ones(64), 2.0, 0.5, 5, 50.0)
-        edi_math.dilate(np.zeros((height, width), bool), [(0, 0), (0, 1)])
+        edi.dilate(np.zeros((height, width), bool), [(0, 0), (0, 1)])
     except Exception:  # noqa: BLE001 - warm-up only; see docstring
         log.debug("kernel warm-up failed", exc_info=True)
 
@@ -119,11 +112,5 @@ def compiled_signatures() -> dict[str, set[str]]:
     from edi_live import edi, hold_average
     from edi_live.contrast import _kernels_black_level
 
-    found = edi.compiled_signatures()
-    for module in (_kernels_black_level, hold_average):
-        for name, fn in vars(module).items():
-            signatures = getattr(fn, "signatures", None)
-            if signatures is not None:
-                found[f"{module.__name__.rsplit('.', 1)[-1]}.{name}"] = set(map(str, signatures))
-    return found
+    return edi.compiled_signatures(also=(_kernels_black_level, hold_average))
 

@@ -29,6 +29,8 @@ Modules: selection (time windows, pixel picks, counts), levels (level table, log
 integral of an exposure accumulated while its events arrive).
 """
 
+from types import ModuleType
+
 from edi_live.edi import (_kernels_fused, _kernels_levels, _kernels_pixels, _kernels_residual, _kernels_schedule,
                           _kernels_stream)
 from edi_live.edi._backend import (DARK_FLOOR, LEVEL_CAP, LOG_MAX, LOG_MIN, have_numba, numpy_reference)
@@ -48,12 +50,13 @@ from edi_live.edi.selection import (add_counts, events_at_pixels, flat_index, se
 
 
 
-def compiled_signatures() -> dict[str, set[str]]:
+def compiled_signatures(also: tuple[ModuleType, ...] = ()) -> dict[str, set[str]]:
     """Each kernel's compiled argument-type signatures so far (to check that a warm-up covered what a run needs:
-    a kernel met with new argument types compiles on the spot, which stalls a stream)."""
+    a kernel met with new argument types compiles on the spot, which stalls a stream); `also`: other modules whose
+    compiled functions count too."""
     found = {}
     for module in (_kernels_fused, _kernels_levels, _kernels_pixels, _kernels_residual, _kernels_schedule,
-                   _kernels_stream):
+                   _kernels_stream, *also):
         for name, fn in vars(module).items():
             signatures = getattr(fn, "signatures", None)
             if signatures is not None:

@@ -119,7 +119,6 @@ def contradictions(score, own, n_on, n_off, log_prev, log_cur, inf_prev, inf_cur
     decay32 = np.float32(decay)
     release32 = np.float32(release)
     one = np.float32(1.0)
-    count = 0
     for q in range(score.size):
         if not (use_busy and own[q] and busy[q] >= min_events):
             score[q] *= decay32
@@ -133,10 +132,7 @@ def contradictions(score, own, n_on, n_off, log_prev, log_cur, inf_prev, inf_cur
                 bad = size > saturated_limit
             if bad:
                 score[q] += one
-        o = score[q] >= release32 if own[q] else score[q] >= one
-        out[q] = o
-        count += o
-    return count
+        out[q] = score[q] >= release32 if own[q] else score[q] >= one
 
 
 @njit(cache=True, nogil=True)

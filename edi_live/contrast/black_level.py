@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -124,6 +125,22 @@ def fit_c(s: QuietSamples, b: float, delta: float = 0.5, iterations: int = 5) ->
     return c if c > 0 else float("nan")
 
 
+def profile_point(s: QuietSamples, b: float) -> tuple[float, float]:
+    """(c, cost) of the profile at black level b: fit_c, then the sum of black_level_terms (inf when c is
+    undefined); one compiled pass per step with the kernels."""
+    if have_numba():
+        return _kernels_black_level.profile_point(s.b_prev, s.b_cur, s.net, float(b), 0.5, 5, _MISS)
+    c = fit_c(s, b)
+    return c, (float(np.sum(black_level_terms(s, b, c))) if c == c else math.inf)
+
+
+def grid_minimum(cost: Callable[[float], float], lo: int, hi: int) -> float:
+    """The whole-DN b in [lo, hi] of the lowest cost as the profile is searched: every 4 DN, then every DN within
+    3 of the best of those."""
+    b0 = min((float(b) for b in range(lo, hi + 1, 4)), key=cost)
+    return min((float(b) for b in range(int(max(lo, b0 - 3)), int(min(hi, b0 + 3)) + 1)), key=cost)
+
+
 def fit_black_level(s: QuietSamples, b_range: tuple[float, float] = (0.0, 40.0), *, z_step: float = 4.0,
                     min_pixels: int = 50) -> BlackLevelFit | None:
     """Profile the cost over whole-DN b in `b_range` (c fitted per b); None without enough moving pixels."""
@@ -134,18 +151,10 @@ def fit_black_level(s: QuietSamples, b_range: tuple[float, float] = (0.0, 40.0),
 
     def at(b: float) -> tuple[float, float]:
         if b not in cache:
-            if have_numba():
-                c, cost = _kernels_black_level.profile_point(s.b_prev, s.b_cur, s.net, float(b), 0.5, 5, _MISS)
-            else:
-                c = fit_c(s, b)
-                cost = float(np.sum(black_level_terms(s, b, c))) if c == c else math.inf
-            cache[b] = (c, cost)
+            cache[b] = profile_point(s, b)
         return cache[b]
 
-    # coarse pass every 4 DN, then every DN around the best
-    b0 = min((float(b) for b in range(lo_b, hi_b + 1, 4)), key=lambda b: at(b)[1])
-    b_best = min((float(b) for b in range(int(max(lo_b, b0 - 3)), int(min(hi_b, b0 + 3)) + 1)),
-                 key=lambda b: at(b)[1])
+    b_best = grid_minimum(lambda b: at(b)[1], lo_b, hi_b)
     c_best = at(b_best)[0]
     if not math.isfinite(at(b_best)[1]):
         return None

@@ -25,10 +25,8 @@ import math
 
 import numpy as np
 
-from edi_live.contrast import _kernels_black_level
-from edi_live.contrast.black_level import QuietSamples, SUPPORT_DN, black_level_terms, fit_c, quiet_samples
+from edi_live.contrast.black_level import QuietSamples, SUPPORT_DN, grid_minimum, profile_point, quiet_samples
 from edi_live.contrast.frames import FramePair
-from edi_live.edi import have_numba
 
 MIN_NOISE_PAIRS = 50  # neighbour pairs needed for a read-noise estimate
 SIMEX_LAMBDAS = (1.0, 2.0)
@@ -106,15 +104,10 @@ def profile_minimum(b_prev: np.ndarray, b_cur: np.ndarray, net: np.ndarray,
 
     def cost(b: float) -> float:
         if b not in cache:
-            if have_numba():
-                cache[b] = _kernels_black_level.profile_point(b_prev, b_cur, net, float(b), 0.5, 5, 50.0)[1]
-            else:
-                c = fit_c(s, b)
-                cache[b] = float(np.sum(black_level_terms(s, b, c))) if c == c else math.inf
+            cache[b] = profile_point(s, b)[1]
         return cache[b]
 
-    b0 = min((float(b) for b in range(lo, hi + 1, 4)), key=cost)
-    best = min((float(b) for b in range(int(max(lo, b0 - 3)), int(min(hi, b0 + 3)) + 1)), key=cost)
+    best = grid_minimum(cost, lo, hi)
     if best <= lo or best >= hi:
         return best
     left, mid, right = cost(best - 1.0), cost(best), cost(best + 1.0)

@@ -5,9 +5,8 @@ once c is estimated).
 
 `step` runs inside the reconstructor's on_frame (the pair and its counts, which that deblur's unreliable-pixel test
 needs); `complete` builds the frame's level table later, in settle(), on the thread that runs on_frame (the worker's
-or the deblur helper's). The counts between two reference times come from
-the latent state's accumulator (events applied since the previous f) corrected by the batch at hand, so that no
-event is counted twice or missed.
+or the deblur helper's). The counts between two reference times come from the latent state's accumulator (events
+applied since the previous f) corrected by the batch at hand, so that no event is counted twice or missed.
 """
 
 from __future__ import annotations

@@ -44,8 +44,8 @@ Definition, for every APS frame k+1 (window W = [exposure_start, exposure_end] o
 
 Cost: storing an emitted frame keeps a reference (no copy; receivers never modify emitted images). Each frame
 is integrated at most once per window it overlaps (one compiled int32 multiply-add over the pixels,
-edi_live.hold_average); frames outside
-every window (readout gaps) cost nothing. Per APS frame: one copy of B, four masked MSEs. on_events: O(events).
+edi_live.hold_average); frames outside every window (readout gaps) cost nothing. Per APS frame: one copy of B,
+four masked MSEs. on_events: O(events), one compiled pass.
 A held APS frame costs no arithmetic on its pixels (converted only if a later window needs it as B_k).
 Memory: the frames since the oldest window that may still need them, at most `max_frames`.
 """

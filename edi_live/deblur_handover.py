@@ -3,8 +3,13 @@ the "edi-deblur" helper thread, the worker streams latent frames from a streamin
 previous reference. The deblurred frame is handed to the worker as soon as on_frame has it (`ready`: on_frame's
 callback, before it readies its state for the events after the frame); the helper thread then finishes on_frame,
 runs the reconstructor's settle() (the calibration work the frame did not wait for) and only then
-(`done`) may the worker adopt the original again, replaying into it the events the copy applied meanwhile
-(`catchup`).
+(`done`) may the worker adopt the original again, replaying into it the calls the copy was given meanwhile.
+
+The replay repeats those calls one by one (the same pieces, arrival stamps and renders, in order), not their
+events in one batch: the original decides some things per call, before it applies the call's events (a pixel the
+flicker detector flags in a piece is masked for the whole piece), and the counts it keeps then feed the
+unreliable-pixel test and the c, black-level and noise estimates. Replayed call by call, it ends in the state
+the inline path (no helper thread) gives, and so makes the same frames.
 """
 
 from __future__ import annotations
@@ -13,25 +18,27 @@ import functools
 import inspect
 import threading
 import time
-from typing import Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from edi_live.datatypes import Reconstruction, concat_events
+from edi_live.datatypes import Reconstruction
 from edi_live.reconstruction import Reconstructor
 from edi_live.ring import FrameEntry
 
 
 class PendingDeblur:
     """One APS frame being deblurred on the "edi-deblur" helper thread by the master reconstructor, while the
-    worker streams latent frames from a copy that still holds the previous reference. The events the copy
-    applies meanwhile are kept (`catchup`) and replayed into the master when it is adopted."""
+    worker streams latent frames from `streamer`, the master's streaming copy as of now (made before the deblur
+    starts), which still holds the previous reference. The calls the streamer gets meanwhile are logged and
+    replayed into the master when it is adopted."""
 
     def __init__(self, master: Reconstructor, entry: FrameEntry, events: np.ndarray, arrival_ns: int, send: bool,
                  wake: Callable[[], None]) -> None:
         self.master, self.entry, self.send = master, entry, send
-        self.catchup: list[np.ndarray] = []
-        self.gap = False
+        self.calls: list[tuple] = []  # (events, arrival_ns, cuts, arrivals) per on_events(_frames); () per render
+        self.gap = False  # data were lost meanwhile: the streamer logs nothing more, the master is told at adopt
+        self.streamer = StreamingCopy(master.streaming_copy(), self)
         self.result: Reconstruction | None = None
         self.error: BaseException | None = None
         self.deblur_ms = self.settle_ms = 0.0
@@ -52,13 +59,21 @@ class PendingDeblur:
         self._claimed = True
         return True
 
-    def adopt(self, last_arrival_ns: int) -> Reconstructor:
-        """Once `done`: the master, with the events the copy applied meanwhile replayed into it (and then the gap
-        the copy got, if any). Raises the helper thread's error, if there was one."""
+    def adopt(self) -> Reconstructor:
+        """Once `done`: the master, with the calls the streamer was given meanwhile replayed into it (and then the
+        gap the worker saw, if any). Raises the helper thread's error, if there was one. The frames the replayed
+        calls render are dropped: the streamer's went out instead."""
         if self.error is not None:
             raise self.error
-        if self.catchup:
-            self.master.on_events(concat_events(self.catchup), last_arrival_ns)
+        master = self.master
+        for call in self.calls:
+            if not call:
+                master.render()
+            elif call[2] is None:
+                master.on_events(call[0], call[1])
+            else:
+                master.on_events_frames(call[0], call[2], call[3])
+        self.calls = []
         if self.gap:
             self.master.mark_gap()
         return self.master
@@ -94,6 +109,34 @@ class PendingDeblur:
             self.ready.set()
             self.done.set()
             self._wake()
+
+
+class StreamingCopy:
+    """The worker's reconstructor while a deblur is pending: the master's streaming copy, logging into the
+    PendingDeblur each call that moves its state (on_events, on_events_frames, render) until a gap; everything
+    else is the copy's own."""
+
+    def __init__(self, copy: Reconstructor, pending: PendingDeblur) -> None:
+        self._copy, self._pending = copy, pending
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._copy, name)
+
+    def on_events(self, events: np.ndarray, arrival_ns: int = 0) -> None:
+        if not self._pending.gap:
+            self._pending.calls.append((events, arrival_ns, None, None))
+        self._copy.on_events(events, arrival_ns)
+
+    def on_events_frames(self, events: np.ndarray, cuts: Sequence[int],
+                         arrivals: Sequence[int]) -> list[Reconstruction]:
+        if not self._pending.gap:
+            self._pending.calls.append((events, 0, list(cuts), list(arrivals)))
+        return self._copy.on_events_frames(events, cuts, arrivals)
+
+    def render(self) -> Reconstruction:
+        if not self._pending.gap:
+            self._pending.calls.append(())
+        return self._copy.render()
 
 
 @functools.cache

@@ -260,7 +260,7 @@ class Node:
     def _save_calibration(self) -> None:
         """--save-calibration (a failure is the run's error), or a live camera's own file (a failure is a warning)."""
         target = self._calibration_to
-        noise = self.worker.rec.noise_rates() if target is not None and self.worker is not None else None
+        noise = self.worker.noise_rates() if target is not None and self.worker is not None else None
         cal = calibration.from_stats(self.source.info, self.final_stats, noise) if target is not None else None
         if cal is None:
             return

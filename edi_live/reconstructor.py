@@ -113,7 +113,7 @@ class EdiReconstructor(ReconstructorView):
         twin._noise = self._noise.copy() if self._noise is not None else None
         twin._tracker = twin._flicker = twin._calib = None  # the original finds pairs and flicker in them later
         twin._clock = self._clock.frozen()  # its events reach the original's on_events later
-        twin._streamer = True
+        twin._streamer, twin._pending_events = True, 0  # the events so far count toward the frame being deblurred
         twin._carry = edi.ResidualCarry()  # the carry's scratch belongs to the original's thread
         return twin
 

@@ -20,7 +20,7 @@ import collections
 import logging
 import threading
 import time
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
@@ -36,8 +36,11 @@ from edi_live.nearest_mode import NearestHoldBack
 from edi_live.quality import PredictionScore
 from edi_live.quiet_reads import QuietReads
 from edi_live.reconstruction import Reconstructor
-from edi_live.reconstructor_stats import reconstructor_stats
 from edi_live.ring import EventChunk, EventRing, FrameEntry
+from edi_live.worker_stats import worker_stats
+
+if TYPE_CHECKING:
+    from edi_live.pixel_noise import NoiseRates
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +50,7 @@ _CHUNK_EVENTS = 1 << 16  # events taken from the ring per lock (then split into 
 _BATCH_FRAMES = 32  # latent frames made per reconstructor call (bounds the images held before sending)
 _IDLE_WAIT_S = 0.25
 _MOVING_EVENTS_CAP = 100  # the threshold at the default --every 1000; larger --every values do not raise it
+_ABORT_DEBLUR_WAIT_S = 1.0  # aborted with a deblur pending: how long to wait for it (one on_frame + settle)
 _STATIC_EVENTS = 16  # fewer events than this in an exposure (and since the last frame) = a static scene
 
 
@@ -129,6 +133,8 @@ class EdiWorker:
                 self._flush_deferred()
                 if self.quality is not None:
                     self.quality.finish()
+            elif self._pending is not None and self._pending.done.wait(_ABORT_DEBLUR_WAIT_S):
+                self._adopt(wait=False, send=False)  # the stats and a saved calibration then read the master
         except BaseException as exc:
             self.error = exc
             log.debug("worker failed", exc_info=True)
@@ -175,11 +181,8 @@ class EdiWorker:
         if self.quality is not None:
             self.quality.on_events(chunk.events)
         self._last_arrival_ns = chunk.arrival_ns_at(n)
-        if self._pending is not None:
-            if chunk.gap:
-                self._pending.gap = True
-            elif not self._pending.gap:
-                self._pending.catchup.append(chunk.events)
+        if self._pending is not None and chunk.gap:
+            self._pending.gap = True  # the streamer logs no more calls; the master hears of the gap when adopted
         if chunk.gap:
             self.gaps += 1
             self._await_reference = True
@@ -267,8 +270,9 @@ class EdiWorker:
                 return
         if self._use_deblur_thread():
             send = self._moving(len(events))
-            master, self.rec = self.rec, self.rec.streaming_copy()  # the copy streams from the previous reference
-            self._pending = PendingDeblur(master, entry, events, arrival, send, self.ring.poke)
+            self._since = 0 if send else self._since  # latent frames count from here, as when sent inline
+            self._pending = PendingDeblur(self.rec, entry, events, arrival, send, self.ring.poke)
+            self.rec = self._pending.streamer  # streams from the previous reference; its calls are replayed later
             self.busy_s += time.perf_counter() - t0
             return
         early = self._nearest.take_before((self._ref_f_us + f_us) // 2 if self._ref_f_us is not None else None)
@@ -306,7 +310,7 @@ class EdiWorker:
         return bool(self.config.deblur_thread and self.config.mode == "causal" and self.rec.has_reference
                     and not self._await_reference)
 
-    def _adopt(self, wait: bool) -> None:
+    def _adopt(self, wait: bool, send: bool = True) -> None:
         """Make the master (with the new reference) the streaming reconstructor again and send its frame."""
         pending = self._pending
         if pending is None or (not wait and not pending.done.is_set()):
@@ -316,17 +320,19 @@ class EdiWorker:
                 return
         self._pending = None
         t0 = time.perf_counter()
-        self.rec = pending.adopt(self._last_arrival_ns)  # raises the helper thread's error, if any
+        self.rec = pending.adopt()  # raises the helper thread's error, if any
         self._deblur_ms.append(pending.deblur_ms)
         self._ref_f_us = pending.entry.frame.mid_exposure_us
         self._await_reference |= pending.gap  # the catch-up spans lost data: wait for the next APS frame
         self.busy_s += time.perf_counter() - t0
-        if pending.claim_result():  # not sent yet: the deblur ended just now
+        if send and pending.claim_result():  # not sent yet: the deblur ended just now
             self._send_deblurred(pending)
 
     def _send_deblurred(self, pending: PendingDeblur) -> None:
         if pending.send and pending.result is not None:
+            since = self._since  # counted from the handover (above): the same latent frames, and calls, as inline
             self._emit(pending.result)
+            self._since = since
         else:
             self.skipped_static += 1
 
@@ -377,22 +383,10 @@ class EdiWorker:
     # ---------------------------------------------------------------- stats (any thread)
 
     def stats(self) -> dict[str, Any]:
-        deblur = list(self._deblur_ms)
-        return {
-            "events_processed": self.events_in,
-            "aps_frames_in": self.frames_in,
-            "frames_deblurred": self.sent.get("deblurred", 0),
-            "frames_latent": self.sent.get("latent", 0),
-            "heartbeats": self.heartbeats, "skipped_static": self.skipped_static,
-            "skipped_static_deblur": self.skipped_static_deblur, "quiet_waits": self._quiet.batched_waits,
-            "noise_only_events": self._scene.noise_only_events,
-            "skipped_max_fps": self.skipped_max_fps, "frames_not_rendered": self.demand.not_rendered,
-            "worker_gaps": self.gaps,
-            "worker_busy_s": round(self.busy_s, 3),
-            "deblur_ms_p50": round(float(np.median(deblur)), 3) if deblur else None,
-            "deblur_ms_max": round(float(np.max(deblur)), 3) if deblur else None,
-            "nearest_added_latency_ms_p50": self._nearest.waited_ms_p50() if self.config.mode == "nearest" else None,
-            "fused_added_latency_ms_p50": self._nearest.waited_ms_p50() if self.config.mode == "fused" else None,
-            **reconstructor_stats(self.rec),  # c, camera values, ignored pixels, noise statistics
-            **(self.quality.stats() if self.quality is not None else {}),
-        }
+        return worker_stats(self)
+
+    def noise_rates(self) -> NoiseRates | None:
+        """The per-pixel noise rates to save with a calibration: the reconstructor's own, never a streaming copy's
+        (it shares the original's statistics, which the helper thread may be writing); None while a deblur is
+        still pending after an abort."""
+        return self.rec.noise_rates() if self._pending is None else None

@@ -1,0 +1,166 @@
+"""The deblur thread (edi_live.deblur_handover) against the inline path, with the real reconstructor on a simulated
+scene with a flickering lamp: the same stream gives the same deblurred frames and the same final state whether
+each APS frame is deblurred inline or on the helper thread while a streaming copy takes the events. The oracle is
+the inline run (no helper thread, no copy, no replay). The handover is made deterministic without sleeps: the
+helper thread's deblur starts only once the worker has handed every event up to the next APS frame to the copy
+(it waits for the worker to go idle), so the copy always takes several pieces that the original must replay."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+import edi_live.deblur_handover as deblur_handover
+import edi_live.worker as worker_module
+from edi_live.config import EdiConfig
+from edi_live.datatypes import Packet
+from edi_live.reconstructor import EdiReconstructor
+from edi_live.ring import EventRing
+from edi_live.simulation import simulate
+from edi_live.simulation.camera import preset
+from edi_live.worker import EdiWorker
+
+W, H = 120, 90
+
+
+@pytest.fixture(scope="module")
+def flicker_packets() -> list[Packet]:
+    """A translating scene with a 100 Hz lamp: 20 APS frames, each period's events in four packets."""
+    cfg = preset("translate", effects=("flicker",), width=W, height=H, duration_s=0.4, ground_truth=False,
+                 frame_interval_us=20_000, exposure_us=8_000, first_exposure_us=2_000, t0_us=0)
+    sim = simulate(cfg)
+    t = sim.events["t"]
+    packets: list[Packet] = []
+    cut = 0
+    for frame in sim.frames:
+        end = int(np.searchsorted(t, frame.exposure_end_us, side="right"))
+        for part in np.array_split(np.arange(cut, end), 4):
+            if part.size:
+                packets.append(Packet(events=sim.events[part[0]:part[-1] + 1], arrival_ns=10**9 + len(packets)))
+        packets.append(Packet(events=sim.events[:0], frames=[frame], arrival_ns=10**9 + len(packets)))
+        cut = end
+    packets.append(Packet(events=sim.events[cut:], arrival_ns=10**9 + len(packets)))
+    return packets
+
+
+class IdleRing(EventRing):
+    """`idle` is set when the worker waits for data (it has read everything it may read now), cleared when it
+    takes an APS frame."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.idle = threading.Event()
+
+    def wait(self, since_version: int, timeout_s: float, wake=None) -> bool:
+        self.idle.set()
+        return super().wait(since_version, timeout_s, wake)
+
+    def pop_frame(self):
+        self.idle.clear()
+        return super().pop_frame()
+
+
+def _gated(ring: IdleRing) -> EdiReconstructor:
+    class Gated(EdiReconstructor):
+        def on_frame(self, frame, events, arrival_ns=0, ready=None):
+            if ready is not None:  # on the helper thread: the copy takes every event up to the next frame first
+                assert ring.idle.wait(30)
+            return super().on_frame(frame, events, arrival_ns, ready=ready)
+
+    return Gated(W, H)
+
+
+def _run(packets: list[Packet], threaded: bool) -> tuple[list, EdiWorker, EdiReconstructor]:
+    ring = IdleRing(capacity_events=1 << 22, capacity_frames=64, policy="wait")
+    for p in packets:
+        assert ring.push(p, timeout_s=5)
+    ring.close()
+    rec, out = _gated(ring), []
+    worker = EdiWorker(ring, rec, EdiConfig(every=200, deblur_thread=threaded, quality_every=0), [out.append])
+    worker.start()
+    assert worker.done.wait(120) and worker.error is None, worker.error
+    return out, worker, rec
+
+
+def test_the_deblur_thread_gives_the_inline_frames_on_a_flickering_scene(flicker_packets, monkeypatch):
+    replayed: list[int] = []
+    adopt = deblur_handover.PendingDeblur.adopt
+
+    def counting_adopt(self):
+        replayed.append(len(self.calls))
+        return adopt(self)
+
+    monkeypatch.setattr(deblur_handover.PendingDeblur, "adopt", counting_adopt)
+    inline, w_inline, rec_inline = _run(flicker_packets, threaded=False)
+    assert not replayed
+    threaded, w_threaded, rec_threaded = _run(flicker_packets, threaded=True)
+    assert len(replayed) == 19 and min(replayed) >= 2, "each deblur on the helper thread, the copy fed in pieces"
+    assert w_threaded.rec is rec_threaded, "the original takes over again after each deblur"
+    assert rec_inline.flicker_pixels > 20, "the lamp is found: the scene exercises the flicker mask"
+
+    def deblurred(frames):
+        return [r for r in frames if r.kind == "deblurred"]
+
+    assert len(deblurred(inline)) == 20
+    for a, b in zip(deblurred(inline), deblurred(threaded)):
+        assert b.t_us == a.t_us
+        np.testing.assert_array_equal(b.image, a.image, err_msg=f"deblurred frame at {a.t_us}")
+    assert [(r.t_us, r.n_events, r.c_on, r.c_off, r.black_level) for r in deblurred(threaded)] == \
+           [(r.t_us, r.n_events, r.c_on, r.c_off, r.black_level) for r in deblurred(inline)]
+    # latent frames come at the same events (the copy's, until each deblur is adopted, from the older reference)
+    assert sorted((r.t_us, r.kind, r.n_events) for r in threaded) == \
+           sorted((r.t_us, r.kind, r.n_events) for r in inline)
+    np.testing.assert_array_equal(rec_threaded.latent_log_image, rec_inline.latent_log_image)
+    assert rec_threaded.stats() | {"last_deblur_ms": 0, "last_estimate_ms": 0, "last_settle_ms": 0} == \
+           rec_inline.stats() | {"last_deblur_ms": 0, "last_estimate_ms": 0, "last_settle_ms": 0}
+    np.testing.assert_array_equal(rec_threaded.noise_rates().on_hz, rec_inline.noise_rates().on_hz)
+
+
+def _abort_during_settle(packets: list[Packet]) -> tuple[EdiWorker, EdiReconstructor, threading.Event]:
+    """Three APS frames; the helper thread's settle() of the third blocks until the worker was aborted."""
+    ring = IdleRing(capacity_events=1 << 22, capacity_frames=64, policy="wait")
+    in_settle, release = threading.Event(), threading.Event()
+    frames = [i for i, p in enumerate(packets) if p.frames]
+    for p in packets[:frames[2] + 3]:
+        assert ring.push(p, timeout_s=5)
+    ring.close()
+
+    class BlockedSettle(EdiReconstructor):
+        def settle(self):
+            if self.frames == 3 and self._calib.pending and not self._streamer:
+                in_settle.set()
+                assert release.wait(30)
+            super().settle()
+
+    rec = BlockedSettle(W, H)
+    worker = EdiWorker(ring, rec, EdiConfig(every=200, deblur_thread=True, quality_every=0), [])
+    worker.start()
+    assert in_settle.wait(30) and ring.idle.wait(30)  # the worker now waits for the pending deblur
+    worker.abort()
+    return worker, rec, release
+
+
+def test_an_abort_with_a_deblur_pending_hands_back_the_original_for_the_saved_calibration(flicker_packets):
+    worker, rec, release = _abort_during_settle(flicker_packets)
+    release.set()  # the settle ends after the abort: the worker must wait for it, not leave the copy in place
+    assert worker.done.wait(30) and worker.error is None, worker.error
+    assert worker.rec is rec, "stats and a saved calibration must read the original, not the streaming copy"
+    assert rec.frames == 3 and rec._pixel_noise.updates >= 1
+    rates, own = worker.noise_rates(), rec.noise_rates()
+    assert rates is not None
+    np.testing.assert_array_equal(rates.on_hz, own.on_hz)
+    np.testing.assert_array_equal(rates.seconds, own.seconds)
+    assert worker.stats()["c_on"] == round(rec.c_on, 4)
+
+
+def test_an_abort_while_the_deblur_still_runs_saves_no_noise_rates(flicker_packets, monkeypatch):
+    monkeypatch.setattr(worker_module, "_ABORT_DEBLUR_WAIT_S", 0.0)
+    worker, rec, release = _abort_during_settle(flicker_packets)
+    try:
+        assert worker.done.wait(30) and worker.error is None, worker.error
+        assert worker.rec is not rec
+        assert worker.noise_rates() is None, "the copy's view of the original's statistics, mid-update"
+    finally:
+        release.set()

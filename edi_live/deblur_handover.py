@@ -1,7 +1,8 @@
 """Deblurring an APS frame off the worker thread: while the original reconstructor computes the new reference on
 the "edi-deblur" helper thread, the worker streams latent frames from a streaming copy that still holds the
-previous reference. The deblurred frame is handed to the worker as soon as on_frame has it (`ready`: on_frame's
-callback, before it readies its state for the events after the frame); the helper thread then finishes on_frame,
+previous reference. The deblurred frame goes to the sinks (`deliver`, from the helper thread) as soon as on_frame has
+it (`ready`: on_frame's callback, before it readies its state for the events after the frame), and the worker counts
+it when it sees it ready (`claim_result`); the helper thread then finishes on_frame,
 runs the reconstructor's settle() (the calibration work the frame did not wait for) and only then
 (`done`) may the worker adopt the original again, replaying into it the calls the copy was given meanwhile.
 
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import functools
 import inspect
+import queue
 import threading
 import time
 from typing import Any, Callable, Sequence
@@ -34,8 +36,9 @@ class PendingDeblur:
     replayed into the master when it is adopted."""
 
     def __init__(self, master: Reconstructor, entry: FrameEntry, events: np.ndarray, arrival_ns: int, send: bool,
-                 wake: Callable[[], None]) -> None:
+                 helper: DeblurThread) -> None:
         self.master, self.entry, self.send = master, entry, send
+        self._wake, self._deliver = helper.wake, helper.deliver
         self.calls: list[tuple] = []  # (events, arrival_ns, cuts, arrivals) per on_events(_frames); () per render
         self.gap = False  # data were lost meanwhile: the streamer logs nothing more, the master is told at adopt
         self.streamer = StreamingCopy(master.streaming_copy(), self)
@@ -45,15 +48,12 @@ class PendingDeblur:
         self.ready = threading.Event()  # the frame (or an error) is out; on_frame and settle() may still run
         self.done = threading.Event()  # settle() returned too: the master may be adopted
         self._claimed = False
-        self._wake = wake
-        self._thread = threading.Thread(target=self._run, args=(events, arrival_ns), name="edi-deblur",
-                                        daemon=True)
-        self._thread.start()
+        helper.run(functools.partial(self._run, events, arrival_ns))
 
     def claim_result(self) -> bool:
-        """True at most once, when the deblurred frame is ready and no error was seen yet: the worker sends it (or
-        counts it as skipped) then. An error raised by on_frame after its `ready` call is still reported at
-        adopt(); whether the frame went out before it depends on timing. Worker thread only."""
+        """True at most once, when the deblurred frame is ready and no error was seen yet: the worker counts it as
+        sent (`deliver` sent it) or skipped then. An error raised by on_frame after its `ready` call is still
+        reported at adopt(), after the frame went out. Worker thread only."""
         if self._claimed or not self.ready.is_set() or self.error is not None:
             return False
         self._claimed = True
@@ -84,8 +84,10 @@ class PendingDeblur:
         def frame_ready(result: Reconstruction) -> None:  # inside on_frame: the frame is complete, its state not
             self.result = result
             self.deblur_ms = (time.perf_counter() - t0) * 1e3
+            if self.send:
+                self._deliver(result)  # sent from here, now; the worker counts it when it claims it
             self.ready.set()
-            self._wake()  # the worker sends the frame while this thread finishes on_frame and settles
+            self._wake()  # while this thread finishes on_frame and settles
 
         try:
             try:
@@ -109,6 +111,34 @@ class PendingDeblur:
             self.ready.set()
             self.done.set()
             self._wake()
+
+
+class DeblurThread:
+    """The "edi-deblur" helper thread, one per worker for its lifetime, started on first use: it runs the jobs it is
+    given one at a time, in order. Starting a thread per APS frame instead held the worker in Thread.start for ~1.1
+    ms at the median (until the new thread ran), which delayed the latent frames that follow an APS frame.
+    `wake` pokes the worker, `deliver` hands a frame to its sinks (both called on this thread)."""
+
+    def __init__(self, wake: Callable[[], None], deliver: Callable[[Reconstruction], None]) -> None:
+        self.wake, self.deliver = wake, deliver
+        self._jobs: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
+        self._thread: threading.Thread | None = None
+
+    def run(self, job: Callable[[], None]) -> None:
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._loop, name="edi-deblur", daemon=True)
+            self._thread.start()
+        self._jobs.put(job)
+
+    def close(self) -> None:
+        """The thread ends after the jobs given so far (it is a daemon: nobody waits for it)."""
+        if self._thread is not None:
+            self._jobs.put(None)
+            self._thread = None
+
+    def _loop(self) -> None:
+        while (job := self._jobs.get()) is not None:
+            job()  # PendingDeblur._run: catches everything, reports through the PendingDeblur
 
 
 class StreamingCopy:

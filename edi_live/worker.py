@@ -11,7 +11,8 @@ times (latency, --max-fps, the heartbeat) are time.monotonic. The policy, in ful
 - "nearest" holds latent times past the midpoint to the next APS frame back and renders them from it
   (nearest_mode); a gap suspends latent frames until the next APS frame;
 - with deblur_thread, each APS frame after the first is deblurred on a helper thread while a copy keeps the
-  latent frames coming (deblur_handover). The thread blocks on the ring's condition between wake-ups.
+  latent frames coming (deblur_handover); the helper hands its frame to the sinks itself (one thread at a time
+  in the sinks). The thread blocks on the ring's condition between wake-ups.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import numpy as np
 from edi_live.activity import StaticScene
 from edi_live.config import EdiConfig
 from edi_live.datatypes import Reconstruction
-from edi_live.deblur_handover import PendingDeblur
+from edi_live.deblur_handover import DeblurThread, PendingDeblur
 from edi_live import held_frames
 from edi_live.frame_demand import FrameDemand
 from edi_live.frame_gate import FrameGate, in_event_clock
@@ -61,11 +62,10 @@ class EdiWorker:
                  on_error: Callable[[BaseException], None] | None = None, name: str = "edi-worker",
                  frames_wanted: Callable[[], bool] | None = None) -> None:
         self.demand = FrameDemand(frames_wanted)  # latent frames nobody would receive are not rendered
-        self.ring = ring
-        self.rec = reconstructor
+        self.ring, self.rec, self.config = ring, reconstructor, config
         reconstructor.follow_latent = config.mode != "fused"  # fused frames come from both references
-        self.config = config
         self.sinks = list(sinks)
+        self._sinks_lock = threading.Lock()  # the deblur thread hands its frames to the sinks itself
         self.name = name
         self._on_error = on_error
         self._thread: threading.Thread | None = None
@@ -81,7 +81,8 @@ class EdiWorker:
         self._nearest = FusedHoldBack() if config.mode == "fused" else NearestHoldBack()  # latent times held back
         self._gate = FrameGate()  # whether an APS frame's late events are in
         self._deblur_ms: collections.deque[float] = collections.deque(maxlen=256)  # on_frame wall time
-        self._pending: PendingDeblur | None = None  # causal mode with deblur_thread
+        self._pending: PendingDeblur | None = None  # causal mode with deblur_thread, run by _helper
+        self._helper = DeblurThread(wake=ring.poke, deliver=self._to_sinks)
         self._scene = StaticScene()  # events that show only background noise make no frames
         self._quiet = QuietReads(config.every)  # ... nor wake-ups per packet (read in larger steps)
         # how well the output predicted each APS frame (scored on this thread; stats() reads a copy)
@@ -128,8 +129,7 @@ class EdiWorker:
                 self.wakeups += 1
                 self.ring.wait(version, self._idle_wait_s(), self._quiet.wake(self.ring, self._scene.quiet))
             if not self._abort.is_set():
-                if self._pending is not None:
-                    self._adopt(wait=True)
+                self._adopt(wait=True)  # a deblur still pending, if any
                 self._flush_deferred()
                 if self.quality is not None:
                     self.quality.finish()
@@ -141,6 +141,7 @@ class EdiWorker:
             if self._on_error is not None:
                 self._on_error(exc)
         finally:
+            self._helper.close()
             self.cpu_s = time.thread_time() - cpu0
             self.done.set()
 
@@ -271,7 +272,7 @@ class EdiWorker:
         if self._use_deblur_thread():
             send = self._moving(len(events))
             self._since = 0 if send else self._since  # latent frames count from here, as when sent inline
-            self._pending = PendingDeblur(self.rec, entry, events, arrival, send, self.ring.poke)
+            self._pending = PendingDeblur(self.rec, entry, events, arrival, send, self._helper)
             self.rec = self._pending.streamer  # streams from the previous reference; its calls are replayed later
             self.busy_s += time.perf_counter() - t0
             return
@@ -329,10 +330,9 @@ class EdiWorker:
             self._send_deblurred(pending)
 
     def _send_deblurred(self, pending: PendingDeblur) -> None:
+        """Count the helper thread's frame: it gave the frame to the sinks itself (_to_sinks) once it was ready."""
         if pending.send and pending.result is not None:
-            since = self._since  # counted from the handover (above): the same latent frames, and calls, as inline
-            self._emit(pending.result)
-            self._since = since
+            self._count_emitted(pending.result)  # not _since: latent frames count from the hand-over
         else:
             self.skipped_static += 1
 
@@ -373,20 +373,27 @@ class EdiWorker:
 
     def _emit(self, rec: Reconstruction) -> None:
         self._since = 0
+        self._count_emitted(rec)
+        self._to_sinks(rec)
+
+    def _to_sinks(self, rec: Reconstruction) -> None:
+        """Also the helper thread's, with its frame the moment it is ready (a hop to this thread cost ~0.5 ms)."""
+        with self._sinks_lock:
+            for sink in self.sinks:
+                sink(rec)
+
+    def _count_emitted(self, rec: Reconstruction) -> None:
         self._last_emit_s = time.monotonic()
         self.sent[rec.kind] = self.sent.get(rec.kind, 0) + 1
         if self.quality is not None:
             self.quality.on_emitted(rec)
-        for sink in self.sinks:
-            sink(rec)
 
     # ---------------------------------------------------------------- stats (any thread)
 
     def stats(self) -> dict[str, Any]:
-        return worker_stats(self)
+        return worker_stats(self)  # its own module: this one stays under 400 lines
 
     def noise_rates(self) -> NoiseRates | None:
-        """The per-pixel noise rates to save with a calibration: the reconstructor's own, never a streaming copy's
-        (it shares the original's statistics, which the helper thread may be writing); None while a deblur is
-        still pending after an abort."""
+        """The rates to save with a calibration: None while a deblur is still pending after an abort (the streaming
+        copy shares the original's statistics, which the helper thread may be writing)."""
         return self.rec.noise_rates() if self._pending is None else None

@@ -164,3 +164,30 @@ def test_an_abort_while_the_deblur_still_runs_saves_no_noise_rates(flicker_packe
         assert worker.noise_rates() is None, "the copy's view of the original's statistics, mid-update"
     finally:
         release.set()
+
+
+def test_one_helper_thread_deblurs_every_frame_and_sends_each_frame_itself(flicker_packets):
+    """The helper thread lives as long as the worker (not one per APS frame) and hands each deblurred frame to the
+    sinks itself, the moment it is ready; latent frames leave from the worker thread."""
+    ring = IdleRing(capacity_events=1 << 22, capacity_frames=64, policy="wait")
+    for p in flicker_packets:
+        assert ring.push(p, timeout_s=5)
+    ring.close()
+    helpers: list[threading.Thread] = []
+
+    class Recorded(EdiReconstructor):
+        def on_frame(self, frame, events, arrival_ns=0, ready=None):
+            if ready is not None:
+                helpers.append(threading.current_thread())
+            return super().on_frame(frame, events, arrival_ns, ready=ready)
+
+    senders: dict[str, set] = {"deblurred": set(), "latent": set()}
+    worker = EdiWorker(ring, Recorded(W, H), EdiConfig(every=200, deblur_thread=True, quality_every=0),
+                       [lambda r: senders[r.kind].add(threading.current_thread().name)])
+    worker.start()
+    assert worker.done.wait(120) and worker.error is None, worker.error
+    assert len(helpers) == 19 and len(set(helpers)) == 1, "one helper thread for all the frames after the first"
+    assert senders == {"deblurred": {"edi-worker", "edi-deblur"}, "latent": {"edi-worker"}}
+    assert worker.sent["deblurred"] + worker.skipped_static == 20
+    helpers[0].join(10)
+    assert not helpers[0].is_alive(), "the helper thread ends with the worker"

@@ -262,6 +262,15 @@ class EdiReconstructor(ReconstructorView):
         self.events_applied += int(events.size)
         return out
 
+    def replay_frames(self, events: np.ndarray, cuts: Sequence[int], arrivals: Sequence[int]) -> None:
+        """The state on_events_frames(events, cuts, arrivals) leaves, without rendering its frames: the deblur
+        thread's replay of what its streaming copy was given (deblur_handover; a render costs a display copy)."""
+        if not cuts or self._noise is not None or self.events_ignored or not self.follow_latent:
+            self.on_events_frames(events, cuts, arrivals)  # frame by frame there: its pieces matter
+            return
+        self.on_events(events, next((a for a in reversed(arrivals) if a), 0))  # what the batched pass does
+        self._pending_events = int(events.size) - cuts[-1]
+
     def render(self) -> Reconstruction:
         self._need_reference("render()")
         n = self._pending_events
@@ -303,21 +312,6 @@ class EdiReconstructor(ReconstructorView):
         if self._carry.warm(f0_us, int(edi.RESIDUAL_SPAN * (f1_us - f0_us)), self._mask):
             return self._carry.snap_us + 1
         return int(f0_us) - edi.RESIDUAL_COLD_CONTEXT * (int(f1_us) - int(f0_us))
-
-    def stats(self) -> dict:
-        return {
-            "c_on": self.c_on, "c_off": self.c_off, "c_fixed": self._fixed, "black_level": self.black_level,
-            "black_level_estimated": self._black.estimated, "clock_offset_estimated": self._clock.estimated,
-            "clock_offset_physical_us": self._clock.physical_us,
-            "estimator": self.estimator.name, "reestimations": self.reestimations,
-            "ill_conditioned": self.ill_conditioned, "hot_pixels": self.hot_pixels,
-            "unreliable_pixels": self.unreliable_pixels,
-            "flicker_pixels": self.flicker_pixels, "frames": self.frames, **self._pixel_noise.summary(),
-            "events_ignored": self.events_ignored, "deblurs_ahead": self._ahead.used,
-            "events_applied": self.events_applied, "has_reference": self.has_reference,
-            "last_deblur_ms": round(self.last_deblur_ms, 3), "last_estimate_ms": round(self.last_estimate_ms, 3),
-            "last_settle_ms": round(self._calib.last_settle_ms, 3) if self._calib is not None else 0.0,
-        }
 
     # ---- internals ----
 

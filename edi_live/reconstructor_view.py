@@ -1,5 +1,5 @@
 """Read-only views of an EdiReconstructor's state for stats, tools and tests: the camera values in force, the c
-policy's counters, the pixel masks' counts and the noise statistics.
+policy's counters, the pixel masks' counts and the noise statistics, and the stats() map of them all.
 
 ReconstructorView is EdiReconstructor's base class; the attributes it reads are set by EdiReconstructor.__init__.
 Reading them from another thread (the stats map) is safe: each read is one plain value. Except `pairs`, which
@@ -12,10 +12,13 @@ import numpy as np
 
 import edi_live.contrast as contrast
 import edi_live.edi as edi
+from edi_live.black_level_policy import BlackLevelPolicy
 from edi_live.c_policy import ContrastPolicy
 from edi_live.clock_offset_policy import ClockOffsetPolicy
 from edi_live.contrast_tracking import ContrastTracker
+from edi_live.exposure_ahead import ExposureAhead
 from edi_live.flicker_pixels import FlickerPixels
+from edi_live.frame_calibration import FrameCalibration
 from edi_live.pixel_masks import HotPixels, UnreliablePixels
 from edi_live.pixel_noise import NoiseRates, PixelNoise
 
@@ -31,6 +34,18 @@ class ReconstructorView:
     _unreliable: UnreliablePixels | None
     _flicker: FlickerPixels | None
     _pixel_noise: PixelNoise
+    _black: BlackLevelPolicy
+    _ahead: ExposureAhead
+    _calib: FrameCalibration | None
+    _fixed: bool
+    c_on: float
+    c_off: float
+    frames: int
+    events_ignored: bool
+    events_applied: int
+    has_reference: bool
+    last_deblur_ms: float
+    last_estimate_ms: float
 
     @property
     def black_level(self) -> float:  # APS black level (8-bit DN) taken off the frames
@@ -90,3 +105,18 @@ class ReconstructorView:
     @property
     def hot_pixel_mask(self) -> np.ndarray:
         return self._hot.snapshot()
+
+    def stats(self) -> dict:
+        return {
+            "c_on": self.c_on, "c_off": self.c_off, "c_fixed": self._fixed, "black_level": self.black_level,
+            "black_level_estimated": self._black.estimated, "clock_offset_estimated": self._clock.estimated,
+            "clock_offset_physical_us": self._clock.physical_us,
+            "estimator": self.estimator.name, "reestimations": self.reestimations,
+            "ill_conditioned": self.ill_conditioned, "hot_pixels": self.hot_pixels,
+            "unreliable_pixels": self.unreliable_pixels,
+            "flicker_pixels": self.flicker_pixels, "frames": self.frames, **self._pixel_noise.summary(),
+            "events_ignored": self.events_ignored, "deblurs_ahead": self._ahead.used,
+            "events_applied": self.events_applied, "has_reference": self.has_reference,
+            "last_deblur_ms": round(self.last_deblur_ms, 3), "last_estimate_ms": round(self.last_estimate_ms, 3),
+            "last_settle_ms": round(self._calib.last_settle_ms, 3) if self._calib is not None else 0.0,
+        }

@@ -62,29 +62,32 @@ class IdleRing(EventRing):
         return super().pop_frame()
 
 
-def _gated(ring: IdleRing) -> EdiReconstructor:
+def _gated(ring: IdleRing, **knobs) -> EdiReconstructor:
     class Gated(EdiReconstructor):
         def on_frame(self, frame, events, arrival_ns=0, ready=None):
             if ready is not None:  # on the helper thread: the copy takes every event up to the next frame first
                 assert ring.idle.wait(30)
             return super().on_frame(frame, events, arrival_ns, ready=ready)
 
-    return Gated(W, H)
+    return Gated(W, H, **knobs)
 
 
-def _run(packets: list[Packet], threaded: bool) -> tuple[list, EdiWorker, EdiReconstructor]:
+def _run(packets: list[Packet], threaded: bool, **knobs) -> tuple[list, EdiWorker, EdiReconstructor]:
     ring = IdleRing(capacity_events=1 << 22, capacity_frames=64, policy="wait")
     for p in packets:
         assert ring.push(p, timeout_s=5)
     ring.close()
-    rec, out = _gated(ring), []
+    rec, out = _gated(ring, **knobs), []
     worker = EdiWorker(ring, rec, EdiConfig(every=200, deblur_thread=threaded, quality_every=0), [out.append])
     worker.start()
     assert worker.done.wait(120) and worker.error is None, worker.error
     return out, worker, rec
 
 
-def test_the_deblur_thread_gives_the_inline_frames_on_a_flickering_scene(flicker_packets, monkeypatch):
+@pytest.mark.parametrize("knobs", [{}, {"denoise_us": 2000}], ids=["batched", "denoised"])
+def test_the_deblur_thread_gives_the_inline_frames_on_a_flickering_scene(flicker_packets, monkeypatch, knobs):
+    """Also with the background-activity filter, where the reconstructor renders frame by frame: the replay
+    must then repeat each frame's piece (replay_frames falls back to on_events_frames)."""
     replayed: list[int] = []
     adopt = deblur_handover.PendingDeblur.adopt
 
@@ -93,9 +96,9 @@ def test_the_deblur_thread_gives_the_inline_frames_on_a_flickering_scene(flicker
         return adopt(self)
 
     monkeypatch.setattr(deblur_handover.PendingDeblur, "adopt", counting_adopt)
-    inline, w_inline, rec_inline = _run(flicker_packets, threaded=False)
+    inline, w_inline, rec_inline = _run(flicker_packets, threaded=False, **knobs)
     assert not replayed
-    threaded, w_threaded, rec_threaded = _run(flicker_packets, threaded=True)
+    threaded, w_threaded, rec_threaded = _run(flicker_packets, threaded=True, **knobs)
     assert len(replayed) == 19 and min(replayed) >= 2, "each deblur on the helper thread, the copy fed in pieces"
     assert w_threaded.rec is rec_threaded, "the original takes over again after each deblur"
     assert rec_inline.flicker_pixels > 20, "the lamp is found: the scene exercises the flicker mask"

@@ -144,7 +144,7 @@ class OutWriter(_SinkThread):
         self.late = 0
 
     def submit(self, rec: Reconstruction) -> None:
-        """Called on the worker thread; waits if the queue is full (lossless)."""
+        """Called by the worker (or its deblur thread: one at a time); waits if the queue is full (lossless)."""
         self._put(rec)
 
     def _write(self, rec: Reconstruction) -> None:

@@ -10,7 +10,8 @@ in `value` at once, so the next frame's window uses it (edi_live.frame_calibrati
 formed with the old value, and that frame, taken with the new windows, opens the next pair). The round ends with `agree` consecutive fits within `agree_us` of each other (their
 mean) or with `per_round` fits (their median), or without a change after `max_fits` fits; the offset moves when
 the result differs from the current one by at least `min_change_us`. Rounds: from the first frame, then every
-`recheck_every` frames. A given offset (flag, TOML key, saved calibration) is never replaced. Everything depends
+`recheck_every` frames. A given offset (flag, TOML key) is never replaced; a starting one (a saved calibration's)
+is in use from the first frame and moves like an estimate. Everything depends
 only on the calls' order and contents (no clock, no thread).
 
 Two values come out of each round. `physical_us` is the camera's own offset: the fit with the whole step lag taken
@@ -72,11 +73,13 @@ class ClockOffsetPolicy:
     runs the due fits; `value` is the offset (µs) in use."""
 
     def __init__(self, given: int | None, width: int, height: int,
-                 settings: ClockOffsetSettings = ClockOffsetSettings()) -> None:
-        if given is not None and not (isinstance(given, int) and abs(given) <= 100_000):
-            raise ConfigError(f"clock offset must be whole µs within +-100 ms (got {given!r})")
+                 settings: ClockOffsetSettings = ClockOffsetSettings(), *, start: int | None = None) -> None:
+        for what, v in (("clock offset", given), ("starting clock offset", start)):
+            if v is not None and not (isinstance(v, int) and abs(v) <= 100_000):
+                raise ConfigError(f"{what} must be whole µs within +-100 ms (got {v!r})")
         self.given = given
-        self.value = 0 if given is None else int(given)  # in use: the camera's offset plus the kept step lag
+        # in use: the camera's offset plus the kept step lag; until a round moves it, `start` (a saved calibration's)
+        self.value = int(given if given is not None else (start or 0))
         self.physical_us = self.value  # the camera's own offset (events late against the APS exposure)
         self.settings = settings
         self.width, self.height = width, height

@@ -83,9 +83,12 @@ def quiet_samples(pair: FramePair, taken_off: float, *, b_low: float = 3.0, b_hi
     already taken off the pair's frames (it is added back, so that samples from frames with different corrections
     pool)."""
     prev, cur = pair.prev, pair.cur
-    bp = prev.blurry.reshape(-1)
-    bc = cur.blurry.reshape(-1)
-    ok = prev.informative.reshape(-1) & cur.informative.reshape(-1)
+    if prev.raw is not None and cur.raw is not None:  # the frames before the black level was taken off
+        bp, bc, taken_off = prev.raw.reshape(-1), cur.raw.reshape(-1), 0.0
+        ok = (bp < 255.0) & (bc < 255.0)  # clipped at full scale; the dark end is b_low's
+    else:
+        bp, bc = prev.blurry.reshape(-1), cur.blurry.reshape(-1)
+        ok = prev.informative.reshape(-1) & cur.informative.reshape(-1)
     ok &= (bp >= b_low) & (bp <= b_high) & (bc >= b_low) & (bc <= b_high)
     if pair.mask is not None:
         ok &= ~pair.mask

@@ -3,7 +3,8 @@
 The math is edi_live.contrast.black_level; this module owns the decision state only: the pool of quiet-pixel
 samples of recent frame pairs, when an estimate is due, whether it carries information, and the short history
 whose median is the black level. A given value (flag, TOML key) is never replaced; a starting value (a saved
-calibration's) is in use until an estimate is kept.
+calibration's) is in use until an estimate is kept, unless it lies above MAX_BLACK_DN, where the fit cannot reach:
+then it is given.
 
 Rules: every pair adds its quiet pixels to a pool of the last `pool_pairs` pairs. At start-up an estimate is due
 once the pool holds `min_pairs` pairs and `min_pixels` pixels (a single pair is too noisy: +-3 DN on the simulator),
@@ -57,6 +58,8 @@ class BlackLevelPolicy:
                  start: float | None = None) -> None:
         if start is not None and not 0.0 <= float(start) < 128.0:
             raise ValueError(f"a starting black level must be in [0, 128) DN (got {start!r})")
+        if given is None and start is not None and float(start) > MAX_BLACK_DN:
+            given = float(start)  # beyond the fit's range: it could only replace it with the range's edge
         self.given = given
         self.settings = settings
         self.value = float(given if given is not None else (start or 0.0))

@@ -11,7 +11,8 @@ formed with the old value, and that frame, taken with the new windows, opens the
 mean) or with `per_round` fits (their median), or without a change after `max_fits` fits; the offset moves when
 the result differs from the current one by at least `min_change_us`. Rounds: from the first frame, then every
 `recheck_every` frames. A given offset (flag, TOML key) is never replaced; a starting one (a saved calibration's)
-is in use from the first frame and moves like an estimate. Everything depends
+is in use from the first frame and moves like an estimate, unless it lies beyond +-MAX_OFFSET_US, where no fit can
+reach: then it is given. Everything depends
 only on the calls' order and contents (no clock, no thread).
 
 Two values come out of each round. `physical_us` is the camera's own offset: the fit with the whole step lag taken
@@ -77,6 +78,8 @@ class ClockOffsetPolicy:
         for what, v in (("clock offset", given), ("starting clock offset", start)):
             if v is not None and not (isinstance(v, int) and abs(v) <= 100_000):
                 raise ConfigError(f"{what} must be whole µs within +-100 ms (got {v!r})")
+        if given is None and start is not None and abs(start) > MAX_OFFSET_US:
+            given = start  # beyond the search range: a fit could only replace it with the range's edge
         self.given = given
         # in use: the camera's offset plus the kept step lag; until a round moves it, `start` (a saved calibration's)
         self.value = int(given if given is not None else (start or 0))

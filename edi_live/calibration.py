@@ -14,7 +14,8 @@ camera (USB) picks up its own without flags: it is loaded from, and saved to, `c
 refused with one line. Loaded values are starting points: c, the black level and the clock offset are in use from
 the first frame and still estimated from the stream, so that a value a short or unsuitable first run got wrong is
 corrected (and saved corrected) rather than kept for ever; a black level or offset given on the command line wins
-over the file's. The APS response cannot be estimated, so a saved one is used as it is.
+over the file's. The APS response cannot be estimated, so a saved one is used as it is; a black level or offset
+beyond what the estimators search (black_level_policy.MAX_BLACK_DN, clock_offset_policy.MAX_OFFSET_US) is kept.
 """
 
 from __future__ import annotations
@@ -154,7 +155,7 @@ def save(cal: Calibration, path: Path | str) -> None:
 
 
 def prepare(edi: EdiConfig, info: SourceInfo, given: Path | None, save_to: Path | None) -> tuple[EdiConfig, Path | None]:
-    """The EDI settings to start with (a loaded calibration's c and black level as starting values), and where to
+    """The EDI settings to start with (a loaded calibration as the estimates' starting values), and where to
     save the calibration at the end. A live camera without --calibration loads its own file if there is one, and
     saves to it."""
     live = info.kind in ("usb", "emulator")

@@ -121,12 +121,12 @@ class EdiConfig:
     flicker_mask: bool | None = None
     fused_residual: bool = True  # fused mode: estimate the log change below one threshold between events
     aps_gamma: float | None = None  # APS response exponent; None: 1, or a loaded calibration's
-    # events arrive this many µs later than the APS exposure they belong to; None: 0, or a loaded calibration's
+    # events arrive this many µs later than the APS exposure they belong to; None: estimated (from a calibration's)
     clock_offset_us: int | None = None
     # the live prediction figure (edi_live.quality): score one APS frame in N; 0 = off
     quality_every: int = 2
-    # APS black level (8-bit DN) taken off each frame so the output is linear; None: a loaded calibration's, else
-    # estimated from the stream
+    # APS black level (8-bit DN) taken off each frame so the output is linear; None: estimated from the stream
+    # (starting from a loaded calibration's)
     black_level: float | None = None
     # per-pixel noise rates (edi_live.pixel_noise): estimated from the stream unless off, or given as one rate
     # (ON + OFF, Hz per pixel)

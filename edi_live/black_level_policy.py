@@ -63,6 +63,7 @@ class BlackLevelPolicy:
         self.given = given
         self.settings = settings
         self.value = float(given if given is not None else (start or 0.0))
+        self.from_calibration = given is None and start is not None  # the start is in use, no estimate kept yet
         self.estimates = 0
         self.last_fit: dict = {}
         self._pool: collections.deque = collections.deque(maxlen=max(1, settings.pool_pairs))
@@ -117,6 +118,7 @@ class BlackLevelPolicy:
         self._history.append(value if value > self.settings.zero_below_dn else 0.0)
         new = float(np.median(self._history))
         self.last_fit["decision"] = "update"
+        self.from_calibration = False
         if new == self.value:
             return None
         self.value = new

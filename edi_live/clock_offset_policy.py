@@ -84,6 +84,7 @@ class ClockOffsetPolicy:
         # in use: the camera's offset plus the kept step lag; until a round moves it, `start` (a saved calibration's)
         self.value = int(given if given is not None else (start or 0))
         self.physical_us = self.value  # the camera's own offset (events late against the APS exposure)
+        self.from_calibration = given is None and start is not None  # the start is in use, no round ended yet
         self.settings = settings
         self.width, self.height = width, height
         self.estimates = 0
@@ -208,6 +209,7 @@ class ClockOffsetPolicy:
                 self._end_round()
             return
         self.last_estimates = self._found
+        self.from_calibration = False
         self._end_round()
         new = int(round(found_in_use))
         self.physical_us = int(round(found))

@@ -158,7 +158,7 @@ class Node:
                 "fused_added_latency_ms_p50", "out_wait_s",
                 "unreliable_pixels", "flicker_pixels", "black_level_dn", "clock_offset_us", "aps_gamma", "clock_offset_estimated",
                 "clock_offset_physical_us",
-                "black_level_estimated", "noise_hz_p50", "noise_hz_p99", "noise_on_hz_p50", "noise_off_hz_p50",
+                "black_level_estimated", "black_level_from_calibration", "clock_offset_from_calibration", "noise_hz_p50", "noise_hz_p99", "noise_on_hz_p50", "noise_off_hz_p50",
                 "noisy_pixels", "pred_psnr_db", "still_psnr_db",
                 "pred_gain_db",
                 "pred_psnr_active_db", "still_psnr_active_db", "pred_beats_still_frac", "pred_frames_scored",

@@ -50,10 +50,10 @@ def test_a_starting_black_level_is_used_at_once_and_corrected_by_the_stream(came
     rec = EdiReconstructor(cfg.width, cfg.height, black_level_start=25.0)
     first = rec.on_frame(sim.frames[0], _between(sim.events, sim.frames[0].exposure_start_us,
                                                  sim.frames[0].exposure_end_us + 1, True))
-    assert first.black_level == 25.0
+    assert first.black_level == 25.0 and rec.stats()["black_level_from_calibration"]
     _run(sim, rec)
     assert abs(rec.black_level - cfg.aps_offset_dn) <= 2.0, rec.stats()
-    assert rec.stats()["black_level_estimated"]
+    assert rec.stats()["black_level_estimated"] and not rec.stats()["black_level_from_calibration"]
 
 
 def test_a_starting_black_level_is_kept_where_the_stream_cannot_show_one(blocks_scene):

@@ -102,10 +102,10 @@ def test_a_starting_offset_is_used_at_once_and_moved_by_the_stream(scene):
     cfg = with_effects(dataclasses.replace(scene, duration_s=1.2), "clock_offset")
     sim = simulate(cfg)
     rec = EdiReconstructor(cfg.width, cfg.height, clock_offset_start_us=5000)
-    assert rec.clock_offset_us == 5000
+    assert rec.clock_offset_us == 5000 and rec.stats()["clock_offset_from_calibration"]
     _stream(sim, rec)
     assert abs(rec.stats()["clock_offset_physical_us"] - cfg.event_offset_us) <= 300, rec._clock.last_estimates
-    assert rec.stats()["clock_offset_estimated"]
+    assert rec.stats()["clock_offset_estimated"] and not rec.stats()["clock_offset_from_calibration"]
 
 
 def test_a_starting_offset_beyond_the_search_range_is_kept(scene):

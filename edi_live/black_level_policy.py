@@ -2,7 +2,9 @@
 
 The math is edi_live.contrast.black_level; this module owns the decision state only: the pool of quiet-pixel
 samples of recent frame pairs, when an estimate is due, whether it carries information, and the short history
-whose median is the black level. A given value (flag, TOML key, saved calibration) is never replaced.
+whose median is the black level. A given value (flag, TOML key) is never replaced; a starting value (a saved
+calibration's) is in use until an estimate is kept, unless it lies above MAX_BLACK_DN, where the fit cannot reach:
+then it is given.
 
 Rules: every pair adds its quiet pixels to a pool of the last `pool_pairs` pairs. At start-up an estimate is due
 once the pool holds `min_pairs` pairs and `min_pixels` pixels (a single pair is too noisy: +-3 DN on the simulator),
@@ -11,7 +13,8 @@ An estimate is kept only when its cost beats the values 4 DN either side by `inf
 pixels support it (at least `min_support` moving quiet pixels, and `support_fraction` of them, have their darker
 frame within black_level.SUPPORT_DN of it: without such pixels the profile's z measures the scene's texture, not
 the black level; the ideal 'blocks' scene gave 9 DN at z 2.9 with 31 of 1916); it enters a history of `history`
-estimates whose median is the black level. An estimate of at most `zero_below_dn` enters as 0 DN: that is the
+estimates whose median is the black level (until the first kept estimate: `start`, e.g. a saved calibration's,
+else 0 DN). An estimate of at most `zero_below_dn` enters as 0 DN: that is the
 fit's systematic error on supported scenes (2-3 DN on the ideal astronaut scene, -1 to -2 on the camera scene with
 10 DN), and 0 is what DV's 8-bit frames reach. An estimate above that is first corrected for the APS noise
 (contrast/black_level_noise.py: the noise measured on neighbouring event-free pixels, then SIMEX), which pulls the
@@ -51,10 +54,16 @@ class BlackLevelSettings:
 class BlackLevelPolicy:
     """`update(pair, taken_off)` per new frame pair; returns the black level to use from now on when it changed."""
 
-    def __init__(self, given: float | None, settings: BlackLevelSettings = BlackLevelSettings()) -> None:
+    def __init__(self, given: float | None, settings: BlackLevelSettings = BlackLevelSettings(), *,
+                 start: float | None = None) -> None:
+        if start is not None and not 0.0 <= float(start) < 128.0:
+            raise ValueError(f"a starting black level must be in [0, 128) DN (got {start!r})")
+        if given is None and start is not None and float(start) > MAX_BLACK_DN:
+            given = float(start)  # beyond the fit's range: it could only replace it with the range's edge
         self.given = given
         self.settings = settings
-        self.value = 0.0 if given is None else float(given)
+        self.value = float(given if given is not None else (start or 0.0))
+        self.from_calibration = given is None and start is not None  # the start is in use, no estimate kept yet
         self.estimates = 0
         self.last_fit: dict = {}
         self._pool: collections.deque = collections.deque(maxlen=max(1, settings.pool_pairs))
@@ -109,6 +118,7 @@ class BlackLevelPolicy:
         self._history.append(value if value > self.settings.zero_below_dn else 0.0)
         new = float(np.median(self._history))
         self.last_fit["decision"] = "update"
+        self.from_calibration = False
         if new == self.value:
             return None
         self.value = new

@@ -11,8 +11,11 @@ emlb's 0.5 s). float16 keeps three significant digits, far below the estimate's 
 `--calibration FILE` loads one, `--save-calibration FILE` writes the values in use at the end of a run. A live
 camera (USB) picks up its own without flags: it is loaded from, and saved to, `calibration_dir()/LABEL.json`
 (LABEL is the camera name and serial, e.g. DAVIS346_00000391). A calibration of another camera or sensor size is
-refused with one line. Loaded values are starting points: c is still re-estimated from the stream; a black level
-given on the command line wins over the file's.
+refused with one line. Loaded values are starting points: c, the black level and the clock offset are in use from
+the first frame and still estimated from the stream, so that a value a short or unsuitable first run got wrong is
+corrected (and saved corrected) rather than kept for ever; a black level or offset given on the command line wins
+over the file's. The APS response cannot be estimated, so a saved one is used as it is; a black level or offset
+beyond what the estimators search (black_level_policy.MAX_BLACK_DN, clock_offset_policy.MAX_OFFSET_US) is kept.
 """
 
 from __future__ import annotations
@@ -152,7 +155,7 @@ def save(cal: Calibration, path: Path | str) -> None:
 
 
 def prepare(edi: EdiConfig, info: SourceInfo, given: Path | None, save_to: Path | None) -> tuple[EdiConfig, Path | None]:
-    """The EDI settings to start with (a loaded calibration's c and black level as starting values), and where to
+    """The EDI settings to start with (a loaded calibration as the estimates' starting values), and where to
     save the calibration at the end. A live camera without --calibration loads its own file if there is one, and
     saves to it."""
     live = info.kind in ("usb", "emulator")
@@ -169,11 +172,7 @@ def prepare(edi: EdiConfig, info: SourceInfo, given: Path | None, save_to: Path 
         log.info("starting from the calibration %s (c_on=%.3f c_off=%.3f, black level %g DN, clock offset %d µs%s)",
                  path, cal.c_on, cal.c_off, cal.black_level, cal.clock_offset_us,
                  ", per-pixel noise rates" if cal.noise is not None else "")
-        edi = dataclasses.replace(
-            edi, c_start=(cal.c_on, cal.c_off), noise_start=cal.noise,
-            black_level=cal.black_level if edi.black_level is None else edi.black_level,
-            clock_offset_us=cal.clock_offset_us if edi.clock_offset_us is None else edi.clock_offset_us,
-            aps_gamma=cal.aps_gamma if edi.aps_gamma is None else edi.aps_gamma)
+        edi = dataclasses.replace(edi, start=cal, aps_gamma=cal.aps_gamma if edi.aps_gamma is None else edi.aps_gamma)
     return edi, save_to if save_to is not None else (default_path(info) if live else None)
 
 

@@ -10,7 +10,9 @@ in `value` at once, so the next frame's window uses it (edi_live.frame_calibrati
 formed with the old value, and that frame, taken with the new windows, opens the next pair). The round ends with `agree` consecutive fits within `agree_us` of each other (their
 mean) or with `per_round` fits (their median), or without a change after `max_fits` fits; the offset moves when
 the result differs from the current one by at least `min_change_us`. Rounds: from the first frame, then every
-`recheck_every` frames. A given offset (flag, TOML key, saved calibration) is never replaced. Everything depends
+`recheck_every` frames. A given offset (flag, TOML key) is never replaced; a starting one (a saved calibration's)
+is in use from the first frame and moves like an estimate, unless it lies beyond +-MAX_OFFSET_US, where no fit can
+reach: then it is given. Everything depends
 only on the calls' order and contents (no clock, no thread).
 
 Two values come out of each round. `physical_us` is the camera's own offset: the fit with the whole step lag taken
@@ -72,12 +74,17 @@ class ClockOffsetPolicy:
     runs the due fits; `value` is the offset (µs) in use."""
 
     def __init__(self, given: int | None, width: int, height: int,
-                 settings: ClockOffsetSettings = ClockOffsetSettings()) -> None:
-        if given is not None and not (isinstance(given, int) and abs(given) <= 100_000):
-            raise ConfigError(f"clock offset must be whole µs within +-100 ms (got {given!r})")
+                 settings: ClockOffsetSettings = ClockOffsetSettings(), *, start: int | None = None) -> None:
+        for what, v in (("clock offset", given), ("starting clock offset", start)):
+            if v is not None and not (isinstance(v, int) and abs(v) <= 100_000):
+                raise ConfigError(f"{what} must be whole µs within +-100 ms (got {v!r})")
+        if given is None and start is not None and abs(start) > MAX_OFFSET_US:
+            given = start  # beyond the search range: a fit could only replace it with the range's edge
         self.given = given
-        self.value = 0 if given is None else int(given)  # in use: the camera's offset plus the kept step lag
+        # in use: the camera's offset plus the kept step lag; until a round moves it, `start` (a saved calibration's)
+        self.value = int(given if given is not None else (start or 0))
         self.physical_us = self.value  # the camera's own offset (events late against the APS exposure)
+        self.from_calibration = given is None and start is not None  # the start is in use, no round ended yet
         self.settings = settings
         self.width, self.height = width, height
         self.estimates = 0
@@ -202,6 +209,7 @@ class ClockOffsetPolicy:
                 self._end_round()
             return
         self.last_estimates = self._found
+        self.from_calibration = False
         self._end_round()
         new = int(round(found_in_use))
         self.physical_us = int(round(found))

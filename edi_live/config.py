@@ -120,20 +120,21 @@ class EdiConfig:
     # already takes a lamp's drift out, and the mask would cost it 0.3 dB on the realistic simulator)
     flicker_mask: bool | None = None
     fused_residual: bool = True  # fused mode: estimate the log change below one threshold between events
-    c_start: tuple[float, float] | None = None  # (c_on, c_off) from a saved calibration (set by the node)
     aps_gamma: float | None = None  # APS response exponent; None: 1, or a loaded calibration's
-    # events arrive this many µs later than the APS exposure they belong to; None: 0, or a loaded calibration's
+    # events arrive this many µs later than the APS exposure they belong to; None: estimated (from a calibration's)
     clock_offset_us: int | None = None
     # the live prediction figure (edi_live.quality): score one APS frame in N; 0 = off
     quality_every: int = 2
-    # APS black level (8-bit DN) taken off each frame so the output is linear; None: a loaded calibration's, else
-    # estimated from the stream
+    # APS black level (8-bit DN) taken off each frame so the output is linear; None: estimated from the stream
+    # (starting from a loaded calibration's)
     black_level: float | None = None
     # per-pixel noise rates (edi_live.pixel_noise): estimated from the stream unless off, or given as one rate
-    # (ON + OFF, Hz per pixel); noise_start: a saved calibration's per-pixel rates (set by the node)
+    # (ON + OFF, Hz per pixel)
     noise_stats: bool = True
     noise_rate_hz: float | None = None
-    noise_start: Any = field(default=None, compare=False, repr=False)
+    # a saved calibration (edi_live.calibration.Calibration, set by the node) whose c, black level, clock offset and
+    # noise rates the estimates start from
+    start: Any = field(default=None, compare=False, repr=False)
     gray: bool = False  # a colour source's frames as grey (h, w) images
     # the Bayer pattern of a colour source: --bayer-pattern, else the source's own (SourceInfo.color_filter)
     color_filter: str | None = None

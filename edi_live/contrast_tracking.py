@@ -58,14 +58,14 @@ class ContrastTracker:
 
     def step(self, events: np.ndarray, b: np.ndarray, informative: np.ndarray, window: tuple[int, int, int],
              hot: np.ndarray | None, acc: tuple[np.ndarray, np.ndarray], t_last: int,
-             has_reference: bool) -> tuple[contrast.FrameData, contrast.FramePair | None]:
+             has_reference: bool, raw: np.ndarray | None = None) -> tuple[contrast.FrameData, contrast.FramePair | None]:
         """This frame's data and the pair with the previous frame. `window` = (ts, te, f); `acc` holds the ON/OFF
         counts applied since the previous f, up to `t_last`. Returns (this frame's data for the policy, the new
         pair if one was formed). The frame's level table is not built yet: only the policy reads it, so it waits
         for complete() (frame_calibration calls it after the deblurred frame has left, or at once at start-up)."""
         ts, te, f = window
         excluded = self._not_sample if hot is None else (self._not_sample | hot)
-        cur = contrast.FrameData(b, informative, None)  # type: ignore[arg-type]  # the table: complete()
+        cur = contrast.FrameData(b, informative, None, raw=raw)  # type: ignore[arg-type]  # the table: complete()
         self._todo = (cur, events, window, hot, excluded)
         pair = None
         if self._prev is not None and has_reference:

@@ -68,7 +68,8 @@ class FrameCalibration:
         if self._black_next is not None:
             aps, self._black_next = dataclasses.replace(aps, black_level=self._black_next), None
         b, informative = aps.to_float(img)
-        cur, pair = self.tracker.step(events, b, informative, window, mask, acc, t_last, has_reference)
+        raw = edi.blurry_to_float(img, saturation=aps.saturation)[0] if aps.black_level and self.black.estimated else None
+        cur, pair = self.tracker.step(events, b, informative, window, mask, acc, t_last, has_reference, raw)
         pairs = self.tracker.pairs
         if not self.policy.estimated:  # start-up: this deblur needs the first estimate
             self.tracker.complete()

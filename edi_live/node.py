@@ -66,14 +66,15 @@ def default_reconstructor(width: int, height: int, edi: EdiConfig) -> Reconstruc
     kwargs["black_level"] = None if edi.black_level is None else float(edi.black_level)  # None: estimated
     kwargs["clock_offset_us"] = None if edi.clock_offset_us is None else int(edi.clock_offset_us)  # None: estimated
     kwargs["aps_gamma"] = float(edi.aps_gamma or 1.0)
-    if edi.c_start is not None:
-        kwargs["c_start"] = edi.c_start
+    if edi.start is not None:  # a saved calibration: where the estimates start
+        kwargs["c_start"] = (edi.start.c_on, edi.start.c_off)
+        kwargs["black_level_start"], kwargs["clock_offset_start_us"] = edi.start.black_level, edi.start.clock_offset_us
     kwargs["color_filter"], kwargs["gray"] = edi.color_filter, bool(edi.gray)
     kwargs["deblur_ahead"] = bool(edi.deblur_ahead)
     kwargs["mask_flicker_pixels"] = edi.mode != "fused" if edi.flicker_mask is None else bool(edi.flicker_mask)
     kwargs["fused_residual"] = bool(edi.fused_residual)
     kwargs["noise_stats"], kwargs["noise_rate_hz"], kwargs["noise_start"] = (
-        bool(edi.noise_stats), edi.noise_rate_hz, edi.noise_start)
+        bool(edi.noise_stats), edi.noise_rate_hz, None if edi.start is None else edi.start.noise)
     if edi.mode == "fused":
         kwargs["joint_pairs"] = fused_mode.JOINT_PAIRS
     return EdiReconstructor(width, height, **kwargs)
@@ -157,7 +158,7 @@ class Node:
                 "fused_added_latency_ms_p50", "out_wait_s",
                 "unreliable_pixels", "flicker_pixels", "black_level_dn", "clock_offset_us", "aps_gamma", "clock_offset_estimated",
                 "clock_offset_physical_us",
-                "black_level_estimated", "noise_hz_p50", "noise_hz_p99", "noise_on_hz_p50", "noise_off_hz_p50",
+                "black_level_estimated", "black_level_from_calibration", "clock_offset_from_calibration", "noise_hz_p50", "noise_hz_p99", "noise_on_hz_p50", "noise_off_hz_p50",
                 "noisy_pixels", "pred_psnr_db", "still_psnr_db",
                 "pred_gain_db",
                 "pred_psnr_active_db", "still_psnr_active_db", "pred_beats_still_frac", "pred_frames_scored",

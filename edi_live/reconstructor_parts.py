@@ -68,13 +68,15 @@ def build_calibration(settings: ReconstructorSettings, width: int, height: int) 
     estimator = make_estimator(settings, c_on, c_off, fixed)
     try:
         # estimated only when c is too, and not under a given response (the fit assumes a linear APS)
-        black = BlackLevelPolicy(None if settings.black_level is None and not fixed and settings.aps_gamma == 1.0
-                                 else float(settings.black_level or 0.0))
+        estimated = settings.black_level is None and not fixed and settings.aps_gamma == 1.0
+        black = BlackLevelPolicy(None if estimated else float(_first(settings.black_level, settings.black_level_start)),
+                                 start=settings.black_level_start)
         aps = edi.ApsResponse(settings.saturation, black.value, float(settings.aps_gamma))
     except (TypeError, ValueError) as exc:
         raise ConfigError(str(exc)) from None
     clock = ClockOffsetPolicy(None if settings.clock_offset_us is None and not fixed
-                              else settings.clock_offset_us or 0, width, height)
+                              else _first(settings.clock_offset_us, settings.clock_offset_start_us), width, height,
+                              start=settings.clock_offset_start_us)
     policy = ContrastPolicy(estimator, c_on, c_off, PolicySettings(
         reestimate_every=int(settings.reestimate_every), startup_estimates=settings.history_pairs,
         fit_patience=int(settings.fit_patience), fit_strong=float(settings.fit_strong),
@@ -104,3 +106,8 @@ def build_noise(settings: ReconstructorSettings, width: int, height: int) -> Pix
         raise ConfigError(f"noise_rate_hz must be a rate in Hz per pixel in [0, 1e6] (got {rate!r})")
     return PixelNoise(width, height, enabled=settings.noise_stats, fixed_hz=None if rate is None else float(rate),
                       start=settings.noise_start)
+
+
+def _first(given, start):
+    """A given value, else a starting value, else 0."""
+    return given if given is not None else (start if start is not None else 0)

@@ -51,6 +51,10 @@ class ReconstructorSettings:
     # the frame's exposure window and reference time are moved into the event clock by it
     # None: estimated from the stream (clock_offset_policy; needs c estimation, else 0)
     clock_offset_us: int | None = None
+    # starting values of an estimated black level and clock offset, e.g. a saved calibration's: in use from the
+    # first frame, replaced when the stream's own estimate differs (used as given where nothing is estimated)
+    black_level_start: float | None = None
+    clock_offset_start_us: int | None = None
     denoise_us: int = 0  # background-activity filter window; 0 = off
     fused_residual: bool = True  # fused mode: add the sub-threshold residual estimate (+1.4 dB; docs/modes.md)
     deblur_ahead: bool = True  # accumulate the next exposure's double integral while it runs (exposure_ahead.py)

@@ -110,6 +110,8 @@ class ReconstructorView:
         return {
             "c_on": self.c_on, "c_off": self.c_off, "c_fixed": self._fixed, "black_level": self.black_level,
             "black_level_estimated": self._black.estimated, "clock_offset_estimated": self._clock.estimated,
+            "black_level_from_calibration": self._black.from_calibration,
+            "clock_offset_from_calibration": self._clock.from_calibration,
             "clock_offset_physical_us": self._clock.physical_us,
             "estimator": self.estimator.name, "reestimations": self.reestimations,
             "ill_conditioned": self.ill_conditioned, "hot_pixels": self.hot_pixels,

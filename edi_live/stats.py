@@ -96,10 +96,18 @@ def _offset_text(s: dict[str, Any]) -> str:
     """How the offset in use came about: estimated, and then the camera's own part beside EDI's step lag."""
     if not s.get("clock_offset_estimated"):
         return ""
+    if s.get("clock_offset_from_calibration"):
+        return " (the saved calibration's, not yet confirmed)"
     physical = s.get("clock_offset_physical_us")
     if physical is None or physical == s.get("clock_offset_us", 0):
         return " (estimated)"
     return f" (estimated: the camera's {physical} µs + {s.get('clock_offset_us', 0) - physical} µs of step lag)"
+
+
+def _black_level_text(s: dict[str, Any]) -> str:
+    if s.get("black_level_from_calibration"):
+        return " (the saved calibration's, not yet confirmed)"
+    return " (estimated)" if s.get("black_level_estimated") else ""
 
 
 def _camera_short(s: dict[str, Any]) -> str:
@@ -159,7 +167,7 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         f"{s.get('heartbeats', 0)} heartbeats; {frames / el:.0f} fps)",
         f"  c_on={s.get('c_on', float('nan')):.4f} c_off={s.get('c_off', float('nan')):.4f}, "
         f"re-estimated {s.get('reestimations', 0)} times, black level {s.get('black_level_dn', 0):g} DN"
-        f"{' (estimated)' if s.get('black_level_estimated') else ''}, "
+        f"{_black_level_text(s)}, "
         f"clock offset {s.get('clock_offset_us', 0)} µs{_offset_text(s)}; "
         f"ignored pixels: hot {s.get('hot_pixels', 0)}, "
         f"unreliable {s.get('unreliable_pixels', 0)}, flicker {s.get('flicker_pixels', 0)}{_noise_text(s)}; "

@@ -165,12 +165,13 @@ def _edi_on(sim: Simulation, ev: np.ndarray, frames: list, c_on: float, c_off: f
     return out
 
 
-def run_reconstructor(sim: Simulation, **kwargs) -> Outputs:
-    """The streaming EdiReconstructor, fed like the node feeds it (causal latent frames)."""
+def run_reconstructor(sim: Simulation, reconstructor=None, **kwargs) -> Outputs:
+    """The streaming EdiReconstructor (made with `kwargs`, or the one given), fed like the node feeds it (causal
+    latent frames)."""
     from edi_live.reconstructor import EdiReconstructor
 
     cfg = sim.config
-    rec = EdiReconstructor(cfg.width, cfg.height, **kwargs)
+    rec = EdiReconstructor(cfg.width, cfg.height, **kwargs) if reconstructor is None else reconstructor
     out = Outputs()
     mids, lat = _gt_targets(sim)
     ev = sim.events

@@ -83,9 +83,7 @@ def quiet_samples(pair: FramePair, taken_off: float, *, b_low: float = 3.0, b_hi
     already taken off the pair's frames (it is added back, so that samples from frames with different corrections
     pool)."""
     prev, cur = pair.prev, pair.cur
-    bp = prev.blurry.reshape(-1)
-    bc = cur.blurry.reshape(-1)
-    ok = prev.informative.reshape(-1) & cur.informative.reshape(-1)
+    bp, bc, ok, taken_off = pair_values(pair, taken_off)
     ok &= (bp >= b_low) & (bp <= b_high) & (bc >= b_low) & (bc <= b_high)
     if pair.mask is not None:
         ok &= ~pair.mask
@@ -96,6 +94,22 @@ def quiet_samples(pair: FramePair, taken_off: float, *, b_low: float = 3.0, b_hi
     keep = np.abs(net) <= max_events
     cand, net = cand[keep], net[keep]
     return QuietSamples(bp[cand].astype(np.float64) + taken_off, bc[cand].astype(np.float64) + taken_off, net)
+
+
+def pair_values(pair: FramePair, taken_off: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """(B of the older frame, of the newer one, the pixels usable in both, what to add to B for the raw APS value):
+    flat. With the frames' `raw` values (a black level `taken_off` was taken off both) B is the raw value and a
+    pixel is usable where it is informative or only the black level hid it (above 0 and at most `taken_off`: the
+    pixels that correct a black level set too high); clipped pixels (at 0, at the saturation) stay out either way.
+    Without them, B as the deblur has it, black level taken off."""
+    prev, cur = pair.prev, pair.cur
+    ok = prev.informative.reshape(-1) & cur.informative.reshape(-1)
+    if prev.raw is None or cur.raw is None:
+        return prev.blurry.reshape(-1), cur.blurry.reshape(-1), ok, taken_off
+    bp, bc = prev.raw.reshape(-1), cur.raw.reshape(-1)
+    ok = ((prev.informative.reshape(-1) | ((bp > 0.0) & (bp <= taken_off)))
+          & (cur.informative.reshape(-1) | ((bc > 0.0) & (bc <= taken_off))))
+    return bp, bc, ok, 0.0
 
 
 def black_level_terms(s: QuietSamples, b: float, c: float, delta: float = 0.5) -> np.ndarray:

@@ -25,7 +25,8 @@ import math
 
 import numpy as np
 
-from edi_live.contrast.black_level import QuietSamples, SUPPORT_DN, grid_minimum, profile_point, quiet_samples
+from edi_live.contrast.black_level import (QuietSamples, SUPPORT_DN, grid_minimum, pair_values, profile_point,
+                                          quiet_samples)
 from edi_live.contrast.frames import FramePair
 
 MIN_NOISE_PAIRS = 50  # neighbour pairs needed for a read-noise estimate
@@ -43,9 +44,7 @@ def neighbour_differences(pair: FramePair, taken_off: float, step: int = 1, b_lo
     darkest pairs are returned."""
     prev, cur = pair.prev, pair.cur
     w = prev.blurry.shape[1]
-    bp = prev.blurry.reshape(-1)
-    bc = cur.blurry.reshape(-1)
-    ok = prev.informative.reshape(-1) & cur.informative.reshape(-1)
+    bp, bc, ok, taken_off = pair_values(pair, taken_off)  # the raw values where there are any
     ok &= (bp >= b_low) & (bp <= b_high) & (bc >= b_low) & (bc <= b_high)
     ok &= (pair.n_on == 0) & (pair.n_off == 0)
     if pair.mask is not None:

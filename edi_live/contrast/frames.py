@@ -15,12 +15,15 @@ import edi_live.edi as edi
 @dataclass
 class FrameData:
     """One APS frame as the estimators see it: B (8-bit scale, float32), which pixels are informative, its
-    level table, and the signed event map M around f (for the energy estimator; None when not needed)."""
+    level table, and the signed event map M around f (for the energy estimator; None when not needed). `raw`: the
+    APS values before a black level was taken off (8-bit scale), when one was: pixels at or below it are clipped
+    out of B, and the black-level fit needs them to correct a value set too high."""
 
     blurry: np.ndarray
     informative: np.ndarray
     table: edi.LevelTable
     event_map: np.ndarray | None = None
+    raw: np.ndarray | None = None
 
 
 @dataclass

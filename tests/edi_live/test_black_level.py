@@ -3,6 +3,8 @@ scenes built here with the simulator's camera model: recovered within 2 DN, and 
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from tests.edi_live.edi_scenes import make_scene
@@ -38,6 +40,37 @@ def test_a_black_level_is_recovered_within_2_dn(camera_scene):
     rec = _run(sim, EdiReconstructor(cfg.width, cfg.height, black_level=None))
     assert abs(rec.black_level - cfg.aps_offset_dn) <= 2.0, rec.stats()
     assert rec.stats()["black_level_estimated"]
+
+
+def test_a_starting_black_level_is_used_at_once_and_corrected_by_the_stream(camera_scene):
+    """A saved calibration's black level is a starting value: the first frame is deblurred with it, and where the
+    stream shows the black level (dark pixels) a wrong one is replaced by the estimate."""
+    cfg = with_effects(camera_scene, "black_level")  # 10 DN
+    sim = simulate(cfg)
+    rec = EdiReconstructor(cfg.width, cfg.height, black_level_start=25.0)
+    first = rec.on_frame(sim.frames[0], _between(sim.events, sim.frames[0].exposure_start_us,
+                                                 sim.frames[0].exposure_end_us + 1, True))
+    assert first.black_level == 25.0 and rec.stats()["black_level_from_calibration"]
+    _run(sim, rec)
+    assert abs(rec.black_level - cfg.aps_offset_dn) <= 2.0, rec.stats()
+    assert rec.stats()["black_level_estimated"] and not rec.stats()["black_level_from_calibration"]
+
+
+def test_a_starting_black_level_is_kept_where_the_stream_cannot_show_one(blocks_scene):
+    cfg = with_effects(blocks_scene, "black_level")  # no pixel near black: nothing is estimated (below)
+    rec = _run(simulate(cfg), EdiReconstructor(cfg.width, cfg.height, black_level_start=10.0))
+    assert rec.black_level == 10.0 and rec.stats()["black_level_estimated"]
+
+
+def test_a_starting_black_level_beyond_the_estimators_range_is_kept(camera_scene):
+    """A saved black level above MAX_BLACK_DN (a value once given with --black-level and saved) cannot be confirmed
+    by the fit, which searches [0, MAX_BLACK_DN]: on a camera that has it, the fit's edge value must not replace it."""
+    from edi_live.black_level_policy import MAX_BLACK_DN
+
+    cfg = dataclasses.replace(camera_scene, aps_offset_dn=MAX_BLACK_DN + 10.0)
+    rec = _run(simulate(cfg), EdiReconstructor(cfg.width, cfg.height, black_level_start=cfg.aps_offset_dn))
+    assert rec.black_level == cfg.aps_offset_dn, rec._black.last_fit
+    assert not rec.stats()["black_level_estimated"]
 
 
 def test_an_ideal_camera_keeps_a_black_level_near_zero(camera_scene):

@@ -12,8 +12,8 @@ import pytest
 import edi_live.contrast as contrast
 import edi_live.edi as edi
 from edi_live.contrast.black_level import QuietSamples
-from edi_live.contrast.black_level_noise import (neighbour_differences, read_noise_dn, samples_with_noise,
-                                                 simex_black_level)
+from edi_live.contrast.black_level_noise import (MIN_NOISE_PAIRS, neighbour_differences, read_noise_dn,
+                                                 samples_with_noise, simex_black_level)
 from edi_live.datatypes import EVENT_DTYPE
 
 H, W = 60, 80
@@ -28,11 +28,12 @@ def _smooth_field(rng: np.random.Generator, lo: float, hi: float) -> np.ndarray:
 
 
 def _pair(sigma: float, rng: np.random.Generator, black: float = 0.0, events_in: np.ndarray | None = None,
-          bayer: bool = False, change: float = 0.1):
+          bayer: bool = False, change: float = 0.1, taken_off: float = 0.0, saturation: float | None = None):
     """Two 8-bit frames of one smooth scene whose log intensity changes by up to +-`change` between them (a
     sub-threshold change, no events), with Gaussian noise `sigma` DN; pixels in `events_in` get one ON event
     between the frames and a large change (an edge moved there). `bayer`: seen through an RGGB mosaic whose
-    red and blue pixels get 0.4 and 1.6 times the green light."""
+    red and blue pixels get 0.4 and 1.6 times the green light. `taken_off`: the frames as the node has them with
+    that black level in use (taken off B, the values before it in FrameData.raw); `saturation`: the APS clip."""
     light = _smooth_field(rng, 15.0, 120.0)
     if bayer:
         light[0::2, 0::2] *= 0.4
@@ -44,9 +45,10 @@ def _pair(sigma: float, rng: np.random.Generator, black: float = 0.0, events_in:
     frames = []
     for img in (light, second):
         aps = np.clip(np.rint(img + black + sigma * rng.standard_normal(img.shape)), 0, 255).astype(np.uint8)
-        b, informative = edi.blurry_to_float(aps)
+        b, informative = edi.ApsResponse(saturation, taken_off).to_float(aps)
+        raw = edi.blurry_to_float(aps, saturation=saturation)[0] if taken_off else None
         table = edi.build_level_table(np.zeros(0, EVENT_DTYPE), W, H, 0, 1000)
-        frames.append(contrast.FrameData(b, informative, table))
+        frames.append(contrast.FrameData(b, informative, table, raw=raw))
     n_on = np.zeros(H * W, np.int64)
     if events_in is not None:
         n_on[events_in.reshape(-1)] = 1
@@ -84,6 +86,23 @@ def test_pixels_with_events_do_not_enter_the_noise_sample():
     still = ~moved
     assert diff.size == np.count_nonzero(still[:, :-1] & still[:, 1:]) + np.count_nonzero(still[:-1] & still[1:])
     assert read_noise_dn(s, 0.0) == pytest.approx(math.sqrt(1.0 + 1.0 / 12.0), rel=0.2)
+
+
+@pytest.mark.parametrize("saturation", [None, 200.0])
+def test_the_samples_do_not_depend_on_the_black_level_taken_off(saturation):
+    """The black-level fit and its noise measurement read the APS values before the black level in use was taken
+    off: with 30 DN taken off a 5 DN camera (a start value set too high), the quiet pixels and the neighbour pairs
+    must be those of the same frames with nothing taken off, the dark ones below 30 DN included (they carry the
+    black level and its noise), and a pixel at the APS clip must stay out."""
+    moved = np.zeros((H, W), bool)
+    moved[::4, ::3] = True  # some pixels see an edge (one event, a large change): moving quiet samples
+    as_is = samples_with_noise(_pair(1.0, np.random.default_rng(5), black=5.0, events_in=moved,
+                                     saturation=saturation), 0.0)
+    high = samples_with_noise(_pair(1.0, np.random.default_rng(5), black=5.0, events_in=moved, taken_off=30.0,
+                                    saturation=saturation), 30.0)
+    assert np.count_nonzero(as_is.noise_level <= 30.0) > MIN_NOISE_PAIRS  # the frames have such dark pixels
+    for key in ("b_prev", "b_cur", "net", "noise_diff", "noise_level", "noise_step"):
+        np.testing.assert_array_equal(getattr(high, key), getattr(as_is, key), err_msg=key)
 
 
 def test_simex_undoes_the_noise_bias_of_the_profile():

@@ -95,6 +95,31 @@ def test_the_reconstructor_finds_the_offset_when_asked_and_keeps_a_given_one(sce
     assert given.clock_offset_us == 700 and not given.stats()["clock_offset_estimated"]
 
 
+def test_a_starting_offset_is_used_at_once_and_moved_by_the_stream(scene):
+    """A saved calibration's offset is a starting value: in use from the first window, then estimated like any."""
+    from edi_live.reconstructor import EdiReconstructor
+
+    cfg = with_effects(dataclasses.replace(scene, duration_s=1.2), "clock_offset")
+    sim = simulate(cfg)
+    rec = EdiReconstructor(cfg.width, cfg.height, clock_offset_start_us=5000)
+    assert rec.clock_offset_us == 5000 and rec.stats()["clock_offset_from_calibration"]
+    _stream(sim, rec)
+    assert abs(rec.stats()["clock_offset_physical_us"] - cfg.event_offset_us) <= 300, rec._clock.last_estimates
+    assert rec.stats()["clock_offset_estimated"] and not rec.stats()["clock_offset_from_calibration"]
+
+
+def test_a_starting_offset_beyond_the_search_range_is_kept(scene):
+    """A saved offset beyond +-MAX_OFFSET_US (once given with --clock-offset-us and saved) cannot be confirmed by
+    the fit, which searches that range: on a camera that has it, the fit's edge value must not replace it."""
+    from edi_live.clock_offset_policy import MAX_OFFSET_US
+    from edi_live.reconstructor import EdiReconstructor
+
+    cfg = dataclasses.replace(scene, duration_s=1.2, event_offset_us=MAX_OFFSET_US + 4000)
+    rec = _stream(simulate(cfg), EdiReconstructor(cfg.width, cfg.height, clock_offset_start_us=cfg.event_offset_us))
+    assert rec.clock_offset_us == cfg.event_offset_us, rec._clock.last_estimates
+    assert not rec.stats()["clock_offset_estimated"]
+
+
 def test_the_fits_residual_is_edis_level_tables_and_counts_between_the_frames(scene):
     """The fit reads each pixel's integral of exp(S) at the window ends; EDI's own functions (level tables of both
     windows moved by d, the counts between the mid-exposures) must give the same residual."""

@@ -219,8 +219,8 @@ def test_saved_rates_round_trip_and_start_the_next_run(tmp_path):
                  (rates.seconds, back.noise.seconds)):
         np.testing.assert_allclose(b, a, rtol=1e-3, atol=1e-4)  # float16: three significant digits
     edi_cfg, _ = calibration.prepare(EdiConfig(), _info(), path, None)
-    np.testing.assert_array_equal(edi_cfg.noise_start.on_hz, back.noise.on_hz)
-    started = EdiReconstructor(80, 60, noise_start=edi_cfg.noise_start)
+    np.testing.assert_array_equal(edi_cfg.start.noise.on_hz, back.noise.on_hz)
+    started = EdiReconstructor(80, 60, noise_start=edi_cfg.start.noise)
     for a, b in zip(started.noise_rates().estimate(), rates.estimate()):  # before any frame: the saved estimate
         np.testing.assert_allclose(a, b, rtol=2e-3)
     assert started.stats()["noise_hz_p50"] == pytest.approx(float(np.median(sum(rates.estimate()))), rel=2e-3)

@@ -89,6 +89,10 @@ def test_camera_values_show_in_the_status_line_and_summary_with_where_they_came_
     assert "black 10 DN" in format_status(s) and "offset 1500 µs" in format_status(s)
     summary = format_summary(s, 1.0)
     assert "black level 10 DN," in summary and "clock offset 1500 µs (estimated)" in summary
+    started = format_summary({**s, "black_level_estimated": True, "black_level_from_calibration": True,
+                              "clock_offset_from_calibration": True}, 1.0)
+    assert "black level 10 DN (the saved calibration's, not yet confirmed)" in started
+    assert "clock offset 1500 µs (the saved calibration's, not yet confirmed)" in started
 
 
 def test_summary_accounts_for_aps_frames_a_still_scene_did_not_deblur():

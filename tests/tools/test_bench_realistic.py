@@ -78,3 +78,20 @@ def test_a_node_that_does_not_know_the_response_loses_only_in_linear_light():
     linear_gap = ba.score(sim, node).psnr_deblur - ba.score(sim, oracle).psnr_deblur
     assert abs(tone_gap) < 1.0
     assert linear_gap < -3.0
+
+
+def test_calibrated_run_starts_from_what_a_first_run_of_the_same_camera_saved():
+    """The 'calibrated' column: a first run of the same camera on another scene is saved and loaded as the node
+    does it (--save-calibration, --calibration), so a black level that the scored scene cannot show (flat blocks,
+    no dark pixel) comes from the calibration scene, which has dark pixels."""
+    from edi_live.reconstructor import EdiReconstructor
+    from edi_live.simulation import preset, with_effects
+    cfg = with_effects(preset("translate", texture="blocks", duration_s=0.3, velocity_px_s=(200.0, 50.0), seed=5,
+                              latent_per_interval=1), "black_level")
+    real = ba.simulate(cfg)
+    first = EdiReconstructor(cfg.width, cfg.height)
+    ba.run_reconstructor(ba.simulate(br.calibration_scene(cfg)), reconstructor=first)
+    assert first.black_level > 0  # the calibration scene shows the black level
+    out = br.run_calibrated(real)
+    assert f"black {first.black_level:g} DN, offset {first.clock_offset_us} µs" in out.note
+    assert ba.score(real, out).psnr_deblur > ba.score(real, ba.run_reconstructor(real)).psnr_deblur + 1.0

@@ -1,6 +1,6 @@
 """Scene activity: do the events show something changing, or only the sensor's background noise?
 
-The worker's static-scene policy asks this per chunk of events: on a still scene a real sensor keeps firing
+The worker's static-scene policy asks this of every event it reads: on a still scene a real sensor keeps firing
 (0.1-5 events/s per pixel of background activity), and counting events alone turned that noise into a deblur
 per APS frame and a latent frame every N events.
 
@@ -8,12 +8,16 @@ The test is spatial and calibrates itself. Background noise fires every pixel in
 has a neighbour that fired shortly before it: with a per-pixel rate r, the chance is p = 1 - exp(-8 r dt). An
 edge or a light change fires neighbouring pixels together, so most of its events are "supported". Per window of
 sensor time, with n events (r estimated from n itself, as if they were all noise) and s of them supported, the
-scene is active when s exceeds the noise expectation n p by `sigmas` binomial standard deviations plus a margin.
-A window with significantly more events than `max_noise_hz` per pixel gives is active without the test, so
-the per-event filter (edi.background_activity_keep) only ever runs at noise-like rates and costs nothing
-measurable while the scene moves. Limits: a small object moving slower than a pixel per `support_us` fires no
-neighbours together and looks like noise (the heartbeat still shows it); many hot pixels raise the supported
-count around them.
+scene is active when s exceeds the noise expectation n p by `sigmas` binomial standard deviations plus a margin,
+or when n alone is more than `max_noise_hz` per pixel gives.
+
+Every verdict depends on the event stream alone, never on how it was cut into reads: a window is a run of
+`check_us` spans of the event clock (aligned to multiples of `check_us`), judged at the end of each span that
+held events, and its verdict falls at the first event of a later span. The window restarts after an active
+verdict or once it covers `window_us`. Every event goes through the filter (~6 ns each; skipping it for busy
+reads made the filter's state, and so later verdicts, depend on where the reads were cut). Limits: a small object
+moving slower than a pixel per `support_us` fires no neighbours together and looks like noise (the heartbeat
+still shows it); many hot pixels raise the supported count around them.
 """
 
 from __future__ import annotations
@@ -27,48 +31,62 @@ from edi_live.datatypes import Frame
 
 
 class SceneActivity:
-    """Feed it every event in time order (`update`); ask `active_since(t)` whether a window judged active ended
+    """Feed it every event in time order (`update`); ask `active_since(t)` whether a span judged active ended
     at or after sensor time t (µs)."""
 
-    def __init__(self, width: int, height: int, *, window_us: int = 10_000, support_us: int = 5_000,
-                 max_noise_hz: float = 5.0, sigmas: float = 5.0, margin: int = 6) -> None:
+    def __init__(self, width: int, height: int, *, window_us: int = 10_000, check_us: int = 1_000,
+                 support_us: int = 5_000, max_noise_hz: float = 5.0, sigmas: float = 5.0, margin: int = 6) -> None:
         self.width, self.height = width, height
-        self.window_us, self.support_us = window_us, support_us
+        self.window_us, self.check_us, self.support_us = window_us, check_us, support_us
         self.max_noise_hz, self.sigmas, self.margin = max_noise_hz, sigmas, margin
         self._last_t = edi.new_activity_map(width, height)
-        self._w0: int | None = None  # sensor time the current window started
+        self._w0: int | None = None  # start of the current window (a multiple of check_us)
+        self._end: int | None = None  # end of the latest span with events: the window's next verdict is there
         self._n = 0  # events in the current window
-        self._s = 0  # of which supported (only while the filter runs)
-        self._tested = 0  # of which went through the filter
-        self.last_active_us: int | None = None  # end of the latest window judged active
+        self._s = 0  # of which supported
+        self.last_active_us: int | None = None  # end of the latest span judged active
         self.windows = 0
         self.active_windows = 0
 
-    def update(self, events: np.ndarray) -> bool:
-        """Account for a chunk of time-ordered events; True if the current window is (now) judged active."""
-        n = len(events)
-        if n == 0:
-            return False
-        t_end = int(events["t"][-1])
-        if self._w0 is None:
-            self._w0 = int(events["t"][0])
-        self._n += n
-        pixel_s = self.width * self.height * max(t_end - self._w0, 1_000) * 1e-6
-        rate_hz = self._n / pixel_s
+    def update(self, events: np.ndarray) -> list[tuple[int, bool, int]]:
+        """Account for time-ordered events. Returns the verdicts that fell among them, in order: (index of the
+        event from which it holds, active, end of the span judged)."""
+        if len(events) == 0:
+            return []
+        supported = edi.background_activity_keep(events, self.width, self.height, self._last_t, self.support_us)
+        span = events["t"] // self.check_us
+        starts = np.flatnonzero(np.diff(span)) + 1
+        starts = np.concatenate(([0], starts))
+        counts = np.diff(np.append(starts, len(events))).tolist()
+        support = np.add.reduceat(supported.astype(np.int64), starts).tolist()
+        verdicts = []
+        for i0, k, n, s in zip(starts.tolist(), span[starts].tolist(), counts, support):
+            begin = k * self.check_us
+            if self._end is None:
+                self._w0 = begin
+            elif begin >= self._end:  # the span that ended is judged here, at the first event after it
+                restart = self._end - self._w0 >= self.window_us
+                active = self._judge()
+                verdicts.append((i0, active, self._end))
+                if active or restart:
+                    self._w0 = begin
+            self._end = begin + self.check_us
+            self._n += n
+            self._s += s
+        return verdicts
+
+    def _judge(self) -> bool:
+        """The window so far (from _w0 to _end): active or noise; counted as a window when it restarts."""
+        pixel_s = self.width * self.height * (self._end - self._w0) * 1e-6
         most = self.max_noise_hz * pixel_s
-        if self._n > most + self.sigmas * math.sqrt(most) + self.margin:
-            active = True  # more than any noise gives: no need to look at single events
-        else:
-            supported = edi.background_activity_keep(events, self.width, self.height, self._last_t, self.support_us)
-            self._s += int(np.count_nonzero(supported))
-            self._tested += n
-            active = self._s > self._noise_bound(self._tested, rate_hz)
+        active = (self._n > most + self.sigmas * math.sqrt(most) + self.margin
+                  or self._s > self._noise_bound(self._n, self._n / pixel_s))
         if active:
-            self.last_active_us = t_end
-        if active or t_end - self._w0 >= self.window_us:
+            self.last_active_us = self._end
+        if active or self._end - self._w0 >= self.window_us:
             self.windows += 1
             self.active_windows += int(active)
-            self._w0, self._n, self._s, self._tested = t_end, 0, 0, 0
+            self._n = self._s = 0
         return active
 
     def _noise_bound(self, n: int, rate_hz: float) -> float:
@@ -78,7 +96,7 @@ class SceneActivity:
         return mean + self.sigmas * math.sqrt(mean * (1.0 - p)) + self.margin
 
     def active_since(self, t_us: int | None) -> bool:
-        """Whether a window judged active ended at or after t_us (None: ever)."""
+        """Whether a span judged active ended at or after t_us (None: ever)."""
         if self.last_active_us is None:
             return False
         return t_us is None or self.last_active_us >= t_us
@@ -86,16 +104,18 @@ class SceneActivity:
 
 class StaticScene:
     """The worker's static-scene state around SceneActivity: whether the scene was active since the latest
-    deblurred APS frame, and per chunk whether its events are only noise, an onset, or part of activity that
-    went on within `hold_us` (sensor time)."""
+    deblurred APS frame, and per event whether it is only noise, an onset, or part of activity that went on
+    within `hold_us` (sensor time). Both are functions of the event stream, not of the reads."""
 
     def __init__(self, hold_us: int = 50_000) -> None:
         self.hold_us = hold_us
         self.activity: SceneActivity | None = None  # sized by the first APS frame
-        self.active = False
+        self.active = True  # the state of the latest event (until the first verdict: active, not an onset)
         self.ref_end_us: int | None = None  # exposure end of the latest deblurred APS frame
         self.changed = True  # active between the previous deblurred frame and the current one
         self.noise_only_events = 0
+        self._last_active_us: int | None = None  # the latest active verdict in force at the next event
+        self._judged = False  # a verdict fell since the activity test started
 
     @property
     def quiet(self) -> bool:
@@ -113,15 +133,39 @@ class StaticScene:
         if self.activity is None:
             self.activity = SceneActivity(frame.image.shape[1], frame.image.shape[0])
 
-    def observe(self, events: np.ndarray) -> str:
-        """"noise" (no frame is due for these events), "onset" (active after noise) or "active"."""
+    def segments(self, events: np.ndarray) -> list[tuple[int, int, str]]:
+        """The events cut where their state changes: (start, stop, "noise" | "onset" | "active"). "noise": no
+        frame is due for them; "onset": the first events of activity after noise."""
+        n = len(events)
         if self.activity is None:
-            return "active"
-        self.activity.update(events)
-        active = self.activity.active_since(int(events["t"][-1]) - self.hold_us)
-        onset = active and not self.active
-        self.active = active
-        if not active:
-            self.noise_only_events += len(events)
-            return "noise"
-        return "onset" if onset else "active"
+            return [(0, n, "active")] if n else []
+        t = events["t"]
+        states: list[tuple[int, int, bool]] = []
+        pos = 0
+        for at, verdict, end in self.activity.update(events) + [(n, None, 0)]:
+            if pos < at:
+                last = self._last_active_us
+                if not self._judged:
+                    cut = at
+                elif last is None:
+                    cut = pos
+                else:  # active while the latest active span ended less than hold_us before the event
+                    cut = pos + int(np.searchsorted(t[pos:at], last + self.hold_us, "right"))
+                states += [(pos, cut, True), (cut, at, False)]
+            if verdict is not None:
+                self._judged = True
+                if verdict:
+                    self._last_active_us = end
+            pos = at
+        out: list[tuple[int, int, str]] = []
+        for lo, hi, active in states:
+            if lo >= hi:
+                continue
+            if not active:
+                self.noise_only_events += hi - lo
+            if out and (out[-1][2] != "noise") == active:
+                out[-1] = (out[-1][0], hi, out[-1][2])
+                continue
+            out.append((lo, hi, "noise" if not active else "active" if self.active else "onset"))
+            self.active = active
+        return out

@@ -14,6 +14,10 @@ cycles keep coming within `hold_us`. A flagged pixel's events are ignored like a
 goes back to the reference when it is flagged, and it shows what the APS frames say (each frame's value, which
 the deblur takes as it is there). A moving edge crosses a pixel once and is never flagged; texture repeats at a
 mains period only by chance, and briefly. A lamp that moves is shown where the latest APS frame saw it.
+
+Between APS frames the flags found in a stream take effect at fixed points of the event clock (`note`, `due`):
+at the first event past the STEP_US span they were found in. Taking them at the end of each read made the
+latent frames depend on where the reads were cut.
 """
 
 from __future__ import annotations
@@ -21,6 +25,8 @@ from __future__ import annotations
 import numpy as np
 
 import edi_live.edi as edi
+
+STEP_US = 1_000  # flags found within one span of the event clock take effect at the first event after it
 
 
 class FlickerPixels:
@@ -33,6 +39,9 @@ class FlickerPixels:
         self._changes = 0
         self._mask = np.zeros((height, width), bool)
         self._count = 0
+        self._due: list[np.ndarray] = []  # pixels flagged by noted events, not yet taken
+        self._due_changed = False
+        self._due_span = 0
 
     @property
     def mask(self) -> np.ndarray:
@@ -53,9 +62,35 @@ class FlickerPixels:
             self._count = int(np.count_nonzero(self._mask))
         return changed, flagged_now
 
+    @staticmethod
+    def spans(events: np.ndarray) -> list[np.ndarray]:
+        """Time-ordered events cut where the event clock crosses a multiple of STEP_US."""
+        span = events["t"] // STEP_US
+        if span.size == 0 or span[0] == span[-1]:
+            return [events]
+        return np.split(events, np.flatnonzero(np.diff(span)) + 1)
+
+    def note(self, events: np.ndarray) -> None:
+        """observe() events of one span (see spans); what they change is taken by `due` after the span."""
+        changed, flagged_now = self.observe(events)
+        self._due_changed |= changed
+        if flagged_now.size:
+            self._due.append(flagged_now)
+        self._due_span = int(events["t"][-1]) // STEP_US
+
+    def due(self, t_us: int | None) -> tuple[bool, np.ndarray] | None:
+        """Before the event at t_us (None: now, e.g. at an APS frame): (whether the mask changed, the pixels
+        flagged) from the noted spans that ended before it, or None if nothing is due."""
+        if not (self._due_changed or self._due) or (t_us is not None and t_us // STEP_US <= self._due_span):
+            return None
+        out = self._due_changed, (np.concatenate(self._due) if self._due else np.empty(0, np.int64))
+        self._due, self._due_changed = [], False
+        return out
+
     def reset(self) -> None:
         """Forget everything (a gap: the cycle timing no longer holds)."""
         self._state = edi.FlickerState(self.width, self.height)
         self._changes = 0
         self._mask = np.zeros((self.height, self.width), bool)
         self._count = 0
+        self._due, self._due_changed = [], False

@@ -135,6 +135,7 @@ class EdiReconstructor(ReconstructorView):
             self.mark_gap()  # time went backwards (new recording, loop without offset): start over
         t_all = events["t"]
         n_new = t_all.size - edi.time_index(t_all, self._t_last, "right")
+        self._flicker_due(None)
         self._observe_flicker(events[t_all.size - n_new:])  # the deblur leaves out newly flagged pixels
         mask = self._mask
         t_batch_end = int(t_all[-1]) if t_all.size else self._t_last
@@ -209,12 +210,18 @@ class EdiReconstructor(ReconstructorView):
         self.settle()
         if events.size == 0 or not self.has_reference:
             return  # nothing to advance yet; the first APS frame rebuilds everything
+        for piece in self._spans(events):
+            self._advance(piece)
+        if arrival_ns:
+            self._arrival_ns = arrival_ns
+
+    def _advance(self, events: np.ndarray) -> None:
         n = int(events.size)
         t_end = int(events["t"][-1])
         self._clock.collect(events)
         if not self._streamer:
             self._ahead.feed(events)
-        self._observe_flicker(events)
+        self._note_flicker(events)
         if self._noise is not None:
             events = self._noise.stream(events)
         self._latent.apply(events, self._c(), self._mask, count=self._counting(),
@@ -227,8 +234,6 @@ class EdiReconstructor(ReconstructorView):
         self._t_last = max(self._t_last, t_end)
         self._pending_events += n
         self.events_applied += n
-        if arrival_ns:
-            self._arrival_ns = arrival_ns
 
     def on_events_frames(self, events: np.ndarray, cuts: Sequence[int],
                          arrivals: Sequence[int]) -> list[Reconstruction]:
@@ -239,12 +244,21 @@ class EdiReconstructor(ReconstructorView):
         if not cuts:
             self.on_events(events, 0)
             return []
+        pieces = self._spans(events)
+        if len(pieces) > 1:  # one call per span of the flicker clock, each with the frames cut within it
+            out, lo = [], 0
+            for piece in pieces:
+                hi = lo + piece.size
+                mine = [k for k, c in enumerate(cuts) if lo < c <= hi]
+                out += self.on_events_frames(piece, [cuts[k] - lo for k in mine], [arrivals[k] for k in mine])
+                lo = hi
+            return out
         self._clock.collect(events)
         if self._noise is not None or self.events_ignored:
             return self._frames_one_by_one(events, cuts, arrivals)
         if not self._streamer:
             self._ahead.feed(events)
-        self._observe_flicker(events)
+        self._note_flicker(events)
         t = events["t"]
 
         def frame(k: int, i1: int) -> Reconstruction:
@@ -304,27 +318,32 @@ class EdiReconstructor(ReconstructorView):
             return self._carry.snap_us + 1
         return int(f0_us) - edi.RESIDUAL_COLD_CONTEXT * (int(f1_us) - int(f0_us))
 
-    def stats(self) -> dict:
-        return {
-            "c_on": self.c_on, "c_off": self.c_off, "c_fixed": self._fixed, "black_level": self.black_level,
-            "black_level_estimated": self._black.estimated, "clock_offset_estimated": self._clock.estimated,
-            "clock_offset_physical_us": self._clock.physical_us,
-            "estimator": self.estimator.name, "reestimations": self.reestimations,
-            "ill_conditioned": self.ill_conditioned, "hot_pixels": self.hot_pixels,
-            "unreliable_pixels": self.unreliable_pixels,
-            "flicker_pixels": self.flicker_pixels, "frames": self.frames, **self._pixel_noise.summary(),
-            "events_ignored": self.events_ignored, "deblurs_ahead": self._ahead.used,
-            "events_applied": self.events_applied, "has_reference": self.has_reference,
-            "last_deblur_ms": round(self.last_deblur_ms, 3), "last_estimate_ms": round(self.last_estimate_ms, 3),
-            "last_settle_ms": round(self._calib.last_settle_ms, 3) if self._calib is not None else 0.0,
-        }
-
     # ---- internals ----
 
     def _combined_mask(self) -> np.ndarray | None:
         masks = [] if self._hot.mask is None else [self._hot.mask]
         masks += [m.mask for m in (self._unreliable, self._flicker) if m is not None and m.count]
         return None if not masks else masks[0] if len(masks) == 1 else np.logical_or.reduce(masks)
+
+    def _spans(self, events: np.ndarray) -> list[np.ndarray]:
+        watching = self._flicker is not None and not self._streamer
+        return self._flicker.spans(events) if watching else [events]  # type: ignore[union-attr]
+
+    def _note_flicker(self, events: np.ndarray) -> None:
+        """Events within one flicker span: the flags of earlier spans take effect first, theirs after it."""
+        if self._flicker is None or self._streamer or events.size == 0:
+            return
+        self._flicker_due(int(events["t"][0]))
+        self._flicker.note(events)
+
+    def _flicker_due(self, t_us: int | None) -> None:
+        due = None if self._flicker is None or self._streamer else self._flicker.due(t_us)
+        if due is None:
+            return
+        if due[0]:
+            self._mask = self._combined_mask()
+        if due[1].size and self.has_reference:
+            self._latent.restart_pixels(due[1])
 
     def _observe_flicker(self, events: np.ndarray) -> None:
         """Pixels flickering in `events` join the mask first; the latent image restarts there (flicker_pixels)."""

@@ -8,6 +8,8 @@ completes a pending level table first: call it from the thread that runs the rec
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 import edi_live.contrast as contrast
@@ -31,6 +33,18 @@ class ReconstructorView:
     _unreliable: UnreliablePixels | None
     _flicker: FlickerPixels | None
     _pixel_noise: PixelNoise
+    _black: Any
+    _ahead: Any
+    _calib: Any
+    _fixed: bool
+    c_on: float
+    c_off: float
+    events_ignored: bool
+    has_reference: bool
+    frames: int
+    events_applied: int
+    last_deblur_ms: float
+    last_estimate_ms: float
 
     @property
     def black_level(self) -> float:  # APS black level (8-bit DN) taken off the frames
@@ -90,3 +104,19 @@ class ReconstructorView:
     @property
     def hot_pixel_mask(self) -> np.ndarray:
         return self._hot.snapshot()
+
+    def stats(self) -> dict:
+        """The reconstructor's state as one map (the worker passes part of it on: reconstructor_stats)."""
+        return {
+            "c_on": self.c_on, "c_off": self.c_off, "c_fixed": self._fixed, "black_level": self.black_level,
+            "black_level_estimated": self._black.estimated, "clock_offset_estimated": self._clock.estimated,
+            "clock_offset_physical_us": self._clock.physical_us,
+            "estimator": self.estimator.name, "reestimations": self.reestimations,
+            "ill_conditioned": self.ill_conditioned, "hot_pixels": self.hot_pixels,
+            "unreliable_pixels": self.unreliable_pixels,
+            "flicker_pixels": self.flicker_pixels, "frames": self.frames, **self._pixel_noise.summary(),
+            "events_ignored": self.events_ignored, "deblurs_ahead": self._ahead.used,
+            "events_applied": self.events_applied, "has_reference": self.has_reference,
+            "last_deblur_ms": round(self.last_deblur_ms, 3), "last_estimate_ms": round(self.last_estimate_ms, 3),
+            "last_settle_ms": round(self._calib.last_settle_ms, 3) if self._calib is not None else 0.0,
+        }

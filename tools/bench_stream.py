@@ -404,8 +404,8 @@ def bench_stages(path: Path, every: int, repeat: int, extra: dict | None = None)
         for packet in packets:
             probe.push(packet)
         c0 = time.thread_time()
-        while len(probe.read_events(1 << 16).events):
-            pass
+        while len(probe.read_events(1 << 16).events) or probe.pop_frame() is not None:
+            pass  # (a read stops at each queued frame's exposure end, as the worker's does)
         read_s = time.thread_time() - c0
         rows["pump: ring push + worker's ring read (per 1000 events)"].append((push_s + read_s) / n_events * 1e9)
         # 3. worker on the filled ring, synchronously, sink collecting frames

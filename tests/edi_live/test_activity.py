@@ -45,8 +45,9 @@ def test_noise_alone_is_quiet_and_an_edge_is_active():
     noise["t"] = np.sort(rng.integers(0, 1_000_000, noise.size))  # ~0.46 Hz per pixel over 1 s
     noise["x"], noise["y"] = rng.integers(0, 240, noise.size), rng.integers(0, 180, noise.size)
     for k in range(0, noise.size, 20):  # ~1 ms chunks
-        assert not act.update(noise[k:k + 20])
-    edge = np.zeros(180, noise.dtype)  # a vertical edge crossing one column: every row fires within 1 ms
-    edge["t"] = 1_000_000 + np.arange(180) * 5
-    edge["x"], edge["y"] = 100, np.arange(180)
-    assert act.update(edge) and act.active_since(1_000_000)
+        assert not any(active for _, active, _ in act.update(noise[k:k + 20]))
+    edge = np.zeros(181, noise.dtype)  # a vertical edge crossing one column: every row fires within 1 ms
+    edge["t"] = 1_000_000 + np.arange(181) * 5
+    edge["t"][-1] = 1_001_000  # a span is judged at the first event after it
+    edge["x"][:-1], edge["y"][:-1] = 100, np.arange(180)
+    assert act.update(edge) == [(0, False, 1_000_000), (180, True, 1_001_000)] and act.active_since(1_000_000)

@@ -646,8 +646,8 @@ class CountOnlyPolicy:
     def __enter__(self):
         from edi_live.activity import StaticScene
 
-        self._saved = StaticScene.observe, StaticScene.active_since_reference, StaticScene.quiet
-        StaticScene.observe = lambda scene, events: "active"
+        self._saved = StaticScene.segments, StaticScene.active_since_reference, StaticScene.quiet
+        StaticScene.segments = lambda scene, events: [(0, len(events), "active")] if len(events) else []
         StaticScene.active_since_reference = lambda scene: True
         StaticScene.quiet = property(lambda scene: False)  # every read as it comes, as then
         return self
@@ -655,7 +655,7 @@ class CountOnlyPolicy:
     def __exit__(self, *exc):
         from edi_live.activity import StaticScene
 
-        StaticScene.observe, StaticScene.active_since_reference, StaticScene.quiet = self._saved
+        StaticScene.segments, StaticScene.active_since_reference, StaticScene.quiet = self._saved
 
 
 def noise_recording(seconds: float, noise_hz: float = 0.5) -> Path:

@@ -69,16 +69,22 @@ def select_pixels(x, y, width, height, keep):
 
 
 @njit(cache=True, nogil=True)
-def flicker_cycles(t, x, y, p, width, height, bits, times, lo_us, hi_us, cycles, hold_us, flagged_now, changes):
+def flicker_cycles(t, x, y, p, width, height, bits, times, lo_us, hi_us, cycles, hold_us, span_us, flagged_now, changes,
+                   read):
     """Mains-flicker cycles per pixel. State, flat over pixels: `bits` (1 = last event ON, 2 = an event was seen,
     4 = flagged, bits 3-7 = run: consecutive regular cycles, up to 31) and `times` (n, 2): the latest OFF -> ON
     switch (onset) and the latest regular one. An onset ends a cycle and starts the next; a cycle lo_us..hi_us
     long, or twice that (a missed switch), is regular; `cycles` regular ones in a row flag the pixel, which stays
     flagged while regular cycles keep coming within hold_us. Writes the pixels flagged by these events into
     `flagged_now` and returns how many; changes[0] counts every flag change (on and off). Most events repeat
-    their pixel's last polarity: they touch one byte (and one time when flagged)."""
+    their pixel's last polarity: they touch one byte (and one time when flagged). With span_us > 0 it stops at the
+    first event past the span_us-long span of the event clock in which a flag changed; read[0] = events read."""
     n = 0
+    stop_span = np.int64(-1)
     for i in range(t.size):
+        if stop_span >= 0 and t[i] // span_us != stop_span:
+            read[0] = i
+            return n
         xi = np.int64(x[i])
         yi = np.int64(y[i])
         if xi >= width or yi >= height:
@@ -99,6 +105,8 @@ def flicker_cycles(t, x, y, p, width, height, bits, times, lo_us, hi_us, cycles,
                 if (b & 4) == 0 and (b >> 3) >= cycles:
                     b |= 4
                     changes[0] += 1
+                    if span_us > 0 and stop_span < 0:
+                        stop_span = t[i] // span_us
                     if n < flagged_now.size:  # full only if pixels were flagged again within the call
                         flagged_now[n] = q
                         n += 1
@@ -108,7 +116,10 @@ def flicker_cycles(t, x, y, p, width, height, bits, times, lo_us, hi_us, cycles,
         if (b & 4) != 0 and t[i] - times[q, 1] > hold_us:
             b &= 3
             changes[0] += 1
+            if span_us > 0 and stop_span < 0:
+                stop_span = t[i] // span_us
         bits[q] = b
+    read[0] = t.size
     return n
 
 

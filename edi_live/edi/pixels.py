@@ -99,6 +99,7 @@ class FlickerState:
         self.bits = np.zeros(npix, np.uint8)  # 1: last event ON, 2: an event was seen, 4: flagged, >> 3: run
         self.times = np.full((npix, 2), -(2**62), np.int64)  # latest OFF -> ON switch, latest regular one
         self.changes = np.zeros(1, np.int64)  # flag changes so far
+        self.read = np.zeros(1, np.int64)  # events the latest flicker_cycles call read (all, unless span_us)
         self.flagged_now = np.empty(npix, np.int64)  # scratch: a pixel is flagged at most once per call
 
     @property
@@ -113,19 +114,27 @@ class FlickerState:
 
 
 def flicker_cycles(events: np.ndarray, state: FlickerState, *, min_period_us: int, max_period_us: int, cycles: int,
-                   hold_us: int) -> np.ndarray:
+                   hold_us: int, span_us: int = 0) -> np.ndarray:
     """Feed time-ordered events to the flicker state. A pixel is flagged once `cycles` consecutive cycles (one
     OFF -> ON switch to the next) lasted min..max_period_us, or twice that (a switch the pixel missed, or a lamp
     flickering at the mains frequency itself), and stays flagged while such cycles come within hold_us
-    (state.flagged; state.changes counts flag changes). Returns the flat pixels these events flagged."""
+    (state.flagged; state.changes counts flag changes). Returns the flat pixels these events flagged. With
+    `span_us`, it stops at the first event past the span (t // span_us) in which a flag changed: state.read[0]
+    says how many events it read."""
     s = state
     if _backend.have_numba():
         n = _kernels_pixels.flicker_cycles(events["t"], events["x"], events["y"], events["p"], s.width, s.height,
                                            s.bits, s.times, int(min_period_us), int(max_period_us), int(cycles),
-                                           int(hold_us), s.flagged_now, s.changes)
+                                           int(hold_us), int(span_us), s.flagged_now, s.changes, s.read)
         return s.flagged_now[:n].copy()
-    n = 0
-    for t, x, y, on in zip(events["t"].tolist(), events["x"].tolist(), events["y"].tolist(), events["p"].tolist()):
+    n, stop_span = 0, None
+    s.read[0] = len(events)
+    for i, (t, x, y, on) in enumerate(zip(events["t"].tolist(), events["x"].tolist(), events["y"].tolist(),
+                                          events["p"].tolist())):
+        if stop_span is not None and t // span_us != stop_span:
+            s.read[0] = i
+            break
+        changes = int(s.changes[0])
         if x >= s.width or y >= s.height:
             continue
         q = y * s.width + x
@@ -152,6 +161,8 @@ def flicker_cycles(events: np.ndarray, state: FlickerState, *, min_period_us: in
             b &= 3
             s.changes[0] += 1
         s.bits[q] = b
+        if span_us > 0 and stop_span is None and int(s.changes[0]) != changes:
+            stop_span = t // span_us
     return s.flagged_now[:n].copy()
 
 

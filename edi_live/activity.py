@@ -45,6 +45,8 @@ class SceneActivity:
         self._n = 0  # events in the current window
         self._s = 0  # of which supported
         self.last_active_us: int | None = None  # end of the latest span judged active
+        most = max_noise_hz * width * height * check_us * 1e-6  # the count bound of the shortest window, one span
+        self._fewest = most + sigmas * math.sqrt(most) + margin
         self.windows = 0
         self.active_windows = 0
 
@@ -55,12 +57,11 @@ class SceneActivity:
             return []
         supported = edi.background_activity_keep(events, self.width, self.height, self._last_t, self.support_us)
         span = events["t"] // self.check_us
-        starts = np.flatnonzero(np.diff(span)) + 1
-        starts = np.concatenate(([0], starts))
-        counts = np.diff(np.append(starts, len(events))).tolist()
-        support = np.add.reduceat(supported.astype(np.int64), starts).tolist()
+        starts = [0] + (np.flatnonzero(span[1:] != span[:-1]) + 1).tolist()
+        counts = np.diff(starts + [len(events)]).tolist() if len(starts) > 1 else [len(events)]
+        support = np.add.reduceat(supported, starts, dtype=np.int64).tolist()
         verdicts = []
-        for i0, k, n, s in zip(starts.tolist(), span[starts].tolist(), counts, support):
+        for i0, k, n, s in zip(starts, span[starts].tolist(), counts, support):
             begin = k * self.check_us
             if self._end is None:
                 self._w0 = begin
@@ -78,9 +79,12 @@ class SceneActivity:
     def _judge(self) -> bool:
         """The window so far (from _w0 to _end): active or noise; counted as a window when it restarts."""
         pixel_s = self.width * self.height * (self._end - self._w0) * 1e-6
-        most = self.max_noise_hz * pixel_s
-        active = (self._n > most + self.sigmas * math.sqrt(most) + self.margin
-                  or self._s > self._noise_bound(self._n, self._n / pixel_s))
+        if self._s <= self.margin and self._n <= self._fewest:
+            active = False  # below both bounds at their lowest (the common case of noise): no need to compute them
+        else:
+            most = self.max_noise_hz * pixel_s
+            active = (self._n > most + self.sigmas * math.sqrt(most) + self.margin
+                      or self._s > self._noise_bound(self._n, self._n / pixel_s))
         if active:
             self.last_active_us = self._end
         if active or self._end - self._w0 >= self.window_us:
@@ -142,7 +146,10 @@ class StaticScene:
         t = events["t"]
         states: list[tuple[int, int, bool]] = []
         pos = 0
-        for at, verdict, end in self.activity.update(events) + [(n, None, 0)]:
+        verdicts = self.activity.update(events)
+        if self._judged:  # a noise verdict changes nothing once one fell: the hold runs out by time alone
+            verdicts = [v for v in verdicts if v[1]]
+        for at, verdict, end in verdicts + [(n, None, 0)]:
             if pos < at:
                 last = self._last_active_us
                 if not self._judged:

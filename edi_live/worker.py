@@ -3,11 +3,14 @@
 Accepts an `EventRing` (events in time order, each APS frame queued just past its exposure end) and a
 `Reconstructor`; hands each `Reconstruction` to the sinks as it is made (t increases, except that in causal mode a
 deblurred frame at f follows the latent frames up to its exposure end). Times are µs on the sensor clock; host
-times (latency, --max-fps, the heartbeat) are time.monotonic. The policy, in full in docs/node.md:
+times (latency, --max-fps, the heartbeat while no event comes) are time.monotonic. Without --max-fps and the deblur
+thread, the frames depend on the event stream only, not on how the reads cut it (a replay is repeatable). The
+policy, in full in docs/node.md:
 - an APS frame is deblurred once every event of its exposure (in the event clock: frame_gate) has been read;
 - then a latent frame every `every` events, at most `max_fps` per second (the skipped ones are counted);
 - frames follow activity, not noise (edi_live.activity): noise-only events move the latent image but make no
-  frame, an onset makes one at once; APS frames of a still scene are deblurred once per `heartbeat_s` only;
+  frame, an onset makes one at its first event; APS frames of a still scene are deblurred, and a heartbeat frame
+  sent, once per `heartbeat_s` of sensor time;
 - "nearest" holds latent times past the midpoint to the next APS frame back and renders them from it
   (nearest_mode); a gap suspends latent frames until the next APS frame;
 - with deblur_thread, each APS frame after the first is deblurred on a helper thread while a copy keeps the
@@ -89,8 +92,7 @@ class EdiWorker:
         self.skipped_static_deblur = 0  # APS frames not deblurred at all (static scene)
         self._last_deblur_us: int | None = None  # exposure end of the latest deblurred APS frame (sensor time)
         self._heartbeat_us = int(config.heartbeat_s * 1e6)
-        self._last_emit_t = -_T_MAX  # sensor time of the latest frame sent (its t_us)
-        self._last_read_s = 0.0  # host time of the latest read that brought events
+        self._last_emit_t, self._last_read_s = -_T_MAX, 0.0  # latest frame sent (its t_us); read with events (host)
         self.wakeups = 0  # idle waits: bounded by ~4/s plus data arrivals (no busy loop)
         self.busy_s = self.cpu_s = 0.0
 

@@ -22,8 +22,6 @@ still shows it); many hot pixels raise the supported count around them.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from edi_live import edi
@@ -40,13 +38,8 @@ class SceneActivity:
         self.window_us, self.check_us, self.support_us = window_us, check_us, support_us
         self.max_noise_hz, self.sigmas, self.margin = max_noise_hz, sigmas, margin
         self._last_t = edi.new_activity_map(width, height)
-        self._w0: int | None = None  # start of the current window (a multiple of check_us)
-        self._end: int | None = None  # end of the latest span with events: the window's next verdict is there
-        self._n = 0  # events in the current window
-        self._s = 0  # of which supported
+        self._state = edi.new_activity_state()  # the current window (edi.activity_verdicts)
         self.last_active_us: int | None = None  # end of the latest span judged active
-        most = max_noise_hz * width * height * check_us * 1e-6  # the count bound of the shortest window, one span
-        self._fewest = most + sigmas * math.sqrt(most) + margin
         self.windows = 0
         self.active_windows = 0
 
@@ -56,48 +49,14 @@ class SceneActivity:
         if len(events) == 0:
             return []
         supported = edi.background_activity_keep(events, self.width, self.height, self._last_t, self.support_us)
-        span = events["t"] // self.check_us
-        starts = [0] + (np.flatnonzero(span[1:] != span[:-1]) + 1).tolist()
-        counts = np.diff(starts + [len(events)]).tolist() if len(starts) > 1 else [len(events)]
-        support = np.add.reduceat(supported, starts, dtype=np.int64).tolist()
-        verdicts = []
-        for i0, k, n, s in zip(starts, span[starts].tolist(), counts, support):
-            begin = k * self.check_us
-            if self._end is None:
-                self._w0 = begin
-            elif begin >= self._end:  # the span that ended is judged here, at the first event after it
-                restart = self._end - self._w0 >= self.window_us
-                active = self._judge()
-                verdicts.append((i0, active, self._end))
-                if active or restart:
-                    self._w0 = begin
-            self._end = begin + self.check_us
-            self._n += n
-            self._s += s
-        return verdicts
-
-    def _judge(self) -> bool:
-        """The window so far (from _w0 to _end): active or noise; counted as a window when it restarts."""
-        pixel_s = self.width * self.height * (self._end - self._w0) * 1e-6
-        if self._s <= self.margin and self._n <= self._fewest:
-            active = False  # below both bounds at their lowest (the common case of noise): no need to compute them
-        else:
-            most = self.max_noise_hz * pixel_s
-            active = (self._n > most + self.sigmas * math.sqrt(most) + self.margin
-                      or self._s > self._noise_bound(self._n, self._n / pixel_s))
-        if active:
-            self.last_active_us = self._end
-        if active or self._end - self._w0 >= self.window_us:
-            self.windows += 1
-            self.active_windows += int(active)
-            self._n = self._s = 0
-        return active
-
-    def _noise_bound(self, n: int, rate_hz: float) -> float:
-        """The most supported events that n events of pure noise at rate_hz per pixel plausibly give."""
-        p = 1.0 - math.exp(-8.0 * rate_hz * self.support_us * 1e-6)
-        mean = n * p
-        return mean + self.sigmas * math.sqrt(mean * (1.0 - p)) + self.margin
+        at, active, end = edi.activity_verdicts(events["t"], supported, self._state, check_us=self.check_us,
+                                                window_us=self.window_us, npix=self.width * self.height,
+                                                max_noise_hz=self.max_noise_hz, sigmas=self.sigmas,
+                                                margin=self.margin, support_us=self.support_us)
+        if active.any():
+            self.last_active_us = int(end[np.flatnonzero(active)[-1]])
+        self.windows, self.active_windows = int(self._state[4]), int(self._state[5])
+        return list(zip(at.tolist(), active.tolist(), end.tolist()))
 
     def active_since(self, t_us: int | None) -> bool:
         """Whether a span judged active ended at or after t_us (None: ever)."""

@@ -168,3 +168,46 @@ def mark_pixels(x, y, width, height, out):
     for i in range(x.size):
         if x[i] < width and y[i] < height:
             out[np.int64(y[i]) * width + x[i]] = True
+
+
+@njit(cache=True, nogil=True)
+def activity_verdicts(t, supported, state, check_us, window_us, npix, max_noise_hz, sigmas, margin, support_us,
+                      out_at, out_active, out_end):
+    """The activity test of edi.activity_verdicts over time-ordered events (supported: the background-activity
+    filter's output for them). state (int64): window start, end of the latest span with events, events and
+    supported events in the window, windows and active windows closed, 1 once an event was seen. Writes one
+    verdict per span judged (the index of the first event after it, active, the span's end); returns how many."""
+    fewest = max_noise_hz * npix * check_us * 1e-6
+    fewest += sigmas * np.sqrt(fewest) + margin
+    nv = 0
+    for i in range(t.size):
+        begin = (t[i] // check_us) * check_us
+        if state[6] == 0:
+            state[0] = begin
+            state[1] = begin + check_us
+            state[6] = 1
+        elif begin >= state[1]:
+            n, s = state[2], state[3]
+            pixel_s = npix * (state[1] - state[0]) * 1e-6
+            active = False
+            if s > margin or n > fewest:
+                most = max_noise_hz * pixel_s
+                p = 1.0 - np.exp(-8.0 * (n / pixel_s) * support_us * 1e-6)
+                mean = n * p
+                active = (n > most + sigmas * np.sqrt(most) + margin
+                          or s > mean + sigmas * np.sqrt(mean * (1.0 - p)) + margin)
+            out_at[nv] = i
+            out_active[nv] = active
+            out_end[nv] = state[1]
+            nv += 1
+            if active or state[1] - state[0] >= window_us:
+                state[4] += 1
+                state[5] += 1 if active else 0
+                state[0] = begin
+                state[2] = 0
+                state[3] = 0
+            state[1] = begin + check_us
+        state[2] += 1
+        if supported[i]:
+            state[3] += 1
+    return nv

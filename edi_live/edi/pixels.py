@@ -52,6 +52,30 @@ def background_activity_keep(events: np.ndarray, width: int, height: int, last_t
     return keep
 
 
+def new_activity_state() -> np.ndarray:
+    """State for activity_verdicts (see there)."""
+    return np.zeros(7, np.int64)
+
+
+def activity_verdicts(t: np.ndarray, supported: np.ndarray, state: np.ndarray, *, check_us: int, window_us: int,
+                      npix: int, max_noise_hz: float, sigmas: float, margin: int,
+                      support_us: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The scene-activity test (edi_live.activity) over time-ordered event times `t` with the background-activity
+    filter's verdict per event (`supported`), carried across calls in `state` (new_activity_state). A window of
+    check_us spans (multiples of check_us) is judged at the end of each span that held events, at its first event
+    after it: active when its n events exceed what max_noise_hz per pixel gives, or its s supported ones what
+    noise at its own rate gives (p = 1 - exp(-8 r support_us), + sigmas binomial deviations + margin). It
+    restarts after an active verdict or once it covers window_us. Returns (index of that event, active, span end)
+    per verdict."""
+    n = len(t)
+    at, active, end = np.empty(n, np.int64), np.empty(n, np.bool_), np.empty(n, np.int64)
+    kernel = _kernels_pixels.activity_verdicts if _backend.have_numba() else \
+        _kernels_pixels.activity_verdicts.py_func
+    k = kernel(t, supported, state, int(check_us), int(window_us), int(npix), float(max_noise_hz), float(sigmas),
+               int(margin), int(support_us), at, active, end)
+    return at[:k], active[:k], end[:k]
+
+
 def supported_events_keep(events: np.ndarray, width: int, height: int, dt_us: int) -> np.ndarray:
     """Per event of one batch: True when one of its 8 neighbours fired within dt_us before OR after it.
     The two-sided, stateless form of the background-activity filter, for a whole exposure at once."""

@@ -46,8 +46,13 @@ class SceneActivity:
     def update(self, events: np.ndarray) -> list[tuple[int, bool, int]]:
         """Account for time-ordered events. Returns the verdicts that fell among them, in order: (index of the
         event from which it holds, active, end of the span judged)."""
+        at, active, end = self.verdicts(events)
+        return list(zip(at.tolist(), active.tolist(), end.tolist()))
+
+    def verdicts(self, events: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """update() as arrays: (indices, active, span ends)."""
         if len(events) == 0:
-            return []
+            return np.empty(0, np.int64), np.empty(0, np.bool_), np.empty(0, np.int64)
         supported = edi.background_activity_keep(events, self.width, self.height, self._last_t, self.support_us)
         at, active, end = edi.activity_verdicts(events["t"], supported, self._state, check_us=self.check_us,
                                                 window_us=self.window_us, npix=self.width * self.height,
@@ -56,7 +61,7 @@ class SceneActivity:
         if active.any():
             self.last_active_us = int(end[np.flatnonzero(active)[-1]])
         self.windows, self.active_windows = int(self._state[4]), int(self._state[5])
-        return list(zip(at.tolist(), active.tolist(), end.tolist()))
+        return at, active, end
 
     def active_since(self, t_us: int | None) -> bool:
         """Whether a span judged active ended at or after t_us (None: ever)."""
@@ -105,24 +110,25 @@ class StaticScene:
         t = events["t"]
         states: list[tuple[int, int, bool]] = []
         pos = 0
-        verdicts = self.activity.update(events)
-        if self._judged:  # a noise verdict changes nothing once one fell: the hold runs out by time alone
-            verdicts = [v for v in verdicts if v[1]]
-        for at, verdict, end in verdicts + [(n, None, 0)]:
-            if pos < at:
+        at, active, end = self.activity.verdicts(events)
+        # a noise verdict changes nothing once one fell: the hold runs out by time alone
+        keep = np.flatnonzero(active) if self._judged else np.arange(len(at))
+        verdicts = list(zip(at[keep].tolist(), active[keep].tolist(), end[keep].tolist()))
+        for at_i, verdict, end_i in verdicts + [(n, None, 0)]:
+            if pos < at_i:
                 last = self._last_active_us
                 if not self._judged:
-                    cut = at
+                    cut = at_i
                 elif last is None:
                     cut = pos
                 else:  # active while the latest active span ended less than hold_us before the event
-                    cut = pos + int(np.searchsorted(t[pos:at], last + self.hold_us, "right"))
-                states += [(pos, cut, True), (cut, at, False)]
+                    cut = pos + int(np.searchsorted(t[pos:at_i], last + self.hold_us, "right"))
+                states += [(pos, cut, True), (cut, at_i, False)]
             if verdict is not None:
                 self._judged = True
                 if verdict:
-                    self._last_active_us = end
-            pos = at
+                    self._last_active_us = end_i
+            pos = at_i
         out: list[tuple[int, int, str]] = []
         for lo, hi, active in states:
             if lo >= hi:

@@ -69,6 +69,10 @@ class FlickerPixels:
         flat pixels newly flagged); a span still open at the end is taken by a later call, or by due()."""
         out: list[tuple[int, np.ndarray | None, np.ndarray]] = []
         t, pos, n = events["t"], 0, len(events)
+        if not self._due_changed:
+            pos = self._read_until_change(events)
+            if not self._due_changed:
+                return out  # nearly every read: no flag changed, all read in one call
         while pos < n:
             if self._due_changed:
                 # the events still in the span that changed belong to it; the change applies after them

@@ -207,7 +207,7 @@ class EdiWorker:
         t = chunk.events["t"]
         while lo < hi:
             due = self._last_emit_t + self._heartbeat_us
-            k = lo + int(np.searchsorted(t[lo:hi], due)) if due < _T_MAX else hi  # the first event at or after due
+            k = lo + int(np.searchsorted(t[lo:hi], due)) if due <= t[hi - 1] else hi  # the first event at/after due
             end = min(hi, k + 1)
             if noise:
                 self.rec.on_events(chunk.events[lo:end], chunk.arrival_ns_at(end))

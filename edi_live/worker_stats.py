@@ -5,17 +5,15 @@ Read from any thread: the counters are plain ints and floats the worker thread r
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from edi_live.reconstructor_stats import reconstructor_stats
 
-if TYPE_CHECKING:
-    from edi_live.worker import EdiWorker
 
-
-def worker_stats(worker: "EdiWorker") -> dict[str, Any]:
+def worker_stats(worker: Any) -> dict[str, Any]:
+    """`worker`: an EdiWorker (its counters and parts, read as they are)."""
     deblur = list(worker._deblur_ms)
     return {
         "events_processed": worker.events_in,

@@ -40,6 +40,7 @@ class SceneActivity:
         self.max_noise_hz, self.sigmas, self.margin = max_noise_hz, sigmas, margin
         self._last_t = edi.new_activity_map(width, height)
         self._state = edi.new_activity_state()  # the current window (edi.activity_verdicts)
+        self._scratch: list = []  # its buffers
         self.last_active_us: int | None = None  # end of the latest span judged active
         self.windows = 0
         self.active_windows = 0
@@ -54,11 +55,11 @@ class SceneActivity:
         """update() as arrays: (indices, active, span ends)."""
         if len(events) == 0:
             return np.empty(0, np.int64), np.empty(0, np.bool_), np.empty(0, np.int64)
-        supported = edi.background_activity_keep(events, self.width, self.height, self._last_t, self.support_us)
-        at, active, end = edi.activity_verdicts(events["t"], supported, self._state, check_us=self.check_us,
-                                                window_us=self.window_us, npix=self.width * self.height,
+        at, active, end = edi.activity_verdicts(events, self.width, self.height, self._last_t, self._state,
+                                                check_us=self.check_us, window_us=self.window_us,
                                                 max_noise_hz=self.max_noise_hz, sigmas=self.sigmas,
-                                                margin=self.margin, support_us=self.support_us)
+                                                margin=self.margin, support_us=self.support_us,
+                                                scratch=self._scratch)
         if active.any():
             self.last_active_us = int(end[np.flatnonzero(active)[-1]])
         self.windows, self.active_windows = int(self._state[4]), int(self._state[5])
@@ -112,6 +113,11 @@ class StaticScene:
         states: list[tuple[int, int, bool]] = []
         pos = 0
         at, active, end = self.activity.verdicts(events)
+        if self._judged and not active.any() and (self._last_active_us is None
+                                                  or t[0] > self._last_active_us + self.hold_us):
+            self.noise_only_events += n  # the still scene's reads: noise, and noise before them
+            self.active = False
+            return [(0, n, "noise")]
         # a noise verdict changes nothing once one fell: the hold runs out by time alone
         keep = np.flatnonzero(active) if self._judged else np.arange(len(at))
         verdicts = list(zip(at[keep].tolist(), active[keep].tolist(), end[keep].tolist()))

@@ -171,12 +171,16 @@ def mark_pixels(x, y, width, height, out):
 
 
 @njit(cache=True, nogil=True)
-def activity_verdicts(t, supported, state, check_us, window_us, npix, max_noise_hz, sigmas, margin, support_us,
-                      out_at, out_active, out_end):
-    """The activity test of edi.activity_verdicts over time-ordered events (supported: the background-activity
-    filter's output for them). state (int64): window start, end of the latest span with events, events and
-    supported events in the window, windows and active windows closed, 1 once an event was seen. Writes one
-    verdict per span judged (the index of the first event after it, active, the span's end); returns how many."""
+def activity_verdicts(t, x, y, width, height, last_t, supported, state, params, out_at, out_active, out_end):
+    """The activity test of edi.activity_verdicts over time-ordered events: the background-activity filter into
+    `supported`, then the windows. state (int64): window start, end of the latest span with events, events and
+    supported events in the window, windows and active windows closed, 1 once an event was seen. params: check_us,
+    window_us, max_noise_hz, sigmas, margin, support_us. Writes one verdict per span judged (the index of the
+    first event after it, active, the span's end); returns how many."""
+    check_us, window_us, support_us = np.int64(params[0]), np.int64(params[1]), np.int64(params[5])
+    max_noise_hz, sigmas, margin = params[2], params[3], params[4]
+    npix = width * height
+    background_activity(t, x, y, width, height, last_t, support_us, supported)
     fewest = max_noise_hz * npix * check_us * 1e-6
     fewest += sigmas * np.sqrt(fewest) + margin
     nv = 0

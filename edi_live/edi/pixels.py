@@ -57,22 +57,29 @@ def new_activity_state() -> np.ndarray:
     return np.zeros(7, np.int64)
 
 
-def activity_verdicts(t: np.ndarray, supported: np.ndarray, state: np.ndarray, *, check_us: int, window_us: int,
-                      npix: int, max_noise_hz: float, sigmas: float, margin: int,
-                      support_us: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The scene-activity test (edi_live.activity) over time-ordered event times `t` with the background-activity
-    filter's verdict per event (`supported`), carried across calls in `state` (new_activity_state). A window of
+def activity_verdicts(events: np.ndarray, width: int, height: int, last_t: np.ndarray, state: np.ndarray, *,
+                      check_us: int, window_us: int, max_noise_hz: float, sigmas: float, margin: int,
+                      support_us: int, scratch: list | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The scene-activity test (edi_live.activity) over time-ordered events, carried across calls in `last_t`
+    (new_activity_map: background_activity_keep's state) and `state` (new_activity_state). A window of
     check_us spans (multiples of check_us) is judged at the end of each span that held events, at its first event
     after it: active when its n events exceed what max_noise_hz per pixel gives, or its s supported ones what
     noise at its own rate gives (p = 1 - exp(-8 r support_us), + sigmas binomial deviations + margin). It
     restarts after an active verdict or once it covers window_us. Returns (index of that event, active, span end)
-    per verdict."""
-    n = len(t)
-    at, active, end = np.empty(n, np.int64), np.empty(n, np.bool_), np.empty(n, np.int64)
+    per verdict: views into `scratch` (a list the caller keeps between calls, for the buffers) if given."""
+    n = len(events)
+    if scratch is None or not scratch or len(scratch[0]) < n:
+        bufs = [np.empty(max(n, 1024), dt) for dt in (np.bool_, np.int64, np.bool_, np.int64)]
+        if scratch is None:
+            scratch = bufs
+        else:
+            scratch[:] = bufs
+    supported, at, active, end = scratch
+    params = np.array([check_us, window_us, max_noise_hz, sigmas, margin, support_us], np.float64)
     kernel = _kernels_pixels.activity_verdicts if _backend.have_numba() else \
         _kernels_pixels.activity_verdicts.py_func
-    k = kernel(t, supported, state, int(check_us), int(window_us), int(npix), float(max_noise_hz), float(sigmas),
-               int(margin), int(support_us), at, active, end)
+    k = kernel(events["t"], events["x"], events["y"], int(width), int(height), last_t, supported, state, params,
+               at, active, end)
     return at[:k], active[:k], end[:k]
 
 

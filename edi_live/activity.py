@@ -1,6 +1,6 @@
 """Scene activity: do the events show something changing, or only the sensor's background noise?
 
-The worker's static-scene policy asks this per chunk of events: on a still scene a real sensor keeps firing
+The worker's static-scene policy asks this of every event it reads: on a still scene a real sensor keeps firing
 (0.1-5 events/s per pixel of background activity), and counting events alone turned that noise into a deblur
 per APS frame and a latent frame every N events.
 
@@ -8,17 +8,20 @@ The test is spatial and calibrates itself. Background noise fires every pixel in
 has a neighbour that fired shortly before it: with a per-pixel rate r, the chance is p = 1 - exp(-8 r dt). An
 edge or a light change fires neighbouring pixels together, so most of its events are "supported". Per window of
 sensor time, with n events (r estimated from n itself, as if they were all noise) and s of them supported, the
-scene is active when s exceeds the noise expectation n p by `sigmas` binomial standard deviations plus a margin.
-A window with significantly more events than `max_noise_hz` per pixel gives is active without the test, so
-the per-event filter (edi.background_activity_keep) only ever runs at noise-like rates and costs nothing
-measurable while the scene moves. Limits: a small object moving slower than a pixel per `support_us` fires no
-neighbours together and looks like noise (the heartbeat still shows it); many hot pixels raise the supported
-count around them.
+scene is active when s exceeds the noise expectation n p by `sigmas` binomial standard deviations plus a margin,
+or when n alone is more than `max_noise_hz` per pixel gives.
+
+Every verdict depends on the event stream alone, never on how it was cut into reads: a window is a run of
+`check_us` spans of the event clock (aligned to multiples of `check_us`), judged at the end of each span that
+held events, and its verdict falls at the first event of a later span. The window restarts after an active
+verdict or once it covers `window_us`. Every event goes through the filter (~6 ns each; skipping it for busy
+reads made the filter's state, and so later verdicts, depend on where the reads were cut); the windows are
+counted in one compiled pass per read (edi.activity_verdicts). Limits: a small object
+moving slower than a pixel per `support_us` fires no neighbours together and looks like noise (the heartbeat
+still shows it); many hot pixels raise the supported count around them.
 """
 
 from __future__ import annotations
-
-import math
 
 import numpy as np
 
@@ -27,58 +30,43 @@ from edi_live.datatypes import Frame
 
 
 class SceneActivity:
-    """Feed it every event in time order (`update`); ask `active_since(t)` whether a window judged active ended
+    """Feed it every event in time order (`update`); ask `active_since(t)` whether a span judged active ended
     at or after sensor time t (µs)."""
 
-    def __init__(self, width: int, height: int, *, window_us: int = 10_000, support_us: int = 5_000,
-                 max_noise_hz: float = 5.0, sigmas: float = 5.0, margin: int = 6) -> None:
+    def __init__(self, width: int, height: int, *, window_us: int = 10_000, check_us: int = 1_000,
+                 support_us: int = 5_000, max_noise_hz: float = 5.0, sigmas: float = 5.0, margin: int = 6) -> None:
         self.width, self.height = width, height
-        self.window_us, self.support_us = window_us, support_us
+        self.window_us, self.check_us, self.support_us = window_us, check_us, support_us
         self.max_noise_hz, self.sigmas, self.margin = max_noise_hz, sigmas, margin
         self._last_t = edi.new_activity_map(width, height)
-        self._w0: int | None = None  # sensor time the current window started
-        self._n = 0  # events in the current window
-        self._s = 0  # of which supported (only while the filter runs)
-        self._tested = 0  # of which went through the filter
-        self.last_active_us: int | None = None  # end of the latest window judged active
+        self._state = edi.new_activity_state()  # the current window (edi.activity_verdicts)
+        self._scratch: list = []  # its buffers
+        self.last_active_us: int | None = None  # end of the latest span judged active
         self.windows = 0
         self.active_windows = 0
 
-    def update(self, events: np.ndarray) -> bool:
-        """Account for a chunk of time-ordered events; True if the current window is (now) judged active."""
-        n = len(events)
-        if n == 0:
-            return False
-        t_end = int(events["t"][-1])
-        if self._w0 is None:
-            self._w0 = int(events["t"][0])
-        self._n += n
-        pixel_s = self.width * self.height * max(t_end - self._w0, 1_000) * 1e-6
-        rate_hz = self._n / pixel_s
-        most = self.max_noise_hz * pixel_s
-        if self._n > most + self.sigmas * math.sqrt(most) + self.margin:
-            active = True  # more than any noise gives: no need to look at single events
-        else:
-            supported = edi.background_activity_keep(events, self.width, self.height, self._last_t, self.support_us)
-            self._s += int(np.count_nonzero(supported))
-            self._tested += n
-            active = self._s > self._noise_bound(self._tested, rate_hz)
-        if active:
-            self.last_active_us = t_end
-        if active or t_end - self._w0 >= self.window_us:
-            self.windows += 1
-            self.active_windows += int(active)
-            self._w0, self._n, self._s, self._tested = t_end, 0, 0, 0
-        return active
+    def update(self, events: np.ndarray) -> list[tuple[int, bool, int]]:
+        """Account for time-ordered events. Returns the verdicts that fell among them, in order: (index of the
+        event from which it holds, active, end of the span judged)."""
+        at, active, end = self.verdicts(events)
+        return list(zip(at.tolist(), active.tolist(), end.tolist()))
 
-    def _noise_bound(self, n: int, rate_hz: float) -> float:
-        """The most supported events that n events of pure noise at rate_hz per pixel plausibly give."""
-        p = 1.0 - math.exp(-8.0 * rate_hz * self.support_us * 1e-6)
-        mean = n * p
-        return mean + self.sigmas * math.sqrt(mean * (1.0 - p)) + self.margin
+    def verdicts(self, events: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """update() as arrays: (indices, active, span ends)."""
+        if len(events) == 0:
+            return np.empty(0, np.int64), np.empty(0, np.bool_), np.empty(0, np.int64)
+        at, active, end = edi.activity_verdicts(events, self.width, self.height, self._last_t, self._state,
+                                                check_us=self.check_us, window_us=self.window_us,
+                                                max_noise_hz=self.max_noise_hz, sigmas=self.sigmas,
+                                                margin=self.margin, support_us=self.support_us,
+                                                scratch=self._scratch)
+        if active.any():
+            self.last_active_us = int(end[np.flatnonzero(active)[-1]])
+        self.windows, self.active_windows = int(self._state[4]), int(self._state[5])
+        return at, active, end
 
     def active_since(self, t_us: int | None) -> bool:
-        """Whether a window judged active ended at or after t_us (None: ever)."""
+        """Whether a span judged active ended at or after t_us (None: ever)."""
         if self.last_active_us is None:
             return False
         return t_us is None or self.last_active_us >= t_us
@@ -86,16 +74,18 @@ class SceneActivity:
 
 class StaticScene:
     """The worker's static-scene state around SceneActivity: whether the scene was active since the latest
-    deblurred APS frame, and per chunk whether its events are only noise, an onset, or part of activity that
-    went on within `hold_us` (sensor time)."""
+    deblurred APS frame, and per event whether it is only noise, an onset, or part of activity that went on
+    within `hold_us` (sensor time). Both are functions of the event stream, not of the reads."""
 
     def __init__(self, hold_us: int = 50_000) -> None:
         self.hold_us = hold_us
         self.activity: SceneActivity | None = None  # sized by the first APS frame
-        self.active = False
+        self.active = True  # the state of the latest event (until the first verdict: active, not an onset)
         self.ref_end_us: int | None = None  # exposure end of the latest deblurred APS frame
         self.changed = True  # active between the previous deblurred frame and the current one
         self.noise_only_events = 0
+        self._last_active_us: int | None = None  # the latest active verdict in force at the next event
+        self._judged = False  # a verdict fell since the activity test started
 
     @property
     def quiet(self) -> bool:
@@ -113,15 +103,48 @@ class StaticScene:
         if self.activity is None:
             self.activity = SceneActivity(frame.image.shape[1], frame.image.shape[0])
 
-    def observe(self, events: np.ndarray) -> str:
-        """"noise" (no frame is due for these events), "onset" (active after noise) or "active"."""
+    def segments(self, events: np.ndarray) -> list[tuple[int, int, str]]:
+        """The events cut where their state changes: (start, stop, "noise" | "onset" | "active"). "noise": no
+        frame is due for them; "onset": the first events of activity after noise."""
+        n = len(events)
         if self.activity is None:
-            return "active"
-        self.activity.update(events)
-        active = self.activity.active_since(int(events["t"][-1]) - self.hold_us)
-        onset = active and not self.active
-        self.active = active
-        if not active:
-            self.noise_only_events += len(events)
-            return "noise"
-        return "onset" if onset else "active"
+            return [(0, n, "active")] if n else []
+        t = events["t"]
+        states: list[tuple[int, int, bool]] = []
+        pos = 0
+        at, active, end = self.activity.verdicts(events)
+        if self._judged and not active.any() and (self._last_active_us is None
+                                                  or t[0] > self._last_active_us + self.hold_us):
+            self.noise_only_events += n  # the still scene's reads: noise, and noise before them
+            self.active = False
+            return [(0, n, "noise")]
+        # a noise verdict changes nothing once one fell: the hold runs out by time alone
+        keep = np.flatnonzero(active) if self._judged else np.arange(len(at))
+        verdicts = list(zip(at[keep].tolist(), active[keep].tolist(), end[keep].tolist()))
+        for at_i, verdict, end_i in verdicts + [(n, None, 0)]:
+            if pos < at_i:
+                last = self._last_active_us
+                if not self._judged:
+                    cut = at_i
+                elif last is None:
+                    cut = pos
+                else:  # active while the latest active span ended less than hold_us before the event
+                    cut = pos + int(np.searchsorted(t[pos:at_i], last + self.hold_us, "right"))
+                states += [(pos, cut, True), (cut, at_i, False)]
+            if verdict is not None:
+                self._judged = True
+                if verdict:
+                    self._last_active_us = end_i
+            pos = at_i
+        out: list[tuple[int, int, str]] = []
+        for lo, hi, active in states:
+            if lo >= hi:
+                continue
+            if not active:
+                self.noise_only_events += hi - lo
+            if out and (out[-1][2] != "noise") == active:
+                out[-1] = (out[-1][0], hi, out[-1][2])
+                continue
+            out.append((lo, hi, "noise" if not active else "active" if self.active else "onset"))
+            self.active = active
+        return out

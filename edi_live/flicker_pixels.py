@@ -14,6 +14,11 @@ cycles keep coming within `hold_us`. A flagged pixel's events are ignored like a
 goes back to the reference when it is flagged, and it shows what the APS frames say (each frame's value, which
 the deblur takes as it is there). A moving edge crosses a pixel once and is never flagged; texture repeats at a
 mains period only by chance, and briefly. A lamp that moves is shown where the latest APS frame saw it.
+
+Between APS frames the flags found in a stream take effect at fixed points of the event clock (`steps`, `due`):
+at the first event past the STEP_US span they were found in. Taking them at the end of each read made the
+latent frames depend on where the reads were cut. The kernel stops at such a point, so a read without flag
+changes (nearly all) is one call.
 """
 
 from __future__ import annotations
@@ -21,6 +26,8 @@ from __future__ import annotations
 import numpy as np
 
 import edi_live.edi as edi
+
+STEP_US = 1_000  # flags found within one span of the event clock take effect at the first event after it
 
 
 class FlickerPixels:
@@ -33,6 +40,9 @@ class FlickerPixels:
         self._changes = 0
         self._mask = np.zeros((height, width), bool)
         self._count = 0
+        self._due: list[np.ndarray] = []  # pixels flagged by noted events, not yet taken
+        self._due_changed = False
+        self._due_span = 0
 
     @property
     def mask(self) -> np.ndarray:
@@ -53,9 +63,58 @@ class FlickerPixels:
             self._count = int(np.count_nonzero(self._mask))
         return changed, flagged_now
 
+    def steps(self, events: np.ndarray) -> list[tuple[int, np.ndarray | None, np.ndarray]]:
+        """Feed time-ordered events; flag changes take effect at the first event past the STEP_US span they were
+        found in. Returns those points among the events: (index, the mask from there on or None if unchanged, the
+        flat pixels newly flagged); a span still open at the end is taken by a later call, or by due()."""
+        out: list[tuple[int, np.ndarray | None, np.ndarray]] = []
+        t, pos, n = events["t"], 0, len(events)
+        if not self._due_changed:
+            pos = self._read_until_change(events)
+            if not self._due_changed:
+                return out  # nearly every read: no flag changed, all read in one call
+        while pos < n:
+            if self._due_changed:
+                # the events still in the span that changed belong to it; the change applies after them
+                k = pos + int(np.searchsorted(t[pos:], (self._due_span + 1) * STEP_US))
+                if k > pos:
+                    self._read_until_change(events[pos:k])
+                    pos = k
+                if pos >= n:
+                    break
+                out.append((pos, *self._take_due()))
+            pos += self._read_until_change(events[pos:])  # all of them, unless a flag changed
+        return out
+
+    def due(self) -> tuple[np.ndarray | None, np.ndarray] | None:
+        """Now (e.g. at an APS frame): as a step of `steps`, from spans not yet taken; None if nothing is due."""
+        return self._take_due() if self._due_changed else None
+
+    def _read_until_change(self, events: np.ndarray) -> int:
+        before = int(self._state.changes[0])
+        flagged_now = edi.flicker_cycles(events, self._state, **self._args, span_us=STEP_US)
+        read = int(self._state.read[0])
+        if int(self._state.changes[0]) != before:
+            self._due_changed = True
+            self._due_span = int(events["t"][read - 1]) // STEP_US
+        if flagged_now.size:
+            self._due.append(flagged_now)
+        return read
+
+    def _take_due(self) -> tuple[np.ndarray | None, np.ndarray]:
+        changed = int(self._state.changes[0]) != self._changes
+        if changed:
+            self._changes = int(self._state.changes[0])
+            self._mask = self._state.flagged.reshape(self.height, self.width)
+            self._count = int(np.count_nonzero(self._mask))
+        flagged = np.concatenate(self._due) if self._due else np.empty(0, np.int64)
+        self._due, self._due_changed = [], False
+        return (self._mask if changed else None), flagged
+
     def reset(self) -> None:
         """Forget everything (a gap: the cycle timing no longer holds)."""
         self._state = edi.FlickerState(self.width, self.height)
         self._changes = 0
         self._mask = np.zeros((self.height, self.width), bool)
         self._count = 0
+        self._due, self._due_changed = [], False

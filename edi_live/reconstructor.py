@@ -135,6 +135,8 @@ class EdiReconstructor(ReconstructorView):
             self.mark_gap()  # time went backwards (new recording, loop without offset): start over
         t_all = events["t"]
         n_new = t_all.size - edi.time_index(t_all, self._t_last, "right")
+        if self._flicker is not None and (due := self._flicker.due()) is not None:
+            self._take_flicker(*due)  # what the events before this frame flagged, not taken yet
         self._observe_flicker(events[t_all.size - n_new:])  # the deblur leaves out newly flagged pixels
         mask = self._mask
         t_batch_end = int(t_all[-1]) if t_all.size else self._t_last
@@ -209,12 +211,24 @@ class EdiReconstructor(ReconstructorView):
         self.settle()
         if events.size == 0 or not self.has_reference:
             return  # nothing to advance yet; the first APS frame rebuilds everything
-        n = int(events.size)
-        t_end = int(events["t"][-1])
         self._clock.collect(events)
         if not self._streamer:
             self._ahead.feed(events)
-        self._observe_flicker(events)
+        start = 0
+        for at, mask, flagged in self._flicker_steps(events):
+            self._advance(events[start:at])
+            self._take_flicker(mask, flagged)
+            start = at
+        self._advance(events[start:])
+        if arrival_ns:
+            self._arrival_ns = arrival_ns
+
+    def _advance(self, events: np.ndarray) -> None:
+        """Move the latent image through events (the clock and running integral have seen them; flicker too)."""
+        n = int(events.size)
+        if n == 0:
+            return
+        t_end = int(events["t"][-1])
         if self._noise is not None:
             events = self._noise.stream(events)
         self._latent.apply(events, self._c(), self._mask, count=self._counting(),
@@ -227,8 +241,6 @@ class EdiReconstructor(ReconstructorView):
         self._t_last = max(self._t_last, t_end)
         self._pending_events += n
         self.events_applied += n
-        if arrival_ns:
-            self._arrival_ns = arrival_ns
 
     def on_events_frames(self, events: np.ndarray, cuts: Sequence[int],
                          arrivals: Sequence[int]) -> list[Reconstruction]:
@@ -240,11 +252,24 @@ class EdiReconstructor(ReconstructorView):
             self.on_events(events, 0)
             return []
         self._clock.collect(events)
-        if self._noise is not None or self.events_ignored:
-            return self._frames_one_by_one(events, cuts, arrivals)
         if not self._streamer:
             self._ahead.feed(events)
-        self._observe_flicker(events)
+        out, start, steps = [], 0, self._flicker_steps(events)
+        for at, mask, flagged in steps + [(int(events.size), None, None)]:  # flags take effect between
+            mine = [k for k, c in enumerate(cuts) if start < c <= at]
+            piece = events[start:at]
+            if not mine:
+                self._advance(piece)
+            elif self._noise is not None or self.events_ignored:
+                out += self._frames_one_by_one(piece, [cuts[k] - start for k in mine], [arrivals[k] for k in mine])
+            else:
+                out += self._frames(piece, [cuts[k] - start for k in mine], [arrivals[k] for k in mine])
+            if flagged is not None:
+                self._take_flicker(mask, flagged)
+            start = at
+        return out
+
+    def _frames(self, events: np.ndarray, cuts: Sequence[int], arrivals: Sequence[int]) -> list[Reconstruction]:
         t = events["t"]
 
         def frame(k: int, i1: int) -> Reconstruction:
@@ -315,20 +340,29 @@ class EdiReconstructor(ReconstructorView):
 
     # ---- internals ----
 
-    def _combined_mask(self) -> np.ndarray | None:
-        masks = [] if self._hot.mask is None else [self._hot.mask]
-        masks += [m.mask for m in (self._unreliable, self._flicker) if m is not None and m.count]
+    def _combined_mask(self, flicker: np.ndarray | None = None) -> np.ndarray | None:
+        """`flicker`: the flicker mask to use (default: the detector's latest, if it flags any pixel)."""
+        if flicker is None and self._flicker is not None and self._flicker.count:
+            flicker = self._flicker.mask
+        masks = [m.mask for m in (self._unreliable,) if m is not None and m.count] + [flicker]
+        masks = [m for m in [self._hot.mask] + masks if m is not None]
         return None if not masks else masks[0] if len(masks) == 1 else np.logical_or.reduce(masks)
 
+    def _flicker_steps(self, events: np.ndarray) -> list:
+        """Where flicker flags found in the events take effect (FlickerPixels.steps); none if not watched."""
+        return [] if self._flicker is None or self._streamer else self._flicker.steps(events)
+
+    def _take_flicker(self, mask: np.ndarray | None, flagged: np.ndarray) -> None:
+        if mask is not None:  # the flicker mask as of this point of the stream (`steps` may have read further)
+            self._mask = self._combined_mask(mask)
+        if flagged.size and self.has_reference:
+            self._latent.restart_pixels(flagged)
+
     def _observe_flicker(self, events: np.ndarray) -> None:
-        """Pixels flickering in `events` join the mask first; the latent image restarts there (flicker_pixels)."""
-        if self._flicker is None or self._streamer or events.size == 0:
-            return
-        changed, flagged_now = self._flicker.observe(events)
-        if changed:
-            self._mask = self._combined_mask()
-        if flagged_now.size and self.has_reference:
-            self._latent.restart_pixels(flagged_now)
+        """Pixels flickering in `events` join the mask at once; the latent image restarts there (flicker_pixels)."""
+        if self._flicker is not None and not self._streamer and events.size:
+            changed, flagged = self._flicker.observe(events)
+            self._take_flicker(self._flicker.mask if changed else None, flagged)
 
     def _c(self) -> tuple[float, float]:
         return self.c_on, self.c_off
@@ -345,10 +379,11 @@ class EdiReconstructor(ReconstructorView):
     def _frames_one_by_one(self, events: np.ndarray, cuts: Sequence[int], arrivals: Sequence[int]) -> list:
         out, i0 = [], 0
         for i1, arrival in zip(cuts, arrivals):
-            self.on_events(events[i0:i1], arrival)
+            self._advance(events[i0:i1])
+            self._arrival_ns = arrival or self._arrival_ns
             out.append(self.render())
             i0 = i1
-        self.on_events(events[i0:], 0)
+        self._advance(events[i0:])
         return out
 
     def _need_reference(self, what: str) -> None:

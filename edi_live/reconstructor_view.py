@@ -8,6 +8,8 @@ completes a pending level table first: call it from the thread that runs the rec
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 import edi_live.contrast as contrast

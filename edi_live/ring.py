@@ -293,10 +293,16 @@ class EventRing:
 
     def read_events(self, max_n: int, until_index: int | None = None, through_t_us: int | None = None) -> EventChunk:
         """Take up to `max_n` unread events (not past `until_index`, nor past the first event later than
-        `through_t_us`) as a copy and advance the cursor."""
+        `through_t_us`, nor past a queued frame's `end_index`) as a copy and advance the cursor. The frame bound
+        is checked under the lock: a frame pushed after the consumer's peek_frame() still stops the read at its
+        exposure end, so where reads stop depends on the stream, not on when the producer ran."""
         with self._cond:
             start = self._read
             stop = self._head if until_index is None else min(self._head, until_index)
+            for entry in self._frames:
+                if entry.end_index > start:
+                    stop = min(stop, entry.end_index)
+                    break
             if through_t_us is not None and stop > start:
                 stop = min(stop, self._store.search(start, stop, through_t_us + 1) + 1)
             n = max(0, min(max_n, stop - start))

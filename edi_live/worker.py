@@ -3,11 +3,14 @@
 Accepts an `EventRing` (events in time order, each APS frame queued just past its exposure end) and a
 `Reconstructor`; hands each `Reconstruction` to the sinks as it is made (t increases, except that in causal mode a
 deblurred frame at f follows the latent frames up to its exposure end). Times are µs on the sensor clock; host
-times (latency, --max-fps, the heartbeat) are time.monotonic. The policy, in full in docs/node.md:
+times (latency, --max-fps, the heartbeat while no event comes) are time.monotonic. Without --max-fps and the deblur
+thread, the frames depend on the event stream only, not on how the reads cut it (a replay is repeatable). The
+policy, in full in docs/node.md:
 - an APS frame is deblurred once every event of its exposure (in the event clock: frame_gate) has been read;
 - then a latent frame every `every` events, at most `max_fps` per second (the skipped ones are counted);
 - frames follow activity, not noise (edi_live.activity): noise-only events move the latent image but make no
-  frame, an onset makes one at once; APS frames of a still scene are deblurred once per `heartbeat_s` only;
+  frame, an onset makes one at its first event; APS frames of a still scene are deblurred, and a heartbeat frame
+  sent, once per `heartbeat_s` of sensor time;
 - "nearest" holds latent times past the midpoint to the next APS frame back and renders them from it
   (nearest_mode); a gap suspends latent frames until the next APS frame;
 - with deblur_thread, each APS frame after the first is deblurred on a helper thread while a copy keeps the
@@ -27,7 +30,7 @@ import numpy as np
 
 from edi_live.activity import StaticScene
 from edi_live.config import EdiConfig
-from edi_live.datatypes import Reconstruction
+from edi_live.datatypes import Frame, Reconstruction
 from edi_live.deblur_handover import DeblurThread, PendingDeblur
 from edi_live import held_frames
 from edi_live.frame_demand import FrameDemand
@@ -92,7 +95,9 @@ class EdiWorker:
         self.events_in = self.frames_in = self.heartbeats = self.skipped_static = self.skipped_max_fps = self.gaps = 0
         self.sent = {"deblurred": 0, "latent": 0}
         self.skipped_static_deblur = 0  # APS frames not deblurred at all (static scene)
-        self._last_deblur_s = 0.0
+        self._last_deblur_us: int | None = None  # exposure end of the latest deblurred APS frame (sensor time)
+        self._heartbeat_us = int(config.heartbeat_s * 1e6)
+        self._last_emit_t, self._last_read_s = -_T_MAX, 0.0  # latest frame sent (its t_us); read with events (host)
         self.wakeups = 0  # idle waits: bounded by ~4/s plus data arrivals (no busy loop)
         self.busy_s = self.cpu_s = 0.0
 
@@ -118,7 +123,7 @@ class EdiWorker:
     def _run(self) -> None:
         cpu0 = time.thread_time()
         try:
-            self._last_emit_s = time.monotonic()
+            self._last_emit_s = self._last_read_s = time.monotonic()
             while not self._abort.is_set():
                 version = self.ring.version
                 if self._step():
@@ -146,7 +151,8 @@ class EdiWorker:
             self.done.set()
 
     def _idle_wait_s(self) -> float:
-        return max(0.001, min(_IDLE_WAIT_S, self._last_emit_s + self.config.heartbeat_s - time.monotonic()))
+        due = max(self._last_emit_s, self._last_read_s) + self.config.heartbeat_s - time.monotonic()
+        return max(0.001, min(_IDLE_WAIT_S, due))
 
     def _step(self) -> bool:
         """Handle one APS frame or one chunk of events. False if there was nothing to do."""
@@ -177,6 +183,7 @@ class EdiWorker:
     def _on_chunk(self, chunk: EventChunk) -> None:
         n = len(chunk.events)
         self.events_in += n
+        self._last_read_s = time.monotonic()
         self._gate.events_read(int(chunk.events["t"][-1]))
         if self.quality is not None:
             self.quality.on_events(chunk.events)
@@ -191,12 +198,34 @@ class EdiWorker:
         if self._await_reference or not self.rec.has_reference:
             self._since += n
             return  # nothing to update before the first (or next, after a gap) APS frame
-        every = self.config.every
         t0 = time.perf_counter()
-        if self._only_noise(chunk.events):
-            self.rec.on_events(chunk.events, chunk.arrival_ns_at(n))  # the latent image stays right; no frame
-            self.busy_s += time.perf_counter() - t0
-            return
+        for lo, hi, state in self._scene.segments(chunk.events):  # cut where the stream's state changes
+            if state == "onset":
+                self._since = max(self._since, self.config.every - 1)  # a frame at its first event
+            self._in_event_clock(chunk, lo, hi, state == "noise")
+        self.busy_s += time.perf_counter() - t0
+
+    def _in_event_clock(self, chunk: EventChunk, lo: int, hi: int, noise: bool) -> None:
+        """Events [lo, hi) of the chunk, and a heartbeat frame at the first event heartbeat_s of sensor time
+        after the latest frame sent. Noise moves the latent image but makes no frame."""
+        t = chunk.events["t"]
+        while lo < hi:
+            due = self._last_emit_t + self._heartbeat_us
+            k = lo + int(np.searchsorted(t[lo:hi], due)) if due <= t[hi - 1] else hi  # the first event at/after due
+            end = min(hi, k + 1)
+            if noise:
+                self.rec.on_events(chunk.events[lo:end], chunk.arrival_ns_at(end))
+                self._since = 0
+            else:
+                self._stream(chunk, lo, end)
+            if k < hi and self._last_emit_t + self._heartbeat_us <= t[k]:  # no frame came up to that event
+                self.heartbeats += 1
+                self._emit(self.rec.render())
+            lo = end
+
+    def _stream(self, chunk: EventChunk, lo: int, hi: int) -> None:
+        """Events [lo, hi) of an active scene: a latent frame every `every` events."""
+        events, n, every = chunk.events[lo:hi], hi - lo, self.config.every
         if self._batch_frames():
             # up to _BATCH_FRAMES frames per reconstructor call (same frames as the loop below); the cap bounds
             # the frames held before they are sent (a 64k-event chunk at --every 1 would be 64k images)
@@ -208,27 +237,25 @@ class EdiWorker:
             for g in range(0, len(cuts), _BATCH_FRAMES):
                 group = cuts[g:g + _BATCH_FRAMES]
                 end = group[-1]
-                recs = self.rec.on_events_frames(chunk.events[pos:end], [c - pos for c in group],
-                                                 [chunk.arrival_ns_at(c) for c in group])
+                recs = self.rec.on_events_frames(events[pos:end], [c - pos for c in group],
+                                                 [chunk.arrival_ns_at(lo + c) for c in group])
                 pos = end
                 for rec in recs:
                     self._emit(rec)
             if pos < n:
-                self.rec.on_events(chunk.events[pos:], chunk.arrival_ns_at(n))
+                self.rec.on_events(events[pos:], chunk.arrival_ns_at(hi))
             self._since = tail
-            self.busy_s += time.perf_counter() - t0
             return
         pos = 0
         while pos < n:
             take = min(n - pos, max(1, every - self._since))
-            part = chunk.events[pos:pos + take]
+            part = events[pos:pos + take]
             pos += take
             self._since += take
-            arrival = chunk.arrival_ns_at(pos)
+            arrival = chunk.arrival_ns_at(lo + pos)
             self.rec.on_events(part, arrival)
             if self._since >= every:
                 self._latent_due(int(part["t"][-1]), arrival)
-        self.busy_s += time.perf_counter() - t0
 
     def _batch_frames(self) -> bool:
         """Whether a chunk's latent frames can be made in batches (on_events_frames): causal mode without
@@ -262,11 +289,11 @@ class EdiWorker:
         t0 = time.perf_counter()
         # exposure start (in the event clock: clock_offset_us later) .. read cursor
         events = self.ring.window(frame.exposure_start_us + self.rec.clock_offset_us, _T_MAX)
-        if self._static_frame(len(events)):
+        if self._static_frame(frame, len(events)):
             self.skipped_static_deblur += 1
             return
         self._scene.new_reference(frame, anchor=self._await_reference)
-        self._last_deblur_s = time.monotonic()
+        self._last_deblur_us = frame.exposure_end_us
         f_us = frame.mid_exposure_us + self.rec.clock_offset_us
         arrival = max(entry.arrival_ns, self._last_arrival_ns)
         if self._use_deblur_thread():
@@ -336,24 +363,15 @@ class EdiWorker:
         else:
             self.skipped_static += 1
 
-    def _static_frame(self, n_events: int) -> bool:
+    def _static_frame(self, frame: Frame, n_events: int) -> bool:
         """A static scene: (almost) no events, or only noise, since the previous deblur, so L(f) would be the
         current reference up to sensor noise. The events keep the latent image right; a real deblur is still
-        forced every heartbeat_s to bound drift. This is what keeps a still camera near zero CPU."""
+        forced every heartbeat_s of sensor time to bound drift. This is what keeps a still camera near zero CPU."""
         if not self.rec.has_reference or self._await_reference:
             return False
         if (n_events >= _STATIC_EVENTS or self._since >= _STATIC_EVENTS) and self._scene.active_since_reference():
             return False
-        return time.monotonic() - self._last_deblur_s < self.config.heartbeat_s
-
-    def _only_noise(self, events: np.ndarray) -> bool:
-        """True while the events show only noise (no latent frame for them); an onset makes one at the latest."""
-        state = self._scene.observe(events)
-        if state == "onset":
-            self._since = max(self._since, self.config.every - len(events))
-        elif state == "noise":
-            self._since = 0
-        return state == "noise"
+        return self._last_deblur_us is not None and frame.exposure_end_us - self._last_deblur_us < self._heartbeat_us
 
     def _render_at(self, t_us: int, arrival_ns: int) -> Reconstruction:
         return held_frames.render_held(self.rec, self.ring, self._nearest, self._ref_f_us, t_us, arrival_ns)
@@ -365,9 +383,10 @@ class EdiWorker:
             self._emit(rec)
 
     def _heartbeat(self) -> None:
+        """The host-clock heartbeat, for when no event came for heartbeat_s (no sensor time passes to make one)."""
         if not self.rec.has_reference or self._await_reference:
             return
-        if time.monotonic() - self._last_emit_s >= self.config.heartbeat_s:
+        if time.monotonic() - max(self._last_emit_s, self._last_read_s) >= self.config.heartbeat_s:
             self.heartbeats += 1
             self._emit(self.rec.render())
 
@@ -384,6 +403,7 @@ class EdiWorker:
 
     def _count_emitted(self, rec: Reconstruction) -> None:
         self._last_emit_s = time.monotonic()
+        self._last_emit_t = max(self._last_emit_t, rec.t_us)
         self.sent[rec.kind] = self.sent.get(rec.kind, 0) + 1
         if self.quality is not None:
             self.quality.on_emitted(rec)

@@ -404,8 +404,8 @@ def bench_stages(path: Path, every: int, repeat: int, extra: dict | None = None)
         for packet in packets:
             probe.push(packet)
         c0 = time.thread_time()
-        while len(probe.read_events(1 << 16).events):
-            pass
+        while len(probe.read_events(1 << 16).events) or probe.pop_frame() is not None:
+            pass  # (a read stops at each queued frame's exposure end, as the worker's does)
         read_s = time.thread_time() - c0
         rows["pump: ring push + worker's ring read (per 1000 events)"].append((push_s + read_s) / n_events * 1e9)
         # 3. worker on the filled ring, synchronously, sink collecting frames
@@ -646,8 +646,8 @@ class CountOnlyPolicy:
     def __enter__(self):
         from edi_live.activity import StaticScene
 
-        self._saved = StaticScene.observe, StaticScene.active_since_reference, StaticScene.quiet
-        StaticScene.observe = lambda scene, events: "active"
+        self._saved = StaticScene.segments, StaticScene.active_since_reference, StaticScene.quiet
+        StaticScene.segments = lambda scene, events: [(0, len(events), "active")] if len(events) else []
         StaticScene.active_since_reference = lambda scene: True
         StaticScene.quiet = property(lambda scene: False)  # every read as it comes, as then
         return self
@@ -655,7 +655,7 @@ class CountOnlyPolicy:
     def __exit__(self, *exc):
         from edi_live.activity import StaticScene
 
-        StaticScene.observe, StaticScene.active_since_reference, StaticScene.quiet = self._saved
+        StaticScene.segments, StaticScene.active_since_reference, StaticScene.quiet = self._saved
 
 
 def noise_recording(seconds: float, noise_hz: float = 0.5) -> Path:

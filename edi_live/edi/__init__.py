@@ -42,8 +42,9 @@ from edi_live.edi.latent import (Propagator, event_delta, propagate_log, render_
 from edi_live.edi.levels import LevelTable, build_level_table, empty_table, log_divisor
 from edi_live.edi.pairs import consistency_cost, pair_candidates
 from edi_live.edi.running import RunningDivisor
-from edi_live.edi.pixels import (FlickerState, background_activity_keep, decay_hot_counts, dilate, flicker_cycles,
-                                 hot_pixel_mask, isolated_event_mask, mark_event_pixels, new_activity_map,
+from edi_live.edi.pixels import (FlickerState, activity_verdicts, background_activity_keep, decay_hot_counts, dilate,
+                                 flicker_cycles, hot_pixel_mask, isolated_event_mask, mark_event_pixels,
+                                 new_activity_map, new_activity_state,
                                  supported_events_keep, update_contradictions)
 from edi_live.edi.selection import (add_counts, events_at_pixels, flat_index, select, signed_counts, time_index,
                                     window)
@@ -65,7 +66,7 @@ def compiled_signatures(also: tuple[ModuleType, ...] = ()) -> dict[str, set[str]
 
 
 __all__ = [
-    "ApsResponse", "DARK_FLOOR", "FlickerState", "flicker_cycles", "FusedPropagator", "FusionPlan", "LEVEL_CAP", "LOG_MAX", "LOG_MIN", "LevelTable",
+    "ApsResponse", "DARK_FLOOR", "FlickerState", "activity_verdicts", "new_activity_state", "flicker_cycles", "FusedPropagator", "FusionPlan", "LEVEL_CAP", "LOG_MAX", "LOG_MIN", "LevelTable",
     "Propagator", "RunningDivisor", "add_counts", "compiled_signatures", "event_mass", "forward_plan", "fused_frames", "fused_log",
     "fusion_plan", "fusion_weights", "RESIDUAL_COLD_CONTEXT", "RESIDUAL_SPAN", "ResidualCarry",
     "time_share",

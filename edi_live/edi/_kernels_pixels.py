@@ -69,16 +69,22 @@ def select_pixels(x, y, width, height, keep):
 
 
 @njit(cache=True, nogil=True)
-def flicker_cycles(t, x, y, p, width, height, bits, times, lo_us, hi_us, cycles, hold_us, flagged_now, changes):
+def flicker_cycles(t, x, y, p, width, height, bits, times, lo_us, hi_us, cycles, hold_us, span_us, flagged_now, changes,
+                   read):
     """Mains-flicker cycles per pixel. State, flat over pixels: `bits` (1 = last event ON, 2 = an event was seen,
     4 = flagged, bits 3-7 = run: consecutive regular cycles, up to 31) and `times` (n, 2): the latest OFF -> ON
     switch (onset) and the latest regular one. An onset ends a cycle and starts the next; a cycle lo_us..hi_us
     long, or twice that (a missed switch), is regular; `cycles` regular ones in a row flag the pixel, which stays
     flagged while regular cycles keep coming within hold_us. Writes the pixels flagged by these events into
     `flagged_now` and returns how many; changes[0] counts every flag change (on and off). Most events repeat
-    their pixel's last polarity: they touch one byte (and one time when flagged)."""
+    their pixel's last polarity: they touch one byte (and one time when flagged). With span_us > 0 it stops at the
+    first event past the span_us-long span of the event clock in which a flag changed; read[0] = events read."""
     n = 0
+    stop_span = np.int64(-1)
     for i in range(t.size):
+        if stop_span >= 0 and t[i] // span_us != stop_span:
+            read[0] = i
+            return n
         xi = np.int64(x[i])
         yi = np.int64(y[i])
         if xi >= width or yi >= height:
@@ -99,6 +105,8 @@ def flicker_cycles(t, x, y, p, width, height, bits, times, lo_us, hi_us, cycles,
                 if (b & 4) == 0 and (b >> 3) >= cycles:
                     b |= 4
                     changes[0] += 1
+                    if span_us > 0 and stop_span < 0:
+                        stop_span = t[i] // span_us
                     if n < flagged_now.size:  # full only if pixels were flagged again within the call
                         flagged_now[n] = q
                         n += 1
@@ -108,7 +116,10 @@ def flicker_cycles(t, x, y, p, width, height, bits, times, lo_us, hi_us, cycles,
         if (b & 4) != 0 and t[i] - times[q, 1] > hold_us:
             b &= 3
             changes[0] += 1
+            if span_us > 0 and stop_span < 0:
+                stop_span = t[i] // span_us
         bits[q] = b
+    read[0] = t.size
     return n
 
 
@@ -157,3 +168,50 @@ def mark_pixels(x, y, width, height, out):
     for i in range(x.size):
         if x[i] < width and y[i] < height:
             out[np.int64(y[i]) * width + x[i]] = True
+
+
+@njit(cache=True, nogil=True)
+def activity_verdicts(t, x, y, width, height, last_t, supported, state, params, out_at, out_active, out_end):
+    """The activity test of edi.activity_verdicts over time-ordered events: the background-activity filter into
+    `supported`, then the windows. state (int64): window start, end of the latest span with events, events and
+    supported events in the window, windows and active windows closed, 1 once an event was seen. params: check_us,
+    window_us, max_noise_hz, sigmas, margin, support_us. Writes one verdict per span judged (the index of the
+    first event after it, active, the span's end); returns how many."""
+    check_us, window_us, support_us = np.int64(params[0]), np.int64(params[1]), np.int64(params[5])
+    max_noise_hz, sigmas, margin = params[2], params[3], params[4]
+    npix = width * height
+    background_activity(t, x, y, width, height, last_t, support_us, supported)
+    fewest = max_noise_hz * npix * check_us * 1e-6
+    fewest += sigmas * np.sqrt(fewest) + margin
+    nv = 0
+    for i in range(t.size):
+        begin = (t[i] // check_us) * check_us
+        if state[6] == 0:
+            state[0] = begin
+            state[1] = begin + check_us
+            state[6] = 1
+        elif begin >= state[1]:
+            n, s = state[2], state[3]
+            pixel_s = npix * (state[1] - state[0]) * 1e-6
+            active = False
+            if s > margin or n > fewest:
+                most = max_noise_hz * pixel_s
+                p = 1.0 - np.exp(-8.0 * (n / pixel_s) * support_us * 1e-6)
+                mean = n * p
+                active = (n > most + sigmas * np.sqrt(most) + margin
+                          or s > mean + sigmas * np.sqrt(mean * (1.0 - p)) + margin)
+            out_at[nv] = i
+            out_active[nv] = active
+            out_end[nv] = state[1]
+            nv += 1
+            if active or state[1] - state[0] >= window_us:
+                state[4] += 1
+                state[5] += 1 if active else 0
+                state[0] = begin
+                state[2] = 0
+                state[3] = 0
+            state[1] = begin + check_us
+        state[2] += 1
+        if supported[i]:
+            state[3] += 1
+    return nv

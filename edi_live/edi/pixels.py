@@ -52,6 +52,37 @@ def background_activity_keep(events: np.ndarray, width: int, height: int, last_t
     return keep
 
 
+def new_activity_state() -> np.ndarray:
+    """State for activity_verdicts (see there)."""
+    return np.zeros(7, np.int64)
+
+
+def activity_verdicts(events: np.ndarray, width: int, height: int, last_t: np.ndarray, state: np.ndarray, *,
+                      check_us: int, window_us: int, max_noise_hz: float, sigmas: float, margin: int,
+                      support_us: int, scratch: list | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The scene-activity test (edi_live.activity) over time-ordered events, carried across calls in `last_t`
+    (new_activity_map: background_activity_keep's state) and `state` (new_activity_state). A window of
+    check_us spans (multiples of check_us) is judged at the end of each span that held events, at its first event
+    after it: active when its n events exceed what max_noise_hz per pixel gives, or its s supported ones what
+    noise at its own rate gives (p = 1 - exp(-8 r support_us), + sigmas binomial deviations + margin). It
+    restarts after an active verdict or once it covers window_us. Returns (index of that event, active, span end)
+    per verdict: views into `scratch` (a list the caller keeps between calls, for the buffers) if given."""
+    n = len(events)
+    if scratch is None or not scratch or len(scratch[0]) < n:
+        bufs = [np.empty(max(n, 1024), dt) for dt in (np.bool_, np.int64, np.bool_, np.int64)]
+        if scratch is None:
+            scratch = bufs
+        else:
+            scratch[:] = bufs
+    supported, at, active, end = scratch
+    params = np.array([check_us, window_us, max_noise_hz, sigmas, margin, support_us], np.float64)
+    kernel = _kernels_pixels.activity_verdicts if _backend.have_numba() else \
+        _kernels_pixels.activity_verdicts.py_func
+    k = kernel(events["t"], events["x"], events["y"], int(width), int(height), last_t, supported, state, params,
+               at, active, end)
+    return at[:k], active[:k], end[:k]
+
+
 def supported_events_keep(events: np.ndarray, width: int, height: int, dt_us: int) -> np.ndarray:
     """Per event of one batch: True when one of its 8 neighbours fired within dt_us before OR after it.
     The two-sided, stateless form of the background-activity filter, for a whole exposure at once."""
@@ -99,6 +130,7 @@ class FlickerState:
         self.bits = np.zeros(npix, np.uint8)  # 1: last event ON, 2: an event was seen, 4: flagged, >> 3: run
         self.times = np.full((npix, 2), -(2**62), np.int64)  # latest OFF -> ON switch, latest regular one
         self.changes = np.zeros(1, np.int64)  # flag changes so far
+        self.read = np.zeros(1, np.int64)  # events the latest flicker_cycles call read (all, unless span_us)
         self.flagged_now = np.empty(npix, np.int64)  # scratch: a pixel is flagged at most once per call
 
     @property
@@ -113,19 +145,27 @@ class FlickerState:
 
 
 def flicker_cycles(events: np.ndarray, state: FlickerState, *, min_period_us: int, max_period_us: int, cycles: int,
-                   hold_us: int) -> np.ndarray:
+                   hold_us: int, span_us: int = 0) -> np.ndarray:
     """Feed time-ordered events to the flicker state. A pixel is flagged once `cycles` consecutive cycles (one
     OFF -> ON switch to the next) lasted min..max_period_us, or twice that (a switch the pixel missed, or a lamp
     flickering at the mains frequency itself), and stays flagged while such cycles come within hold_us
-    (state.flagged; state.changes counts flag changes). Returns the flat pixels these events flagged."""
+    (state.flagged; state.changes counts flag changes). Returns the flat pixels these events flagged. With
+    `span_us`, it stops at the first event past the span (t // span_us) in which a flag changed: state.read[0]
+    says how many events it read."""
     s = state
     if _backend.have_numba():
         n = _kernels_pixels.flicker_cycles(events["t"], events["x"], events["y"], events["p"], s.width, s.height,
                                            s.bits, s.times, int(min_period_us), int(max_period_us), int(cycles),
-                                           int(hold_us), s.flagged_now, s.changes)
+                                           int(hold_us), int(span_us), s.flagged_now, s.changes, s.read)
         return s.flagged_now[:n].copy()
-    n = 0
-    for t, x, y, on in zip(events["t"].tolist(), events["x"].tolist(), events["y"].tolist(), events["p"].tolist()):
+    n, stop_span = 0, None
+    s.read[0] = len(events)
+    for i, (t, x, y, on) in enumerate(zip(events["t"].tolist(), events["x"].tolist(), events["y"].tolist(),
+                                          events["p"].tolist())):
+        if stop_span is not None and t // span_us != stop_span:
+            s.read[0] = i
+            break
+        changes = int(s.changes[0])
         if x >= s.width or y >= s.height:
             continue
         q = y * s.width + x
@@ -152,6 +192,8 @@ def flicker_cycles(events: np.ndarray, state: FlickerState, *, min_period_us: in
             b &= 3
             s.changes[0] += 1
         s.bits[q] = b
+        if span_us > 0 and stop_span is None and int(s.changes[0]) != changes:
+            stop_span = t // span_us
     return s.flagged_now[:n].copy()
 
 

@@ -45,8 +45,37 @@ def test_noise_alone_is_quiet_and_an_edge_is_active():
     noise["t"] = np.sort(rng.integers(0, 1_000_000, noise.size))  # ~0.46 Hz per pixel over 1 s
     noise["x"], noise["y"] = rng.integers(0, 240, noise.size), rng.integers(0, 180, noise.size)
     for k in range(0, noise.size, 20):  # ~1 ms chunks
-        assert not act.update(noise[k:k + 20])
-    edge = np.zeros(180, noise.dtype)  # a vertical edge crossing one column: every row fires within 1 ms
-    edge["t"] = 1_000_000 + np.arange(180) * 5
-    edge["x"], edge["y"] = 100, np.arange(180)
-    assert act.update(edge) and act.active_since(1_000_000)
+        assert not any(active for _, active, _ in act.update(noise[k:k + 20]))
+    edge = np.zeros(181, noise.dtype)  # a vertical edge crossing one column: every row fires within 1 ms
+    edge["t"] = 1_000_000 + np.arange(181) * 5
+    edge["t"][-1] = 1_001_000  # a span is judged at the first event after it
+    edge["x"][:-1], edge["y"][:-1] = 100, np.arange(180)
+    assert act.update(edge) == [(0, False, 1_000_000), (180, True, 1_001_000)] and act.active_since(1_000_000)
+
+
+def test_verdicts_fall_at_the_same_events_however_the_stream_is_cut():
+    # noise, then an edge sweeping the sensor: the verdicts (where they fall, which way) of one call are the oracle
+    events, _, onset_us = noisy_scene(1.2, onset_s=1.0)
+    whole = SceneActivity(240, 180).update(events)
+    assert any(active and at > 0 and events["t"][at] >= onset_us for at, active, _ in whole)  # the motion is seen
+    assert not any(active and events["t"][at] < onset_us for at, active, _ in whole)  # and nothing before it
+    for size in (1, 97, 5000):
+        if size == 1:
+            events_used = events[:20_000]  # one event per call: a prefix is enough (and quick)
+            want = [v for v in whole if v[0] < len(events_used)]
+        else:
+            events_used, want = events, whole
+        act, got = SceneActivity(240, 180), []
+        for lo in range(0, len(events_used), size):
+            got += [(lo + at, active, end) for at, active, end in act.update(events_used[lo:lo + size])]
+        assert got == want, size
+
+
+def test_the_kernel_and_its_python_form_agree():
+    from edi_live.edi import _backend
+
+    events, _, _ = noisy_scene(1.2, onset_s=1.0)
+    kernel = SceneActivity(240, 180).update(events)
+    with _backend.numpy_reference():
+        reference = SceneActivity(240, 180).update(events)
+    assert kernel == reference and any(active for _, active, _ in kernel)

@@ -10,12 +10,11 @@ policy, in full in docs/node.md:
 - then a latent frame every `every` events, at most `max_fps` per second (the skipped ones are counted);
 - frames follow activity, not noise (edi_live.activity): noise-only events move the latent image but make no
   frame, an onset makes one at its first event; APS frames of a still scene are deblurred, and a heartbeat frame
-  sent, once per `heartbeat_s` of sensor time;
+  sent, once per `heartbeat_s` of sensor time (still_frames);
 - "nearest" holds latent times past the midpoint to the next APS frame back and renders them from it
   (nearest_mode); a gap suspends latent frames until the next APS frame;
-- with deblur_thread, each APS frame after the first is deblurred on a helper thread while a copy keeps the
-  latent frames coming (deblur_handover); the helper hands its frame to the sinks itself (one thread at a time
-  in the sinks). The thread blocks on the ring's condition between wake-ups.
+- with deblur_thread, each APS frame after the first is deblurred on a helper thread while a copy keeps the latent
+  frames coming (deblur_handover); the helper sends its frame itself. The thread waits on the ring's condition.
 """
 
 from __future__ import annotations
@@ -30,7 +29,7 @@ import numpy as np
 
 from edi_live.activity import StaticScene
 from edi_live.config import EdiConfig
-from edi_live.datatypes import Frame, Reconstruction
+from edi_live.datatypes import Reconstruction
 from edi_live.deblur_handover import DeblurThread, PendingDeblur
 from edi_live import held_frames
 from edi_live.frame_demand import FrameDemand
@@ -41,6 +40,7 @@ from edi_live.quality import PredictionScore
 from edi_live.quiet_reads import QuietReads
 from edi_live.reconstruction import Reconstructor
 from edi_live.ring import EventChunk, EventRing, FrameEntry
+from edi_live.still_frames import StillFrames
 from edi_live.worker_stats import worker_stats
 
 if TYPE_CHECKING:
@@ -53,9 +53,7 @@ _T_MAX = np.iinfo(np.int64).max
 _CHUNK_EVENTS = 1 << 16  # events taken from the ring per lock (then split into every-N slices locally)
 _BATCH_FRAMES = 32  # latent frames made per reconstructor call (bounds the images held before sending)
 _IDLE_WAIT_S = 0.25
-_MOVING_EVENTS_CAP = 100  # the threshold at the default --every 1000; larger --every values do not raise it
 _ABORT_DEBLUR_WAIT_S = 1.0  # aborted with a deblur pending: how long to wait for it (one on_frame + settle)
-_STATIC_EVENTS = 16  # fewer events than this in an exposure (and since the last frame) = a static scene
 
 
 class EdiWorker:
@@ -95,9 +93,8 @@ class EdiWorker:
         self.events_in = self.frames_in = self.heartbeats = self.skipped_static = self.skipped_max_fps = self.gaps = 0
         self.sent = {"deblurred": 0, "latent": 0}
         self.skipped_static_deblur = 0  # APS frames not deblurred at all (static scene)
-        self._last_deblur_us: int | None = None  # exposure end of the latest deblurred APS frame (sensor time)
-        self._heartbeat_us = int(config.heartbeat_s * 1e6)
-        self._last_emit_t, self._last_read_s = -_T_MAX, 0.0  # latest frame sent (its t_us); read with events (host)
+        self._still = StillFrames(config.every, config.heartbeat_s)  # what a still scene skips (sensor clock)
+        self._last_read_s = 0.0  # host time of the latest read with events
         self.wakeups = 0  # idle waits: bounded by ~4/s plus data arrivals (no busy loop)
         self.busy_s = self.cpu_s = 0.0
 
@@ -210,15 +207,14 @@ class EdiWorker:
         after the latest frame sent. Noise moves the latent image but makes no frame."""
         t = chunk.events["t"]
         while lo < hi:
-            due = self._last_emit_t + self._heartbeat_us
-            k = lo + int(np.searchsorted(t[lo:hi], due)) if due <= t[hi - 1] else hi  # the first event at/after due
+            k = self._still.heartbeat_at(t, lo, hi)
             end = min(hi, k + 1)
             if noise:
                 self.rec.on_events(chunk.events[lo:end], chunk.arrival_ns_at(end))
                 self._since = 0
             else:
                 self._stream(chunk, lo, end)
-            if k < hi and self._last_emit_t + self._heartbeat_us <= t[k]:  # no frame came up to that event
+            if k < hi and self._still.heartbeat_due(int(t[k])):
                 self.heartbeats += 1
                 self._emit(self.rec.render())
             lo = end
@@ -289,15 +285,16 @@ class EdiWorker:
         t0 = time.perf_counter()
         # exposure start (in the event clock: clock_offset_us later) .. read cursor
         events = self.ring.window(frame.exposure_start_us + self.rec.clock_offset_us, _T_MAX)
-        if self._static_frame(frame, len(events)):
+        if self.rec.has_reference and not self._await_reference and self._still.skip_deblur(
+                frame, len(events), self._since, self._scene):
             self.skipped_static_deblur += 1
             return
         self._scene.new_reference(frame, anchor=self._await_reference)
-        self._last_deblur_us = frame.exposure_end_us
+        self._still.deblurred(frame)
         f_us = frame.mid_exposure_us + self.rec.clock_offset_us
         arrival = max(entry.arrival_ns, self._last_arrival_ns)
         if self._use_deblur_thread():
-            send = self._moving(len(events))
+            send = self._still.moving(len(events), self._since, self._scene)
             self._since = 0 if send else self._since  # latent frames count from here, as when sent inline
             self._pending = PendingDeblur(self.rec, entry, events, arrival, send, self._helper)
             self.rec = self._pending.streamer  # streams from the previous reference; its calls are replayed later
@@ -317,7 +314,7 @@ class EdiWorker:
         else:
             late = self._nearest.take_all()
             out.extend(self._render_at(t, a) for t, a in late)  # from the new, nearer reference
-        if first or out or self._moving(len(events)):
+        if first or out or self._still.moving(len(events), self._since, self._scene):
             out.append(deblurred)
         else:
             self.skipped_static += 1
@@ -327,12 +324,6 @@ class EdiWorker:
         t0 = time.perf_counter()
         self.rec.settle()  # the calibration work the deblurred frame did not wait for
         self.busy_s += time.perf_counter() - t0
-
-    def _moving(self, n_exposure_events: int) -> bool:
-        """Whether a deblurred frame is worth sending: the scene was active, and a tenth of a latent frame's events
-        (capped: a huge --every cannot hide moving frames) came during its exposure or since the last frame."""
-        threshold = max(_STATIC_EVENTS, min(self.config.every // 10, _MOVING_EVENTS_CAP))
-        return (n_exposure_events >= threshold or self._since >= threshold) and self._scene.changed
 
     def _use_deblur_thread(self) -> bool:
         return bool(self.config.deblur_thread and self.config.mode == "causal" and self.rec.has_reference
@@ -362,16 +353,6 @@ class EdiWorker:
             self._count_emitted(pending.result)  # not _since: latent frames count from the hand-over
         else:
             self.skipped_static += 1
-
-    def _static_frame(self, frame: Frame, n_events: int) -> bool:
-        """A static scene: (almost) no events, or only noise, since the previous deblur, so L(f) would be the
-        current reference up to sensor noise. The events keep the latent image right; a real deblur is still
-        forced every heartbeat_s of sensor time to bound drift. This is what keeps a still camera near zero CPU."""
-        if not self.rec.has_reference or self._await_reference:
-            return False
-        if (n_events >= _STATIC_EVENTS or self._since >= _STATIC_EVENTS) and self._scene.active_since_reference():
-            return False
-        return self._last_deblur_us is not None and frame.exposure_end_us - self._last_deblur_us < self._heartbeat_us
 
     def _render_at(self, t_us: int, arrival_ns: int) -> Reconstruction:
         return held_frames.render_held(self.rec, self.ring, self._nearest, self._ref_f_us, t_us, arrival_ns)
@@ -403,7 +384,7 @@ class EdiWorker:
 
     def _count_emitted(self, rec: Reconstruction) -> None:
         self._last_emit_s = time.monotonic()
-        self._last_emit_t = max(self._last_emit_t, rec.t_us)
+        self._still.emitted(rec.t_us)
         self.sent[rec.kind] = self.sent.get(rec.kind, 0) + 1
         if self.quality is not None:
             self.quality.on_emitted(rec)

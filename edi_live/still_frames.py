@@ -1,0 +1,56 @@
+"""What a still scene does without, on the sensor clock: a deblurred frame not worth sending, an APS frame not worth
+deblurring, and the heartbeat frame that still comes once per `heartbeat_s` of sensor time.
+
+Plain state that the worker thread owns and updates; whether the events show activity or only noise is
+edi_live.activity's verdict. Everything here follows event and exposure times, never the host clock, so that a
+replay makes the same frames however its reads are cut (docs/node.md, "Replay determinism").
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from edi_live.activity import StaticScene
+from edi_live.datatypes import Frame
+
+STATIC_EVENTS = 16  # fewer events than this in an exposure (and since the last frame) = a static scene
+MOVING_EVENTS_CAP = 100  # the threshold at the default --every 1000; larger --every values do not raise it
+_T_MIN = -np.iinfo(np.int64).max
+
+
+class StillFrames:
+    def __init__(self, every: int, heartbeat_s: float) -> None:
+        self.every = every
+        self.heartbeat_us = int(heartbeat_s * 1e6)
+        self.last_deblur_us: int | None = None  # exposure end of the latest deblurred APS frame
+        self.last_emit_t = _T_MIN  # t_us of the latest frame sent
+
+    def moving(self, n_exposure_events: int, since: int, scene: StaticScene) -> bool:
+        """Whether a deblurred frame is worth sending: the scene was active, and a tenth of a latent frame's events
+        (capped: a huge --every cannot hide moving frames) came during its exposure or since the last frame."""
+        threshold = max(STATIC_EVENTS, min(self.every // 10, MOVING_EVENTS_CAP))
+        return (n_exposure_events >= threshold or since >= threshold) and scene.changed
+
+    def skip_deblur(self, frame: Frame, n_events: int, since: int, scene: StaticScene) -> bool:
+        """A static scene: (almost) no events, or only noise, since the previous deblur, so L(f) would be the
+        current reference up to sensor noise. The events keep the latent image right; a real deblur is still
+        forced every heartbeat_s of sensor time to bound drift. This is what keeps a still camera near zero CPU.
+        Ask only with a reference in use."""
+        if (n_events >= STATIC_EVENTS or since >= STATIC_EVENTS) and scene.active_since_reference():
+            return False
+        return self.last_deblur_us is not None and frame.exposure_end_us - self.last_deblur_us < self.heartbeat_us
+
+    def deblurred(self, frame: Frame) -> None:
+        self.last_deblur_us = frame.exposure_end_us
+
+    def emitted(self, t_us: int) -> None:
+        self.last_emit_t = max(self.last_emit_t, t_us)
+
+    def heartbeat_at(self, t: np.ndarray, lo: int, hi: int) -> int:
+        """The first of events [lo, hi) at or after the next heartbeat's sensor time, or hi."""
+        due = self.last_emit_t + self.heartbeat_us
+        return lo + int(np.searchsorted(t[lo:hi], due)) if due <= t[hi - 1] else hi
+
+    def heartbeat_due(self, t_us: int) -> bool:
+        """No frame came from the latest one up to sensor time t_us."""
+        return self.last_emit_t + self.heartbeat_us <= t_us

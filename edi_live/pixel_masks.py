@@ -7,6 +7,8 @@ Runs on the worker thread; plain numpy state, the math is edi_live.edi's.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 import edi_live.edi as edi
@@ -127,3 +129,14 @@ class UnreliablePixels:
             # a lamp's halo contradicts the frames less clearly than its core, but just as surely
             own = edi.dilate(own, self._grow)  # ~0.17 ms as 21 numpy shifts at 240x180, ~0.02 compiled
         self._mask = own
+
+
+def combined_mask(hot: HotPixels, unreliable: "UnreliablePixels | None", flicker_pixels: Any,
+                  flicker: np.ndarray | None = None) -> np.ndarray | None:
+    """(H, W) bool: the pixels whose events are ignored (hot, unreliable, flickering), or None when there are none.
+    `flicker`: the flicker mask to use (default: the detector's latest, `flicker_pixels`, if it flags any pixel)."""
+    if flicker is None and flicker_pixels is not None and flicker_pixels.count:
+        flicker = flicker_pixels.mask
+    masks = [m.mask for m in (unreliable,) if m is not None and m.count] + [flicker]
+    masks = [m for m in [hot.mask] + masks if m is not None]
+    return None if not masks else masks[0] if len(masks) == 1 else np.logical_or.reduce(masks)

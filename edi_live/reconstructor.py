@@ -24,6 +24,7 @@ from edi_live.exposure_ahead import ExposureAhead
 from edi_live.flicker_pixels import FlickerPixels
 from edi_live.frame_calibration import FrameCalibration
 from edi_live.latent_state import LatentState
+from edi_live.pixel_masks import combined_mask
 from edi_live.reconstructor_parts import build_calibration, build_masks, build_noise, resolve_settings
 from edi_live.reconstructor_settings import ReconstructorSettings
 from edi_live.reconstructor_view import ReconstructorView
@@ -341,12 +342,7 @@ class EdiReconstructor(ReconstructorView):
     # ---- internals ----
 
     def _combined_mask(self, flicker: np.ndarray | None = None) -> np.ndarray | None:
-        """`flicker`: the flicker mask to use (default: the detector's latest, if it flags any pixel)."""
-        if flicker is None and self._flicker is not None and self._flicker.count:
-            flicker = self._flicker.mask
-        masks = [m.mask for m in (self._unreliable,) if m is not None and m.count] + [flicker]
-        masks = [m for m in [self._hot.mask] + masks if m is not None]
-        return None if not masks else masks[0] if len(masks) == 1 else np.logical_or.reduce(masks)
+        return combined_mask(self._hot, self._unreliable, self._flicker, flicker)
 
     def _flicker_steps(self, events: np.ndarray) -> list:
         """Where flicker flags found in the events take effect (FlickerPixels.steps); none if not watched."""
@@ -385,16 +381,6 @@ class EdiReconstructor(ReconstructorView):
             i0 = i1
         self._advance(events[i0:])
         return out
-
-    def _need_reference(self, what: str) -> None:
-        if not self.has_reference:
-            raise NodeError(f"{what} called before the first APS frame was deblurred (check has_reference first)")
-
-    def _latent_image(self) -> np.ndarray:
-        """The latent display as output: a copy (grey), or its demosaic (a new array: no copy needed first)."""
-        if self._colour is None:
-            return self._latent.display.copy()
-        return self._colour.output(self._latent.display)
 
     def _reconstruction(self, image: np.ndarray, t_us: int, kind: str, n_events: int,
                         shown: bool = False) -> Reconstruction:

@@ -21,7 +21,9 @@ from edi_live.contrast_tracking import ContrastTracker
 from edi_live.exposure_ahead import ExposureAhead
 from edi_live.flicker_pixels import FlickerPixels
 from edi_live.frame_calibration import FrameCalibration
+from edi_live.latent_state import LatentState
 from edi_live.pixel_masks import HotPixels, UnreliablePixels
+from edi_live.errors import NodeError
 from edi_live.pixel_noise import NoiseRates, PixelNoise
 
 
@@ -36,6 +38,8 @@ class ReconstructorView:
     _unreliable: UnreliablePixels | None
     _flicker: FlickerPixels | None
     _pixel_noise: PixelNoise
+    _latent: LatentState
+    _colour: Any  # colour_edi.ColourPlan, or None for a grey sensor
     _black: BlackLevelPolicy
     _ahead: ExposureAhead
     _calib: FrameCalibration | None
@@ -107,6 +111,16 @@ class ReconstructorView:
     @property
     def hot_pixel_mask(self) -> np.ndarray:
         return self._hot.snapshot()
+
+    def _need_reference(self, what: str) -> None:
+        if not self.has_reference:
+            raise NodeError(f"{what} called before the first APS frame was deblurred (check has_reference first)")
+
+    def _latent_image(self) -> np.ndarray:
+        """The latent display as output: a copy (grey), or its demosaic (a new array: no copy needed first)."""
+        if self._colour is None:
+            return self._latent.display.copy()
+        return self._colour.output(self._latent.display)
 
     def stats(self) -> dict:
         return {

@@ -172,17 +172,23 @@ def mark_pixels(x, y, width, height, out):
 
 @njit(cache=True, nogil=True)
 def activity_verdicts(t, x, y, width, height, last_t, supported, state, params, out_at, out_active, out_end):
-    """The activity test of edi.activity_verdicts over time-ordered events: the background-activity filter into
-    `supported`, then the windows. state (int64): window start, end of the latest span with events, events and
-    supported events in the window, windows and active windows closed, 1 once an event was seen. params: check_us,
-    window_us, max_noise_hz, sigmas, margin, support_us. Writes one verdict per span judged (the index of the
-    first event after it, active, the span's end); returns how many."""
+    """The activity test of edi.activity_verdicts over time-ordered events: the background-activity filter
+    (background_activity's rule and `last_t` map) and the windows, in one pass. state (int64): window start, end of
+    the latest span with events, events and supported events in the window, windows and active windows closed, 1
+    once an event was seen. params: check_us, window_us, max_noise_hz, sigmas, margin, support_us. Writes one
+    verdict per span judged (the index of the first event after it, active, the span's end); returns how many.
+    Once a span's window holds more events than noise could give in it, its verdict is active whatever the
+    supported count: the neighbour test is skipped for its remaining events (their times still enter `last_t`,
+    and `supported` is left False), so a busy scene pays one store per event."""
     check_us, window_us, support_us = np.int64(params[0]), np.int64(params[1]), np.int64(params[5])
     max_noise_hz, sigmas, margin = params[2], params[3], params[4]
     npix = width * height
-    background_activity(t, x, y, width, height, last_t, support_us, supported)
     fewest = max_noise_hz * npix * check_us * 1e-6
     fewest += sigmas * np.sqrt(fewest) + margin
+    sure = np.inf  # events in the window above which its verdict is active by the count alone
+    if state[6] != 0:
+        most = max_noise_hz * npix * (state[1] - state[0]) * 1e-6
+        sure = most + sigmas * np.sqrt(most) + margin
     nv = 0
     for i in range(t.size):
         begin = (t[i] // check_us) * check_us
@@ -190,6 +196,8 @@ def activity_verdicts(t, x, y, width, height, last_t, supported, state, params, 
             state[0] = begin
             state[1] = begin + check_us
             state[6] = 1
+            most = max_noise_hz * npix * check_us * 1e-6
+            sure = most + sigmas * np.sqrt(most) + margin
         elif begin >= state[1]:
             n, s = state[2], state[3]
             pixel_s = npix * (state[1] - state[0]) * 1e-6
@@ -211,7 +219,21 @@ def activity_verdicts(t, x, y, width, height, last_t, supported, state, params, 
                 state[2] = 0
                 state[3] = 0
             state[1] = begin + check_us
+            most = max_noise_hz * npix * (state[1] - state[0]) * 1e-6
+            sure = most + sigmas * np.sqrt(most) + margin
+        xi = np.int64(x[i])
+        yi = np.int64(y[i])
+        ok = False
+        if xi < width and yi < height:
+            ti = t[i]
+            if state[2] <= sure:
+                for dy in range(3):
+                    for dx in range(3):
+                        if (dy != 1 or dx != 1) and ti - last_t[yi + dy, xi + dx] <= support_us:
+                            ok = True
+            last_t[yi + 1, xi + 1] = ti
+        supported[i] = ok
         state[2] += 1
-        if supported[i]:
+        if ok:
             state[3] += 1
     return nv

@@ -79,3 +79,51 @@ def test_the_kernel_and_its_python_form_agree():
     with _backend.numpy_reference():
         reference = SceneActivity(240, 180).update(events)
     assert kernel == reference and any(active for _, active, _ in kernel)
+
+
+def _reference_verdicts(events, width, height, *, check_us, window_us, max_noise_hz, sigmas, margin, support_us):
+    """The windows' rule written out plainly, over the background-activity filter applied to every event."""
+    import math
+
+    from edi_live.edi import background_activity_keep, new_activity_map
+
+    supported = background_activity_keep(events, width, height, new_activity_map(width, height), support_us)
+    npix, out = width * height, []
+    start = end = None
+    n = s = 0
+    for i, t in enumerate(events["t"].tolist()):
+        begin = t // check_us * check_us
+        if start is None:
+            start, end = begin, begin + check_us
+        elif begin >= end:
+            pixel_s = npix * (end - start) * 1e-6
+            most = max_noise_hz * pixel_s
+            p = 1.0 - math.exp(-8.0 * (n / pixel_s) * support_us * 1e-6)
+            active = (n > most + sigmas * math.sqrt(most) + margin
+                      or s > n * p + sigmas * math.sqrt(n * p * (1.0 - p)) + margin)
+            out.append((i, active, end))
+            if active or end - start >= window_us:
+                start, n, s = begin, 0, 0
+            end = begin + check_us
+        n += 1
+        s += bool(supported[i])
+    return out
+
+
+def test_verdicts_equal_the_rule_over_every_events_neighbour_test():
+    """The kernel stops testing neighbours once a window's count alone makes it active: the verdicts must be those
+    of the rule applied with every event's neighbour test, on a noisy scene with an edge and on a busy one (the
+    demo preset: ~1000 events per ms, where the count decides most windows before their end)."""
+    from edi_live.simulation import preset, simulate
+
+    busy = simulate(preset("demo", duration_s=0.3, ground_truth=False)).events
+    for events in (noisy_scene(1.2, onset_s=0.4)[0], busy):
+        act = SceneActivity(240, 180)
+        got = act.update(events)
+        want = _reference_verdicts(events, 240, 180, check_us=act.check_us, window_us=act.window_us,
+                                   max_noise_hz=act.max_noise_hz, sigmas=act.sigmas, margin=act.margin,
+                                   support_us=act.support_us)
+        assert [(int(a), bool(b), int(c)) for a, b, c in got] == want
+        assert sum(b for _, b, _ in want) > 10
+    per_ms = np.bincount((busy["t"] - busy["t"][0]) // 1000)
+    assert np.median(per_ms) > 2 * 5.0 * 240 * 180 * 1e-3  # the count alone decides there

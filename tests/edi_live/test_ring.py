@@ -257,6 +257,23 @@ def test_a_wait_with_a_condition_already_met_returns_at_once(rng):
     assert not ring.wait(ring.version, 0.01, WakeWhen(head=0, t_us=0))  # nothing new since: times out
 
 
+def test_a_poke_between_the_consumers_look_and_its_wait_is_not_lost(rng):
+    # The deblur helper pokes the worker when its frame is ready. The worker reads `version`, finds nothing to do,
+    # and then waits with its quiet-scene condition: a poke that came in between must end that wait at once, as
+    # a frame or close would, not after the condition's events, sensor time or the timeout.
+    ring = EventRing(capacity_events=1 << 12, policy="wait")
+    v = ring.version
+    ring.poke()  # the helper thread, just before the worker's wait
+
+    def must_not_block(timeout=None):
+        raise AssertionError("the wait blocked after a poke it had not seen")
+
+    ring._cond.wait = must_not_block
+    assert ring.wait(v, 30.0, WakeWhen(head=1000, t_us=10**9))
+    del ring._cond.wait  # the poke is used up: the next wait blocks as before
+    assert not ring.wait(ring.version, 0.01, WakeWhen(head=1000, t_us=10**9))
+
+
 def test_arrival_time_of_the_last_included_event(rng):
     ring = EventRing(capacity_events=100, policy="wait")
     for k in range(3):

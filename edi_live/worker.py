@@ -136,7 +136,7 @@ class EdiWorker:
                 if self.quality is not None:
                     self.quality.finish()
             elif self._pending is not None and self._pending.done.wait(_ABORT_DEBLUR_WAIT_S):
-                self._adopt(wait=False, send=False)  # the stats and a saved calibration then read the master
+                self._adopt(wait=False)  # the stats and a saved calibration then read the master
         except BaseException as exc:
             self.error = exc
             log.debug("worker failed", exc_info=True)
@@ -329,8 +329,8 @@ class EdiWorker:
         return bool(self.config.deblur_thread and self.config.mode == "causal" and self.rec.has_reference
                     and not self._await_reference)
 
-    def _adopt(self, wait: bool, send: bool = True) -> None:
-        """Make the master (with the new reference) the streaming reconstructor again and send its frame."""
+    def _adopt(self, wait: bool) -> None:
+        """Make the master (with the new reference) the streaming reconstructor again; count the frame it sent."""
         pending = self._pending
         if pending is None or (not wait and not pending.done.is_set()):
             return
@@ -344,7 +344,7 @@ class EdiWorker:
         self._ref_f_us = pending.entry.frame.mid_exposure_us
         self._await_reference |= pending.gap  # the catch-up spans lost data: wait for the next APS frame
         self.busy_s += time.perf_counter() - t0
-        if send and pending.claim_result():  # not sent yet: the deblur ended just now
+        if pending.claim_result():  # not counted yet: the deblur ended just now
             self._send_deblurred(pending)
 
     def _send_deblurred(self, pending: PendingDeblur) -> None:

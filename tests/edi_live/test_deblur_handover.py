@@ -225,3 +225,28 @@ def test_the_stats_read_while_a_deblur_is_pending_are_the_originals(flicker_pack
     finally:
         release.set()
     assert worker.done.wait(120) and worker.error is None, worker.error
+
+
+def test_a_deblurred_frame_sent_by_the_helper_thread_is_counted_when_the_send_aborts_the_worker(flicker_packets):
+    """A sink fault on the helper thread's frame aborts the worker (as the node does) before the worker saw the
+    frame ready. The frame did reach the sinks, so the counts the final stats report must include it."""
+    ring = IdleRing(capacity_events=1 << 22, capacity_frames=64, policy="wait")
+    for p in flicker_packets:
+        assert ring.push(p, timeout_s=5)
+    ring.close()
+    received: list[str] = []
+    workers: list[EdiWorker] = []
+
+    def sink(r) -> None:
+        received.append(r.kind)
+        if r.kind == "deblurred" and threading.current_thread().name == "edi-deblur":
+            workers[0].abort()  # e.g. the publisher failed on this frame
+
+    rec = _gated(ring)  # the helper deblurs once the worker waits: it cannot see the frame ready before the abort
+    worker = EdiWorker(ring, rec, EdiConfig(every=200, deblur_thread=True, quality_every=0), [sink])
+    workers.append(worker)
+    worker.start()
+    assert worker.done.wait(60) and worker.error is None, worker.error
+    assert received.count("deblurred") == 2  # the first (inline) and the helper thread's
+    assert worker.sent["deblurred"] + worker.skipped_static == received.count("deblurred")
+    assert worker.rec is rec

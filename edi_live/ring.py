@@ -298,14 +298,17 @@ class EventRing:
 
     def read_events(self, max_n: int, until_index: int | None = None, through_t_us: int | None = None) -> EventChunk:
         """Take up to `max_n` unread events (not past `until_index`, nor past the first event later than
-        `through_t_us`, nor past a queued frame's `end_index`) as a copy and advance the cursor. The frame bound
-        is checked under the lock: a frame pushed after the consumer's peek_frame() still stops the read at its
-        exposure end, so where reads stop depends on the stream, not on when the producer ran."""
+        `through_t_us`, nor past a queued frame's `end_index`, also one at the cursor unless `through_t_us` is
+        given) as a copy and advance the cursor. The frame bound is checked under the lock: a frame pushed after
+        the consumer's peek_frame() still stops the read at its exposure end, so where reads stop depends on the
+        stream, not on when the producer ran."""
         with self._cond:
             start = self._read
             stop = self._head if until_index is None else min(self._head, until_index)
             for entry in self._frames:
-                if entry.end_index > start:
+                # a frame at the cursor stops a plain read too (it was queued after the consumer's look); a read
+                # through a time is the consumer's for a frame it holds there (its late window), so it goes on
+                if entry.end_index > start or (entry.end_index == start and through_t_us is None):
                     stop = min(stop, entry.end_index)
                     break
             if through_t_us is not None and stop > start:

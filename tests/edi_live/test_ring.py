@@ -119,7 +119,35 @@ def test_frame_end_index_is_just_past_its_exposure(rng):
     assert entry.end_index == int(np.sum(ev["t"] <= 41))  # brute force: events up to exposure end
     chunk = ring.read_events(1000, until_index=entry.end_index)
     assert chunk.events["t"].max() <= 41
+    assert len(ring.read_events(1000).events) == 0  # queued at the cursor: taken before any later event
+    ring.pop_frame()
     assert ring.read_events(1000).events["t"].min() > 41
+
+
+def test_a_frame_queued_at_the_read_cursor_after_the_consumers_look_stops_its_next_read(rng):
+    # The consumer has read every event and finds no frame queued. Then a packet comes whose events all lie past
+    # the frame it carries (a replay sends a frame with the packet that passed its exposure end): the frame is
+    # queued exactly at the cursor. The next read must not take the events past it, or the frame would be
+    # deblurred after them in this run and before them in a run where the frame came before the look.
+    ring = EventRing(capacity_events=256, policy="wait")
+    ring.push(Packet(events=make_events(np.arange(0, 50), rng)))
+    assert len(ring.read_events(1000).events) == 50
+    assert ring.peek_frame() is None  # the worker's look: nothing queued
+    ring.push(Packet(events=make_events(np.arange(60, 100), rng), frames=[frame(10, 55)]))
+    assert ring.peek_frame().end_index == ring.read_index == 50
+    assert len(ring.read_events(1000).events) == 0, "no event past a queued frame's exposure end"
+    ring.pop_frame()
+    assert len(ring.read_events(1000).events) == 40
+
+
+def test_a_read_through_the_late_window_of_a_frame_at_the_cursor_goes_on(rng):
+    # the worker's read for a frame it holds (its late window in the event clock) is not stopped by that frame
+    ring = EventRing(capacity_events=256, policy="wait")
+    ring.push(Packet(events=make_events(np.arange(0, 100), rng), frames=[frame(10, 49)]))
+    entry = ring.peek_frame()
+    ring.read_events(1000, entry.end_index)
+    assert ring.read_index == entry.end_index
+    np.testing.assert_array_equal(ring.read_events(1000, None, 60).events["t"], np.arange(50, 62))
 
 
 def test_drop_oldest_never_blocks_and_counts_every_dropped_event(rng):

@@ -187,6 +187,37 @@ def test_with_a_clock_offset_the_worker_reads_only_through_the_late_window_befor
     assert len(latent) == after // 500, "the events after the window make latent frames from the new frame"
 
 
+def test_an_aps_frame_pushed_between_the_workers_look_and_its_read_is_deblurred_before_later_events():
+    # A replay sends each APS frame after the events up to its exposure end, so it lands at the ring's head: at
+    # the worker's cursor once the worker has read them. Pushed just after the worker found no frame queued,
+    # with the next packet's events, it must still be deblurred before any of those later events are read, as
+    # when it was queued before the look (a replay is repeatable however the threads interleave).
+    ev = events_at(np.arange(0, 4000))
+    late = aps(1600, 1999)
+
+    class PushDuringLook(EventRing):
+        injected = False
+
+        def peek_frame(self):
+            entry = super().peek_frame()
+            if entry is None and self.read_index == 2000 and not self.injected:
+                self.injected = True  # the replay's pump, between this look and the worker's read
+                assert self.push(Packet(frames=[late])) and self.push(Packet(events=ev[2000:]))
+            return entry
+
+    ring = PushDuringLook(capacity_events=1 << 14, capacity_frames=8, policy="wait")
+    rec, errors = StandIn(), []
+    worker = EdiWorker(ring, rec, EdiConfig(every=500), [], on_error=errors.append)
+    assert ring.push(Packet(events=ev[:2000], frames=[aps(100, 500)]))
+    worker.start()
+    assert ring.wait_consumer_idle(10.0)
+    ring.close()
+    assert worker.done.wait(10.0) and not errors and ring.injected
+    (_, first), (frame, given) = rec.frames_given
+    assert frame is late
+    np.testing.assert_array_equal(given["t"], np.arange(1600, 2000))  # its exposure, nothing past its end
+
+
 def test_no_frames_before_the_first_aps_frame():
     worker, rec, out, errors = run_worker([Packet(events=events_at(np.arange(5000)))], EdiConfig(every=100))
     assert not errors and out == [] and rec.events_applied == 0

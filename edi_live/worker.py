@@ -1,11 +1,11 @@
 """The EDI worker thread: reads the ring in order and turns APS frames and events into sharp frames.
 
 Accepts an `EventRing` (events in time order, each APS frame queued just past its exposure end) and a
-`Reconstructor`; hands each `Reconstruction` to the sinks as it is made (t increases, except that in causal mode a
-deblurred frame at f follows the latent frames up to its exposure end). Times are µs on the sensor clock; host
-times (latency, --max-fps, the heartbeat while no event comes) are time.monotonic. Without --max-fps and the deblur
-thread, the frames depend on the event stream only, not on how the reads cut it (a replay is repeatable). The
-policy, in full in docs/node.md:
+`Reconstructor`; hands each `Reconstruction` to the sinks as it is made (t increases, except that in causal mode
+a deblurred frame at f follows the latent frames to its exposure end, and any made while the helper thread
+deblurred it). Times are µs on the sensor clock; host times (latency, --max-fps, the heartbeat while no event
+comes) are time.monotonic. Without --max-fps and the deblur thread, the frames depend on the event stream only,
+not on how the reads cut it (a replay is repeatable). The policy, in full in docs/node.md:
 - an APS frame is deblurred once every event of its exposure (in the event clock: frame_gate) has been read;
 - then a latent frame every `every` events, at most `max_fps` per second (the skipped ones are counted);
 - frames follow activity, not noise (edi_live.activity): noise-only events move the latent image but make no

@@ -289,7 +289,7 @@ class EdiWorker:
                 frame, len(events), self._since, self._scene):
             self.skipped_static_deblur += 1
             return
-        self._scene.new_reference(frame, anchor=self._await_reference)
+        self._scene.new_reference(in_event_clock(frame, self.rec.clock_offset_us), anchor=self._await_reference)
         self._still.deblurred(frame)
         f_us = frame.mid_exposure_us + self.rec.clock_offset_us
         arrival = max(entry.arrival_ns, self._last_arrival_ns)

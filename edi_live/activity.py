@@ -81,7 +81,7 @@ class StaticScene:
         self.hold_us = hold_us
         self.activity: SceneActivity | None = None  # sized by the first APS frame
         self.active = True  # the state of the latest event (until the first verdict: active, not an onset)
-        self.ref_end_us: int | None = None  # exposure end of the latest deblurred APS frame
+        self.ref_end_us: int | None = None  # exposure end of the latest deblurred APS frame, in the event clock
         self.changed = True  # active between the previous deblurred frame and the current one
         self.noise_only_events = 0
         self._last_active_us: int | None = None  # the latest active verdict in force at the next event
@@ -97,7 +97,8 @@ class StaticScene:
 
     def new_reference(self, frame: Frame, anchor: bool = False) -> None:
         """An APS frame is deblurred: remember whether the scene changed since the previous one (`anchor`: it
-        re-anchors the state after a gap, which counts as a change)."""
+        re-anchors the state after a gap, which counts as a change). `frame` in the event clock (frame_gate's
+        in_event_clock): activity is judged on event times."""
         self.changed = anchor or self.active_since_reference()
         self.ref_end_us = frame.exposure_end_us
         if self.activity is None:

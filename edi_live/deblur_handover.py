@@ -154,6 +154,12 @@ class StreamingCopy:
     def __getattr__(self, name: str) -> Any:
         return getattr(self._copy, name)
 
+    @property
+    def original(self) -> Reconstructor:
+        """The reconstructor deblurring on the helper thread: the one the stats describe (the copy watches no
+        flicker and runs no calibration). Its plain values are safe to read from another thread."""
+        return self._pending.master
+
     def on_events(self, events: np.ndarray, arrival_ns: int = 0) -> None:
         if not self._pending.gap:
             self._pending.calls.append((events, arrival_ns, None, None))

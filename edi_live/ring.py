@@ -63,6 +63,7 @@ class EventRing:
         # the consumer while it waits: (version it saw, its WakeWhen or None); pushes that do not meet the
         # condition do not wake it (edi_live.ring_wake)
         self._waiting: tuple[int, WakeWhen | None] | None = None
+        self._poked = False  # a poke() the consumer's next wait() has not seen: that wait returns at once
         self._idle_waiters = 0  # producers in wait_consumer_idle
         # What a producer blocked by the wait policy waits for (0 / False: it is not waiting). The consumer
         # notifies only when that much room is free: a wake-up costs a futex syscall plus a GIL hand-over (14 %
@@ -229,6 +230,7 @@ class EventRing:
         """Wake a consumer blocked in wait() (e.g. a helper thread finished work for it). Any thread."""
         with self._cond:
             self._version += 1
+            self._poked = True  # also when it comes before the consumer's wait(): that wait must not block
             self._notify_consumer(always=True)
 
     # ---------------------------------------------------------------- consumer side (worker thread)
@@ -257,9 +259,11 @@ class EventRing:
 
     def wait(self, since_version: int, timeout_s: float, wake: WakeWhen | None = None) -> bool:
         """Block until data advanced past `since_version` (or close), at most `timeout_s`. True if it did.
-        With `wake`, data that does not meet it (edi_live.ring_wake) does not end the wait."""
+        With `wake`, data that does not meet it (edi_live.ring_wake) does not end the wait; a poke() does, also one
+        that came after the consumer read `since_version` but before it called wait()."""
         with self._cond:
-            if self._version != since_version and self._due(wake):
+            poked, self._poked = self._poked, False
+            if self._version != since_version and (poked or self._due(wake)):
                 return True
             self._waiting = (since_version, wake)
             if self._idle_waiters:
@@ -268,6 +272,7 @@ class EventRing:
                 self._cond.wait(timeout_s)
             finally:
                 self._waiting = None
+                self._poked = False  # a poke during the wait ended it
             return self._version != since_version
 
     def wait_consumer_idle(self, timeout_s: float) -> bool:
@@ -293,14 +298,17 @@ class EventRing:
 
     def read_events(self, max_n: int, until_index: int | None = None, through_t_us: int | None = None) -> EventChunk:
         """Take up to `max_n` unread events (not past `until_index`, nor past the first event later than
-        `through_t_us`, nor past a queued frame's `end_index`) as a copy and advance the cursor. The frame bound
-        is checked under the lock: a frame pushed after the consumer's peek_frame() still stops the read at its
-        exposure end, so where reads stop depends on the stream, not on when the producer ran."""
+        `through_t_us`, nor past a queued frame's `end_index`, also one at the cursor unless `through_t_us` is
+        given) as a copy and advance the cursor. The frame bound is checked under the lock: a frame pushed after
+        the consumer's peek_frame() still stops the read at its exposure end, so where reads stop depends on the
+        stream, not on when the producer ran."""
         with self._cond:
             start = self._read
             stop = self._head if until_index is None else min(self._head, until_index)
             for entry in self._frames:
-                if entry.end_index > start:
+                # a frame at the cursor stops a plain read too (it was queued after the consumer's look); a read
+                # through a time is the consumer's for a frame it holds there (its late window), so it goes on
+                if entry.end_index > start or (entry.end_index == start and through_t_us is None):
                     stop = min(stop, entry.end_index)
                     break
             if through_t_us is not None and stop > start:

@@ -1,11 +1,11 @@
 """The EDI worker thread: reads the ring in order and turns APS frames and events into sharp frames.
 
 Accepts an `EventRing` (events in time order, each APS frame queued just past its exposure end) and a
-`Reconstructor`; hands each `Reconstruction` to the sinks as it is made (t increases, except that in causal mode a
-deblurred frame at f follows the latent frames up to its exposure end). Times are µs on the sensor clock; host
-times (latency, --max-fps, the heartbeat while no event comes) are time.monotonic. Without --max-fps and the deblur
-thread, the frames depend on the event stream only, not on how the reads cut it (a replay is repeatable). The
-policy, in full in docs/node.md:
+`Reconstructor`; hands each `Reconstruction` to the sinks as it is made (t increases, except that in causal mode
+a deblurred frame at f follows the latent frames to its exposure end, and any made while the helper thread
+deblurred it). Times are µs on the sensor clock; host times (latency, --max-fps, the heartbeat while no event
+comes) are time.monotonic. Without --max-fps and the deblur thread, the frames depend on the event stream only,
+not on how the reads cut it (a replay is repeatable). The policy, in full in docs/node.md:
 - an APS frame is deblurred once every event of its exposure (in the event clock: frame_gate) has been read;
 - then a latent frame every `every` events, at most `max_fps` per second (the skipped ones are counted);
 - frames follow activity, not noise (edi_live.activity): noise-only events move the latent image but make no
@@ -136,7 +136,7 @@ class EdiWorker:
                 if self.quality is not None:
                     self.quality.finish()
             elif self._pending is not None and self._pending.done.wait(_ABORT_DEBLUR_WAIT_S):
-                self._adopt(wait=False, send=False)  # the stats and a saved calibration then read the master
+                self._adopt(wait=False)  # the stats and a saved calibration then read the master
         except BaseException as exc:
             self.error = exc
             log.debug("worker failed", exc_info=True)
@@ -289,7 +289,7 @@ class EdiWorker:
                 frame, len(events), self._since, self._scene):
             self.skipped_static_deblur += 1
             return
-        self._scene.new_reference(frame, anchor=self._await_reference)
+        self._scene.new_reference(in_event_clock(frame, self.rec.clock_offset_us), anchor=self._await_reference)
         self._still.deblurred(frame)
         f_us = frame.mid_exposure_us + self.rec.clock_offset_us
         arrival = max(entry.arrival_ns, self._last_arrival_ns)
@@ -329,8 +329,8 @@ class EdiWorker:
         return bool(self.config.deblur_thread and self.config.mode == "causal" and self.rec.has_reference
                     and not self._await_reference)
 
-    def _adopt(self, wait: bool, send: bool = True) -> None:
-        """Make the master (with the new reference) the streaming reconstructor again and send its frame."""
+    def _adopt(self, wait: bool) -> None:
+        """Make the master (with the new reference) the streaming reconstructor again; count the frame it sent."""
         pending = self._pending
         if pending is None or (not wait and not pending.done.is_set()):
             return
@@ -344,7 +344,7 @@ class EdiWorker:
         self._ref_f_us = pending.entry.frame.mid_exposure_us
         self._await_reference |= pending.gap  # the catch-up spans lost data: wait for the next APS frame
         self.busy_s += time.perf_counter() - t0
-        if send and pending.claim_result():  # not sent yet: the deblur ended just now
+        if pending.claim_result():  # not counted yet: the deblur ended just now
             self._send_deblurred(pending)
 
     def _send_deblurred(self, pending: PendingDeblur) -> None:

@@ -8,12 +8,16 @@ from typing import Any
 
 import numpy as np
 
+from edi_live.deblur_handover import StreamingCopy
 from edi_live.reconstructor_stats import reconstructor_stats
 
 
 def worker_stats(worker: Any) -> dict[str, Any]:
     """The EdiWorker's stats() (worker.py imports this module, not the other way round)."""
     deblur = list(worker._deblur_ms)
+    rec = worker.rec  # one read: the worker thread swaps it at each hand-over
+    if isinstance(rec, StreamingCopy):  # a deblur is pending: describe the original, not the copy
+        rec = rec.original
     return {
         "events_processed": worker.events_in,
         "aps_frames_in": worker.frames_in,
@@ -29,6 +33,6 @@ def worker_stats(worker: Any) -> dict[str, Any]:
         "deblur_ms_max": round(float(np.max(deblur)), 3) if deblur else None,
         "nearest_added_latency_ms_p50": worker._nearest.waited_ms_p50() if worker.config.mode == "nearest" else None,
         "fused_added_latency_ms_p50": worker._nearest.waited_ms_p50() if worker.config.mode == "fused" else None,
-        **reconstructor_stats(worker.rec),  # c, camera values, ignored pixels, noise statistics
+        **reconstructor_stats(rec),  # c, camera values, ignored pixels, noise statistics
         **(worker.quality.stats() if worker.quality is not None else {}),
     }

@@ -194,3 +194,59 @@ def test_one_helper_thread_deblurs_every_frame_and_sends_each_frame_itself(flick
     assert worker.sent["deblurred"] + worker.skipped_static == 20
     helpers[0].join(10)
     assert not helpers[0].is_alive(), "the helper thread ends with the worker"
+
+
+def test_the_stats_read_while_a_deblur_is_pending_are_the_originals(flicker_packets):
+    """The once-a-second stats may fall while the helper thread deblurs: they must still report the original's
+    figures, not the streaming copy's (which watches no flicker and runs no calibration: 0 flicker pixels)."""
+    ring = IdleRing(capacity_events=1 << 22, capacity_frames=64, policy="wait")
+    for p in flicker_packets:
+        assert ring.push(p, timeout_s=5)
+    ring.close()
+    in_settle, release = threading.Event(), threading.Event()
+
+    class BlockedSettle(EdiReconstructor):
+        def settle(self):
+            if not self._streamer and self._calib.pending and self.flicker_pixels and not in_settle.is_set():
+                in_settle.set()  # the first deblur after the lamp was found: hold it pending
+                assert release.wait(30)
+            super().settle()
+
+    rec = BlockedSettle(W, H)
+    worker = EdiWorker(ring, rec, EdiConfig(every=200, deblur_thread=True, quality_every=0), [])
+    worker.start()
+    try:
+        assert in_settle.wait(30)
+        assert worker.rec is not rec  # the copy streams meanwhile
+        stats = worker.stats()
+        assert rec.flicker_pixels > 0
+        assert stats["flicker_pixels"] == rec.flicker_pixels
+        assert stats["c_on"] == round(rec.c_on, 4)
+    finally:
+        release.set()
+    assert worker.done.wait(120) and worker.error is None, worker.error
+
+
+def test_a_deblurred_frame_sent_by_the_helper_thread_is_counted_when_the_send_aborts_the_worker(flicker_packets):
+    """A sink fault on the helper thread's frame aborts the worker (as the node does) before the worker saw the
+    frame ready. The frame did reach the sinks, so the counts the final stats report must include it."""
+    ring = IdleRing(capacity_events=1 << 22, capacity_frames=64, policy="wait")
+    for p in flicker_packets:
+        assert ring.push(p, timeout_s=5)
+    ring.close()
+    received: list[str] = []
+    workers: list[EdiWorker] = []
+
+    def sink(r) -> None:
+        received.append(r.kind)
+        if r.kind == "deblurred" and threading.current_thread().name == "edi-deblur":
+            workers[0].abort()  # e.g. the publisher failed on this frame
+
+    rec = _gated(ring)  # the helper deblurs once the worker waits: it cannot see the frame ready before the abort
+    worker = EdiWorker(ring, rec, EdiConfig(every=200, deblur_thread=True, quality_every=0), [sink])
+    workers.append(worker)
+    worker.start()
+    assert worker.done.wait(60) and worker.error is None, worker.error
+    assert received.count("deblurred") == 2  # the first (inline) and the helper thread's
+    assert worker.sent["deblurred"] + worker.skipped_static == received.count("deblurred")
+    assert worker.rec is rec

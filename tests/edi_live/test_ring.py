@@ -119,7 +119,35 @@ def test_frame_end_index_is_just_past_its_exposure(rng):
     assert entry.end_index == int(np.sum(ev["t"] <= 41))  # brute force: events up to exposure end
     chunk = ring.read_events(1000, until_index=entry.end_index)
     assert chunk.events["t"].max() <= 41
+    assert len(ring.read_events(1000).events) == 0  # queued at the cursor: taken before any later event
+    ring.pop_frame()
     assert ring.read_events(1000).events["t"].min() > 41
+
+
+def test_a_frame_queued_at_the_read_cursor_after_the_consumers_look_stops_its_next_read(rng):
+    # The consumer has read every event and finds no frame queued. Then a packet comes whose events all lie past
+    # the frame it carries (a replay sends a frame with the packet that passed its exposure end): the frame is
+    # queued exactly at the cursor. The next read must not take the events past it, or the frame would be
+    # deblurred after them in this run and before them in a run where the frame came before the look.
+    ring = EventRing(capacity_events=256, policy="wait")
+    ring.push(Packet(events=make_events(np.arange(0, 50), rng)))
+    assert len(ring.read_events(1000).events) == 50
+    assert ring.peek_frame() is None  # the worker's look: nothing queued
+    ring.push(Packet(events=make_events(np.arange(60, 100), rng), frames=[frame(10, 55)]))
+    assert ring.peek_frame().end_index == ring.read_index == 50
+    assert len(ring.read_events(1000).events) == 0, "no event past a queued frame's exposure end"
+    ring.pop_frame()
+    assert len(ring.read_events(1000).events) == 40
+
+
+def test_a_read_through_the_late_window_of_a_frame_at_the_cursor_goes_on(rng):
+    # the worker's read for a frame it holds (its late window in the event clock) is not stopped by that frame
+    ring = EventRing(capacity_events=256, policy="wait")
+    ring.push(Packet(events=make_events(np.arange(0, 100), rng), frames=[frame(10, 49)]))
+    entry = ring.peek_frame()
+    ring.read_events(1000, entry.end_index)
+    assert ring.read_index == entry.end_index
+    np.testing.assert_array_equal(ring.read_events(1000, None, 60).events["t"], np.arange(50, 62))
 
 
 def test_drop_oldest_never_blocks_and_counts_every_dropped_event(rng):
@@ -255,6 +283,23 @@ def test_a_wait_with_a_condition_already_met_returns_at_once(rng):
     ring.push(Packet(events=make_events(np.arange(50), rng)))
     assert ring.wait(v, 10.0, WakeWhen(head=50, t_us=10**9))
     assert not ring.wait(ring.version, 0.01, WakeWhen(head=0, t_us=0))  # nothing new since: times out
+
+
+def test_a_poke_between_the_consumers_look_and_its_wait_is_not_lost(rng):
+    # The deblur helper pokes the worker when its frame is ready. The worker reads `version`, finds nothing to do,
+    # and then waits with its quiet-scene condition: a poke that came in between must end that wait at once, as
+    # a frame or close would, not after the condition's events, sensor time or the timeout.
+    ring = EventRing(capacity_events=1 << 12, policy="wait")
+    v = ring.version
+    ring.poke()  # the helper thread, just before the worker's wait
+
+    def must_not_block(timeout=None):
+        raise AssertionError("the wait blocked after a poke it had not seen")
+
+    ring._cond.wait = must_not_block
+    assert ring.wait(v, 30.0, WakeWhen(head=1000, t_us=10**9))
+    del ring._cond.wait  # the poke is used up: the next wait blocks as before
+    assert not ring.wait(ring.version, 0.01, WakeWhen(head=1000, t_us=10**9))
 
 
 def test_arrival_time_of_the_last_included_event(rng):

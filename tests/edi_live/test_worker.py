@@ -187,6 +187,68 @@ def test_with_a_clock_offset_the_worker_reads_only_through_the_late_window_befor
     assert len(latent) == after // 500, "the events after the window make latent frames from the new frame"
 
 
+def test_an_aps_frame_pushed_between_the_workers_look_and_its_read_is_deblurred_before_later_events():
+    # A replay sends each APS frame after the events up to its exposure end, so it lands at the ring's head: at
+    # the worker's cursor once the worker has read them. Pushed just after the worker found no frame queued,
+    # with the next packet's events, it must still be deblurred before any of those later events are read, as
+    # when it was queued before the look (a replay is repeatable however the threads interleave).
+    ev = events_at(np.arange(0, 4000))
+    late = aps(1600, 1999)
+
+    class PushDuringLook(EventRing):
+        injected = False
+
+        def peek_frame(self):
+            entry = super().peek_frame()
+            if entry is None and self.read_index == 2000 and not self.injected:
+                self.injected = True  # the replay's pump, between this look and the worker's read
+                assert self.push(Packet(frames=[late])) and self.push(Packet(events=ev[2000:]))
+            return entry
+
+    ring = PushDuringLook(capacity_events=1 << 14, capacity_frames=8, policy="wait")
+    rec, errors = StandIn(), []
+    worker = EdiWorker(ring, rec, EdiConfig(every=500), [], on_error=errors.append)
+    assert ring.push(Packet(events=ev[:2000], frames=[aps(100, 500)]))
+    worker.start()
+    assert ring.wait_consumer_idle(10.0)
+    ring.close()
+    assert worker.done.wait(10.0) and not errors and ring.injected
+    (_, first), (frame, given) = rec.frames_given
+    assert frame is late
+    np.testing.assert_array_equal(given["t"], np.arange(1600, 2000))  # its exposure, nothing past its end
+
+
+def test_with_a_clock_offset_activity_before_a_deblurred_exposure_does_not_count_as_after_it():
+    # Events lag the APS clock by 5 ms. Motion in event time [22, 25) ms ends before the second frame's exposure
+    # in the event clock ([25, 27] ms), so that deblur saw its result; the third frame, with only sensor noise
+    # since, is a still scene and is not deblurred (heartbeat 60 s). Judged against the exposure end in the APS
+    # clock (22 ms), the motion looked like activity after the reference and the third frame was deblurred.
+    rng = np.random.default_rng(5)
+    side = 100
+    noise_t = np.sort(rng.integers(0, 70_000, 700))  # 10 events/ms on 10^4 pixels: 1 Hz per pixel
+    motion_t = np.arange(22_000, 25_000, 33)  # a row of neighbouring pixels, ~30 events/ms
+    t = np.concatenate([noise_t, motion_t])
+    x = np.concatenate([rng.integers(0, side, noise_t.size), (motion_t // 33) % side])
+    y = np.concatenate([rng.integers(0, side, noise_t.size), 50 + (motion_t // 33) % 2])
+    order = np.argsort(t, kind="stable")
+    ev = np.zeros(t.size, EVENT_DTYPE)
+    ev["t"], ev["x"], ev["y"] = t[order], x[order], y[order]
+
+    def frame(t0, t1):
+        return Frame(np.zeros((side, side), np.uint8), exposure_start_us=t0, exposure_end_us=t1)
+
+    rec = StandIn()
+    rec.clock_offset_us = 5000
+    frames = [frame(1000, 2000), frame(20_000, 22_000), frame(50_000, 52_000)]
+    worker, rec, out, errors = run_worker([Packet(events=ev, frames=frames)], EdiConfig(every=1000, heartbeat_s=60),
+                                          rec=rec)
+    assert not errors and worker.frames_in == 3
+    exposure = (ev["t"] >= 55_000) & (ev["t"] <= 57_000)
+    assert exposure.sum() >= 16  # enough events that only the activity test can call the scene still
+    assert [f.exposure_end_us for f, _ in rec.frames_given] == [2000, 22_000]
+    assert worker.skipped_static_deblur == 1
+
+
 def test_no_frames_before_the_first_aps_frame():
     worker, rec, out, errors = run_worker([Packet(events=events_at(np.arange(5000)))], EdiConfig(every=100))
     assert not errors and out == [] and rec.events_applied == 0

@@ -99,9 +99,11 @@ class EdiReconstructor(ReconstructorView):
         self._carry.clear()
         if self._tracker is not None:
             self._tracker.mark_gap()
-        if self._flicker is not None and self._flicker.count:
+        if self._flicker is not None:  # the cycle timing no longer holds: runs under way are forgotten too
+            flagged = self._flicker.count
             self._flicker.reset()
-            self._mask = self._combined_mask()
+            if flagged:
+                self._mask = self._combined_mask()
 
     def streaming_copy(self) -> "EdiReconstructor":
         """Only the latent state (image, display, noise-filter state) is copied: ~30 µs at 346x260, where a deepcopy

@@ -106,3 +106,22 @@ class _nothing:
 
     def __exit__(self, *exc):
         return False
+
+
+@pytest.mark.parametrize("gap", [False, True])
+def test_a_gap_forgets_cycles_not_yet_flagged(gap):
+    """Lost data breaks the cycle timing: after a gap a pixel needs two whole cycles again, also when no pixel was
+    flagged before it (one regular cycle before the gap and one after must not flag it)."""
+    from edi_live.reconstructor import EdiReconstructor
+
+    from edi_live.datatypes import Frame
+
+    rec = EdiReconstructor(W, H, c=0.2)
+    rec.on_frame(Frame(np.full((H, W), 100, np.uint8), -2000, -1000), _events([]))  # a reference: events count
+    events = _events(_flicker(2, 1, 10_000, 0, 46_000))
+    cut = int(np.searchsorted(events["t"], 25_000))  # OFF -> ON switches at 10 and 20 ms before it: one cycle
+    rec.on_events(events[:cut])
+    if gap:
+        rec.mark_gap()
+    rec.on_events(events[cut:])  # the switch at 30 ms, then 40 ms
+    assert rec.stats()["flicker_pixels"] == (0 if gap else 1)

@@ -10,6 +10,16 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+@njit(cache=True, nogil=True, inline="always")
+def _neighbour_fired(last_t, xi, yi, ti, dt_us):
+    """Whether one of the 8 neighbours of pixel (xi, yi) fired within dt_us before ti (last_t: the padded map)."""
+    for dy in range(3):
+        for dx in range(3):
+            if (dy != 1 or dx != 1) and ti - last_t[yi + dy, xi + dx] <= dt_us:
+                return True
+    return False
+
+
 @njit(cache=True, nogil=True)
 def background_activity(t, x, y, width, height, last_t, dt_us, keep):
     """Background-activity filter: keep[i] when one of the 8 neighbours fired within dt_us before event i.
@@ -20,15 +30,8 @@ def background_activity(t, x, y, width, height, last_t, dt_us, keep):
         if xi >= width or yi >= height:
             keep[i] = False
             continue
-        ti = t[i]
-        ok = False
-        for dy in range(3):
-            for dx in range(3):
-                if (dy != 1 or dx != 1) and ti - last_t[yi + dy, xi + dx] <= dt_us:
-                    ok = True
-        keep[i] = ok
-        last_t[yi + 1, xi + 1] = ti
-
+        keep[i] = _neighbour_fired(last_t, xi, yi, t[i], dt_us)
+        last_t[yi + 1, xi + 1] = t[i]
 
 
 @njit(cache=True, nogil=True)
@@ -225,13 +228,8 @@ def activity_verdicts(t, x, y, width, height, last_t, supported, state, params, 
         yi = np.int64(y[i])
         ok = False
         if xi < width and yi < height:
-            ti = t[i]
-            if state[2] <= sure:
-                for dy in range(3):
-                    for dx in range(3):
-                        if (dy != 1 or dx != 1) and ti - last_t[yi + dy, xi + dx] <= support_us:
-                            ok = True
-            last_t[yi + 1, xi + 1] = ti
+            ok = state[2] <= sure and _neighbour_fired(last_t, xi, yi, t[i], support_us)
+            last_t[yi + 1, xi + 1] = t[i]
         supported[i] = ok
         state[2] += 1
         if ok:

@@ -56,12 +56,7 @@ class FlickerPixels:
     def observe(self, events: np.ndarray) -> tuple[bool, np.ndarray]:
         """Feed time-ordered events: (whether the mask changed, the flat pixels these events flagged)."""
         flagged_now = edi.flicker_cycles(events, self._state, **self._args)
-        changed = int(self._state.changes[0]) != self._changes
-        if changed:
-            self._changes = int(self._state.changes[0])
-            self._mask = self._state.flagged.reshape(self.height, self.width)
-            self._count = int(np.count_nonzero(self._mask))
-        return changed, flagged_now
+        return self._refresh_mask(), flagged_now
 
     def steps(self, events: np.ndarray) -> list[tuple[int, np.ndarray | None, np.ndarray]]:
         """Feed time-ordered events; flag changes take effect at the first event past the STEP_US span they were
@@ -102,14 +97,19 @@ class FlickerPixels:
         return read
 
     def _take_due(self) -> tuple[np.ndarray | None, np.ndarray]:
-        changed = int(self._state.changes[0]) != self._changes
-        if changed:
-            self._changes = int(self._state.changes[0])
-            self._mask = self._state.flagged.reshape(self.height, self.width)
-            self._count = int(np.count_nonzero(self._mask))
+        changed = self._refresh_mask()
         flagged = np.concatenate(self._due) if self._due else np.empty(0, np.int64)
         self._due, self._due_changed = [], False
         return (self._mask if changed else None), flagged
+
+    def _refresh_mask(self) -> bool:
+        """Whether flags changed since the mask was last made (it is replaced then, never changed in place)."""
+        if int(self._state.changes[0]) == self._changes:
+            return False
+        self._changes = int(self._state.changes[0])
+        self._mask = self._state.flagged.reshape(self.height, self.width)
+        self._count = int(np.count_nonzero(self._mask))
+        return True
 
     def reset(self) -> None:
         """Forget everything (a gap: the cycle timing no longer holds)."""

@@ -29,7 +29,7 @@ import numpy as np
 
 from edi_live.activity import StaticScene
 from edi_live.config import EdiConfig
-from edi_live.datatypes import Reconstruction
+from edi_live.datatypes import Frame, Reconstruction
 from edi_live.deblur_handover import DeblurThread, PendingDeblur
 from edi_live import held_frames
 from edi_live.frame_demand import FrameDemand
@@ -276,11 +276,11 @@ class EdiWorker:
         aps = in_event_clock(entry.frame, self.rec.clock_offset_us)
         if self.quality is not None and not threaded:
             self.quality.on_aps_frame(aps)
-        self._deblur(entry)
+        self._deblur(entry, aps)
         if self.quality is not None and threaded:  # once the deblur is under way: it need not wait (~0.2 ms)
             self.quality.on_aps_frame(aps)
 
-    def _deblur(self, entry: FrameEntry) -> None:
+    def _deblur(self, entry: FrameEntry, in_event_clock_frame: Frame) -> None:
         frame = entry.frame
         t0 = time.perf_counter()
         # exposure start (in the event clock: clock_offset_us later) .. read cursor
@@ -289,7 +289,7 @@ class EdiWorker:
                 frame, len(events), self._since, self._scene):
             self.skipped_static_deblur += 1
             return
-        self._scene.new_reference(in_event_clock(frame, self.rec.clock_offset_us), anchor=self._await_reference)
+        self._scene.new_reference(in_event_clock_frame, anchor=self._await_reference)
         self._still.deblurred(frame)
         f_us = frame.mid_exposure_us + self.rec.clock_offset_us
         arrival = max(entry.arrival_ns, self._last_arrival_ns)

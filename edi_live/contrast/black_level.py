@@ -82,13 +82,7 @@ def quiet_samples(pair: FramePair, taken_off: float, *, b_low: float = 3.0, b_hi
     while the scenes with a true black level moved by at most 1 DN without them. `taken_off` is the black level
     already taken off the pair's frames (it is added back, so that samples from frames with different corrections
     pool)."""
-    prev, cur = pair.prev, pair.cur
-    bp, bc, ok, taken_off = pair_values(pair, taken_off)
-    ok &= (bp >= b_low) & (bp <= b_high) & (bc >= b_low) & (bc <= b_high)
-    if pair.mask is not None:
-        ok &= ~pair.mask
-    for frame in (prev, cur):
-        ok[frame.table.pixels[:frame.table.n_active]] = False
+    bp, bc, ok, taken_off = quiet_values(pair, taken_off, b_low, b_high)
     cand = np.flatnonzero(ok)
     net = pair.n_on[cand].astype(np.float64) - pair.n_off[cand].astype(np.float64)
     keep = np.abs(net) <= max_events
@@ -110,6 +104,19 @@ def pair_values(pair: FramePair, taken_off: float) -> tuple[np.ndarray, np.ndarr
     ok = ((prev.informative.reshape(-1) | ((bp > 0.0) & (bp <= taken_off)))
           & (cur.informative.reshape(-1) | ((bc > 0.0) & (bc <= taken_off))))
     return bp, bc, ok, 0.0
+
+
+def quiet_values(pair: FramePair, taken_off: float, b_low: float,
+                 b_high: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """pair_values, with `ok` narrowed to the pixels within [b_low, b_high] DN in both frames, outside the pair's
+    mask and without events inside either exposure (not in either frame's level table)."""
+    bp, bc, ok, taken_off = pair_values(pair, taken_off)
+    ok &= (bp >= b_low) & (bp <= b_high) & (bc >= b_low) & (bc <= b_high)
+    if pair.mask is not None:
+        ok &= ~pair.mask
+    for frame in (pair.prev, pair.cur):
+        ok[frame.table.pixels[:frame.table.n_active]] = False
+    return bp, bc, ok, taken_off
 
 
 def black_level_terms(s: QuietSamples, b: float, c: float, delta: float = 0.5) -> np.ndarray:

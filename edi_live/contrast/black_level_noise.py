@@ -25,7 +25,7 @@ import math
 
 import numpy as np
 
-from edi_live.contrast.black_level import (QuietSamples, SUPPORT_DN, grid_minimum, pair_values, profile_point,
+from edi_live.contrast.black_level import (QuietSamples, SUPPORT_DN, grid_minimum, profile_point, quiet_values,
                                           quiet_samples)
 from edi_live.contrast.frames import FramePair
 
@@ -42,15 +42,9 @@ def neighbour_differences(pair: FramePair, taken_off: float, step: int = 1, b_lo
     row or a column that are informative in both frames, within [b_low, b_high] DN and without any event from the
     first exposure's start to the second's end; D = B2 - B1 (values raw, `taken_off` added back). Only the `keep`
     darkest pairs are returned."""
-    prev, cur = pair.prev, pair.cur
-    w = prev.blurry.shape[1]
-    bp, bc, ok, taken_off = pair_values(pair, taken_off)  # the raw values where there are any
-    ok &= (bp >= b_low) & (bp <= b_high) & (bc >= b_low) & (bc <= b_high)
+    w = pair.prev.blurry.shape[1]
+    bp, bc, ok, taken_off = quiet_values(pair, taken_off, b_low, b_high)  # the raw values where there are any
     ok &= (pair.n_on == 0) & (pair.n_off == 0)
-    if pair.mask is not None:
-        ok &= ~pair.mask
-    for frame in (prev, cur):
-        ok[frame.table.pixels[:frame.table.n_active]] = False
     idx = np.flatnonzero(ok[:-step])
     right = idx[ok[idx + step] & (idx % w < w - step)]
     idx = np.flatnonzero(ok[:-step * w])

@@ -180,8 +180,10 @@ class EventRing:
             self._cond.notify_all()
 
     def _due(self, wake: WakeWhen | None) -> bool:
-        """Whether a consumer waiting with `wake` has something to do: its condition met, a frame queued, closed."""
-        return wake is None or self._closed or bool(self._frames) or wake.met(self._head, self.watermark_us)
+        """Whether a consumer waiting with `wake` has something to do: its condition met, a frame queued that it has
+        not seen, closed."""
+        return (wake is None or self._closed or len(self._frames) > wake.frames
+                or wake.met(self._head, self.watermark_us))
 
     def _drop_unread(self, count: int) -> None:
         """drop_oldest: skip the `count` oldest unread events (lock held)."""
@@ -365,6 +367,10 @@ class EventRing:
             return self._store.copy_out(lo, max(lo, hi))
 
     # ---------------------------------------------------------------- any thread
+
+    @property
+    def frames_queued(self) -> int:
+        return len(self._frames)
 
     @property
     def unread_events(self) -> int:

@@ -5,6 +5,8 @@ background noise: a few dozen events per 1 ms packet) a wake-up per packet costs
 (a futex, a GIL hand-over and the consumer's per-read bookkeeping), so the consumer asks to be woken only when
 `events` unread events or sensor time `t_us` has arrived, or at once for an APS frame, close or poke. The ring
 checks the condition under its lock on every push, so no data is ever missed, only read in fewer, larger steps.
+An APS frame the consumer already holds back (waiting for its late events) need not wake it again on every push:
+`frames` says how many queued frames it has seen, and only one more wakes it.
 """
 
 from __future__ import annotations
@@ -14,10 +16,12 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True, slots=True)
 class WakeWhen:
-    """Wake the consumer once the ring's head index reaches `head` or its watermark reaches `t_us` (µs)."""
+    """Wake the consumer once the ring's head index reaches `head` or its watermark reaches `t_us` (µs), or more
+    than `frames` APS frames are queued."""
 
     head: int
     t_us: int
+    frames: int = 0
 
     def met(self, head: int, watermark_us: int) -> bool:
         return head >= self.head or watermark_us >= self.t_us

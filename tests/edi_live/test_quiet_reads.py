@@ -46,6 +46,18 @@ def test_a_noisy_still_scene_is_read_in_steps_of_several_packets_and_an_onset_ma
     assert 0 <= delay_us < MAX_BATCH_US
 
 
+def test_an_aps_frame_waiting_for_its_late_events_does_not_make_the_still_scene_read_per_packet():
+    # with the events 8 ms late (a real camera's clock offset) each APS frame waits for its window's late events;
+    # the worker then wakes once the sensor time is past them, not on every packet (312 still reads before)
+    ring = ReadCountingRing(capacity_events=1 << 22, capacity_frames=256, policy="wait")
+    delay_us = onset_delay_us(ring=ring, clock_offset_us=8_000)
+    events, _, onset_us = noisy_scene(1.3, onset_s=1.0)
+    still_reads = sum(t < onset_us for t in ring.reads_at_us)
+    packets = (onset_us - int(events["t"][0])) // 1000
+    assert packets > 900 and still_reads < packets / 4, f"{still_reads} reads for {packets} packets of noise"
+    assert 0 <= delay_us < MAX_BATCH_US
+
+
 def test_a_large_every_does_not_delay_the_onset():
     assert onset_delay_us(seed_shift=3, every=20_000) < MAX_BATCH_US
 

@@ -277,6 +277,21 @@ def test_a_consumer_waiting_with_a_wake_condition_sleeps_through_pushes_that_do_
     assert not ring.wait_consumer_idle(0.01)  # nobody waits any more
 
 
+def test_a_frame_the_consumer_has_seen_does_not_wake_it_again_but_a_new_one_does(rng):
+    # The worker holds an APS frame until its late events are in: while it waits for them with `frames=1`, pushes
+    # that meet nothing else leave it asleep (before, the queued frame made every push wake it)
+    ring = EventRing(capacity_events=1 << 12, policy="wait")
+    ring.push(Packet(events=make_events(np.arange(0, 10), rng), frames=[frame(0, 5)], watermark_us=99))
+    consumer = WaitingConsumer(ring, WakeWhen(head=1000, t_us=10_000, frames=1))
+    for k in range(1, 5):
+        ring.push(Packet(events=make_events(np.arange(100 * k, 100 * k + 10), rng), watermark_us=100 * k + 99))
+        assert ring.wait_consumer_idle(10), "still waiting (one frame queued, the one it has seen)"
+        assert consumer.woke_at is None
+    ring.push(Packet(frames=[frame(500, 550)], watermark_us=550))
+    consumer.thread.join(10)
+    assert consumer.woke_at == (50, 550)
+
+
 def test_a_wait_with_a_condition_already_met_returns_at_once(rng):
     ring = EventRing(capacity_events=1 << 12, policy="wait")
     v = ring.version

@@ -40,6 +40,7 @@ class QuietReads:
         self._mark: tuple[int, int] | None = None  # (head, watermark) at the previous quiet wait
         self._rate = 0.0  # noise events per µs of sensor time, averaged over the quiet reads
         self.batched_waits = 0  # waits with a WakeWhen (stats)
+        self._last: WakeWhen | None = None  # the latest quiet wait's condition
 
     def on_aps_frame(self, frame: Frame) -> None:
         """Learn the APS frame period (the onset delay is kept to a fifth of it)."""
@@ -55,7 +56,7 @@ class QuietReads:
         than this (its late events, frame_gate); the queued frames then wake it only once the sensor time is past
         that (a wake per 1 ms packet through an 8 ms clock offset was a third of a still scene's reads)."""
         if not quiet:
-            self._mark = None
+            self._mark = self._last = None
             return None
         head, t_us = ring.read_index, ring.watermark_us  # (events pushed since the last read count towards it)
         if self._mark is not None and t_us > self._mark[1]:
@@ -65,8 +66,15 @@ class QuietReads:
         self.batched_waits += 1
         expected = self._rate * self.batch_us
         count = min(self.max_events, int(expected + SIGMAS * math.sqrt(expected)) + MARGIN)
+        self._last = WakeWhen(head=head + count, t_us=t_us + self.batch_us)
         if held_through_us is None:
-            return WakeWhen(head=head + count, t_us=t_us + self.batch_us)
+            return self._last
         # (if the watermark is past it already but no event is, the next packet wakes it)
         due_us = min(t_us + self.batch_us, max(held_through_us + 1, t_us + 1))
         return WakeWhen(head=head + count, t_us=due_us, frames=ring.frames_queued)
+
+    def defer(self, ring: EventRing) -> bool:
+        """Whether to leave the unread events for the next step: the worker was woken for an APS frame before its
+        quiet step was over (what came after the frame and its late events, ~1 ms, was a read of its own)."""
+        last = self._last
+        return last is not None and not ring.closed and not last.met(ring.head, ring.watermark_us)

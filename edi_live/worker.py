@@ -173,7 +173,7 @@ class EdiWorker:
                 return True
             # its (late) event-clock window's events are still to come: read just through them, not past
             limit, through = None, self._gate.held_through
-        if not self.ring.unread_events:
+        if not self.ring.unread_events or (entry is None and self._scene.quiet and self._quiet.defer(self.ring)):
             return False  # (a push after this look changes the version the wait compares with)
         chunk = self.ring.read_events(_CHUNK_EVENTS, limit, through)
         if len(chunk.events) == 0:

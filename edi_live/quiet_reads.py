@@ -41,9 +41,13 @@ class QuietReads:
         self._rate = 0.0  # noise events per µs of sensor time, averaged over the quiet reads
         self.batched_waits = 0  # waits with a WakeWhen (stats)
         self._last: WakeWhen | None = None  # the latest quiet wait's condition
+        self._restart = False  # an APS frame was taken since: the quiet step starts again
+        self.frame_late_us: int | None = None  # the clock offset: an APS frame is not deblurred before its late events
 
-    def on_aps_frame(self, frame: Frame) -> None:
-        """Learn the APS frame period (the onset delay is kept to a fifth of it)."""
+    def on_aps_frame(self, frame: Frame, clock_offset_us: int = 0) -> None:
+        """Learn the APS frame period (the onset delay is kept to half of it) and the event clock offset."""
+        self.frame_late_us = int(clock_offset_us) if clock_offset_us > 0 else None
+        self._restart = True
         end = frame.exposure_end_us
         if self._last_aps_end_us is not None and end > self._last_aps_end_us:
             period = end - self._last_aps_end_us
@@ -54,7 +58,8 @@ class QuietReads:
         """The condition to wait with once the worker has nothing to do; None (wake per push) unless the scene is
         `quiet`. `held_through_us`: the worker holds the first queued APS frame until it has read an event later
         than this (its late events, frame_gate); the queued frames then wake it only once the sensor time is past
-        that (a wake per 1 ms packet through an 8 ms clock offset was a third of a still scene's reads)."""
+        that (a wake per 1 ms packet through an 8 ms clock offset was a third of a still scene's reads). A new APS
+        frame wakes it once its own late events are in (at once without a clock offset)."""
         if not quiet:
             self._mark = self._last = None
             return None
@@ -64,17 +69,24 @@ class QuietReads:
             self._rate = rate if not self._rate else 0.75 * self._rate + 0.25 * rate
         self._mark = (head, t_us)
         self.batched_waits += 1
+        self._last = step = self._step_from(head, t_us)
+        due_us = step.t_us
+        if held_through_us is not None:  # (if the watermark is past it already but no event is, the next packet)
+            due_us = min(due_us, max(held_through_us + 1, t_us + 1))
+        return WakeWhen(head=step.head, t_us=due_us, frames=int(held_through_us is not None),
+                        frame_late_us=self.frame_late_us)
+
+    def _step_from(self, head: int, t_us: int) -> WakeWhen:
         expected = self._rate * self.batch_us
         count = min(self.max_events, int(expected + SIGMAS * math.sqrt(expected)) + MARGIN)
-        self._last = WakeWhen(head=head + count, t_us=t_us + self.batch_us)
-        if held_through_us is None:
-            return self._last
-        # (if the watermark is past it already but no event is, the next packet wakes it)
-        due_us = min(t_us + self.batch_us, max(held_through_us + 1, t_us + 1))
-        return WakeWhen(head=head + count, t_us=due_us, frames=ring.frames_queued)
+        return WakeWhen(head=head + count, t_us=t_us + self.batch_us)
 
     def defer(self, ring: EventRing) -> bool:
-        """Whether to leave the unread events for the next step: the worker was woken for an APS frame before its
-        quiet step was over (what came after the frame and its late events, ~1 ms, was a read of its own)."""
+        """Whether to leave the unread events for the next step: the worker was woken for an APS frame (what came
+        after the frame and its late events, ~1 ms, was a read of its own). A step starts after each APS frame:
+        else, as steps and frames fall into step, a step ending with the frame's late window read that ms."""
+        if self._restart and self._last is not None:
+            self._last = self._step_from(ring.read_index, ring.watermark_us)
+        self._restart = False
         last = self._last
         return last is not None and not ring.closed and not last.met(ring.head, ring.watermark_us)

@@ -6,7 +6,8 @@ background noise: a few dozen events per 1 ms packet) a wake-up per packet costs
 `events` unread events or sensor time `t_us` has arrived, or at once for an APS frame, close or poke. The ring
 checks the condition under its lock on every push, so no data is ever missed, only read in fewer, larger steps.
 An APS frame the consumer already holds back (waiting for its late events) need not wake it again on every push:
-`frames` says how many queued frames it has seen, and only one more wakes it.
+`frames` says how many queued frames it has seen, and only one more wakes it; with `frame_late_us`, only once the
+watermark is past that frame's exposure end plus its late events (the consumer could not deblur it before).
 """
 
 from __future__ import annotations
@@ -17,11 +18,12 @@ from dataclasses import dataclass
 @dataclass(frozen=True, slots=True)
 class WakeWhen:
     """Wake the consumer once the ring's head index reaches `head` or its watermark reaches `t_us` (µs), or more
-    than `frames` APS frames are queued."""
+    than `frames` APS frames are queued (the next one's late events in, with `frame_late_us`)."""
 
     head: int
     t_us: int
     frames: int = 0
+    frame_late_us: int | None = None
 
     def met(self, head: int, watermark_us: int) -> bool:
         return head >= self.head or watermark_us >= self.t_us

@@ -173,6 +173,8 @@ class EdiWorker:
                 return True
             # its (late) event-clock window's events are still to come: read just through them, not past
             limit, through = None, self._gate.held_through
+        elif entry is not None and self._scene.quiet and self._pending is None and self.rec.clock_offset_us > 0:
+            limit, through = None, entry.frame.exposure_end_us + self.rec.clock_offset_us  # and its late window
         if not self.ring.unread_events or (entry is None and self._scene.quiet and self._quiet.defer(self.ring)):
             return False  # (a push after this look changes the version the wait compares with)
         chunk = self.ring.read_events(_CHUNK_EVENTS, limit, through)
@@ -258,8 +260,7 @@ class EdiWorker:
                 self._latent_due(int(part["t"][-1]), arrival)
 
     def _batch_frames(self) -> bool:
-        """Whether a chunk's latent frames can be made in batches (on_events_frames): causal mode without
-        --max-fps (no frame is held back or skipped)."""
+        """Whether latent frames can be made in batches (on_events_frames): causal, no --max-fps (none held back)."""
         return self.config.max_fps is None and self.config.mode == "causal"
 
     def _latent_due(self, t_us: int, arrival_ns: int) -> None:
@@ -275,7 +276,7 @@ class EdiWorker:
 
     def _on_frame(self, entry: FrameEntry) -> None:
         self.frames_in += 1
-        self._quiet.on_aps_frame(entry.frame)
+        self._quiet.on_aps_frame(entry.frame, self.rec.clock_offset_us)
         threaded = self._use_deblur_thread()  # no deblur is pending here: _step waits until it is adopted
         aps = in_event_clock(entry.frame, self.rec.clock_offset_us)
         if self.quality is not None and not threaded:

@@ -5,14 +5,16 @@ noise (edi_live.activity), events make no frame: they only move the latent image
 whatever the size of the reads. A read per 1 ms packet then cost ~100 µs of wake-up and per-read bookkeeping for
 ~20 events (7 % of a core on a 240x180 sensor at 0.5 events/s per pixel), so the worker asks to be woken only
 when `batch_us` of sensor time or more events than the noise explains have arrived (at most a latent frame's
-worth, `every`, capped at MAX_EVENTS). A new APS frame, the end of the input and the deblur helper still wake it
-at once; an APS frame it holds until its late events are in (frame_gate) wakes it once the sensor time is past
-them; the heartbeat is its wait's timeout; an active scene is read as it comes, as before.
+worth, `every`, capped at MAX_EVENTS). An APS frame wakes it once its late events (the clock offset, frame_gate)
+are in, since it could not be deblurred before, and is read with them; what came after the frame waits for the
+next step, which starts there (`defer`). The end of the input and the deblur helper still wake it at once; the
+heartbeat is its wait's timeout; an active scene is read as it comes, as before. On the noisy still scene at 20 fps
+that is 2 reads per APS period (~42/s; 553/s with a step of a fifth of the period, each frame waking the worker
+and its late window read per packet), and a read costs ~200 µs for ~500 events, per event mostly.
 
 The price is at a motion onset: its first events are read at most `batch_us` of sensor time after they arrived.
 `batch_us` is MAX_BATCH_US, or half the APS frame period when that is shorter, so the first frame after an onset
-still comes within one frame period (a fifth of it cost ~130 reads/s at 20 fps against ~80, each ~100 µs of mostly
-cache misses in the per-pixel maps). Sooner in practice: the event count that wakes the worker is
+still comes within one frame period. Sooner in practice: the event count that wakes the worker is
 what the noise gives in `batch_us` (its rate measured over the quiet reads) plus SIGMAS Poisson deviations and
 a margin, so an onset's extra events wake it early while noise alone rarely does (the rate starts at 0: the first
 quiet waits wake per packet until it is known).

@@ -18,12 +18,19 @@ from dataclasses import dataclass
 @dataclass(frozen=True, slots=True)
 class WakeWhen:
     """Wake the consumer once the ring's head index reaches `head` or its watermark reaches `t_us` (µs), or more
-    than `frames` APS frames are queued (the next one's late events in, with `frame_late_us`)."""
+    than `frames` APS frames are queued (the next one's late events in, with `frame_late_us`). With `rate_per_us`,
+    also once the events pushed since index `head0` (watermark `t0_us`) exceed what that rate gives by `slack`: an
+    excess early in a long wait wakes it as soon as one at its end would."""
 
     head: int
     t_us: int
     frames: int = 0
     frame_late_us: int | None = None
+    rate_per_us: float = 0.0
+    head0: int = 0
+    t0_us: int = 0
+    slack: float = 0.0
 
     def met(self, head: int, watermark_us: int) -> bool:
-        return head >= self.head or watermark_us >= self.t_us
+        return (head >= self.head or watermark_us >= self.t_us or (
+            self.rate_per_us > 0 and head - self.head0 > self.rate_per_us * (watermark_us - self.t0_us) + self.slack))

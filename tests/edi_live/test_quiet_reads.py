@@ -17,6 +17,7 @@ import numpy as np
 from edi_live.datatypes import EVENT_DTYPE, Frame, Packet
 from edi_live.quiet_reads import MAX_BATCH_US, MIN_BATCH_US, QuietReads
 from edi_live.ring import EventChunk, EventRing
+from edi_live.ring_wake import WakeWhen
 from tools.bench_stream import noisy_scene, onset_delay_us
 
 
@@ -66,6 +67,21 @@ def test_an_aps_frame_waiting_for_its_late_events_does_not_make_the_still_scene_
     periods = (onset_us - settled_us) / 50_000
     steady = sum(settled_us <= t < onset_us for t in ring.reads_at_us)
     assert steady <= 3 * periods, f"{steady} reads in {periods:.1f} APS periods"
+
+
+def test_an_onset_wakes_the_worker_by_its_excess_over_the_noise_so_far_not_over_a_whole_step():
+    # the count that ends a quiet step early is what the noise gives in the whole step plus a margin; an onset early
+    # in the step had to make up the rest of the step's noise too (6.8 ms for two of these three onsets)
+    assert all(onset_delay_us(seed_shift=k) < MAX_BATCH_US / 4 for k in range(3))
+
+
+def test_the_rate_condition_compares_the_events_pushed_with_the_rate_over_the_time_so_far():
+    wake = WakeWhen(head=10_000, t_us=100_000, rate_per_us=0.02, head0=1000, t0_us=0, slack=50.0)
+    assert not wake.met(head=1000 + 55, watermark_us=250)  # 5 expected in 250 µs, 50 more: not yet
+    assert wake.met(head=1000 + 56, watermark_us=250)
+    assert not wake.met(head=1000 + 150, watermark_us=5000)  # 100 expected by then
+    assert wake.met(head=0, watermark_us=100_000) and wake.met(head=10_000, watermark_us=0)  # the step's own bounds
+    assert not WakeWhen(head=10_000, t_us=100_000).met(head=5000, watermark_us=10)  # no rate: no such condition
 
 
 def test_a_large_every_does_not_delay_the_onset():

@@ -299,7 +299,8 @@ def test_a_new_frame_with_late_events_wakes_the_consumer_once_the_watermark_is_p
     consumer = WaitingConsumer(ring, WakeWhen(head=1000, t_us=10_000, frame_late_us=300))
     ring.push(Packet(events=make_events(np.arange(0, 10), rng), frames=[frame(0, 50)], watermark_us=99))
     for k in range(1, 4):  # the watermark reaches 350 = exposure end + 300: not past it
-        ring.push(Packet(events=make_events(np.arange(100 * k, 100 * k + 10), rng), watermark_us=min(350, 100 * k + 99)))
+        events = make_events(np.arange(100 * k, 100 * k + 10), rng)
+        ring.push(Packet(events=events, watermark_us=min(350, 100 * k + 99)))
         assert ring.wait_consumer_idle(10), "still waiting (the frame's late events are not in)"
         assert consumer.woke_at is None
     ring.push(Packet(events=make_events(np.array([351]), rng), watermark_us=351))

@@ -156,8 +156,8 @@ class ClockOffsetPolicy:
         # batches overlap (an exposure's window, a batch handed on twice) or continue one another, possibly in the
         # middle of a group of events with the newest time: those are told apart by pixel and polarity
         i, j = np.searchsorted(t, self._t_max, "left"), np.searchsorted(t, self._t_max, "right")
-        group = events[i:j]
-        fresh = group[~np.isin(self._pixel_key(group), self._at_max)]
+        group = events[i:j]  # (empty when a batch continues the last: no isin, ~10 µs a read on a quiet stream)
+        fresh = group[~np.isin(self._pixel_key(group), self._at_max)] if i < j else group
         rest = events[j:]
         if rest.size:
             self._t_max = int(rest["t"][-1])

@@ -64,6 +64,12 @@ class ColourPlan:
         return demosaic(mosaic_u8, self.pattern, self.method)
 
 
+def aps_as_output(frame: Frame, configured: ColorFilter | None, gray: bool) -> np.ndarray:
+    """A colour source's APS frame as the node shows it: demosaiced to BGR, or grey with `gray`."""
+    plan = ColourPlan(resolve_pattern(configured, frame), gray)  # type: ignore[arg-type]  # never None here
+    return plan.output(plan.input_mosaic(frame.image))
+
+
 def read_frame(plan: ColourPlan | None, frame: Frame, settings: ReconstructorSettings) \
         -> tuple[ColourPlan | None, np.ndarray]:
     """(the plan in force once `frame` is seen, the 2-D image EDI runs on). A grey source's first colour frame

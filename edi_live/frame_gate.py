@@ -20,6 +20,7 @@ class FrameGate:
     def __init__(self) -> None:
         self.t_read = -(2**63)  # time of the last event read from the ring
         self._waiting_since: float | None = None
+        self.held_through: int | None = None  # the frame last asked about waits for an event later than this
 
     def events_read(self, t_last_us: int) -> None:
         self.t_read = t_last_us
@@ -27,6 +28,7 @@ class FrameGate:
 
     def ready(self, frame: Frame, offset_us: int, input_done: bool) -> bool:
         """`input_done`: no event will come any more (input closed and every event read)."""
+        self.held_through = None
         if offset_us <= 0 or input_done or self.t_read > frame.exposure_end_us + offset_us:
             return True
         now = time.monotonic()
@@ -35,6 +37,7 @@ class FrameGate:
         if now - self._waiting_since > QUIET_S:
             self._waiting_since = None
             return True
+        self.held_through = frame.exposure_end_us + offset_us
         return False
 
 

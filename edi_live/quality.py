@@ -151,6 +151,9 @@ def to_8bit_scale(image: np.ndarray, saturation: float | None = None) -> tuple[n
     return b, valid
 
 
+_UNMARKED_MAX = 256  # reads held unmarked at most (no APS frame nor frame sent for that long)
+
+
 class PredictionScore:
     """Scores each APS frame by how well the node's earlier output predicted it (module docstring)."""
 
@@ -192,7 +195,8 @@ class PredictionScore:
         self._shape: tuple[int, ...] | None = None
         self._black, self._gamma = 0.0, 1.0  # the APS response of the latest frame sent (undone in the frames)
         self._events_map: np.ndarray | None = None  # flat bool: pixels with events since the last APS frame
-        self._events_fed = False
+        self._events_fed = self._marked = False
+        self._unmarked: list[np.ndarray] = []  # not marked yet: nothing sent, the next APS frame may not be scored
         self._last_ref = self._last_t = self._t_max = -(2**63)
         self._pruned_at = 0
 
@@ -200,9 +204,16 @@ class PredictionScore:
         """Events as the worker reads them (time order). Before the first APS frame they are ignored."""
         if not self.enabled or self._events_map is None or len(events) == 0:
             return
-        h, w = self._shape[:2]
-        edi.mark_event_pixels(events, w, h, self._events_map)  # off-sensor events: ignored, not marked elsewhere
         self._events_fed = True
+        self._unmarked.append(events)  # (a still scene's reads then mark nothing: ~20 us each, mostly cache misses)
+        if self._sent_since_aps or len(self._unmarked) > _UNMARKED_MAX:
+            self._mark_unmarked()
+
+    def _mark_unmarked(self) -> None:
+        h, w = self._shape[:2]
+        for events in self._unmarked:  # off-sensor events: ignored, not marked elsewhere
+            edi.mark_event_pixels(events, w, h, self._events_map)
+        self._unmarked, self._marked = [], True
 
     def on_aps_frame(self, frame: Frame) -> list[PredictionResult]:
         """An APS frame taken by the worker. Returns the results this completes (earlier frames' scores)."""
@@ -234,9 +245,10 @@ class PredictionScore:
             self._prev_b = target
         else:
             self._prev_b = None
-        if self._events_fed or self._events_map is None:
+        if self._marked or self._events_map is None:
             self._events_map = np.zeros(shape[0] * shape[1], bool)
-        self._events_fed = self._sent_since_aps = False
+        self._events_fed = self._marked = self._sent_since_aps = False
+        self._unmarked = []
         self._prev_image, self._prev_end, self._prev_mid = image, frame.exposure_end_us, mid
         self._exposures.append(frame.exposure_us)
         out.extend(self._complete(self._last_ref, self._last_t))  # the node may already have moved past it
@@ -248,11 +260,9 @@ class PredictionScore:
         demosaiced to BGR, or grey with `gray`, as the reconstructor shows its mosaic."""
         if self._color_filter is None and frame.color_filter is None and frame.image.ndim == 2:
             return frame.image
-        from edi_live.colour_edi import ColourPlan, resolve_pattern  # OpenCV: loaded for colour sources only
+        from edi_live.colour_edi import aps_as_output  # OpenCV: loaded for colour sources only
 
-        pattern = resolve_pattern(self._color_filter, frame)
-        plan = ColourPlan(pattern, self._gray)  # type: ignore[arg-type]  # never None here
-        return plan.output(plan.input_mosaic(frame.image))
+        return aps_as_output(frame, self._color_filter, self._gray)
 
     def on_emitted(self, rec: Reconstruction) -> list[PredictionResult]:
         """A frame the node sent, in emission order. Returns the results it completes."""
@@ -266,6 +276,8 @@ class PredictionScore:
         self._black, self._gamma = float(rec.black_level), float(rec.aps_gamma)
         self._last_ref, self._last_t = ref, t
         self._sent_since_aps = True
+        if self._unmarked:  # the next APS frame is scored: the pixels with events count
+            self._mark_unmarked()
         self._t_max = max(self._t_max, t)
         out = self._complete(ref, t)
         if len(self._t) >= 2 * self._pruned_at + 16:

@@ -180,8 +180,13 @@ class EventRing:
             self._cond.notify_all()
 
     def _due(self, wake: WakeWhen | None) -> bool:
-        """Whether a consumer waiting with `wake` has something to do: its condition met, a frame queued, closed."""
-        return wake is None or self._closed or bool(self._frames) or wake.met(self._head, self.watermark_us)
+        """Whether a consumer waiting with `wake` has something to do: its condition met, a frame queued that it has
+        not seen (with `frame_late_us`, once the watermark is past that frame's late events), closed."""
+        if wake is None or self._closed or wake.met(self._head, self.watermark_us):
+            return True
+        return len(self._frames) > wake.frames and (
+            wake.frame_late_us is None
+            or self.watermark_us > self._frames[wake.frames].frame.exposure_end_us + wake.frame_late_us)
 
     def _drop_unread(self, count: int) -> None:
         """drop_oldest: skip the `count` oldest unread events (lock held)."""
@@ -216,7 +221,7 @@ class EventRing:
             self._frames.append(FrameEntry(frame, self._head, arrival_ns, gap))
             self.pushed_frames += 1
             self._version += 1
-            self._notify_consumer(always=True)
+            self._notify_consumer()  # at once, unless it waits for the frame's late events (WakeWhen.frame_late_us)
         return True
 
     def close(self) -> None:
@@ -299,15 +304,18 @@ class EventRing:
     def read_events(self, max_n: int, until_index: int | None = None, through_t_us: int | None = None) -> EventChunk:
         """Take up to `max_n` unread events (not past `until_index`, nor past the first event later than
         `through_t_us`, nor past a queued frame's `end_index`, also one at the cursor unless `through_t_us` is
-        given) as a copy and advance the cursor. The frame bound is checked under the lock: a frame pushed after
-        the consumer's peek_frame() still stops the read at its exposure end, so where reads stop depends on the
-        stream, not on when the producer ran."""
+        given) as a copy and advance the cursor. With `through_t_us` the first queued frame does not stop it
+        either: that is the consumer's, held until its late events are in. The frame bound is checked under the
+        lock: a frame pushed after the consumer's peek_frame() still stops the read at its exposure end, so where
+        reads stop depends on the stream, not on when the producer ran."""
         with self._cond:
             start = self._read
             stop = self._head if until_index is None else min(self._head, until_index)
-            for entry in self._frames:
+            for k, entry in enumerate(self._frames):
                 # a frame at the cursor stops a plain read too (it was queued after the consumer's look); a read
-                # through a time is the consumer's for a frame it holds there (its late window), so it goes on
+                # through a time is the consumer's for the first frame (its late window), so it goes on
+                if through_t_us is not None and k == 0:
+                    continue
                 if entry.end_index > start or (entry.end_index == start and through_t_us is None):
                     stop = min(stop, entry.end_index)
                     break

@@ -129,10 +129,12 @@ class EdiWorker:
                     break
                 self._heartbeat()
                 self.wakeups += 1
-                self.ring.wait(version, self._idle_wait_s(), self._quiet.wake(self.ring, self._scene.quiet))
+                self.ring.wait(version, self._idle_wait_s(),
+                               self._quiet.wake(self.ring, self._scene.quiet, self._gate.held_through))
             if not self._abort.is_set():
                 self._adopt(wait=True)  # a deblur still pending, if any
-                self._flush_deferred()
+                for rec in held_frames.render_rest(self.rec, self.ring, self._nearest, self._ref_f_us):
+                    self._emit(rec)  # the latent times that nearest and fused mode still held back
                 if self.quality is not None:
                     self.quality.finish()
             elif self._pending is not None and self._pending.done.wait(_ABORT_DEBLUR_WAIT_S):
@@ -170,7 +172,11 @@ class EdiWorker:
                 self._on_frame(entry)
                 return True
             # its (late) event-clock window's events are still to come: read just through them, not past
-            limit, through = None, entry.frame.exposure_end_us + self.rec.clock_offset_us
+            limit, through = None, self._gate.held_through
+        elif entry is not None and self._scene.quiet and self._pending is None and self.rec.clock_offset_us > 0:
+            limit, through = None, entry.frame.exposure_end_us + self.rec.clock_offset_us  # and its late window
+        if not self.ring.unread_events or (entry is None and self._scene.quiet and self._quiet.defer(self.ring)):
+            return False  # (a push after this look changes the version the wait compares with)
         chunk = self.ring.read_events(_CHUNK_EVENTS, limit, through)
         if len(chunk.events) == 0:
             return False
@@ -254,8 +260,7 @@ class EdiWorker:
                 self._latent_due(int(part["t"][-1]), arrival)
 
     def _batch_frames(self) -> bool:
-        """Whether a chunk's latent frames can be made in batches (on_events_frames): causal mode without
-        --max-fps (no frame is held back or skipped)."""
+        """Whether latent frames can be made in batches (on_events_frames): causal, no --max-fps (none held back)."""
         return self.config.max_fps is None and self.config.mode == "causal"
 
     def _latent_due(self, t_us: int, arrival_ns: int) -> None:
@@ -271,7 +276,7 @@ class EdiWorker:
 
     def _on_frame(self, entry: FrameEntry) -> None:
         self.frames_in += 1
-        self._quiet.on_aps_frame(entry.frame)
+        self._quiet.on_aps_frame(entry.frame, self.rec.clock_offset_us)
         threaded = self._use_deblur_thread()  # no deblur is pending here: _step waits until it is adopted
         aps = in_event_clock(entry.frame, self.rec.clock_offset_us)
         if self.quality is not None and not threaded:
@@ -356,12 +361,6 @@ class EdiWorker:
 
     def _render_at(self, t_us: int, arrival_ns: int) -> Reconstruction:
         return held_frames.render_held(self.rec, self.ring, self._nearest, self._ref_f_us, t_us, arrival_ns)
-
-    def _flush_deferred(self) -> None:
-        if not self._nearest.held or not self.rec.has_reference:
-            return
-        for rec in held_frames.render_rest(self.rec, self.ring, self._nearest, self._ref_f_us):
-            self._emit(rec)
 
     def _heartbeat(self) -> None:
         """The host-clock heartbeat, for when no event came for heartbeat_s (no sensor time passes to make one)."""

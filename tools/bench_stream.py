@@ -803,12 +803,14 @@ class _Nothing:
         return None
 
 
-def onset_delay_us(seed_shift: int = 0, every: int = 1000, ring=None) -> float:
+def onset_delay_us(seed_shift: int = 0, every: int = 1000, ring=None, clock_offset_us: int | None = None) -> float:
     """Worker alone (real reconstructor) fed 1 ms packets in lockstep, as a camera delivers them: each is pushed
     once the worker has done all it will do with the ones before (EventRing.wait_consumer_idle), so what it sees
     per wake-up is what it would see live, however fast this machine is. Returns the sensor time from the first
     event caused by motion to the newest data in the ring when the first frame after it was sent (not the first
-    deblurred frame; the heartbeat is off), i.e. the onset delay without the host's processing time."""
+    deblurred frame; the heartbeat is off), i.e. the onset delay without the host's processing time.
+    `clock_offset_us`: a fixed event clock offset (default: estimated), e.g. a real camera's few ms that each
+    APS frame waits for its late events."""
     from edi_live.config import EdiConfig
     from edi_live.ring import EventRing
     from edi_live.worker import EdiWorker
@@ -816,7 +818,8 @@ def onset_delay_us(seed_shift: int = 0, every: int = 1000, ring=None) -> float:
     events, frames, onset = noisy_scene(1.0 + 0.3, onset_s=1.0 + 0.01 * seed_shift)
     ring = ring if ring is not None else EventRing(capacity_events=1 << 22, capacity_frames=256, policy="wait")
     sent: list = []
-    worker = EdiWorker(ring, default_reconstructor(240, 180, EdiConfig()), EdiConfig(every=every, heartbeat_s=3600),
+    worker = EdiWorker(ring, default_reconstructor(240, 180, EdiConfig(clock_offset_us=clock_offset_us)),
+                       EdiConfig(every=every, heartbeat_s=3600),
                        [lambda r: sent.append((r.t_us, ring.watermark_us))])
     worker.start()
     try:

@@ -164,6 +164,29 @@ def test_active_pixels_are_those_with_events_since_the_previous_frame():
     assert s.stats()["pred_psnr_active_db"] == PSNR_CAP_DB
 
 
+def test_a_still_scene_marks_no_pixels_and_events_before_the_frame_sent_still_count(monkeypatch):
+    # the pixels with events are marked once a frame was sent since the previous APS frame (else the next APS frame
+    # is not scored): a still scene's reads cost no marking, and the events before the frame sent still count
+    import edi_live.edi as edi
+
+    marked = []
+    mark = edi.mark_event_pixels
+    monkeypatch.setattr(edi, "mark_event_pixels", lambda ev, *a: (marked.append(len(ev)), mark(ev, *a))[-1])
+    prev = np.full((2, 3), 100)
+    target = np.array([[150, 100, 100], [100, 100, 255]])  # (1, 2) saturated: never scored
+    s = PredictionScore()
+    s.on_aps_frame(aps(prev, 0, 100))
+    for k in range(5):  # nothing sent: the next APS frame is held, not scored
+        s.on_events(events_at([(1, 1)], 200 + k))
+    assert s.on_aps_frame(aps(prev, 1000, 1100)) == [] and marked == []
+    s.on_events(events_at([(0, 0), (1, 2)], 1200))  # before the frame sent
+    s.on_emitted(rec(np.array([[150, 90, 90], [100, 100, 200]]), 1500, 1050))
+    s.on_aps_frame(aps(target, 2000, 2100))
+    (r,) = s.finish()
+    assert marked == [2] and r.valid_px == 5 and r.active_px == 1  # (1, 1)'s events came before the held frame
+    assert r.psnr_pred_active_db == PSNR_CAP_DB
+
+
 def test_order_of_frame_and_own_deblurred_frame_does_not_matter():
     def run(aps_first):
         s = PredictionScore()

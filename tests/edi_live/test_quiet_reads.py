@@ -17,6 +17,7 @@ import numpy as np
 from edi_live.datatypes import EVENT_DTYPE, Frame, Packet
 from edi_live.quiet_reads import MAX_BATCH_US, MIN_BATCH_US, QuietReads
 from edi_live.ring import EventChunk, EventRing
+from edi_live.ring_wake import WakeWhen
 from tools.bench_stream import noisy_scene, onset_delay_us
 
 
@@ -41,9 +42,46 @@ def test_a_noisy_still_scene_is_read_in_steps_of_several_packets_and_an_onset_ma
     events, _, onset_us = noisy_scene(1.3, onset_s=1.0)
     still_reads = sum(t < onset_us for t in ring.reads_at_us)
     packets = (onset_us - int(events["t"][0])) // 1000  # 1 ms packets before the onset
-    assert packets > 900 and still_reads < packets / 4, f"{still_reads} reads for {packets} packets of noise"
-    # the onset is read within one quiet step at most (10 ms at 20 fps), far under the 50 ms frame period
+    # at most 4 reads per 50 ms APS period: two quiet steps of half the period, the events up to the APS frame and
+    # the rest after it (123 reads with steps of a fifth of it)
+    assert packets > 900 and still_reads <= 4 * packets // 50, f"{still_reads} reads for {packets} packets of noise"
+    # the onset is read within one quiet step at most (25 ms at 20 fps), under the 50 ms frame period
     assert 0 <= delay_us < MAX_BATCH_US
+
+
+def test_an_aps_frame_waiting_for_its_late_events_does_not_make_the_still_scene_read_per_packet():
+    # with the events 8 ms late (a real camera's clock offset) each APS frame waits for its window's late events;
+    # the worker then wakes once the sensor time is past them, not on every packet (312 still reads before)
+    ring = ReadCountingRing(capacity_events=1 << 22, capacity_frames=256, policy="wait")
+    delay_us = onset_delay_us(ring=ring, clock_offset_us=8_000)
+    events, _, onset_us = noisy_scene(1.3, onset_s=1.0)
+    still_reads = sum(t < onset_us for t in ring.reads_at_us)
+    packets = (onset_us - int(events["t"][0])) // 1000
+    assert packets > 900 and still_reads < packets / 4, f"{still_reads} reads for {packets} packets of noise"
+    assert 0 <= delay_us < MAX_BATCH_US
+    # once the noise rate is known, per 50 ms APS period: one read up to the frame and through its late window once
+    # they are in (the frame does not wake the worker before), one with the first event after that window when the
+    # window ends at a packet's end, and one quiet step; what came after the frame waits for that step (75 reads
+    # when it was read at once, 61 when the frame woke the worker and its window was a read of its own)
+    settled_us = int(events["t"][0]) + 200_000
+    periods = (onset_us - settled_us) / 50_000
+    steady = sum(settled_us <= t < onset_us for t in ring.reads_at_us)
+    assert steady <= 3 * periods, f"{steady} reads in {periods:.1f} APS periods"
+
+
+def test_an_onset_wakes_the_worker_by_its_excess_over_the_noise_so_far_not_over_a_whole_step():
+    # the count that ends a quiet step early is what the noise gives in the whole step plus a margin; an onset early
+    # in the step had to make up the rest of the step's noise too (6.8 ms for two of these three onsets)
+    assert all(onset_delay_us(seed_shift=k) < MAX_BATCH_US / 4 for k in range(3))
+
+
+def test_the_rate_condition_compares_the_events_pushed_with_the_rate_over_the_time_so_far():
+    wake = WakeWhen(head=10_000, t_us=100_000, rate_per_us=0.02, head0=1000, t0_us=0, slack=50.0)
+    assert not wake.met(head=1000 + 55, watermark_us=250)  # 5 expected in 250 µs, 50 more: not yet
+    assert wake.met(head=1000 + 56, watermark_us=250)
+    assert not wake.met(head=1000 + 150, watermark_us=5000)  # 100 expected by then
+    assert wake.met(head=0, watermark_us=100_000) and wake.met(head=10_000, watermark_us=0)  # the step's own bounds
+    assert not WakeWhen(head=10_000, t_us=100_000).met(head=5000, watermark_us=10)  # no rate: no such condition
 
 
 def test_a_large_every_does_not_delay_the_onset():
@@ -60,10 +98,10 @@ def _ring_with_noise(rate_per_ms: int, ms: int) -> EventRing:
     return ring
 
 
-def test_the_quiet_step_is_a_fifth_of_the_aps_period_within_bounds():
+def test_the_quiet_step_is_half_the_aps_period_within_bounds():
     quiet = QuietReads(every=1000)
     assert quiet.batch_us == MAX_BATCH_US  # before any APS period is known
-    for period_us, want in ((50_000, 10_000), (20_000, 4_000), (1_000, MIN_BATCH_US), (500_000, MAX_BATCH_US)):
+    for period_us, want in ((50_000, 25_000), (20_000, 10_000), (1_000, MIN_BATCH_US), (500_000, MAX_BATCH_US)):
         quiet = QuietReads(every=1000)
         for k in range(3):
             quiet.on_aps_frame(Frame(np.zeros((2, 2), np.uint8), k * period_us, k * period_us + 100))

@@ -277,6 +277,49 @@ def test_a_consumer_waiting_with_a_wake_condition_sleeps_through_pushes_that_do_
     assert not ring.wait_consumer_idle(0.01)  # nobody waits any more
 
 
+def test_a_frame_the_consumer_has_seen_does_not_wake_it_again_but_a_new_one_does(rng):
+    # The worker holds an APS frame until its late events are in: while it waits for them with `frames=1`, pushes
+    # that meet nothing else leave it asleep (before, the queued frame made every push wake it)
+    ring = EventRing(capacity_events=1 << 12, policy="wait")
+    ring.push(Packet(events=make_events(np.arange(0, 10), rng), frames=[frame(0, 5)], watermark_us=99))
+    consumer = WaitingConsumer(ring, WakeWhen(head=1000, t_us=10_000, frames=1))
+    for k in range(1, 5):
+        ring.push(Packet(events=make_events(np.arange(100 * k, 100 * k + 10), rng), watermark_us=100 * k + 99))
+        assert ring.wait_consumer_idle(10), "still waiting (one frame queued, the one it has seen)"
+        assert consumer.woke_at is None
+    ring.push(Packet(frames=[frame(500, 550)], watermark_us=550))
+    consumer.thread.join(10)
+    assert consumer.woke_at == (50, 550)
+
+
+def test_a_new_frame_with_late_events_wakes_the_consumer_once_the_watermark_is_past_them(rng):
+    # a quiet worker cannot deblur an APS frame before its late events (the clock offset) are in: waking it at the
+    # frame's push only made a read of the events up to the frame, and another for the late window
+    ring = EventRing(capacity_events=1 << 12, policy="wait")
+    consumer = WaitingConsumer(ring, WakeWhen(head=1000, t_us=10_000, frame_late_us=300))
+    ring.push(Packet(events=make_events(np.arange(0, 10), rng), frames=[frame(0, 50)], watermark_us=99))
+    for k in range(1, 4):  # the watermark reaches 350 = exposure end + 300: not past it
+        events = make_events(np.arange(100 * k, 100 * k + 10), rng)
+        ring.push(Packet(events=events, watermark_us=min(350, 100 * k + 99)))
+        assert ring.wait_consumer_idle(10), "still waiting (the frame's late events are not in)"
+        assert consumer.woke_at is None
+    ring.push(Packet(events=make_events(np.array([351]), rng), watermark_us=351))
+    consumer.thread.join(10)
+    assert consumer.woke_at == (41, 351)
+
+
+def test_a_read_through_a_late_window_goes_past_the_first_frame_but_not_the_next(rng):
+    # the quiet worker reads the events up to its next APS frame and the frame's late window in one read
+    ring = EventRing(capacity_events=256, policy="wait")
+    ring.push(Packet(events=make_events(np.arange(0, 100), rng), frames=[frame(10, 29), frame(40, 69)]))
+    first, second = ring._frames[0], ring._frames[1]
+    assert ring.read_index < first.end_index
+    np.testing.assert_array_equal(ring.read_events(1000, None, 50).events["t"], np.arange(0, 52))
+    assert ring.read_index > first.end_index
+    np.testing.assert_array_equal(ring.read_events(1000, None, 90).events["t"], np.arange(52, 70))  # second's end
+    assert ring.read_index == second.end_index
+
+
 def test_a_wait_with_a_condition_already_met_returns_at_once(rng):
     ring = EventRing(capacity_events=1 << 12, policy="wait")
     v = ring.version

@@ -49,7 +49,7 @@ def estimate_clock_offset(events: np.ndarray, prev: FrameWindow, cur: FrameWindo
                           delta: float = 0.1, min_pixels: int = 30, min_z: float = 0.0,
                           z_step_us: int = 1000, lag_share: float = 1.0) -> float | None:
     """d in µs (events late by d: event time = APS time + d) within +-max_offset_us, or None when the frames
-    say nothing (too few usable pixels, a flat cost, or the best offset at the edge of what the events cover).
+    say nothing (too few usable pixels, a flat cost, or the best offset at an edge of the searched range).
     `events`: time-ordered; candidates whose windows the events do not cover are left out (a batch that starts at
     the first exposure cannot test events early); `complete_until_us`: the events are known to be complete up to
     then (default: the last event; a sparse stream's last event comes early). With midlevel_gap_us, the events'
@@ -105,8 +105,10 @@ def estimate_clock_offset(events: np.ndarray, prev: FrameWindow, cur: FrameWindo
     evaluate(fine)
     i = int(min(range(fine.size), key=lambda j: cost(fine[j])))
     d_best = int(fine[i])
-    if (d_best == d_lo and d_lo > -max_offset_us) or (d_best == d_hi and d_hi < max_offset_us):
-        return None  # the minimum may lie beyond what the events cover
+    if d_best in (d_lo, d_hi):
+        # not a minimum: it may lie beyond what the events cover, or the cost only drifts across the range (a
+        # noise-only scene drifts to +max_offset_us, and the z test below does not tell a drift from a minimum)
+        return None
     if min_z > 0:
         sides = [d for d in (d_best - z_step_us, d_best + z_step_us) if d_lo <= d <= d_hi]
         evaluate(sides)

@@ -95,6 +95,19 @@ def test_the_reconstructor_finds_the_offset_when_asked_and_keeps_a_given_one(sce
     assert given.clock_offset_us == 700 and not given.stats()["clock_offset_estimated"]
 
 
+def test_a_still_scene_with_only_noise_events_gives_no_offset():
+    """Noise events carry no timing: the cost only drifts across the search range (to +8 ms on this scene, which
+    delayed every deblurred frame by 8 ms), and a best point at the range's edge is not a minimum."""
+    from edi_live.reconstructor import EdiReconstructor
+    from edi_live.simulation import SceneConfig
+
+    cfg = SceneConfig(width=240, height=180, noise_rate_hz=0.5, frame_interval_us=50_000, exposure_us=10_000,
+                      ground_truth=False, texture="blocks", duration_s=2.0, velocity_px_s=(0.0, 0.0))
+    rec = _stream(simulate(cfg), EdiReconstructor(cfg.width, cfg.height, clock_offset_us=None))
+    assert rec._clock.fits_run >= 2  # the fits ran and found nothing
+    assert rec.clock_offset_us == 0 and rec._clock.estimates == 0, rec._clock.last_estimates
+
+
 def test_a_starting_offset_is_used_at_once_and_moved_by_the_stream(scene):
     """A saved calibration's offset is a starting value: in use from the first window, then estimated like any."""
     from edi_live.reconstructor import EdiReconstructor

@@ -194,14 +194,17 @@ def activity_verdicts(t, x, y, width, height, last_t, supported, state, params, 
         sure = most + sigmas * np.sqrt(most) + margin
     nv = 0
     for i in range(t.size):
-        begin = (t[i] // check_us) * check_us
+        # events are time-ordered and a span ends at a multiple of check_us, so only an event at or past the span's
+        # end starts another: the division (the loop's costliest step) is done there only
         if state[6] == 0:
+            begin = (t[i] // check_us) * check_us
             state[0] = begin
             state[1] = begin + check_us
             state[6] = 1
             most = max_noise_hz * npix * check_us * 1e-6
             sure = most + sigmas * np.sqrt(most) + margin
-        elif begin >= state[1]:
+        elif t[i] >= state[1]:
+            begin = (t[i] // check_us) * check_us
             n, s = state[2], state[3]
             pixel_s = npix * (state[1] - state[0]) * 1e-6
             active = False

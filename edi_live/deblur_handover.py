@@ -62,19 +62,18 @@ class PendingDeblur:
     def adopt(self) -> Reconstructor:
         """Once `done`: the master, with the calls the streamer was given meanwhile replayed into it (and then the
         gap the worker saw, if any). Raises the helper thread's error, if there was one. The frames the replayed
-        calls render are dropped (the streamer's went out instead); a reconstructor with replay_frames (the state
-        on_events_frames leaves, without its frames: EdiReconstructor) is spared rendering them."""
+        calls render are dropped (the streamer's went out instead): replay_frames leaves the state on_events_frames
+        leaves without having to render them."""
         if self.error is not None:
             raise self.error
         master = self.master
-        replay_frames = getattr(master, "replay_frames", master.on_events_frames)  # the former skips the images
         for call in self.calls:
             if not call:
                 master.render()
             elif call[2] is None:
                 master.on_events(call[0], call[1])
             else:
-                replay_frames(call[0], call[2], call[3])
+                master.replay_frames(call[0], call[2], call[3])
         self.calls = []
         if self.gap:
             self.master.mark_gap()

@@ -64,6 +64,11 @@ class Reconstructor(Protocol):
         """on_events(events), rendering a latent frame after the first cuts[k] events, stamped arrivals[k]."""
         ...
 
+    def replay_frames(self, events: np.ndarray, cuts: Sequence[int], arrivals: Sequence[int]) -> None:
+        """The state on_events_frames(events, cuts, arrivals) leaves; its frames need not be rendered (the deblur
+        thread replays what a streaming copy already sent)."""
+        ...
+
     def render(self) -> Reconstruction:
         """The current latent image (kind "latent")."""
         ...

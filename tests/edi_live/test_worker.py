@@ -83,6 +83,9 @@ class StandIn:
             self.on_events(events[i0:])
         return out
 
+    def replay_frames(self, events, cuts, arrivals):
+        self.on_events_frames(events, cuts, arrivals)
+
     def mark_gap(self):
         self.gaps_marked += 1
 

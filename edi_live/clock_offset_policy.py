@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from edi_live.contrast.clock_offset import FrameWindow, estimate_clock_offset
+from edi_live.contrast.clock_offset import FrameWindow, estimate_clock_offset, pixel_polarity_key
 from edi_live.datatypes import Frame
 from edi_live.errors import ConfigError
 
@@ -169,7 +169,7 @@ class ClockOffsetPolicy:
                 self._chunks.append(part[self._sample[part["y"], part["x"]]])  # the fit uses the sample's only
 
     def _pixel_key(self, events: np.ndarray) -> np.ndarray:
-        return (events["y"].astype(np.int64) * self.width + events["x"]) * 2 + events["p"].astype(np.int64)
+        return pixel_polarity_key(events, self.width)
 
     def _fit(self, due: _Due) -> None:
         if not self._chunks:

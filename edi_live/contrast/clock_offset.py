@@ -221,12 +221,17 @@ def _midlevel_shift(key: np.ndarray, t: np.ndarray, max_gap_us: int) -> np.ndarr
     return shift
 
 
+def pixel_polarity_key(events: np.ndarray, width: int) -> np.ndarray:
+    """int64 per event: its pixel (row-major) and polarity in one number, unique per (x, y, p)."""
+    return (events["y"].astype(np.int64) * width + events["x"]) * 2 + events["p"].astype(np.int64)
+
+
 def midlevel_times(events: np.ndarray, width: int, max_gap_us: int = 10_000) -> np.ndarray:
     """A time-ordered copy of `events` with each event moved back by half the time since the previous event of the
     same pixel and polarity, or, for an event without one in `events`, half the time to its next one; each at most
     max_gap_us / 2, which is also the move of an event alone of its pixel and polarity in `events` (for batches
     longer than twice max_gap_us, such an event's gaps are both longer than that)."""
-    key = (events["y"].astype(np.int64) * width + events["x"]) * 2 + events["p"].astype(np.int64)
+    key = pixel_polarity_key(events, width)
     out = events.copy()
     out["t"] = events["t"] - _midlevel_shift(key, events["t"].astype(np.int64), max_gap_us)
     return out[np.argsort(out["t"], kind="stable")]

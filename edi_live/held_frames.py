@@ -24,6 +24,22 @@ def render_held(rec: Reconstructor, ring: EventRing, hold: NearestHoldBack, ref_
     return dataclasses.replace(out, arrival_ns=arrival_ns)
 
 
+def before_new_reference(rec: Reconstructor, ring: EventRing, hold: NearestHoldBack, ref_f_us: int | None,
+                         f_us: int) -> list[Reconstruction]:
+    """Nearest mode, a new APS frame at f_us about to be deblurred: the held times nearer the current reference
+    (before the midpoint), rendered from it while it is still the reference."""
+    early = hold.take_before((ref_f_us + f_us) // 2 if ref_f_us is not None else None)
+    return [render_held(rec, ring, hold, ref_f_us, t, a) for t, a in early]
+
+
+def after_new_reference(rec: Reconstructor, ring: EventRing, hold: NearestHoldBack, ref_f_us: int, frame: Frame,
+                        fused: bool) -> list[Reconstruction]:
+    """Once the new reference at ref_f_us is deblurred: the times still held, from it (fused: from both)."""
+    if fused:
+        return render_fused(rec, ring, hold, ref_f_us, frame)
+    return [render_held(rec, ring, hold, ref_f_us, t, a) for t, a in hold.take_all()]
+
+
 def render_rest(rec: Reconstructor, ring: EventRing, hold: NearestHoldBack, ref_f_us: int | None) -> list:
     """Every held time at the end of the stream, from the current reference: the times after it in one forward
     pass (rec.render_fused without a previous reference), any others one by one."""

@@ -11,10 +11,8 @@ not on how the reads cut it (a replay is repeatable). The policy, in full in doc
 - frames follow activity, not noise (edi_live.activity): noise-only events move the latent image but make no
   frame, an onset makes one at its first event; APS frames of a still scene are deblurred, and a heartbeat frame
   sent, once per `heartbeat_s` of sensor time (still_frames);
-- "nearest" holds latent times past the midpoint to the next APS frame back and renders them from it
-  (nearest_mode); a gap suspends latent frames until the next APS frame;
-- with deblur_thread, each APS frame after the first is deblurred on a helper thread while a copy keeps the latent
-  frames coming (deblur_handover); the helper sends its frame itself. The thread waits on the ring's condition.
+- "nearest" renders latent times past the midpoint from the next APS frame (nearest_mode); a gap pauses them;
+- deblur_thread: APS frames deblurred on a helper thread that sends them, a copy streams meanwhile (deblur_handover).
 """
 
 from __future__ import annotations
@@ -133,8 +131,7 @@ class EdiWorker:
                                self._quiet.wake(self.ring, self._scene.quiet, self._gate.held_through))
             if not self._abort.is_set():
                 self._adopt(wait=True)  # a deblur still pending, if any
-                for rec in held_frames.render_rest(self.rec, self.ring, self._nearest, self._ref_f_us):
-                    self._emit(rec)  # the latent times that nearest and fused mode still held back
+                self._release_held()
                 if self.quality is not None:
                     self.quality.finish()
             elif self._pending is not None and self._pending.done.wait(_ABORT_DEBLUR_WAIT_S):
@@ -222,6 +219,7 @@ class EdiWorker:
                 self._stream(chunk, lo, end)
             if k < hi and self._still.heartbeat_due(int(t[k])):
                 self.heartbeats += 1
+                self._release_held()
                 self._emit(self.rec.render())
             lo = end
 
@@ -272,6 +270,7 @@ class EdiWorker:
         if self.config.mode != "causal" and self._nearest.should_hold(t_us, self._ref_f_us):
             self._nearest.held.append((t_us, arrival_ns))
             return
+        self._release_held()  # past the hold's cap
         self._emit(self.rec.render())
 
     def _on_frame(self, entry: FrameEntry) -> None:
@@ -305,8 +304,7 @@ class EdiWorker:
             self.rec = self._pending.streamer  # streams from the previous reference; its calls are replayed later
             self.busy_s += time.perf_counter() - t0
             return
-        early = self._nearest.take_before((self._ref_f_us + f_us) // 2 if self._ref_f_us is not None else None)
-        out = [self._render_at(t, a) for t, a in early]  # still from the previous reference
+        out = held_frames.before_new_reference(self.rec, self.ring, self._nearest, self._ref_f_us, f_us)
         first = not self.rec.has_reference
         t_deblur = time.perf_counter()
         deblurred = self.rec.on_frame(frame, events, arrival)
@@ -314,11 +312,8 @@ class EdiWorker:
         self._nearest.new_reference(self._ref_f_us, f_us)
         self._ref_f_us = f_us
         self._await_reference = False
-        if self.config.mode == "fused":
-            out.extend(held_frames.render_fused(self.rec, self.ring, self._nearest, self._ref_f_us, frame))
-        else:
-            late = self._nearest.take_all()
-            out.extend(self._render_at(t, a) for t, a in late)  # from the new, nearer reference
+        out += held_frames.after_new_reference(self.rec, self.ring, self._nearest, f_us, frame,
+                                               self.config.mode == "fused")
         if first or out or self._still.moving(len(events), self._since, self._scene):
             out.append(deblurred)
         else:
@@ -359,16 +354,19 @@ class EdiWorker:
         else:
             self.skipped_static += 1
 
-    def _render_at(self, t_us: int, arrival_ns: int) -> Reconstruction:
-        return held_frames.render_held(self.rec, self.ring, self._nearest, self._ref_f_us, t_us, arrival_ns)
-
     def _heartbeat(self) -> None:
         """The host-clock heartbeat, for when no event came for heartbeat_s (no sensor time passes to make one)."""
         if not self.rec.has_reference or self._await_reference:
             return
         if time.monotonic() - max(self._last_emit_s, self._last_read_s) >= self.config.heartbeat_s:
             self.heartbeats += 1
+            self._release_held()
             self._emit(self.rec.render())
+
+    def _release_held(self) -> None:
+        """Held latent times (nearest, fused) from the current reference, before any later frame and at the end."""
+        for rec in held_frames.render_rest(self.rec, self.ring, self._nearest, self._ref_f_us):
+            self._emit(rec)
 
     def _emit(self, rec: Reconstruction) -> None:
         self._since = 0

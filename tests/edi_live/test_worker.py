@@ -399,6 +399,31 @@ def test_nearest_mode_references_each_latent_frame_to_the_nearer_aps_frame():
     assert worker.stats()["nearest_added_latency_ms_p50"] is not None
 
 
+@pytest.mark.parametrize("mode", ["nearest", "fused"])
+def test_held_latent_frames_go_out_before_a_later_frame_when_the_aps_frames_stop(mode):
+    """The APS frames stop while events keep coming: the latent times held for the next APS frame go out, from the
+    last reference, before the heartbeat that a second without a frame sent brings (it came first, out of order)."""
+    ev = events_at(np.arange(0, 1_600_000, 50))
+    frames = [aps(k * 20_000, k * 20_000 + 2_000) for k in range(3)]  # then none for 1.5 s
+    worker, rec, out, errors = run_worker(packets_by_frame(ev, frames), EdiConfig(every=400, mode=mode))
+    assert not errors
+    assert worker.heartbeats >= 1
+    assert all(a.t_us <= b.t_us for a, b in zip(out, out[1:])), "frames in time order"
+    assert len([r for r in out if r.kind == "latent"]) >= len(ev) // 400 - 5  # none lost
+
+
+def test_nearest_mode_sends_what_it_holds_before_a_frame_it_can_no_longer_hold(monkeypatch):
+    """Past the hold's cap a latent frame goes out at once from the older reference; the held ones go first."""
+    from edi_live import nearest_mode
+
+    monkeypatch.setattr(nearest_mode, "_MAX_HELD", 8)
+    ev = events_at(np.arange(0, 200_000, 5))
+    frames = [aps(k * 20_000, k * 20_000 + 2_000) for k in range(3)]  # then none for 150 ms: 150 latent times
+    worker, rec, out, errors = run_worker(packets_by_frame(ev, frames), EdiConfig(every=400, mode="nearest"))
+    assert not errors
+    assert all(a.t_us <= b.t_us for a, b in zip(out, out[1:])), "frames in time order"
+
+
 def test_causal_mode_uses_the_latest_frame():
     ev = events_at(np.arange(0, 60_000, 5))
     frames = [aps(k * 20_000, k * 20_000 + 2_000) for k in range(3)]

@@ -341,7 +341,8 @@ class EdiWorker:
         t0 = time.perf_counter()
         self.rec = pending.adopt()  # raises the helper thread's error, if any
         self._deblur_ms.append(pending.deblur_ms)
-        self._ref_f_us = pending.entry.frame.mid_exposure_us
+        self._ref_f_us = (pending.result.t_us if pending.result is not None  # f in the event clock, as _deblur has it
+                          else pending.entry.frame.mid_exposure_us + self.rec.clock_offset_us)
         self._await_reference |= pending.gap  # the catch-up spans lost data: wait for the next APS frame
         self.busy_s += time.perf_counter() - t0
         if pending.claim_result():  # not counted yet: the deblur ended just now

@@ -65,6 +65,7 @@ class EdiWorker:
         reconstructor.follow_latent = config.mode != "fused"  # fused frames come from both references
         self.sinks = list(sinks)
         self._sinks_lock = threading.Lock()  # the deblur thread hands its frames to the sinks itself
+        self._sinks_open = True
         self.name = name
         self._on_error = on_error
         self._thread: threading.Thread | None = None
@@ -142,6 +143,8 @@ class EdiWorker:
             if self._on_error is not None:
                 self._on_error(exc)
         finally:
+            with self._sinks_lock:
+                self._sinks_open = False  # the node closes the sinks next: a deblur still running sends nothing
             self._helper.close()
             self.cpu_s = time.thread_time() - cpu0
             self.done.set()
@@ -341,8 +344,7 @@ class EdiWorker:
         t0 = time.perf_counter()
         self.rec = pending.adopt()  # raises the helper thread's error, if any
         self._deblur_ms.append(pending.deblur_ms)
-        self._ref_f_us = (pending.result.t_us if pending.result is not None  # f in the event clock, as _deblur has it
-                          else pending.entry.frame.mid_exposure_us + self.rec.clock_offset_us)
+        self._ref_f_us = pending.result.t_us if pending.result is not None else self._ref_f_us  # f, event clock
         self._await_reference |= pending.gap  # the catch-up spans lost data: wait for the next APS frame
         self.busy_s += time.perf_counter() - t0
         if pending.claim_result():  # not counted yet: the deblur ended just now
@@ -377,7 +379,7 @@ class EdiWorker:
     def _to_sinks(self, rec: Reconstruction) -> None:
         """Also the helper thread's, with its frame the moment it is ready (a hop to this thread cost ~0.5 ms)."""
         with self._sinks_lock:
-            for sink in self.sinks:
+            for sink in self.sinks if self._sinks_open else ():
                 sink(rec)
 
     def _count_emitted(self, rec: Reconstruction) -> None:

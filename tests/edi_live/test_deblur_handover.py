@@ -15,7 +15,7 @@ import pytest
 import edi_live.deblur_handover as deblur_handover
 import edi_live.worker as worker_module
 from edi_live.config import EdiConfig
-from edi_live.datatypes import Packet
+from edi_live.datatypes import Packet, Reconstruction
 from edi_live.reconstructor import EdiReconstructor
 from edi_live.ring import EventRing
 from edi_live.simulation import simulate
@@ -167,6 +167,39 @@ def test_an_abort_while_the_deblur_still_runs_saves_no_noise_rates(flicker_packe
         assert worker.noise_rates() is None, "the copy's view of the original's statistics, mid-update"
     finally:
         release.set()
+
+
+def test_a_deblur_that_ends_after_the_worker_was_aborted_sends_nothing(flicker_packets, monkeypatch):
+    """Aborted while the helper thread still deblurs (longer than the worker waits for it), the worker ends and the
+    node closes its sinks: the helper's frame, ready later, must not reach them (a closed file or socket)."""
+    monkeypatch.setattr(worker_module, "_ABORT_DEBLUR_WAIT_S", 0.0)
+    ring = IdleRing(capacity_events=1 << 22, capacity_frames=64, policy="wait")
+    frames = [i for i, p in enumerate(flicker_packets) if p.frames]
+    for p in flicker_packets[:frames[2] + 3]:
+        assert ring.push(p, timeout_s=5)
+    ring.close()
+    in_deblur, release = threading.Event(), threading.Event()
+
+    class SlowDeblur(EdiReconstructor):
+        def on_frame(self, frame, events, arrival_ns=0, ready=None):
+            if self.frames == 2 and ready is not None:
+                in_deblur.set()
+                assert release.wait(30)
+            return super().on_frame(frame, events, arrival_ns, ready=ready)
+
+    worker: EdiWorker
+    late: list[Reconstruction] = []
+    worker = EdiWorker(ring, SlowDeblur(W, H), EdiConfig(every=200, deblur_thread=True, quality_every=0),
+                       [lambda r: late.append(r) if worker.done.is_set() else None])
+    worker.start()
+    assert in_deblur.wait(30) and ring.idle.wait(30)
+    pending = worker._pending
+    worker.abort()
+    assert worker.done.wait(30) and worker.error is None, worker.error
+    release.set()
+    assert pending is not None and pending.done.wait(30)
+    assert pending.result is not None, "the deblur did finish"
+    assert late == [], "a frame reached the sinks after the worker ended"
 
 
 def test_one_helper_thread_deblurs_every_frame_and_sends_each_frame_itself(flicker_packets):

@@ -46,6 +46,7 @@ class QuietReads:
         self.batched_waits = 0  # waits with a WakeWhen (stats)
         self._last: WakeWhen | None = None  # the latest quiet wait's condition
         self._restart = False  # an APS frame was taken since: the quiet step starts again
+        self._looked_at = -1  # the ring's head at the previous defer()
         self.frame_late_us: int | None = None  # the clock offset: an APS frame is not deblurred before its late events
 
     def on_aps_frame(self, frame: Frame, clock_offset_us: int = 0) -> None:
@@ -74,26 +75,38 @@ class QuietReads:
             self._rate = rate if not self._rate else 0.75 * self._rate + 0.25 * rate
         self._mark = (pushed, t_us)
         self.batched_waits += 1
-        self._last = step = self._step_from(head, t_us, pushed)
+        self._last = step = self._step_from(head, t_us, pushed, ring.max_unread)
         due_us = step.t_us
         if held_through_us is not None:  # (if the watermark is past it already but no event is, the next packet)
             due_us = min(due_us, max(held_through_us + 1, t_us + 1))
         return dataclasses.replace(step, t_us=due_us, frames=int(held_through_us is not None),
                                    frame_late_us=self.frame_late_us)
 
-    def _step_from(self, head: int, t_us: int, pushed: int) -> WakeWhen:
-        """A step of batch_us from read index `head` at watermark `t_us`; `pushed`: the ring's head then."""
+    def _step_from(self, head: int, t_us: int, pushed: int, max_unread: int) -> WakeWhen:
+        """A step of batch_us from read index `head` at watermark `t_us`; `pushed`: the ring's head then. Its count
+        stays within half of what the ring lets pile up unread: a producer waiting for room could never meet it."""
         expected = self._rate * self.batch_us
         slack = SIGMAS * math.sqrt(expected) + MARGIN
-        return WakeWhen(head=head + min(self.max_events, int(expected + slack)), t_us=t_us + self.batch_us,
-                        rate_per_us=self._rate, head0=pushed, t0_us=t_us, slack=slack)
+        count = max(1, min(self.max_events, int(expected + slack), max_unread // 2))
+        return WakeWhen(head=head + count, t_us=t_us + self.batch_us, rate_per_us=self._rate, head0=pushed,
+                        t0_us=t_us, slack=slack)
 
     def defer(self, ring: EventRing) -> bool:
         """Whether to leave the unread events for the next step: the worker was woken for an APS frame (what came
-        after the frame and its late events, ~1 ms, was a read of its own). A step starts after each APS frame:
-        else, as steps and frames fall into step, a step ending with the frame's late window read that ms."""
-        if self._restart and self._last is not None:
-            self._last = self._step_from(ring.read_index, ring.watermark_us, ring.head)
-        self._restart = False
-        last = self._last
-        return last is not None and not ring.closed and not last.met(ring.head, ring.watermark_us)
+        after the frame and its late events, ~1 ms, was a read of its own). A step starts after each APS frame,
+        unless the one under way is met (the worker was woken for it): else, as steps and frames fall into step,
+        a step ending with the frame's late window read that ms. Nothing is deferred once nothing was pushed since
+        the previous look (the wait timed out: a source that pauses without closing), nor past half of what the
+        ring lets pile up unread."""
+        last, pushed = self._last, ring.head
+        stalled, self._looked_at = pushed == self._looked_at, pushed
+        if last is None or ring.closed or stalled or ring.unread_events >= ring.max_unread // 2:
+            self._restart = False
+            return False
+        if last.met(pushed, ring.watermark_us):
+            self._restart = False
+            return False
+        if self._restart:
+            self._last = self._step_from(ring.read_index, ring.watermark_us, pushed, ring.max_unread)
+            self._restart = False
+        return True

@@ -320,7 +320,10 @@ class EventRing:
                     stop = min(stop, entry.end_index)
                     break
             if through_t_us is not None and stop > start:
-                stop = min(stop, self._store.search(start, stop, through_t_us + 1) + 1)
+                # the first queued frame's own events are read however late it was queued (a live camera sends a
+                # frame after its readout, behind events later than its late window: one event per read then)
+                floor = self._frames[0].end_index if self._frames else start
+                stop = min(stop, max(floor, self._store.search(start, stop, through_t_us + 1) + 1))
             n = max(0, min(max_n, stop - start))
             if n == 0:
                 return EventChunk(empty_events(), start, [], [], False)

@@ -128,3 +128,84 @@ def test_the_wake_count_follows_the_noise_rate_and_an_active_scene_is_not_batche
     assert small.wake(ring, quiet=True).head - ring.head <= 10  # never past a latent frame
     ring.push(Packet(events=ev[:5], watermark_us=300_000))  # pushed after the worker's last read: they count
     assert small.wake(ring, quiet=True).head == ring.read_index + 10 == ring.head + 5
+
+
+def _still_scene_through_a_small_ring(policy: str) -> tuple[EventRing, object, int, bool]:
+    from edi_live.config import EdiConfig
+    from edi_live.worker import EdiWorker
+    from tools.bench_stream import default_reconstructor, scene_packets
+
+    events, frames, _ = noisy_scene(1.5)
+    ring = EventRing(capacity_events=1024, capacity_frames=16, policy=policy)  # the smallest --ring-events
+    worker = EdiWorker(ring, default_reconstructor(240, 180, EdiConfig(clock_offset_us=0)), EdiConfig(heartbeat_s=3600))
+    worker.start()
+    pushed_all = True
+    try:
+        for p in scene_packets(events, frames):
+            if not ring.push(p, timeout_s=10):  # a bound, not a synchronisation: the producer gave up
+                pushed_all = False
+                break
+            if policy == "drop_oldest":
+                assert ring.wait_consumer_idle(10)  # live pace: the next packet once the worker is idle
+    finally:
+        ring.close()
+        worker.done.wait(30)
+    return ring, worker, len(events), pushed_all
+
+
+def test_a_replay_of_a_still_scene_through_the_smallest_ring_does_not_stall():
+    """A quiet step of more events than the ring lets pile up unread never came: the producer waited for room,
+    the worker for the step (a hang at --ring-events 1024)."""
+    ring, worker, n, pushed_all = _still_scene_through_a_small_ring("wait")
+    assert pushed_all and worker.events_in == n
+
+
+def test_a_live_still_scene_through_the_smallest_ring_loses_no_events():
+    ring, worker, n, _ = _still_scene_through_a_small_ring("drop_oldest")
+    assert ring.dropped_events == 0 and worker.events_in == n
+
+
+def test_a_quiet_step_the_worker_was_woken_for_is_read_even_after_an_aps_frame():
+    """The worker takes an APS frame with nothing unread after it, waits with the quiet step and is woken once the
+    step is met: defer() must not start another step and send it back to sleep (an onset's wake was lost)."""
+    rng = np.random.default_rng(0)
+    ring = EventRing(capacity_events=1 << 16, policy="wait")
+    quiet = QuietReads(every=1000)
+    t = 0
+    for _ in range(3):  # a known noise rate: 20 events per 1 ms packet
+        ring.push(Packet(events=_noise(np.linspace(t, t + 999, 20).astype(np.int64), rng), watermark_us=t + 999))
+        ring.read_events(1 << 16)
+        quiet.wake(ring, quiet=True)
+        t += 1000
+    quiet.on_aps_frame(Frame(np.zeros((4, 4), np.uint8), 0, t))  # taken; nothing unread after it
+    wake = quiet.wake(ring, quiet=True)
+    while not wake.met(ring.head, ring.watermark_us):  # noise until the step is over (the ring would wake it)
+        ring.push(Packet(events=_noise(np.linspace(t, t + 999, 20).astype(np.int64), rng), watermark_us=t + 999))
+        t += 1000
+    assert not quiet.defer(ring), "woken for a step that is met, the worker went back to sleep"
+
+
+def test_a_source_that_pauses_leaves_no_quiet_events_unread():
+    """A live camera that stops sending without closing: the quiet step is never met, but the events that came
+    are read once a wait passed without a push (they stayed unread until the next push)."""
+    rng = np.random.default_rng(1)
+    ring = EventRing(capacity_events=1 << 16, policy="wait")
+    quiet = QuietReads(every=1000)
+    t = 0
+    for _ in range(4):
+        ring.push(Packet(events=_noise(np.linspace(t, t + 999, 20).astype(np.int64), rng), watermark_us=t + 999))
+        ring.read_events(1 << 16)
+        quiet.wake(ring, quiet=True)
+        t += 1000
+    ring.push(Packet(events=_noise(np.linspace(t, t + 999, 20).astype(np.int64), rng), watermark_us=t + 999))
+    assert quiet.defer(ring), "a step under way: the new packet waits for it"
+    assert not quiet.defer(ring), "nothing came since the last look (a wait timed out): read what is there"
+
+
+def _noise(t_us: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    ev = np.zeros(len(t_us), EVENT_DTYPE)
+    ev["t"] = t_us
+    ev["x"] = rng.integers(0, 240, len(t_us))
+    ev["y"] = rng.integers(0, 180, len(t_us))
+    ev["p"] = rng.integers(0, 2, len(t_us)).astype(bool)
+    return ev

@@ -407,3 +407,18 @@ def test_packed_event_arrays_are_accepted(rng):
     ring = EventRing(capacity_events=64, policy="wait")
     ring.push(Packet(events=packed))
     np.testing.assert_array_equal(drain(ring), ev)
+
+
+def test_a_read_through_a_late_window_reaches_a_frame_queued_after_it_in_one_read():
+    """An APS frame queued after events later than its late window (a live DAVIS sends it after the readout):
+    reading through the window must still take the frame's events in one read, not one event per read."""
+    rng = np.random.default_rng(0)
+    ring = EventRing(capacity_events=1 << 12, policy="wait")
+    ring.push(Packet(events=make_events(np.arange(0, 100), rng), watermark_us=99))
+    ring.push(Packet(frames=[frame(0, 20)], watermark_us=100))  # queued at index 100, its exposure ended at 20
+    entry = ring.peek_frame()
+    reads = 0
+    while ring.read_index < entry.end_index:  # the worker's quiet path with a 10 µs clock offset
+        ring.read_events(1 << 16, None, entry.frame.exposure_end_us + 10)
+        reads += 1
+    assert reads == 1, f"{reads} reads to reach the frame"

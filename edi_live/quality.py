@@ -151,7 +151,7 @@ def to_8bit_scale(image: np.ndarray, saturation: float | None = None) -> tuple[n
     return b, valid
 
 
-_UNMARKED_MAX = 256  # reads held unmarked at most (no APS frame nor frame sent for that long)
+_UNMARKED_MAX = 1 << 18  # events held unmarked at most, 4 MB (no APS frame nor frame sent for that long)
 
 
 class PredictionScore:
@@ -197,6 +197,7 @@ class PredictionScore:
         self._events_map: np.ndarray | None = None  # flat bool: pixels with events since the last APS frame
         self._events_fed = self._marked = False
         self._unmarked: list[np.ndarray] = []  # not marked yet: nothing sent, the next APS frame may not be scored
+        self._unmarked_n = 0  # events in them
         self._last_ref = self._last_t = self._t_max = -(2**63)
         self._pruned_at = 0
 
@@ -206,14 +207,15 @@ class PredictionScore:
             return
         self._events_fed = True
         self._unmarked.append(events)  # (a still scene's reads then mark nothing: ~20 us each, mostly cache misses)
-        if self._sent_since_aps or len(self._unmarked) > _UNMARKED_MAX:
+        self._unmarked_n += len(events)
+        if self._sent_since_aps or self._unmarked_n > _UNMARKED_MAX:
             self._mark_unmarked()
 
     def _mark_unmarked(self) -> None:
         h, w = self._shape[:2]
         for events in self._unmarked:  # off-sensor events: ignored, not marked elsewhere
             edi.mark_event_pixels(events, w, h, self._events_map)
-        self._unmarked, self._marked = [], True
+        self._unmarked, self._unmarked_n, self._marked = [], 0, True
 
     def on_aps_frame(self, frame: Frame) -> list[PredictionResult]:
         """An APS frame taken by the worker. Returns the results this completes (earlier frames' scores)."""
@@ -248,7 +250,7 @@ class PredictionScore:
         if self._marked or self._events_map is None:
             self._events_map = np.zeros(shape[0] * shape[1], bool)
         self._events_fed = self._marked = self._sent_since_aps = False
-        self._unmarked = []
+        self._unmarked, self._unmarked_n = [], 0
         self._prev_image, self._prev_end, self._prev_mid = image, frame.exposure_end_us, mid
         self._exposures.append(frame.exposure_us)
         out.extend(self._complete(self._last_ref, self._last_t))  # the node may already have moved past it

@@ -187,6 +187,23 @@ def test_a_still_scene_marks_no_pixels_and_events_before_the_frame_sent_still_co
     assert r.psnr_pred_active_db == PSNR_CAP_DB
 
 
+def test_events_held_unmarked_stay_within_a_few_megabytes_while_nothing_is_sent():
+    """APS frames stop while events flow and no frame is sent: the reads kept for marking are bounded by their
+    events (256 reads of 64k events each were ~270 MB), and what they mark is the same."""
+    from edi_live import quality
+
+    s = PredictionScore()
+    s.on_aps_frame(aps(np.full((2, 3), 100), 0, 100))
+    big = np.repeat(events_at([(0, 0)], 200), 1 << 16)
+    for _ in range(40):
+        s.on_events(big)
+        assert sum(len(e) for e in s._unmarked) <= quality._UNMARKED_MAX
+    s.on_events(events_at([(1, 2)], 300))
+    s.on_emitted(rec(np.full((2, 3), 100), 400, 50))
+    s.on_events(events_at([(1, 0)], 500))  # a frame was sent: marked as they come, with what was held
+    assert s._events_map.reshape(2, 3).tolist() == [[True, False, False], [True, False, True]]
+
+
 def test_order_of_frame_and_own_deblurred_frame_does_not_matter():
     def run(aps_first):
         s = PredictionScore()

@@ -18,6 +18,7 @@ from edi_live.datatypes import EVENT_DTYPE, Frame, Packet
 from edi_live.quiet_reads import MAX_BATCH_US, MIN_BATCH_US, QuietReads
 from edi_live.ring import EventChunk, EventRing
 from edi_live.ring_wake import WakeWhen
+from tests.helpers.recordings import events_at_random_pixels
 from tools.bench_stream import noisy_scene, onset_delay_us
 
 
@@ -88,7 +89,7 @@ def test_a_large_every_does_not_delay_the_onset():
     assert onset_delay_us(seed_shift=3, every=20_000) < MAX_BATCH_US
 
 
-def _ring_with_noise(rate_per_ms: int, ms: int) -> EventRing:
+def _ring_withevents_at_random_pixels(rate_per_ms: int, ms: int) -> EventRing:
     ring = EventRing(capacity_events=1 << 16, policy="wait")
     for k in range(ms):
         ev = np.zeros(rate_per_ms, EVENT_DTYPE)
@@ -109,7 +110,7 @@ def test_the_quiet_step_is_half_the_aps_period_within_bounds():
 
 
 def test_the_wake_count_follows_the_noise_rate_and_an_active_scene_is_not_batched():
-    ring = _ring_with_noise(rate_per_ms=20, ms=100)
+    ring = _ring_withevents_at_random_pixels(rate_per_ms=20, ms=100)
     quiet = QuietReads(every=1000)
     assert quiet.wake(ring, quiet=False) is None
     first = quiet.wake(ring, quiet=True)
@@ -173,14 +174,14 @@ def test_a_quiet_step_the_worker_was_woken_for_is_read_even_after_an_aps_frame()
     quiet = QuietReads(every=1000)
     t = 0
     for _ in range(3):  # a known noise rate: 20 events per 1 ms packet
-        ring.push(Packet(events=_noise(np.linspace(t, t + 999, 20).astype(np.int64), rng), watermark_us=t + 999))
+        ring.push(Packet(events=events_at_random_pixels(np.linspace(t, t + 999, 20).astype(np.int64), rng), watermark_us=t + 999))
         ring.read_events(1 << 16)
         quiet.wake(ring, quiet=True)
         t += 1000
     quiet.on_aps_frame(Frame(np.zeros((4, 4), np.uint8), 0, t))  # taken; nothing unread after it
     wake = quiet.wake(ring, quiet=True)
     while not wake.met(ring.head, ring.watermark_us):  # noise until the step is over (the ring would wake it)
-        ring.push(Packet(events=_noise(np.linspace(t, t + 999, 20).astype(np.int64), rng), watermark_us=t + 999))
+        ring.push(Packet(events=events_at_random_pixels(np.linspace(t, t + 999, 20).astype(np.int64), rng), watermark_us=t + 999))
         t += 1000
     assert not quiet.defer(ring), "woken for a step that is met, the worker went back to sleep"
 
@@ -193,19 +194,10 @@ def test_a_source_that_pauses_leaves_no_quiet_events_unread():
     quiet = QuietReads(every=1000)
     t = 0
     for _ in range(4):
-        ring.push(Packet(events=_noise(np.linspace(t, t + 999, 20).astype(np.int64), rng), watermark_us=t + 999))
+        ring.push(Packet(events=events_at_random_pixels(np.linspace(t, t + 999, 20).astype(np.int64), rng), watermark_us=t + 999))
         ring.read_events(1 << 16)
         quiet.wake(ring, quiet=True)
         t += 1000
-    ring.push(Packet(events=_noise(np.linspace(t, t + 999, 20).astype(np.int64), rng), watermark_us=t + 999))
+    ring.push(Packet(events=events_at_random_pixels(np.linspace(t, t + 999, 20).astype(np.int64), rng), watermark_us=t + 999))
     assert quiet.defer(ring), "a step under way: the new packet waits for it"
     assert not quiet.defer(ring), "nothing came since the last look (a wait timed out): read what is there"
-
-
-def _noise(t_us: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    ev = np.zeros(len(t_us), EVENT_DTYPE)
-    ev["t"] = t_us
-    ev["x"] = rng.integers(0, 240, len(t_us))
-    ev["y"] = rng.integers(0, 180, len(t_us))
-    ev["p"] = rng.integers(0, 2, len(t_us)).astype(bool)
-    return ev

@@ -13,15 +13,9 @@ import pytest
 from edi_live.datatypes import EVENT_DTYPE, Frame, Packet
 from edi_live.ring import EventRing
 from edi_live.ring_wake import WakeWhen
+from tests.helpers.recordings import events_at_random_pixels
 
 
-def make_events(t_us: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    ev = np.zeros(len(t_us), EVENT_DTYPE)
-    ev["t"] = t_us
-    ev["x"] = rng.integers(0, 240, len(t_us))
-    ev["y"] = rng.integers(0, 180, len(t_us))
-    ev["p"] = rng.integers(0, 2, len(t_us)).astype(bool)
-    return ev
 
 
 def concat(parts: list[np.ndarray]) -> np.ndarray:
@@ -48,7 +42,7 @@ def drain(ring: EventRing, max_n: int = 1000) -> np.ndarray:
 def test_reads_return_exactly_what_was_pushed_across_wraparound(rng):
     ring = EventRing(capacity_events=64, policy="wait")
     t = np.cumsum(rng.integers(0, 5, 1000))
-    ev = make_events(t, rng)
+    ev = events_at_random_pixels(t, rng)
     got = []
     for start in range(0, 1000, 20):  # 20 per push, read in odd sizes: crosses the wrap many times
         assert ring.push(Packet(events=ev[start:start + 20]), timeout_s=1.0)
@@ -63,7 +57,7 @@ def test_reads_return_exactly_what_was_pushed_across_wraparound(rng):
 def test_a_read_through_a_time_stops_at_the_first_later_event_across_wraparound(rng):
     ring = EventRing(capacity_events=64, policy="wait")
     t = np.cumsum(rng.integers(0, 3, 600))  # repeated times: the stop is after the first event later than the bound
-    ev = make_events(t, rng)
+    ev = events_at_random_pixels(t, rng)
     got = []
     for start in range(0, 600, 30):  # 30 per push into 64 slots: the reads cross the wrap many times
         assert ring.push(Packet(events=ev[start:start + 30]), timeout_s=1.0)
@@ -78,12 +72,12 @@ def test_a_read_through_a_time_stops_at_the_first_later_event_across_wraparound(
 
 def test_read_is_a_copy_not_a_view(rng):
     ring = EventRing(capacity_events=32, policy="drop_oldest")
-    ev = make_events(np.arange(16), rng)
+    ev = events_at_random_pixels(np.arange(16), rng)
     ring.push(Packet(events=ev))
     chunk = ring.read_events(16)
     before = chunk.events.copy()
     for k in range(10):  # overwrite every slot several times
-        ring.push(Packet(events=make_events(np.arange(16) + 100 * (k + 1), rng)))
+        ring.push(Packet(events=events_at_random_pixels(np.arange(16) + 100 * (k + 1), rng)))
     np.testing.assert_array_equal(chunk.events, before)
 
 
@@ -91,7 +85,7 @@ def test_read_is_a_copy_not_a_view(rng):
 def test_window_matches_brute_force_mask_after_wrap(rng, t0, t1):
     ring = EventRing(capacity_events=512, policy="wait")
     t = np.sort(rng.integers(0, 1000, 2000))
-    ev = make_events(t, rng)
+    ev = events_at_random_pixels(t, rng)
     for start in range(0, 2000, 100):
         ring.push(Packet(events=ev[start:start + 100]), timeout_s=1.0)
         drain(ring, 37)
@@ -102,7 +96,7 @@ def test_window_matches_brute_force_mask_after_wrap(rng, t0, t1):
 
 def test_window_stops_at_the_read_cursor(rng):
     ring = EventRing(capacity_events=256, policy="wait")
-    ev = make_events(np.arange(100), rng)
+    ev = events_at_random_pixels(np.arange(100), rng)
     ring.push(Packet(events=ev))
     ring.read_events(40)
     np.testing.assert_array_equal(ring.window(0, 1000), ev[:40])
@@ -111,7 +105,7 @@ def test_window_stops_at_the_read_cursor(rng):
 
 def test_frame_end_index_is_just_past_its_exposure(rng):
     ring = EventRing(capacity_events=256, policy="wait")
-    ev = make_events(np.arange(0, 100, 2), rng)  # t = 0, 2, ..., 98
+    ev = events_at_random_pixels(np.arange(0, 100, 2), rng)  # t = 0, 2, ..., 98
     f = frame(10, 41)
     ring.push(Packet(events=ev, frames=[f]))
     entry = ring.peek_frame()
@@ -130,10 +124,10 @@ def test_a_frame_queued_at_the_read_cursor_after_the_consumers_look_stops_its_ne
     # queued exactly at the cursor. The next read must not take the events past it, or the frame would be
     # deblurred after them in this run and before them in a run where the frame came before the look.
     ring = EventRing(capacity_events=256, policy="wait")
-    ring.push(Packet(events=make_events(np.arange(0, 50), rng)))
+    ring.push(Packet(events=events_at_random_pixels(np.arange(0, 50), rng)))
     assert len(ring.read_events(1000).events) == 50
     assert ring.peek_frame() is None  # the worker's look: nothing queued
-    ring.push(Packet(events=make_events(np.arange(60, 100), rng), frames=[frame(10, 55)]))
+    ring.push(Packet(events=events_at_random_pixels(np.arange(60, 100), rng), frames=[frame(10, 55)]))
     assert ring.peek_frame().end_index == ring.read_index == 50
     assert len(ring.read_events(1000).events) == 0, "no event past a queued frame's exposure end"
     ring.pop_frame()
@@ -143,7 +137,7 @@ def test_a_frame_queued_at_the_read_cursor_after_the_consumers_look_stops_its_ne
 def test_a_read_through_the_late_window_of_a_frame_at_the_cursor_goes_on(rng):
     # the worker's read for a frame it holds (its late window in the event clock) is not stopped by that frame
     ring = EventRing(capacity_events=256, policy="wait")
-    ring.push(Packet(events=make_events(np.arange(0, 100), rng), frames=[frame(10, 49)]))
+    ring.push(Packet(events=events_at_random_pixels(np.arange(0, 100), rng), frames=[frame(10, 49)]))
     entry = ring.peek_frame()
     ring.read_events(1000, entry.end_index)
     assert ring.read_index == entry.end_index
@@ -152,7 +146,7 @@ def test_a_read_through_the_late_window_of_a_frame_at_the_cursor_goes_on(rng):
 
 def test_drop_oldest_never_blocks_and_counts_every_dropped_event(rng):
     ring = EventRing(capacity_events=100, policy="drop_oldest")  # at most 50 unread
-    ev = make_events(np.arange(1000), rng)
+    ev = events_at_random_pixels(np.arange(1000), rng)
     for start in range(0, 1000, 30):
         assert ring.push(Packet(events=ev[start:start + 30]), timeout_s=0)  # never waits, even with timeout 0
     got = drain(ring)
@@ -163,10 +157,10 @@ def test_drop_oldest_never_blocks_and_counts_every_dropped_event(rng):
 
 def test_drop_oldest_marks_the_gap_on_the_next_read(rng):
     ring = EventRing(capacity_events=100, policy="drop_oldest")
-    ring.push(Packet(events=make_events(np.arange(40), rng)))
+    ring.push(Packet(events=events_at_random_pixels(np.arange(40), rng)))
     first = ring.read_events(10)
     assert not first.gap
-    ring.push(Packet(events=make_events(np.arange(40, 80), rng)))  # 30 + 40 unread > 50: 20 dropped
+    ring.push(Packet(events=events_at_random_pixels(np.arange(40, 80), rng)))  # 30 + 40 unread > 50: 20 dropped
     chunk = ring.read_events(100)
     assert chunk.gap
     assert ring.dropped_events == 20
@@ -175,7 +169,7 @@ def test_drop_oldest_marks_the_gap_on_the_next_read(rng):
 
 def test_oversized_burst_keeps_its_newest_part(rng):
     ring = EventRing(capacity_events=100, policy="drop_oldest")
-    ev = make_events(np.arange(500), rng)
+    ev = events_at_random_pixels(np.arange(500), rng)
     ring.push(Packet(events=ev))
     got = drain(ring)
     np.testing.assert_array_equal(got, ev[-50:])
@@ -184,8 +178,8 @@ def test_oversized_burst_keeps_its_newest_part(rng):
 
 def test_packet_gap_flag_reaches_the_consumer(rng):
     ring = EventRing(capacity_events=100, policy="wait")
-    ring.push(Packet(events=make_events(np.arange(5), rng)))
-    ring.push(Packet(events=make_events(np.arange(5, 10), rng), gap=True))
+    ring.push(Packet(events=events_at_random_pixels(np.arange(5), rng)))
+    ring.push(Packet(events=events_at_random_pixels(np.arange(5, 10), rng), gap=True))
     assert not ring.read_events(5).gap
     assert ring.read_events(5).gap
 
@@ -202,7 +196,7 @@ def test_frame_queue_drop_oldest_counts(rng):
 
 def test_wait_policy_times_out_when_full_and_resumes_after_a_read(rng):
     ring = EventRing(capacity_events=100, policy="wait")
-    ev = make_events(np.arange(80), rng)
+    ev = events_at_random_pixels(np.arange(80), rng)
     assert ring.push(Packet(events=ev[:50]), timeout_s=0.5)
     assert not ring.push(Packet(events=ev[50:60]), timeout_s=0.05)  # full: times out
     assert ring.dropped_events == 0
@@ -222,10 +216,10 @@ def test_wait_policy_frame_queue_times_out(rng):
 
 def test_close_releases_a_waiting_producer_and_ends_the_consumer(rng):
     ring = EventRing(capacity_events=100, policy="wait")
-    ring.push(Packet(events=make_events(np.arange(50), rng)))
+    ring.push(Packet(events=events_at_random_pixels(np.arange(50), rng)))
     result = {}
     producer = threading.Thread(target=lambda: result.setdefault("ok", ring.push(
-        Packet(events=make_events(np.arange(50, 60), rng)), timeout_s=5)))
+        Packet(events=events_at_random_pixels(np.arange(50, 60), rng)), timeout_s=5)))
     producer.start()
     ring.close()
     producer.join(timeout=2)
@@ -240,7 +234,7 @@ def test_wait_returns_on_new_data_and_times_out_otherwise(rng):
     ring = EventRing(capacity_events=100, policy="wait")
     v = ring.version
     assert not ring.wait(v, timeout_s=0.02)
-    ring.push(Packet(events=make_events(np.arange(3), rng)))
+    ring.push(Packet(events=events_at_random_pixels(np.arange(3), rng)))
     assert ring.wait(v, timeout_s=0.02)
 
 
@@ -265,11 +259,11 @@ def test_a_consumer_waiting_with_a_wake_condition_sleeps_through_pushes_that_do_
     ring = EventRing(capacity_events=1 << 12, policy="wait")
     consumer = WaitingConsumer(ring, WakeWhen(head=100, t_us=10_000))
     for k in range(9):  # 90 events up to t = 899 µs: below both thresholds
-        ring.push(Packet(events=make_events(np.arange(100 * k, 100 * k + 10), rng), watermark_us=100 * k + 99))
+        ring.push(Packet(events=events_at_random_pixels(np.arange(100 * k, 100 * k + 10), rng), watermark_us=100 * k + 99))
         assert ring.wait_consumer_idle(10), "still waiting (the condition is not met)"
         assert consumer.woke_at is None
-    last = {"events": Packet(events=make_events(np.arange(900, 910), rng)),
-            "sensor time": Packet(events=make_events(np.array([10_000]), rng)),
+    last = {"events": Packet(events=events_at_random_pixels(np.arange(900, 910), rng)),
+            "sensor time": Packet(events=events_at_random_pixels(np.array([10_000]), rng)),
             "aps frame": Packet(frames=[frame(900, 950)], watermark_us=950)}.get(wake_by)
     ring.push(last) if last is not None else ring.close()
     consumer.thread.join(10)
@@ -281,10 +275,10 @@ def test_a_frame_the_consumer_has_seen_does_not_wake_it_again_but_a_new_one_does
     # The worker holds an APS frame until its late events are in: while it waits for them with `frames=1`, pushes
     # that meet nothing else leave it asleep (before, the queued frame made every push wake it)
     ring = EventRing(capacity_events=1 << 12, policy="wait")
-    ring.push(Packet(events=make_events(np.arange(0, 10), rng), frames=[frame(0, 5)], watermark_us=99))
+    ring.push(Packet(events=events_at_random_pixels(np.arange(0, 10), rng), frames=[frame(0, 5)], watermark_us=99))
     consumer = WaitingConsumer(ring, WakeWhen(head=1000, t_us=10_000, frames=1))
     for k in range(1, 5):
-        ring.push(Packet(events=make_events(np.arange(100 * k, 100 * k + 10), rng), watermark_us=100 * k + 99))
+        ring.push(Packet(events=events_at_random_pixels(np.arange(100 * k, 100 * k + 10), rng), watermark_us=100 * k + 99))
         assert ring.wait_consumer_idle(10), "still waiting (one frame queued, the one it has seen)"
         assert consumer.woke_at is None
     ring.push(Packet(frames=[frame(500, 550)], watermark_us=550))
@@ -297,13 +291,13 @@ def test_a_new_frame_with_late_events_wakes_the_consumer_once_the_watermark_is_p
     # frame's push only made a read of the events up to the frame, and another for the late window
     ring = EventRing(capacity_events=1 << 12, policy="wait")
     consumer = WaitingConsumer(ring, WakeWhen(head=1000, t_us=10_000, frame_late_us=300))
-    ring.push(Packet(events=make_events(np.arange(0, 10), rng), frames=[frame(0, 50)], watermark_us=99))
+    ring.push(Packet(events=events_at_random_pixels(np.arange(0, 10), rng), frames=[frame(0, 50)], watermark_us=99))
     for k in range(1, 4):  # the watermark reaches 350 = exposure end + 300: not past it
-        events = make_events(np.arange(100 * k, 100 * k + 10), rng)
+        events = events_at_random_pixels(np.arange(100 * k, 100 * k + 10), rng)
         ring.push(Packet(events=events, watermark_us=min(350, 100 * k + 99)))
         assert ring.wait_consumer_idle(10), "still waiting (the frame's late events are not in)"
         assert consumer.woke_at is None
-    ring.push(Packet(events=make_events(np.array([351]), rng), watermark_us=351))
+    ring.push(Packet(events=events_at_random_pixels(np.array([351]), rng), watermark_us=351))
     consumer.thread.join(10)
     assert consumer.woke_at == (41, 351)
 
@@ -311,7 +305,7 @@ def test_a_new_frame_with_late_events_wakes_the_consumer_once_the_watermark_is_p
 def test_a_read_through_a_late_window_goes_past_the_first_frame_but_not_the_next(rng):
     # the quiet worker reads the events up to its next APS frame and the frame's late window in one read
     ring = EventRing(capacity_events=256, policy="wait")
-    ring.push(Packet(events=make_events(np.arange(0, 100), rng), frames=[frame(10, 29), frame(40, 69)]))
+    ring.push(Packet(events=events_at_random_pixels(np.arange(0, 100), rng), frames=[frame(10, 29), frame(40, 69)]))
     first, second = ring._frames[0], ring._frames[1]
     assert ring.read_index < first.end_index
     np.testing.assert_array_equal(ring.read_events(1000, None, 50).events["t"], np.arange(0, 52))
@@ -323,7 +317,7 @@ def test_a_read_through_a_late_window_goes_past_the_first_frame_but_not_the_next
 def test_a_wait_with_a_condition_already_met_returns_at_once(rng):
     ring = EventRing(capacity_events=1 << 12, policy="wait")
     v = ring.version
-    ring.push(Packet(events=make_events(np.arange(50), rng)))
+    ring.push(Packet(events=events_at_random_pixels(np.arange(50), rng)))
     assert ring.wait(v, 10.0, WakeWhen(head=50, t_us=10**9))
     assert not ring.wait(ring.version, 0.01, WakeWhen(head=0, t_us=0))  # nothing new since: times out
 
@@ -348,7 +342,7 @@ def test_a_poke_between_the_consumers_look_and_its_wait_is_not_lost(rng):
 def test_arrival_time_of_the_last_included_event(rng):
     ring = EventRing(capacity_events=100, policy="wait")
     for k in range(3):
-        ring.push(Packet(events=make_events(np.arange(10 * k, 10 * k + 10), rng), arrival_ns=1000 + k))
+        ring.push(Packet(events=events_at_random_pixels(np.arange(10 * k, 10 * k + 10), rng), arrival_ns=1000 + k))
     chunk = ring.read_events(25)
     assert chunk.arrival_ns_at(10) == 1000  # event 9 came with push 0
     assert chunk.arrival_ns_at(11) == 1001
@@ -361,7 +355,7 @@ def test_stress_one_producer_one_consumer(rng, policy):
     ring = EventRing(capacity_events=4096, capacity_frames=4, policy=policy)
     n_packets, per_packet = 400, 97
     t = np.arange(n_packets * per_packet, dtype=np.int64)
-    ev = make_events(t, rng)
+    ev = events_at_random_pixels(t, rng)
     frames_in = [frame(int(k * per_packet), int(k * per_packet + 50)) for k in range(0, n_packets, 10)]
     errors = []
 
@@ -401,7 +395,7 @@ def test_stress_one_producer_one_consumer(rng, policy):
 
 def test_packed_event_arrays_are_accepted(rng):
     # np.concatenate of EVENT_DTYPE arrays yields a packed 13-byte dtype; the ring must store it correctly
-    ev = make_events(np.arange(20), rng)
+    ev = events_at_random_pixels(np.arange(20), rng)
     packed = np.concatenate([ev[:10], ev[10:]])
     assert packed.dtype.itemsize != EVENT_DTYPE.itemsize
     ring = EventRing(capacity_events=64, policy="wait")
@@ -414,7 +408,7 @@ def test_a_read_through_a_late_window_reaches_a_frame_queued_after_it_in_one_rea
     reading through the window must still take the frame's events in one read, not one event per read."""
     rng = np.random.default_rng(0)
     ring = EventRing(capacity_events=1 << 12, policy="wait")
-    ring.push(Packet(events=make_events(np.arange(0, 100), rng), watermark_us=99))
+    ring.push(Packet(events=events_at_random_pixels(np.arange(0, 100), rng), watermark_us=99))
     ring.push(Packet(frames=[frame(0, 20)], watermark_us=100))  # queued at index 100, its exposure ended at 20
     entry = ring.peek_frame()
     reads = 0

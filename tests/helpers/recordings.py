@@ -1,10 +1,22 @@
-"""Shared builders for the driver tests: random recordings as in-memory Packets (the oracle) and collectors."""
+"""Shared builders for the tests: random recordings as in-memory Packets (the oracle), random events at given times,
+collectors."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, Frame, Packet
+
+
+def events_at_random_pixels(t_us: np.ndarray, rng: np.random.Generator, width: int = 240,
+                            height: int = 180) -> np.ndarray:
+    """Events at the given times (EVENT_DTYPE), each at a random pixel with a random polarity."""
+    ev = np.zeros(len(t_us), EVENT_DTYPE)
+    ev["t"] = t_us
+    ev["x"] = rng.integers(0, width, len(t_us))
+    ev["y"] = rng.integers(0, height, len(t_us))
+    ev["p"] = rng.integers(0, 2, len(t_us)).astype(bool)
+    return ev
 
 
 def random_recording(rng: np.random.Generator, width: int, height: int, *, n_events: int = 20000,

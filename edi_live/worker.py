@@ -6,11 +6,10 @@ a deblurred frame at f follows the latent frames to its exposure end, and any ma
 deblurred it). Times are µs on the sensor clock; host times (latency, --max-fps, the heartbeat while no event
 comes) are time.monotonic. Without --max-fps and the deblur thread, the frames depend on the event stream only,
 not on how the reads cut it (a replay is repeatable). The policy, in full in docs/node.md:
-- an APS frame is deblurred once every event of its exposure (in the event clock: frame_gate) has been read;
-- then a latent frame every `every` events, at most `max_fps` per second (the skipped ones are counted);
-- frames follow activity, not noise (edi_live.activity): noise-only events move the latent image but make no
-  frame, an onset makes one at its first event; APS frames of a still scene are deblurred, and a heartbeat frame
-  sent, once per `heartbeat_s` of sensor time (still_frames);
+- an APS frame is deblurred once its exposure's events (event clock: frame_gate) are read; then a latent frame
+  every `every` events, at most `max_fps` per second;
+- noise-only events (edi_live.activity) move the latent image but make no frame, an onset makes one at its first
+  event; a still scene is deblurred, and a heartbeat sent, once per `heartbeat_s` of sensor time (still_frames);
 - "nearest" renders latent times past the midpoint from the next APS frame (nearest_mode); a gap pauses them;
 - deblur_thread: APS frames deblurred on a helper thread that sends them, a copy streams meanwhile (deblur_handover).
 """
@@ -109,10 +108,9 @@ class EdiWorker:
 
     def join(self, timeout_s: float) -> bool:
         """True if the thread ended within timeout_s."""
-        if self._thread is None:
-            return True
-        self._thread.join(timeout_s)
-        return not self._thread.is_alive()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+        return self._thread is None or not self._thread.is_alive()
 
     # ---------------------------------------------------------------- the worker thread
 
@@ -221,17 +219,14 @@ class EdiWorker:
             else:
                 self._stream(chunk, lo, end)
             if k < hi and self._still.heartbeat_due(int(t[k])):
-                self.heartbeats += 1
-                self._release_held()
-                self._emit(self.rec.render())
+                self._heartbeat_at(int(t[k]))
             lo = end
 
     def _stream(self, chunk: EventChunk, lo: int, hi: int) -> None:
         """Events [lo, hi) of an active scene: a latent frame every `every` events."""
         events, n, every = chunk.events[lo:hi], hi - lo, self.config.every
-        if self._batch_frames():
-            # up to _BATCH_FRAMES frames per reconstructor call (same frames as the loop below); the cap bounds
-            # the frames held before they are sent (a 64k-event chunk at --every 1 would be 64k images)
+        if self.config.max_fps is None and self.config.mode == "causal":  # batches: no frame is held back
+            # up to _BATCH_FRAMES frames per call (the loop's frames); a 64k-event chunk at --every 1: 64k images
             cuts = range(max(1, every - self._since), n + 1, every)
             tail = n - cuts[-1] if len(cuts) else self._since + n
             if self.demand.skip(len(cuts), self.quality):
@@ -260,10 +255,6 @@ class EdiWorker:
             if self._since >= every:
                 self._latent_due(int(part["t"][-1]), arrival)
 
-    def _batch_frames(self) -> bool:
-        """Whether latent frames can be made in batches (on_events_frames): causal, no --max-fps (none held back)."""
-        return self.config.max_fps is None and self.config.mode == "causal"
-
     def _latent_due(self, t_us: int, arrival_ns: int) -> None:
         now = time.monotonic()
         self._since = 0
@@ -272,6 +263,7 @@ class EdiWorker:
             return
         if self.config.mode != "causal" and self._nearest.should_hold(t_us, self._ref_f_us):
             self._nearest.held.append((t_us, arrival_ns))
+            self._still.emitted(t_us)  # on its way: no heartbeat for it (it would overtake the held frames)
             return
         self._release_held()  # past the hold's cap
         self._emit(self.rec.render())
@@ -359,12 +351,20 @@ class EdiWorker:
 
     def _heartbeat(self) -> None:
         """The host-clock heartbeat, for when no event came for heartbeat_s (no sensor time passes to make one)."""
-        if not self.rec.has_reference or self._await_reference:
-            return
-        if time.monotonic() - max(self._last_emit_s, self._last_read_s) >= self.config.heartbeat_s:
+        if self.rec.has_reference and not self._await_reference and \
+                time.monotonic() - max(self._last_emit_s, self._last_read_s) >= self.config.heartbeat_s:
             self.heartbeats += 1
             self._release_held()
             self._emit(self.rec.render())
+
+    def _heartbeat_at(self, t_us: int) -> None:
+        """The sensor-clock heartbeat, after the held latent times; none while an APS frame before t_us waits."""
+        entry = self.ring.peek_frame()
+        if entry is None or entry.frame.mid_exposure_us + self.rec.clock_offset_us > t_us:
+            self._release_held()
+            if self._still.heartbeat_due(t_us):
+                self.heartbeats += 1
+                self._emit(self.rec.render())
 
     def _release_held(self) -> None:
         """Held latent times (nearest, fused) from the current reference, before any later frame and at the end."""
@@ -395,6 +395,5 @@ class EdiWorker:
         return worker_stats(self)  # its own module: this one stays under 400 lines
 
     def noise_rates(self) -> NoiseRates | None:
-        """The rates to save with a calibration: None while a deblur is still pending after an abort (the streaming
-        copy shares the original's statistics, which the helper thread may be writing)."""
+        """The rates to save with a calibration; None while a deblur is pending after an abort (being written)."""
         return self.rec.noise_rates() if self._pending is None else None

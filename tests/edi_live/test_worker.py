@@ -407,9 +407,49 @@ def test_held_latent_frames_go_out_before_a_later_frame_when_the_aps_frames_stop
     frames = [aps(k * 20_000, k * 20_000 + 2_000) for k in range(3)]  # then none for 1.5 s
     worker, rec, out, errors = run_worker(packets_by_frame(ev, frames), EdiConfig(every=400, mode=mode))
     assert not errors
-    assert worker.heartbeats >= 1
     assert all(a.t_us <= b.t_us for a, b in zip(out, out[1:])), "frames in time order"
     assert len([r for r in out if r.kind == "latent"]) >= len(ev) // 400 - 5  # none lost
+    late = [r for r in out if r.t_us > 200_000]
+    assert late and max(r.t_us for r in late) - min(r.t_us for r in late) > 1_000_000, "they kept coming"
+
+
+@pytest.mark.parametrize("mode", ["nearest", "fused"])
+def test_a_heartbeat_inside_the_next_aps_frames_window_keeps_time_order(mode):
+    """APS frames stop for ~1 s, then one comes whose exposure holds the heartbeat's sensor time: no frame later
+    than that APS frame's deblurred frame goes out before it (the heartbeat did, from the 1 s old reference)."""
+    ev = events_at(np.arange(0, 1_200_000, 50))
+    frames = [aps(k * 20_000, k * 20_000 + 2_000) for k in range(3)] + [aps(1_032_000, 1_042_000)]
+    worker, rec, out, errors = run_worker(packets_by_frame(ev, frames), EdiConfig(every=400, mode=mode))
+    assert not errors
+    assert all(a.t_us <= b.t_us for a, b in zip(out, out[1:])), [(r.t_us, r.kind) for r in out]
+
+
+def test_no_two_frames_share_a_time_when_the_aps_frames_stop():
+    ev = events_at(np.arange(0, 1_200_000, 50))
+    frames = [aps(k * 20_000, k * 20_000 + 2_000) for k in range(3)]
+    worker, rec, out, errors = run_worker(packets_by_frame(ev, frames), EdiConfig(every=400, mode="nearest"))
+    ts = [r.t_us for r in out]
+    assert len(ts) == len(set(ts)), sorted(t for t in set(ts) if ts.count(t) > 1)
+
+
+@pytest.mark.parametrize("mode", ["nearest", "fused"])
+def test_a_heartbeat_shorter_than_the_aps_period_keeps_latent_frames_on_their_nearest_references(mode):
+    """--heartbeat-s 0.04 with APS frames every 50 ms (or APS frames slower than 1 s at the default): the latent
+    frames between two APS frames are still rendered from the nearer one (nearest), from both (fused)."""
+    period = 50_000
+    ev = events_at(np.arange(0, 4 * period + 5_000, 50))
+    frames = [aps(k * period, k * period + 2_000) for k in range(5)]
+    mids = np.array([f.mid_exposure_us for f in frames])
+    worker, rec, out, errors = run_worker(packets_by_frame(ev, frames),
+                                          EdiConfig(every=100, mode=mode, heartbeat_s=0.04))
+    assert not errors
+    lat = [r for r in out if r.kind == "latent" and mids[0] < r.t_us < mids[-1]]
+    if mode == "nearest":
+        want = [int(mids[np.argmin(abs(mids - r.t_us))]) for r in lat]
+    else:
+        want = [int(mids[np.searchsorted(mids, r.t_us)]) for r in lat]
+    wrong = [(r.t_us, r.ref_t_us, w) for r, w in zip(lat, want) if r.ref_t_us != w]
+    assert len(wrong) <= 1, f"{len(wrong)} of {len(lat)} from the wrong reference: {wrong[:5]}"
 
 
 def test_nearest_mode_sends_what_it_holds_before_a_frame_it_can_no_longer_hold(monkeypatch):

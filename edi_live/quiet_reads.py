@@ -46,7 +46,7 @@ class QuietReads:
         self.batched_waits = 0  # waits with a WakeWhen (stats)
         self._last: WakeWhen | None = None  # the latest quiet wait's condition
         self._restart = False  # an APS frame was taken since: the quiet step starts again
-        self._looked_at = -1  # the ring's head at the previous defer()
+        self._looked_at = -1  # the ring's head when the worker last went to wait
         self.frame_late_us: int | None = None  # the clock offset: an APS frame is not deblurred before its late events
 
     def on_aps_frame(self, frame: Frame, clock_offset_us: int = 0) -> None:
@@ -74,6 +74,7 @@ class QuietReads:
             rate = (pushed - self._mark[0]) / (t_us - self._mark[1])
             self._rate = rate if not self._rate else 0.75 * self._rate + 0.25 * rate
         self._mark = (pushed, t_us)
+        self._looked_at, self._restart = pushed, False  # the step below starts after any APS frame taken
         self.batched_waits += 1
         self._last = step = self._step_from(head, t_us, pushed, ring.max_unread)
         due_us = step.t_us
@@ -96,17 +97,13 @@ class QuietReads:
         after the frame and its late events, ~1 ms, was a read of its own). A step starts after each APS frame,
         unless the one under way is met (the worker was woken for it): else, as steps and frames fall into step,
         a step ending with the frame's late window read that ms. Nothing is deferred once nothing was pushed since
-        the previous look (the wait timed out: a source that pauses without closing), nor past half of what the
+        the worker went to wait (it timed out: a source that pauses without closing), nor past half of what the
         ring lets pile up unread."""
         last, pushed = self._last, ring.head
-        stalled, self._looked_at = pushed == self._looked_at, pushed
-        if last is None or ring.closed or stalled or ring.unread_events >= ring.max_unread // 2:
+        if last is None or ring.closed or pushed == self._looked_at or ring.unread_events >= ring.max_unread // 2:
             self._restart = False
             return False
-        if last.met(pushed, ring.watermark_us):
+        if self._restart:  # an APS frame was taken since the worker last waited: the step starts after it
+            self._last = last = self._step_from(ring.read_index, ring.watermark_us, pushed, ring.max_unread)
             self._restart = False
-            return False
-        if self._restart:
-            self._last = self._step_from(ring.read_index, ring.watermark_us, pushed, ring.max_unread)
-            self._restart = False
-        return True
+        return not last.met(pushed, ring.watermark_us)

@@ -200,4 +200,5 @@ def test_a_source_that_pauses_leaves_no_quiet_events_unread():
         t += 1000
     ring.push(Packet(events=events_at_random_pixels(np.linspace(t, t + 999, 20).astype(np.int64), rng), watermark_us=t + 999))
     assert quiet.defer(ring), "a step under way: the new packet waits for it"
-    assert not quiet.defer(ring), "nothing came since the last look (a wait timed out): read what is there"
+    quiet.wake(ring, quiet=True)  # the worker waits; nothing comes, the wait times out
+    assert not quiet.defer(ring), "nothing came since the worker went to wait: read what is there"

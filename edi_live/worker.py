@@ -358,13 +358,11 @@ class EdiWorker:
             self._emit(self.rec.render())
 
     def _heartbeat_at(self, t_us: int) -> None:
-        """The sensor-clock heartbeat, after the held latent times; none while an APS frame before t_us waits."""
-        entry = self.ring.peek_frame()
-        if entry is None or entry.frame.mid_exposure_us + self.rec.clock_offset_us > t_us:
-            self._release_held()
-            if self._still.heartbeat_due(t_us):
-                self.heartbeats += 1
-                self._emit(self.rec.render())
+        """The sensor-clock heartbeat, after the held latent times (none if one of them was at t_us)."""
+        self._release_held()
+        if self._still.heartbeat_due(t_us):
+            self.heartbeats += 1
+            self._emit(self.rec.render())
 
     def _release_held(self) -> None:
         """Held latent times (nearest, fused) from the current reference, before any later frame and at the end."""

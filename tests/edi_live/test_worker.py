@@ -464,6 +464,54 @@ def test_nearest_mode_sends_what_it_holds_before_a_frame_it_can_no_longer_hold(m
     assert all(a.t_us <= b.t_us for a, b in zip(out, out[1:])), "frames in time order"
 
 
+@pytest.mark.parametrize("mode", ["causal", "nearest", "fused"])
+def test_a_still_scene_with_aps_frames_gets_one_heartbeat_per_heartbeat_s(mode):
+    """Noise only (0.5 events/s per pixel on 240x180) and APS frames every 50 ms for 6 s, heartbeat 1 s: a frame
+    about once a second in every mode (a held time counting as sent must not silence a still scene)."""
+    from tests.helpers.recordings import events_at_random_pixels
+
+    rng = np.random.default_rng(1)
+    duration = 6_000_000
+    ev = events_at_random_pixels(np.sort(rng.integers(0, duration, int(240 * 180 * 0.5 * duration / 1e6))), rng)
+    frames = [Frame(np.zeros((180, 240), np.uint8), exposure_start_us=k * 50_000, exposure_end_us=k * 50_000 + 5_000)
+              for k in range(duration // 50_000)]
+    worker, rec, out, errors = run_worker(packets_by_frame(ev, frames), EdiConfig(every=1000, mode=mode))
+    assert not errors
+    ts = [r.t_us for r in out]
+    assert all(a <= b for a, b in zip(ts, ts[1:]))
+    assert 5 <= len(ts) - 1 <= 7 and np.diff(ts).max() < 1_100_000, [(r.t_us, r.kind) for r in out]
+
+
+@pytest.mark.parametrize("mode", ["causal", "nearest"])
+def test_frames_do_not_depend_on_when_the_producer_pushed_a_late_frame(mode):
+    """The same packets (a frame after events past its exposure end, as a live DAVIS sends it after the readout),
+    pushed in lockstep with the worker or all before it starts: the same frames (a heartbeat that looked at whether
+    the frame was queued yet came out in one case only)."""
+    ev = events_at(np.arange(0, 1_200_000, 50))
+    f0, f1 = aps(0, 2_000), aps(995_000, 1_005_000)
+    cut = int(np.searchsorted(ev["t"], 1_007_000))
+    packets = [Packet(events=ev[:10], frames=[f0]), Packet(events=ev[10:cut]), Packet(events=ev[:0], frames=[f1]),
+               Packet(events=ev[cut:])]
+    config = EdiConfig(every=100_000, mode=mode, heartbeat_s=1.0)
+    runs = []
+    for lockstep in (True, False):
+        ring = EventRing(capacity_events=1 << 16, capacity_frames=8, policy="wait")
+        out: list = []
+        worker = EdiWorker(ring, StandIn(), config, [out.append])
+        if lockstep:
+            worker.start()
+        for p in packets:
+            assert ring.push(p, timeout_s=10)
+            if lockstep:
+                assert ring.wait_consumer_idle(10)
+        ring.close()
+        if not lockstep:
+            worker.start()
+        assert worker.done.wait(20)
+        runs.append([(r.t_us, r.kind) for r in out])
+    assert runs[0] == runs[1]
+
+
 def test_causal_mode_uses_the_latest_frame():
     ev = events_at(np.arange(0, 60_000, 5))
     frames = [aps(k * 20_000, k * 20_000 + 2_000) for k in range(3)]

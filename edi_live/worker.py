@@ -353,14 +353,13 @@ class EdiWorker:
         """The host-clock heartbeat, for when no event came for heartbeat_s (no sensor time passes to make one)."""
         if self.rec.has_reference and not self._await_reference and \
                 time.monotonic() - max(self._last_emit_s, self._last_read_s) >= self.config.heartbeat_s:
-            self.heartbeats += 1
-            self._release_held()
-            self._emit(self.rec.render())
+            self._heartbeat_at(None)
 
-    def _heartbeat_at(self, t_us: int) -> None:
-        """The sensor-clock heartbeat, after the held latent times (none if one of them was at t_us)."""
+    def _heartbeat_at(self, t_us: int | None) -> None:
+        """A heartbeat frame after the held latent times; at sensor time t_us only if none of them was at t_us
+        (None: the host-clock heartbeat, sent in any case)."""
         self._release_held()
-        if self._still.heartbeat_due(t_us):
+        if t_us is None or self._still.heartbeat_due(t_us):
             self.heartbeats += 1
             self._emit(self.rec.render())
 

@@ -12,8 +12,11 @@ import numpy as np
 from numba import njit
 
 @njit(cache=True, nogil=True)
-def propagate(x, y, p, width, height, mask, use_mask, flat, d_on, d_off, lo, hi, disp, use_disp, gain,
-              acc_on, acc_off, use_acc):
+def propagate(x, y, p, width, height, mask, use_mask, flat, d_on, d_off, lo, hi, disp, use_disp, v0, scale, bucket_u8,
+              bucket_thr, acc_on, acc_off, use_acc):
+    """The display is rendered from the float64 sum (before its float32 rounding into `flat`) through the
+    float64 bucket tables of display_u8 (latent.display_buckets), the same values as display_u8 without an exp
+    per event."""
     applied = 0
     for i in range(x.size):
         if x[i] >= width or y[i] >= height:
@@ -26,17 +29,35 @@ def propagate(x, y, p, width, height, mask, use_mask, flat, d_on, d_off, lo, hi,
         v = _clip(v, lo, hi)
         flat[q] = v
         if use_disp:
-            z = gain * math.exp(min(v, 6.0)) + 0.5
-            if z > 255.0:
-                z = 255.0
-            disp[q] = np.uint8(z)
-        if use_acc:
-            if on:
-                acc_on[q] += 1
-            else:
-                acc_off[q] += 1
+            disp[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)
+        if use_acc:  # branch-free, as in count_events
+            o = np.int64(on)
+            acc_on[q] += o
+            acc_off[q] += 1 - o
         applied += 1
     return applied
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _exp_u8(v, gain):
+    z = gain * math.exp(min(v, 6.0)) + 0.5
+    if z > 255.0:
+        z = 255.0
+    return np.uint8(z)
+
+
+@njit(cache=True, nogil=True)
+def display_u8(v, gain, out):
+    """out[i] = clip(gain * exp(v[i]), 0, 255) rounded, in float64 (what propagate's tables stand for)."""
+    for i in range(v.size):
+        out[i] = _exp_u8(v[i], gain)
+
+
+@njit(cache=True, nogil=True)
+def display_u8_table(v, v0, scale, bucket_u8, bucket_thr, out):
+    """out[i] as propagate renders v[i] (float64) through the bucket tables."""
+    for i in range(v.size):
+        out[i] = _u8(v[i], v0, scale, bucket_u8, bucket_thr)
 
 
 @njit(cache=True, nogil=True)
@@ -188,7 +209,7 @@ def _clip(v, lo, hi):
     return v
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _u8(v, v0, scale, bucket_u8, bucket_thr):
     """uint8 rendering of a log intensity without exp: bucket of v, plus one if v reaches the bucket's
     threshold (the tables hold every rounding threshold; a bucket holds at most one)."""

@@ -40,14 +40,15 @@ def propagate_log(log_image: np.ndarray, events: np.ndarray, c_on: float, c_off:
     flat = log_image.reshape(-1)
     d_on = float(sign) * float(c_on)
     d_off = -float(sign) * float(c_off)
-    if _backend.have_numba() and flat.dtype == np.float32 and log_image.flags.c_contiguous and (
+    tables = display_buckets(float(gain)) if _backend.have_numba() else None
+    if tables is not None and flat.dtype == np.float32 and log_image.flags.c_contiguous and (
             display is None or display.flags.c_contiguous):
         ev = window(events, None, None)
         m, use_m = _backend.mask_arg(mask)
         disp = display.reshape(-1) if display is not None else _backend.NO_MASK
         acc_on, acc_off, use_counts = _backend.counts_arg(counts)
         return int(_kernels_stream.propagate(ev["x"], ev["y"], ev["p"], w, h, m, use_m, flat, d_on, d_off, LOG_MIN,
-                                             LOG_MAX, disp, display is not None, float(gain), acc_on, acc_off,
+                                             LOG_MAX, disp, display is not None, *tables, acc_on, acc_off,
                                              use_counts))
     idx, _, p = select(events, w, h, None, None, mask)
     return _propagate_numpy(flat, idx, p, d_on, d_off, display, gain, counts)
@@ -98,8 +99,8 @@ class Propagator:
     def apply(self, x: np.ndarray, y: np.ndarray, p: np.ndarray) -> None:
         if _backend.have_numba():
             _kernels_stream.propagate(x, y, p, self._w, self._h, self._m, self._use_m, self._flat, self._d_on,
-                                      self._d_off, LOG_MIN, LOG_MAX, self._disp, True, 1.0, self._acc_on,
-                                      self._acc_off, self._use_counts)
+                                      self._d_off, LOG_MIN, LOG_MAX, self._disp, True, *display_buckets(1.0),
+                                      self._acc_on, self._acc_off, self._use_counts)
             return
         idx = y.astype(np.int64) * self._w + x
         keep = (x < self._w) & (y < self._h)
@@ -150,6 +151,62 @@ def render_buckets(n_buckets: int = 8192) -> tuple[float, float, np.ndarray, np.
     inside = thr > starts[owner]
     bucket_thr[owner[inside]] = thr[inside]
     return v0, scale, bucket_u8, bucket_thr.astype(np.float32)
+
+
+@functools.lru_cache(maxsize=8)
+def display_buckets(gain: float = 1.0) -> tuple[float, float, np.ndarray, np.ndarray] | None:
+    """The propagation kernel's display rendering as a lookup: clip(gain * exp(v), 0, 255) rounded, for the
+    float64 sum v (flat float32 + float64 step, clipped to [LOG_MIN, LOG_MAX]) before it is rounded to float32,
+    exactly as _kernels_stream.display_u8 computes it with exp (an exp an event cost ~2 ns of ~9). The threshold
+    of each value 1..255 is the smallest float64 at which display_u8 reaches it (bisection down to adjacent
+    doubles), and the table is checked against display_u8 around every threshold and bucket start; both being
+    step functions that only rise, agreeing at every step means agreeing everywhere. Returns (v0, buckets per
+    unit of log L, uint8 value at each bucket start, the bucket's threshold or inf), or None for a gain whose
+    values 1..255 do not all start within (LOG_MIN, 6] (the numpy path renders those)."""
+    k = np.arange(1, 256)
+    lo = np.full(255, LOG_MIN)
+    hi = np.full(255, 6.0)
+    if _display(lo, gain)[0] >= 1 or _display(hi, gain)[-1] < 255:
+        return None
+    for _ in range(2100):  # at most ~64 halvings per exponent step; stops once lo, hi are adjacent
+        mid = lo + (hi - lo) / 2
+        moved = (mid > lo) & (mid < hi)
+        if not moved.any():
+            break
+        up = _display(mid, gain) >= k
+        hi = np.where(moved & up, mid, hi)
+        lo = np.where(moved & ~up, mid, lo)
+    thr = hi  # thr[k-1]: the first float64 rendered as >= k
+    gap = float(np.diff(thr).min())
+    v0 = float(thr[0])
+    n_buckets = 1 << int(np.ceil(np.log2(1.01 * (float(thr[-1]) - v0) / gap)))  # each at most one threshold
+    scale = n_buckets / ((float(thr[-1]) - v0) * (1.0 + 2.0**-20))  # the last threshold inside the last bucket
+    starts = v0 + np.arange(n_buckets) / scale
+    bucket_u8 = np.searchsorted(thr, starts, side="right").astype(np.uint8)
+    bucket_thr = np.full(n_buckets, np.inf)
+    owner = np.minimum(((thr - v0) * scale).astype(np.int64), n_buckets - 1)
+    inside = thr > starts[owner]
+    bucket_thr[owner[inside]] = thr[inside]
+    tables = (v0, scale, bucket_u8, bucket_thr)
+    near = np.concatenate([thr, starts, [LOG_MIN, LOG_MAX, 6.0]])
+    probe = np.concatenate([_ulps_around(near, 64), [-np.inf, np.inf]]).clip(LOG_MIN, LOG_MAX)
+    looked_up = np.empty(probe.size, np.uint8)
+    _kernels_stream.display_u8_table(probe, *tables, looked_up)
+    if not np.array_equal(looked_up, _display(probe, gain)):
+        raise AssertionError(f"the display table for gain {gain} differs from exp near a step")
+    return tables
+
+
+def _display(v: np.ndarray, gain: float) -> np.ndarray:
+    out = np.empty(v.size, np.uint8)
+    _kernels_stream.display_u8(np.ascontiguousarray(v, np.float64), float(gain), out)
+    return out
+
+
+def _ulps_around(v: np.ndarray, n: int) -> np.ndarray:
+    """Every float64 within n steps of each v."""
+    bits = np.ascontiguousarray(v, np.float64).view(np.int64)[:, None] + np.arange(-n, n + 1)[None, :]
+    return bits.view(np.float64).reshape(-1)
 
 
 def _f32_midpoint(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -20,6 +20,17 @@ def _neighbour_fired(last_t, xi, yi, ti, dt_us):
     return False
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _neighbours_fired(last_t, xi, yi, ti, dt_us):
+    """_neighbour_fired as 0/1 without a branch per neighbour (which one fired first is unpredictable)."""
+    a = last_t[yi]
+    b = last_t[yi + 1]
+    c = last_t[yi + 2]
+    lim = ti - dt_us
+    m = max(max(max(a[xi], a[xi + 1]), max(a[xi + 2], b[xi])), max(max(b[xi + 2], c[xi]), max(c[xi + 1], c[xi + 2])))
+    return np.int64(m >= lim)
+
+
 @njit(cache=True, nogil=True)
 def background_activity(t, x, y, width, height, last_t, dt_us, keep):
     """Background-activity filter: keep[i] when one of the 8 neighbours fired within dt_us before event i.
@@ -94,28 +105,28 @@ def flicker_cycles(t, x, y, p, width, height, bits, times, lo_us, hi_us, cycles,
             continue
         q = yi * width + xi
         b = np.int64(bits[q])
-        if p[i]:
-            if (b & 3) == 2:  # ON after OFF: a cycle ends
-                ti = t[i]
-                d = ti - times[q, 0]
-                times[q, 0] = ti
-                if lo_us <= d <= hi_us or 2 * lo_us <= d <= 2 * hi_us:
-                    if b < 248:
-                        b += 8
-                    times[q, 1] = ti
-                else:
-                    b &= 7
-                if (b & 4) == 0 and (b >> 3) >= cycles:
-                    b |= 4
-                    changes[0] += 1
-                    if span_us > 0 and stop_span < 0:
-                        stop_span = t[i] // span_us
-                    if n < flagged_now.size:  # full only if pixels were flagged again within the call
-                        flagged_now[n] = q
-                        n += 1
-            b |= 3
-        else:
-            b = (b & ~1) | 2
+        on = np.int64(p[i])
+        # one test for "ON after OFF" (bits 0-1 == 2 and p == 1), no branch on the polarity itself: polarities
+        # alternate unpredictably from event to event (a branch on them cost ~2 ns an event), switches are rarer
+        if ((b & 3) | (on << 2)) == 6:  # a cycle ends
+            ti = t[i]
+            d = ti - times[q, 0]
+            times[q, 0] = ti
+            if lo_us <= d <= hi_us or 2 * lo_us <= d <= 2 * hi_us:
+                if b < 248:
+                    b += 8
+                times[q, 1] = ti
+            else:
+                b &= 7
+            if (b & 4) == 0 and (b >> 3) >= cycles:
+                b |= 4
+                changes[0] += 1
+                if span_us > 0 and stop_span < 0:
+                    stop_span = t[i] // span_us
+                if n < flagged_now.size:  # full only if pixels were flagged again within the call
+                    flagged_now[n] = q
+                    n += 1
+        b = (b & ~1) | 2 | on  # seen, and the polarity
         if (b & 4) != 0 and t[i] - times[q, 1] > hold_us:
             b &= 3
             changes[0] += 1
@@ -174,39 +185,43 @@ def mark_pixels(x, y, width, height, out):
 
 
 @njit(cache=True, nogil=True)
-def activity_verdicts(t, x, y, width, height, last_t, supported, state, params, out_at, out_active, out_end):
+def activity_verdicts(t, x, y, width, height, last_t, state, params, out_at, out_active, out_end):
     """The activity test of edi.activity_verdicts over time-ordered events: the background-activity filter
     (background_activity's rule and `last_t` map) and the windows, in one pass. state (int64): window start, end of
     the latest span with events, events and supported events in the window, windows and active windows closed, 1
     once an event was seen. params: check_us, window_us, max_noise_hz, sigmas, margin, support_us. Writes one
     verdict per span judged (the index of the first event after it, active, the span's end); returns how many.
     Once a span's window holds more events than noise could give in it, its verdict is active whatever the
-    supported count: the neighbour test is skipped for its remaining events (their times still enter `last_t`,
-    and `supported` is left False), so a busy scene pays one store per event."""
+    supported count: the neighbour test is skipped for its remaining events (their times still enter `last_t`),
+    so a busy scene pays one store per event."""
     check_us, window_us, support_us = np.int64(params[0]), np.int64(params[1]), np.int64(params[5])
     max_noise_hz, sigmas, margin = params[2], params[3], params[4]
     npix = width * height
     fewest = max_noise_hz * npix * check_us * 1e-6
     fewest += sigmas * np.sqrt(fewest) + margin
+    # the state in locals for the loop (kept in memory, each event paid a load and a store of the counts: the
+    # compiler cannot tell `state` from the time map it writes)
+    begin_w, span_end, n, s = state[0], state[1], state[2], state[3]
+    windows, active_windows, started = state[4], state[5], state[6]
     sure = np.inf  # events in the window above which its verdict is active by the count alone
-    if state[6] != 0:
-        most = max_noise_hz * npix * (state[1] - state[0]) * 1e-6
+    if started != 0:
+        most = max_noise_hz * npix * (span_end - begin_w) * 1e-6
         sure = most + sigmas * np.sqrt(most) + margin
     nv = 0
     for i in range(t.size):
+        ti = t[i]
         # events are time-ordered and a span ends at a multiple of check_us, so only an event at or past the span's
         # end starts another: the division (the loop's costliest step) is done there only
-        if state[6] == 0:
-            begin = (t[i] // check_us) * check_us
-            state[0] = begin
-            state[1] = begin + check_us
-            state[6] = 1
+        if started == 0:
+            begin = (ti // check_us) * check_us
+            begin_w = begin
+            span_end = begin + check_us
+            started = 1
             most = max_noise_hz * npix * check_us * 1e-6
             sure = most + sigmas * np.sqrt(most) + margin
-        elif t[i] >= state[1]:
-            begin = (t[i] // check_us) * check_us
-            n, s = state[2], state[3]
-            pixel_s = npix * (state[1] - state[0]) * 1e-6
+        elif ti >= span_end:
+            begin = (ti // check_us) * check_us
+            pixel_s = npix * (span_end - begin_w) * 1e-6
             active = False
             if s > margin or n > fewest:
                 most = max_noise_hz * pixel_s
@@ -216,25 +231,24 @@ def activity_verdicts(t, x, y, width, height, last_t, supported, state, params, 
                           or s > mean + sigmas * np.sqrt(mean * (1.0 - p)) + margin)
             out_at[nv] = i
             out_active[nv] = active
-            out_end[nv] = state[1]
+            out_end[nv] = span_end
             nv += 1
-            if active or state[1] - state[0] >= window_us:
-                state[4] += 1
-                state[5] += 1 if active else 0
-                state[0] = begin
-                state[2] = 0
-                state[3] = 0
-            state[1] = begin + check_us
-            most = max_noise_hz * npix * (state[1] - state[0]) * 1e-6
+            if active or span_end - begin_w >= window_us:
+                windows += 1
+                active_windows += 1 if active else 0
+                begin_w = begin
+                n = 0
+                s = 0
+            span_end = begin + check_us
+            most = max_noise_hz * npix * (span_end - begin_w) * 1e-6
             sure = most + sigmas * np.sqrt(most) + margin
         xi = np.int64(x[i])
         yi = np.int64(y[i])
-        ok = False
         if xi < width and yi < height:
-            ok = state[2] <= sure and _neighbour_fired(last_t, xi, yi, t[i], support_us)
-            last_t[yi + 1, xi + 1] = t[i]
-        supported[i] = ok
-        state[2] += 1
-        if ok:
-            state[3] += 1
+            if n <= sure:
+                s += _neighbours_fired(last_t, xi, yi, ti, support_us)
+            last_t[yi + 1, xi + 1] = ti
+        n += 1
+    state[0], state[1], state[2], state[3] = begin_w, span_end, n, s
+    state[4], state[5], state[6] = windows, active_windows, started
     return nv

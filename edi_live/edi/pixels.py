@@ -69,17 +69,17 @@ def activity_verdicts(events: np.ndarray, width: int, height: int, last_t: np.nd
     per verdict: views into `scratch` (a list the caller keeps between calls, for the buffers) if given."""
     n = len(events)
     if scratch is None or not scratch or len(scratch[0]) < n:
-        bufs = [np.empty(max(n, 1024), dt) for dt in (np.bool_, np.int64, np.bool_, np.int64)]
+        bufs = [np.empty(max(n, 1024), dt) for dt in (np.int64, np.bool_, np.int64)]
         if scratch is None:
             scratch = bufs
         else:
             scratch[:] = bufs
-    supported, at, active, end = scratch
+    at, active, end = scratch
     params = np.array([check_us, window_us, max_noise_hz, sigmas, margin, support_us], np.float64)
     kernel = _kernels_pixels.activity_verdicts if _backend.have_numba() else \
         _kernels_pixels.activity_verdicts.py_func
-    k = kernel(events["t"], events["x"], events["y"], int(width), int(height), last_t, supported, state, params,
-               at, active, end)
+    k = kernel(events["t"], events["x"], events["y"], int(width), int(height), last_t, state, params, at, active,
+               end)
     return at[:k], active[:k], end[:k]
 
 

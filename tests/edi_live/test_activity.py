@@ -127,3 +127,27 @@ def test_verdicts_equal_the_rule_over_every_events_neighbour_test():
         assert sum(b for _, b, _ in want) > 10
     per_ms = np.bincount((busy["t"] - busy["t"][0]) // 1000)
     assert np.median(per_ms) > 2 * 5.0 * 240 * 180 * 1e-3  # the count alone decides there
+
+
+def test_verdicts_on_random_events_with_pixels_off_the_sensor_and_empty_reads():
+    """Random bursts and quiet stretches (active and noise verdicts), some events off the sensor (counted, never
+    supported), read in random parts with empty ones between: the rule written out plainly."""
+    rng = np.random.default_rng(5)
+    w, h = 30, 20
+    t = np.sort(np.concatenate([rng.integers(0, 200_000, 3000), rng.integers(50_000, 60_000, 4000),
+                                rng.integers(140_000, 141_000, 1500)]))
+    events = np.zeros(t.size, EVENT_DTYPE)
+    events["t"] = t
+    events["x"] = rng.integers(0, w + 2, t.size)  # about 6 % off the sensor
+    events["y"] = rng.integers(0, h, t.size)
+    act = SceneActivity(w, h)
+    got, pos = [], 0
+    for size in rng.integers(0, 700, 100):
+        got += [(pos + at, active, end) for at, active, end in act.update(events[pos:pos + size])]
+        pos += int(size)
+    got += [(pos + at, active, end) for at, active, end in act.update(events[pos:])]
+    want = _reference_verdicts(events, w, h, check_us=act.check_us, window_us=act.window_us,
+                               max_noise_hz=act.max_noise_hz, sigmas=act.sigmas, margin=act.margin,
+                               support_us=act.support_us)
+    assert [(int(a), bool(b), int(c)) for a, b, c in got] == want
+    assert 0 < sum(b for _, b, _ in want) < len(want)

@@ -95,11 +95,12 @@ class Propagator:
         self._counts = counts
         self._acc_on, self._acc_off, self._use_counts = _backend.counts_arg(counts)
         self._d_on, self._d_off = float(c_on), -float(c_off)
+        self._tables = display_buckets(1.0) if _backend.have_numba() else None
 
     def apply(self, x: np.ndarray, y: np.ndarray, p: np.ndarray) -> None:
         if _backend.have_numba():
             _kernels_stream.propagate(x, y, p, self._w, self._h, self._m, self._use_m, self._flat, self._d_on,
-                                      self._d_off, LOG_MIN, LOG_MAX, self._disp, True, *display_buckets(1.0),
+                                      self._d_off, LOG_MIN, LOG_MAX, self._disp, True, *self._tables,
                                       self._acc_on, self._acc_off, self._use_counts)
             return
         idx = y.astype(np.int64) * self._w + x

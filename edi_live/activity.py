@@ -14,7 +14,7 @@ or when n alone is more than `max_noise_hz` per pixel gives.
 Every verdict depends on the event stream alone, never on how it was cut into reads: a window is a run of
 `check_us` spans of the event clock (aligned to multiples of `check_us`), judged at the end of each span that
 held events, and its verdict falls at the first event of a later span. The window restarts after an active
-verdict or once it covers `window_us`. Every event goes through the filter (~6 ns each; skipping it for busy
+verdict or once it covers `window_us`. Every event goes through the filter (~4 ns each; skipping it for busy
 reads made the filter's state, and so later verdicts, depend on where the reads were cut); the windows are
 counted in one compiled pass per read (edi.activity_verdicts). Limits: a small object
 moving slower than a pixel per `support_us` fires no neighbours together and looks like noise (the heartbeat

@@ -1,8 +1,8 @@
 """The latent image: moving log L along the events, and rendering log intensities as uint8 images.
 
 L(t) = L(f) * exp(c_on * n_on(f->t) - c_off * n_off(f->t)) per pixel, applied in place on a float32 log image.
-Rendering is clip(gain * exp(log L), 0, 255) rounded; `render_buckets` gives the same rounding as a lookup that the
-kernels use instead of exp.
+Rendering is clip(gain * exp(log L), 0, 255) rounded; `render_buckets` (float32 log L) and `display_buckets` (the
+propagation's float64 sums) give the same rounding as lookups that the kernels use instead of exp.
 """
 
 from __future__ import annotations

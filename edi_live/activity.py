@@ -119,6 +119,13 @@ class StaticScene:
             self.noise_only_events += n  # the still scene's reads: noise, and noise before them
             self.active = False
             return [(0, n, "noise")]
+        if n and self._judged and self._last_active_us is not None and self._within_hold(t, at[active],
+                                                                                         end[active]):
+            if active.any():
+                self._last_active_us = int(end[active][-1])
+            out = [(0, n, "active" if self.active else "onset")]  # a busy scene's reads: one active segment
+            self.active = True
+            return out
         # a noise verdict changes nothing once one fell: the hold runs out by time alone
         keep = np.flatnonzero(active) if self._judged else np.arange(len(at))
         verdicts = list(zip(at[keep].tolist(), active[keep].tolist(), end[keep].tolist()))
@@ -149,3 +156,17 @@ class StaticScene:
             out.append((lo, hi, "noise" if not active else "active" if self.active else "onset"))
             self.active = active
         return out
+
+    def _within_hold(self, t: np.ndarray, at: np.ndarray, end: np.ndarray) -> bool:
+        """Whether every event is within hold_us of the active verdict in force at it (`at`/`end`: this read's
+        active verdicts; before the first, the latest before the read): then the loop of segments() would make
+        one active segment of them all. Events before a verdict lie in spans before its end, so consecutive
+        verdict ends at most hold_us apart are enough between verdicts (False when they are not: the loop
+        decides)."""
+        hold = self.hold_us
+        last = self._last_active_us
+        if at.size == 0:
+            return int(t[-1]) <= last + hold
+        if (at[0] > 0 and int(t[at[0] - 1]) > last + hold) or int(t[-1]) > int(end[-1]) + hold:
+            return False
+        return end.size < 2 or int(np.diff(end).max()) <= hold

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from edi_live.activity import SceneActivity
+from edi_live.activity import SceneActivity, StaticScene
 from edi_live.config import EdiConfig
 from edi_live.datatypes import EVENT_DTYPE
 from edi_live.node import default_reconstructor
@@ -151,3 +151,56 @@ def test_verdicts_on_random_events_with_pixels_off_the_sensor_and_empty_reads():
                                support_us=act.support_us)
     assert [(int(a), bool(b), int(c)) for a, b, c in got] == want
     assert 0 < sum(b for _, b, _ in want) < len(want)
+
+
+def _reference_states(events, verdicts, hold_us):
+    """Per event, written out: active before the first verdict; after it, active while the latest active verdict
+    before the event (its span's end) is at most hold_us before the event's time."""
+    t = events["t"].tolist()
+    states, v, judged, last = [], 0, False, None
+    for i, ti in enumerate(t):
+        while v < len(verdicts) and verdicts[v][0] <= i:
+            judged = True
+            if verdicts[v][1]:
+                last = verdicts[v][2]
+            v += 1
+        states.append(not judged or (last is not None and ti <= last + hold_us))
+    return states
+
+
+def test_segments_follow_the_per_event_rule_however_the_stream_is_cut():
+    """Busy reads (one active segment each), an onset after noise, and active stretches broken by gaps longer than
+    the hold: the segments' labels per event against the rule applied event by event."""
+    from edi_live.simulation import preset, simulate
+
+    busy = simulate(preset("demo", duration_s=0.3, ground_truth=False)).events
+    noisy = noisy_scene(1.2, onset_s=0.5)[0]
+    gappy = busy.copy()
+    gappy["t"] += np.where(np.arange(len(busy)) >= len(busy) // 3, 80_000, 0)  # an 80 ms gap, then more
+    gappy["t"] += np.where(np.arange(len(busy)) >= 2 * len(busy) // 3, 200_000, 0)
+    rng = np.random.default_rng(8)
+    for events in (busy, noisy, gappy):
+        verdicts = SceneActivity(240, 180).update(events)
+        want_state = _reference_states(events, verdicts, 50_000)
+        want, before = [], True
+        for s in want_state:
+            want.append("noise" if not s else "active" if before else "onset")
+            before = s
+        assert want.count("noise") > (0 if events is not busy else -1) and want.count("active") > 1000
+        for cut_every in (500, 23_000, None):
+            scene = StaticScene()
+            scene.activity = SceneActivity(240, 180)
+            got, pos = [], 0
+            while pos < len(events):
+                size = cut_every or int(rng.integers(1, 3000))
+                part = events[pos:pos + size]
+                labels = [""] * len(part)
+                for lo, hi, label in scene.segments(part):
+                    labels[lo:hi] = [label] * (hi - lo)
+                got += labels
+                pos += len(part)
+            assert [lab == "noise" for lab in got] == [lab == "noise" for lab in want]
+            # "onset" labels the whole segment that follows noise (within a read): it starts where the rule says
+            starts = [i for i, lab in enumerate(got) if lab == "onset" and (i == 0 or got[i - 1] != "onset")]
+            assert starts == [i for i, lab in enumerate(want) if lab == "onset"]
+            assert scene.noise_only_events == want.count("noise")

@@ -253,13 +253,51 @@ def pair_candidates(inf_p, inf_c, bp, bc, b_low, b_high, mask, use_mask, n_on, n
     out = np.empty(npix, dtype=np.int64)
     m = 0
     for q in range(npix):
+        if not (n_on[q] + n_off[q] > 0 or in_table[q]):  # the sparsest test first: most pixels stop here
+            continue
         if not (inf_p[q] and inf_c[q]):
             continue
         if not (bp[q] >= b_low and bp[q] <= b_high and bc[q] >= b_low and bc[q] <= b_high):
             continue
         if use_mask and mask[q]:
             continue
-        if n_on[q] + n_off[q] > 0 or in_table[q]:
-            out[m] = q
-            m += 1
+        out[m] = q
+        m += 1
     return out[:m]
+
+
+@njit(cache=True, nogil=True)
+def ragged_take(start, rows):
+    """(entry indices, new offsets) of the ragged rows `rows` of a table with offsets `start`, in row order."""
+    new_start = np.zeros(rows.size + 1, dtype=np.int64)
+    for r in range(rows.size):
+        new_start[r + 1] = new_start[r] + start[rows[r] + 1] - start[rows[r]]
+    idx = np.empty(new_start[rows.size], dtype=np.int64)
+    k = 0
+    for r in range(rows.size):
+        for j in range(start[rows[r]], start[rows[r] + 1]):
+            idx[k] = j
+            k += 1
+    return idx, new_start
+
+
+@njit(cache=True, nogil=True)
+def rows_of(table_pixels, lvl_start, pixels, spread):
+    """(rows, at): the table rows holding those of `pixels` (ascending) that are active, and their positions in
+    `pixels` (both merged in one pass: both lists ascend). Adds each such pixel's level count - 1 to spread[at]."""
+    rows = np.empty(min(pixels.size, table_pixels.size), dtype=np.int64)
+    at = np.empty(rows.size, dtype=np.int64)
+    m = 0
+    r = 0
+    for i in range(pixels.size):
+        q = pixels[i]
+        while r < table_pixels.size and table_pixels[r] < q:
+            r += 1
+        if r == table_pixels.size:
+            break
+        if table_pixels[r] == q:
+            rows[m] = r
+            at[m] = i
+            spread[i] += lvl_start[r + 1] - lvl_start[r] - 1
+            m += 1
+    return rows[:m], at[:m]

@@ -159,3 +159,37 @@ def test_compiled_profile_point_equals_the_numpy_reference():
             assert cost == pytest.approx(float(np.sum(black_level_terms(s, b, c_ref))), rel=1e-9)
         else:
             assert c != c and cost == np.inf
+
+
+def test_the_policy_samples_only_the_pairs_an_estimate_reads(monkeypatch):
+    """Pairs that leave the pool before the next estimate are not sampled, yet every estimate sees the samples of
+    exactly the last `pool_pairs` pairs (start-up, rechecks, and a start-up estimate put off for too few pixels)."""
+    import edi_live.black_level_policy as policy_module
+    from edi_live.black_level_policy import BlackLevelSettings
+    from edi_live.contrast.black_level import QuietSamples
+
+    sampled: list[int] = []
+    seen: list[tuple[int, list[int]]] = []
+    sizes = {k: (1 if k < 3 else 40) for k in range(60)}  # the first pairs are too small for an estimate
+
+    def sample(pair, taken_off):
+        sampled.append(pair)
+        v = np.full(sizes[pair], float(pair))
+        return QuietSamples(v, v, v)
+
+    def fit(samples, b_range):
+        seen.append((current[0], sorted(set(samples.net.astype(int).tolist()))))
+        return None
+
+    current = [0]
+    monkeypatch.setattr(policy_module, "quiet_samples", sample)
+    monkeypatch.setattr(policy_module, "samples_with_noise", sample)
+    monkeypatch.setattr(policy_module, "fit_black_level", fit)
+    pol = BlackLevelPolicy(None, BlackLevelSettings(pool_pairs=4, min_pairs=2, min_pixels=60, recheck_every=10))
+    for k in range(60):
+        current[0] = k
+        pol.update(k, 0.0)
+    assert seen, "no estimate ran"
+    for k, pairs in seen:
+        assert pairs == list(range(max(0, k - 3), k + 1)), (k, pairs)
+    assert len(seen) >= 5 and len(sampled) < 40, (seen, sampled)

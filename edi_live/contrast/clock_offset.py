@@ -27,7 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from edi_live.contrast import _kernels_clock_offset
 from edi_live.contrast.vectors import dot
+from edi_live.edi import have_numba
 
 
 @dataclass(frozen=True)
@@ -77,7 +79,7 @@ def estimate_clock_offset(events: np.ndarray, prev: FrameWindow, cur: FrameWindo
     lo, hi = prev.exposure_start_us + d_lo, cur.exposure_end_us + d_hi
     # pixels without an event near the windows cost the same at every offset: only pixels with events count
     with_events = np.zeros(h * w, bool)
-    near = events[(t >= lo - (midlevel_gap_us or 0) // 2) & (t <= hi)]
+    near = events[np.searchsorted(t, lo - (midlevel_gap_us or 0) // 2):np.searchsorted(t, hi, "right")]  # t ascends
     with_events[near["y"].astype(np.int64) * w + near["x"]] = True
     pixels = np.flatnonzero(use & with_events)
     if max_pixels is not None and pixels.size > max_pixels:
@@ -171,8 +173,13 @@ class _ExposureSums:
         self.lo = lo
         self.n = n
         self.row_key = (np.arange(n, dtype=np.int64) * span - lo)[:, None]
+        self.first = np.r_[np.flatnonzero(first), r.size]  # each pixel's entries (its mark first)
 
     def at(self, q: np.ndarray) -> np.ndarray:
+        """(n_pixels, k): every pixel's integral at the times q (1-D, within [lo, hi])."""
+        if have_numba():
+            return _kernels_clock_offset.integrals_at(self.key, self.first, self.row_key[:, 0], q, self.intercept,
+                                                      self.slope, self.lo)
         j = np.searchsorted(self.key, self.row_key + q, "right") - 1  # at or after the pixel's mark
         return self.intercept[j] + self.slope[j] * (q - self.lo)
 
@@ -193,7 +200,7 @@ def _terms(sums: _ExposureSums, ends: np.ndarray, spans: tuple[int, int], ds: np
     """(len(ds), n_pixels) robust residuals, one row per offset (the cost is a row's sum). `ends`: the previous
     and current windows' (start, end)."""
     q = (ends[:, None] + ds[None, :]).reshape(-1)  # per pixel, in time order when the windows are apart
-    g = sums.at(np.broadcast_to(q, (sums.n, q.size))).reshape(sums.n, 4, ds.size)
+    g = sums.at(q).reshape(sums.n, 4, ds.size)
     mean_p = np.maximum(g[:, 1] - g[:, 0], 1e-9) / spans[0]
     mean_c = np.maximum(g[:, 3] - g[:, 2], 1e-9) / spans[1]
     r = dlog_b[:, None] - np.log(mean_c / mean_p)

@@ -320,3 +320,43 @@ def test_a_frozen_copy_still_reports_an_estimated_offset_and_keeps_nothing():
     twin.collect(ev)
     assert not twin.collecting and twin._chunks == [] and policy._chunks == []
     assert not ClockOffsetPolicy(1500, 8, 6).frozen().estimated
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_compiled_lookup_equals_a_search_of_the_whole_table(seed):
+    """last_at_or_before searches each pixel's own entries; numpy's searchsorted over the whole sorted table (the
+    reference) gives the same index for every pixel and time in its range, including times before its first
+    event (its mark) and on an entry's exact time."""
+    from edi_live.contrast._kernels_clock_offset import last_at_or_before
+
+    rng = np.random.default_rng(seed)
+    n, span = int(rng.integers(1, 40)), 1000
+    counts = rng.integers(0, 6, n)
+    key = np.concatenate([i * span + np.r_[0, np.sort(rng.choice(np.arange(1, span - 1), c, replace=False))]
+                          for i, c in enumerate(counts)]).astype(np.int64)
+    first = np.r_[0, np.cumsum(counts + 1)].astype(np.int64)
+    lo = 5000
+    row_key = np.arange(n, dtype=np.int64) * span - lo
+    q = np.r_[lo, lo + rng.integers(0, span - 1, 12), lo + key[key < span][-1]].astype(np.int64)
+    want = np.searchsorted(key, row_key[:, None] + q[None, :], "right") - 1
+    np.testing.assert_array_equal(last_at_or_before(key, first, row_key, q), want)
+
+
+def test_the_offset_fit_is_the_same_with_and_without_the_kernels(scene):
+    import edi_live.edi as edi
+
+    cfg = with_effects(scene, "clock_offset")
+    sim = simulate(cfg)
+    h, w = cfg.height, cfg.width
+    sample = np.zeros((h, w), bool)
+    sample.reshape(-1)[np.random.default_rng(1).choice(h * w, 3000, replace=False)] = True
+    frames = [FrameWindow(f.exposure_start_us, f.exposure_end_us, f.image.astype(np.float64),
+                          (f.image > 0) & (f.image < 255)) for f in sim.frames]
+    a, b = frames[2], frames[3]
+    t = sim.events["t"]
+    ev = sim.events[np.searchsorted(t, a.exposure_start_us - 12_000):np.searchsorted(t, b.exposure_end_us + 8_000)]
+    kwargs = dict(midlevel_gap_us=10_000, max_pixels=1500, min_z=2.0, lag_share=0.5)
+    got = estimate_clock_offset(ev, a, b, sample, (0.2, 0.2), **kwargs)
+    with edi.numpy_reference():
+        want = estimate_clock_offset(ev, a, b, sample, (0.2, 0.2), **kwargs)
+    assert got is not None and got == want

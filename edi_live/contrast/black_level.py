@@ -164,22 +164,11 @@ def grid_minimum(cost: Callable[[float], float], lo: int, hi: int) -> float:
     return min((float(b) for b in range(int(max(lo, b0 - 3)), int(min(hi, b0 + 3)) + 1)), key=cost)
 
 
-def fit_black_level(s: QuietSamples, b_range: tuple[float, float] = (0.0, 40.0), *, z_step: float = 4.0,
-                    min_pixels: int = 50) -> BlackLevelFit | None:
-    """Profile the cost over whole-DN b in `b_range` (c fitted per b); None without enough moving pixels."""
-    if int(np.count_nonzero(s.net)) < min_pixels:
-        return None
-    lo_b, hi_b = math.floor(b_range[0]), math.ceil(b_range[1])
-    cache: dict[float, tuple[float, float]] = {}
-
-    def at(b: float) -> tuple[float, float]:
-        if b not in cache:
-            cache[b] = profile_point(s, b)
-        return cache[b]
-
-    # The search only needs to know that a point loses: a point whose cost must exceed the best so far is not
-    # summed to the end. The hidden pixels alone (darker frame at or below b + 1 DN) cost _MISS_TERM each, and
-    # every term is >= 0 (the margin covers the sums' rounding).
+def profile_search(s: QuietSamples, lo: int, hi: int, cache: dict[float, tuple[float, float]]) -> float:
+    """grid_minimum of the profile's cost: the same b, but a point whose cost must exceed the best so far is not
+    summed to the end. The hidden pixels alone (darker frame at or below b + 1 DN) cost _MISS_TERM each, and
+    every term is >= 0 (the margin covers the sums' rounding). `cache` (b -> profile_point) gets the points
+    evaluated in full and is read first."""
     darker_all = np.minimum(s.b_prev, s.b_cur)
     best = [math.inf]
 
@@ -195,7 +184,23 @@ def fit_black_level(s: QuietSamples, b_range: tuple[float, float] = (0.0, 40.0),
         best[0] = min(best[0], cost)
         return cost
 
-    b_best = grid_minimum(searched, lo_b, hi_b)
+    return grid_minimum(searched, lo, hi)
+
+
+def fit_black_level(s: QuietSamples, b_range: tuple[float, float] = (0.0, 40.0), *, z_step: float = 4.0,
+                    min_pixels: int = 50) -> BlackLevelFit | None:
+    """Profile the cost over whole-DN b in `b_range` (c fitted per b); None without enough moving pixels."""
+    if int(np.count_nonzero(s.net)) < min_pixels:
+        return None
+    lo_b, hi_b = math.floor(b_range[0]), math.ceil(b_range[1])
+    cache: dict[float, tuple[float, float]] = {}
+
+    def at(b: float) -> tuple[float, float]:
+        if b not in cache:
+            cache[b] = profile_point(s, b)
+        return cache[b]
+
+    b_best = profile_search(s, lo_b, hi_b, cache)
     c_best = at(b_best)[0]
     if not math.isfinite(at(b_best)[1]):
         return None

@@ -78,10 +78,15 @@ class BlackLevelPolicy:
     def update(self, pair: FramePair | None, taken_off: float) -> float | None:
         if self.given is not None or pair is None:
             return None
-        # the noise sample costs a few ms a pair: taken only from the pairs the next estimate will pool
+        # only the pairs the next estimate will pool are sampled (the noise sample alone costs a few ms a pair):
+        # after start-up, a pair more than `pool_pairs` before the recheck leaves the pool before it is read
         soon = len(self._pool) < self._pool.maxlen or self._since >= self.settings.recheck_every - self._pool.maxlen
-        noise = self.settings.noise_correction and soon
-        self._pool.append(samples_with_noise(pair, taken_off) if noise else quiet_samples(pair, taken_off))
+        if not soon and not self._startup_marks:  # (a start-up estimate put off for too few pixels reads them all)
+            self._pool.append(None)
+        elif self.settings.noise_correction and soon:
+            self._pool.append(samples_with_noise(pair, taken_off))
+        else:
+            self._pool.append(quiet_samples(pair, taken_off))
         self._since += 1
         startup = due = bool(self._startup_marks and len(self._pool) >= self._startup_marks[0])
         if due:
@@ -90,7 +95,7 @@ class BlackLevelPolicy:
             due = True
         if not due:
             return None
-        samples = QuietSamples.join(list(self._pool))
+        samples = QuietSamples.join([p for p in self._pool if p is not None])
         if samples.size < self.settings.min_pixels:
             if not self._startup_marks:
                 self._startup_marks = [len(self._pool)]  # try again on the next pair

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from edi_live.contrast.clock_offset import FrameWindow, estimate_clock_offset, pixel_polarity_key
+from edi_live.contrast.clock_offset import FrameWindow, clock_offset_fit, pixel_polarity_key
 from edi_live.datatypes import Frame
 from edi_live.errors import ConfigError
 
@@ -185,11 +185,10 @@ class ClockOffsetPolicy:
         self._fits_in_round += 1
         s = self.settings
 
-        def fit(share: float) -> float | None:
-            return estimate_clock_offset(events, due.prev, due.cur, self._sample, due.c, black_level=due.black_level,
-                                         mask=due.mask, max_offset_us=MAX_OFFSET_US, midlevel_gap_us=MIDLEVEL_GAP_US,
-                                         complete_until_us=due.cur.exposure_end_us + MAX_OFFSET_US,
-                                         max_pixels=s.fit_pixels, min_z=s.min_z, lag_share=share)
+        fit = clock_offset_fit(events, due.prev, due.cur, self._sample, due.c, black_level=due.black_level,
+                               mask=due.mask, max_offset_us=MAX_OFFSET_US, midlevel_gap_us=MIDLEVEL_GAP_US,
+                               complete_until_us=due.cur.exposure_end_us + MAX_OFFSET_US, max_pixels=s.fit_pixels,
+                               min_z=s.min_z)  # the second share reuses the first's pixels and event shifts
         d = fit(1.0)
         if d is None:
             if self._fits_in_round >= s.max_fits:  # these frames say nothing: keep the offset, ask again later

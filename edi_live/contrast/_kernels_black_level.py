@@ -11,23 +11,22 @@ import numpy as np
 
 @numba.njit(cache=True, nogil=True)
 def profile_point(b_prev: np.ndarray, b_cur: np.ndarray, net: np.ndarray, b: float, delta: float,
-                  iterations: int, miss: float) -> tuple[float, float]:
+                  iterations: int, miss: float, bound: float = math.inf) -> tuple[float, float]:
     """(c, cost) at black level b: black_level.fit_c then the sum of black_level.black_level_terms; cost inf when
-    c is not positive."""
+    c is not positive, or once the running sum passes `bound` (the terms are >= 0: the cost would be larger)."""
     n = net.size
-    d = np.empty(n)
-    ok = np.empty(n, np.bool_)
     moving = np.empty(n, np.int64)  # only pixels with a net count enter the regression (N = 0 adds nothing)
+    d_moving = np.empty(n)  # their log ratios; the others' are taken in the cost's pass (skipped past `bound`)
     m = 0
     dn = 0.0
     nn = 0.0
     for i in range(n):
-        ok[i] = b_prev[i] > b + 1.0 and b_cur[i] > b + 1.0
-        d[i] = math.log((b_cur[i] - b) / (b_prev[i] - b)) if ok[i] else 0.0
-        if ok[i] and net[i] != 0.0:
+        if net[i] != 0.0 and b_prev[i] > b + 1.0 and b_cur[i] > b + 1.0:
+            d = math.log((b_cur[i] - b) / (b_prev[i] - b))
             moving[m] = i
+            d_moving[m] = d
             m += 1
-            dn += d[i] * net[i]
+            dn += d * net[i]
             nn += net[i] * net[i]
     if nn <= 0:
         return math.nan, math.inf
@@ -39,15 +38,24 @@ def profile_point(b_prev: np.ndarray, b_cur: np.ndarray, net: np.ndarray, b: flo
         den = 0.0
         for k in range(m):
             i = moving[k]
-            r = (d[i] - c * net[i]) / (c * delta)
+            r = (d_moving[k] - c * net[i]) / (c * delta)
             w = 1.0 / math.sqrt(1.0 + r * r)
-            num += w * d[i] * net[i]
+            num += w * d_moving[k] * net[i]
             den += w * net[i] * net[i]
         c = num / max(den, 1e-12)
     if not c > 0:
         return math.nan, math.inf
     cost = 0.0
+    k = 0
     for i in range(n):
-        r = d[i] / c - net[i] if ok[i] else miss
+        if k < m and moving[k] == i:
+            r = d_moving[k] / c - net[i]
+            k += 1
+        elif b_prev[i] > b + 1.0 and b_cur[i] > b + 1.0:
+            r = math.log((b_cur[i] - b) / (b_prev[i] - b)) / c - net[i]
+        else:
+            r = miss
         cost += math.sqrt(delta * delta + r * r) - delta
+        if cost > bound:
+            return c, math.inf
     return c, cost

@@ -36,6 +36,7 @@ from edi_live.contrast.vectors import dot
 from edi_live.edi import have_numba
 
 _MISS = 50.0  # the residual (in events) of a pixel that a black level b hides (at or below b + 1 DN)
+_MISS_TERM = math.sqrt(0.25 + _MISS * _MISS) - 0.5  # its pseudo-Huber term (delta 0.5)
 SUPPORT_DN = 30.0  # a moving quiet pixel supports an estimate b when its darker frame is at most this above b
 
 
@@ -146,11 +147,12 @@ def fit_c(s: QuietSamples, b: float, delta: float = 0.5, iterations: int = 5) ->
     return c if c > 0 else float("nan")
 
 
-def profile_point(s: QuietSamples, b: float) -> tuple[float, float]:
+def profile_point(s: QuietSamples, b: float, bound: float = math.inf) -> tuple[float, float]:
     """(c, cost) of the profile at black level b: fit_c, then the sum of black_level_terms (inf when c is
-    undefined); one compiled pass per step with the kernels."""
+    undefined); one compiled pass per step with the kernels. A cost above `bound` may come back as inf (the
+    kernel stops summing there)."""
     if have_numba():
-        return _kernels_black_level.profile_point(s.b_prev, s.b_cur, s.net, float(b), 0.5, 5, _MISS)
+        return _kernels_black_level.profile_point(s.b_prev, s.b_cur, s.net, float(b), 0.5, 5, _MISS, bound)
     c = fit_c(s, b)
     return c, (float(np.sum(black_level_terms(s, b, c))) if c == c else math.inf)
 
@@ -160,6 +162,29 @@ def grid_minimum(cost: Callable[[float], float], lo: int, hi: int) -> float:
     3 of the best of those."""
     b0 = min((float(b) for b in range(lo, hi + 1, 4)), key=cost)
     return min((float(b) for b in range(int(max(lo, b0 - 3)), int(min(hi, b0 + 3)) + 1)), key=cost)
+
+
+def profile_search(s: QuietSamples, lo: int, hi: int, cache: dict[float, tuple[float, float]]) -> float:
+    """grid_minimum of the profile's cost: the same b, but a point whose cost must exceed the best so far is not
+    summed to the end. The hidden pixels alone (darker frame at or below b + 1 DN) cost _MISS_TERM each, and
+    every term is >= 0 (the margin covers the sums' rounding). `cache` (b -> profile_point) gets the points
+    evaluated in full and is read first."""
+    darker_all = np.minimum(s.b_prev, s.b_cur)
+    best = [math.inf]
+
+    def searched(b: float) -> float:
+        if b in cache:
+            cost = cache[b][1]
+        elif _MISS_TERM * np.count_nonzero(darker_all <= b + 1.0) > best[0] * (1.0 + 1e-9):
+            return math.inf
+        else:
+            c, cost = profile_point(s, b, best[0] * (1.0 + 1e-9))
+            if math.isfinite(cost) or not c == c:  # exact (an unbounded sum, or c undefined): kept
+                cache[b] = (c, cost)
+        best[0] = min(best[0], cost)
+        return cost
+
+    return grid_minimum(searched, lo, hi)
 
 
 def fit_black_level(s: QuietSamples, b_range: tuple[float, float] = (0.0, 40.0), *, z_step: float = 4.0,
@@ -175,7 +200,7 @@ def fit_black_level(s: QuietSamples, b_range: tuple[float, float] = (0.0, 40.0),
             cache[b] = profile_point(s, b)
         return cache[b]
 
-    b_best = grid_minimum(lambda b: at(b)[1], lo_b, hi_b)
+    b_best = profile_search(s, lo_b, hi_b, cache)
     c_best = at(b_best)[0]
     if not math.isfinite(at(b_best)[1]):
         return None

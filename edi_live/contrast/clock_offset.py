@@ -24,10 +24,13 @@ Then the ideal camera gives ~0.1 ms and a 1.5 ms offset ~1.6 ms (medians over 11
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
+from edi_live.contrast import _kernels_clock_offset
 from edi_live.contrast.vectors import dot
+from edi_live.edi import have_numba
 
 
 @dataclass(frozen=True)
@@ -59,95 +62,141 @@ def estimate_clock_offset(events: np.ndarray, prev: FrameWindow, cur: FrameWindo
     min_z, the best point must beat both points z_step_us away (those within the covered range) by min_z standard
     errors of the per-pixel cost difference (paired over pixels), else None: a shallow or noisy cost curve says
     nothing about the offset."""
-    h, w = sample.shape
-    if events.size == 0:
-        return None
-    t = events["t"]
-    d_lo = max(-max_offset_us, -((prev.exposure_start_us - int(t[0])) // step_us) * step_us)
-    until = int(t[-1]) if complete_until_us is None else max(int(t[-1]), complete_until_us)
-    d_hi = min(max_offset_us, ((until - cur.exposure_end_us) // step_us) * step_us)
-    if d_hi - d_lo < 2 * step_us:
-        return None  # the batch does not cover the windows
-    bp = prev.blurry.reshape(-1) - black_level
-    bc = cur.blurry.reshape(-1) - black_level
-    use = sample.reshape(-1) & prev.informative.reshape(-1) & cur.informative.reshape(-1)
-    use &= (bp >= b_low) & (bp <= b_high) & (bc >= b_low) & (bc <= b_high)
-    if mask is not None:
-        use &= ~mask.reshape(-1)
-    lo, hi = prev.exposure_start_us + d_lo, cur.exposure_end_us + d_hi
-    # pixels without an event near the windows cost the same at every offset: only pixels with events count
-    with_events = np.zeros(h * w, bool)
-    near = events[(t >= lo - (midlevel_gap_us or 0) // 2) & (t <= hi)]
-    with_events[near["y"].astype(np.int64) * w + near["x"]] = True
-    pixels = np.flatnonzero(use & with_events)
-    if max_pixels is not None and pixels.size > max_pixels:
-        pixels = pixels[np.linspace(0, pixels.size - 1, max_pixels).astype(np.int64)]
-    if pixels.size < min_pixels:
-        return None
-    dlog_b = np.log(bc[pixels]) - np.log(bp[pixels])
-    sums = _ExposureSums(events, pixels, w, lo, hi, c, midlevel_gap_us, lag_share)
-    ends = np.array([prev.exposure_start_us, prev.exposure_end_us, cur.exposure_start_us, cur.exposure_end_us])
-    spans = (max(prev.exposure_end_us - prev.exposure_start_us, 1), max(cur.exposure_end_us - cur.exposure_start_us, 1))
-    cache: dict[int, np.ndarray] = {}
+    return clock_offset_fit(events, prev, cur, sample, c, black_level=black_level, mask=mask,
+                            max_offset_us=max_offset_us, step_us=step_us, coarse_step_us=coarse_step_us,
+                            midlevel_gap_us=midlevel_gap_us, complete_until_us=complete_until_us,
+                            max_pixels=max_pixels, b_low=b_low, b_high=b_high, delta=delta, min_pixels=min_pixels,
+                            min_z=min_z, z_step_us=z_step_us)(lag_share)
 
-    def evaluate(ds) -> None:
-        todo = np.array(sorted({int(d) for d in ds} - cache.keys()), np.int64)
-        if todo.size:
-            cache.update(zip(todo.tolist(), _terms(sums, ends, spans, todo, dlog_b, delta)))
 
-    def cost(d: int) -> float:
-        return float(cache[int(d)].sum())
+def clock_offset_fit(events: np.ndarray, prev: FrameWindow, cur: FrameWindow, sample: np.ndarray,
+                     c: tuple[float, float], *, black_level: float = 0.0, mask: np.ndarray | None = None,
+                     max_offset_us: int = 4000, step_us: int = 250, coarse_step_us: int = 1000,
+                     midlevel_gap_us: int | None = None, complete_until_us: int | None = None,
+                     max_pixels: int | None = None, b_low: float = 6.0, b_high: float = 250.0,
+                     delta: float = 0.1, min_pixels: int = 30, min_z: float = 0.0,
+                     z_step_us: int = 1000) -> Callable[[float], float | None]:
+    """estimate_clock_offset's fit as a function of lag_share: the pixels, their events and the events' mid-level
+    shifts do not depend on it and are taken once, for every share asked."""
+    selection: list = []
 
-    # a coarse grid over the covered range, then the fine grid around its best point
-    evaluate(np.r_[np.arange(d_lo, d_hi, coarse_step_us), d_hi])
-    best = min(cache, key=cost)
-    fine = np.arange(max(d_lo, best - coarse_step_us), min(d_hi, best + coarse_step_us) + 1, step_us)
-    evaluate(fine)
-    i = int(min(range(fine.size), key=lambda j: cost(fine[j])))
-    d_best = int(fine[i])
-    if d_best in (d_lo, d_hi):
-        # not a minimum: it may lie beyond what the events cover, or the cost only drifts across the range (a
-        # noise-only scene drifts to +max_offset_us, and the z test below does not tell a drift from a minimum)
-        return None
-    if min_z > 0:
-        sides = [d for d in (d_best - z_step_us, d_best + z_step_us) if d_lo <= d <= d_hi]
-        evaluate(sides)
-        zs = []
-        for d in sides:
-            diff = cache[d] - cache[d_best]
-            n = diff.size
-            var = max(dot(diff, diff) / n - (float(diff.sum()) / n) ** 2, 0.0)
-            zs.append(float(diff.sum()) / (np.sqrt(n * var) + 1e-12))
-        if not zs or min(zs) < min_z:
+    def select() -> tuple | None:
+        h, w = sample.shape
+        if events.size == 0:
             return None
-    costs = np.array([cost(d) for d in cache])
-    if not np.isfinite(costs).all() or float(costs.max() - costs.min()) <= 1e-9 * max(cost(d_best), 1e-12):
-        return None
-    out = float(d_best)
-    if 0 < i < fine.size - 1:
-        c0, c1, c2 = cost(fine[i - 1]), cost(d_best), cost(fine[i + 1])
-        if c0 - 2 * c1 + c2 > 0:
-            out += 0.5 * step_us * (c0 - c2) / (c0 - 2 * c1 + c2)
-    return out
+        t = events["t"]
+        d_lo = max(-max_offset_us, -((prev.exposure_start_us - int(t[0])) // step_us) * step_us)
+        until = int(t[-1]) if complete_until_us is None else max(int(t[-1]), complete_until_us)
+        d_hi = min(max_offset_us, ((until - cur.exposure_end_us) // step_us) * step_us)
+        if d_hi - d_lo < 2 * step_us:
+            return None  # the batch does not cover the windows
+        bp = prev.blurry.reshape(-1) - black_level
+        bc = cur.blurry.reshape(-1) - black_level
+        use = sample.reshape(-1) & prev.informative.reshape(-1) & cur.informative.reshape(-1)
+        use &= (bp >= b_low) & (bp <= b_high) & (bc >= b_low) & (bc <= b_high)
+        if mask is not None:
+            use &= ~mask.reshape(-1)
+        lo, hi = prev.exposure_start_us + d_lo, cur.exposure_end_us + d_hi
+        # pixels without an event near the windows cost the same at every offset: only pixels with events count
+        with_events = np.zeros(h * w, bool)
+        near = events[np.searchsorted(t, lo - (midlevel_gap_us or 0) // 2):np.searchsorted(t, hi, "right")]  # t ascends
+        with_events[near["y"].astype(np.int64) * w + near["x"]] = True
+        pixels = np.flatnonzero(use & with_events)
+        if max_pixels is not None and pixels.size > max_pixels:
+            pixels = pixels[np.linspace(0, pixels.size - 1, max_pixels).astype(np.int64)]
+        if pixels.size < min_pixels:
+            return None
+        dlog_b = np.log(bc[pixels]) - np.log(bp[pixels])
+        return d_lo, d_hi, lo, hi, dlog_b, _PixelEvents(events, pixels, w, midlevel_gap_us)
+
+    def fit(lag_share: float = 1.0) -> float | None:
+        if not selection:
+            selection.append(select())
+        if selection[0] is None:
+            return None
+        d_lo, d_hi, lo, hi, dlog_b, pixel_events = selection[0]
+        sums = _ExposureSums(pixel_events, lo, hi, c, lag_share)
+        ends = np.array([prev.exposure_start_us, prev.exposure_end_us, cur.exposure_start_us, cur.exposure_end_us])
+        spans = (max(prev.exposure_end_us - prev.exposure_start_us, 1),
+                 max(cur.exposure_end_us - cur.exposure_start_us, 1))
+        cache: dict[int, np.ndarray] = {}
+
+        def evaluate(ds) -> None:
+            todo = np.array(sorted({int(d) for d in ds} - cache.keys()), np.int64)
+            if todo.size:
+                cache.update(zip(todo.tolist(), _terms(sums, ends, spans, todo, dlog_b, delta)))
+
+        def cost(d: int) -> float:
+            return float(cache[int(d)].sum())
+
+        # a coarse grid over the covered range, then the fine grid around its best point
+        evaluate(np.r_[np.arange(d_lo, d_hi, coarse_step_us), d_hi])
+        best = min(cache, key=cost)
+        fine = np.arange(max(d_lo, best - coarse_step_us), min(d_hi, best + coarse_step_us) + 1, step_us)
+        evaluate(fine)
+        i = int(min(range(fine.size), key=lambda j: cost(fine[j])))
+        d_best = int(fine[i])
+        if d_best in (d_lo, d_hi):
+            # not a minimum: it may lie beyond what the events cover, or the cost only drifts across the range (a
+            # noise-only scene drifts to +max_offset_us, and the z test below does not tell a drift from a minimum)
+            return None
+        if min_z > 0:
+            sides = [d for d in (d_best - z_step_us, d_best + z_step_us) if d_lo <= d <= d_hi]
+            evaluate(sides)
+            zs = []
+            for d in sides:
+                diff = cache[d] - cache[d_best]
+                n = diff.size
+                var = max(dot(diff, diff) / n - (float(diff.sum()) / n) ** 2, 0.0)
+                zs.append(float(diff.sum()) / (np.sqrt(n * var) + 1e-12))
+            if not zs or min(zs) < min_z:
+                return None
+        costs = np.array([cost(d) for d in cache])
+        if not np.isfinite(costs).all() or float(costs.max() - costs.min()) <= 1e-9 * max(cost(d_best), 1e-12):
+            return None
+        out = float(d_best)
+        if 0 < i < fine.size - 1:
+            c0, c1, c2 = cost(fine[i - 1]), cost(d_best), cost(fine[i + 1])
+            if c0 - 2 * c1 + c2 > 0:
+                out += 0.5 * step_us * (c0 - c2) / (c0 - 2 * c1 + c2)
+        return out
+
+    return fit
 
 
-class _ExposureSums:
-    """Per pixel of `pixels`, the integral from `lo` of exp(S(t)) (S: the signed event sum since lo), read at any
-    times in [lo, hi] by `at(q)` (q: (n_pixels, k), each row that pixel's). Piecewise linear between events."""
+class _PixelEvents:
+    """The events of `pixels` (each as its rank r in `pixels`, time t, polarity p) and, with midlevel_gap_us, how
+    far midlevel_times moves each back (`shift`, taken when first asked)."""
 
-    def __init__(self, events: np.ndarray, pixels: np.ndarray, width: int, lo: int, hi: int,
-                 c: tuple[float, float], midlevel_gap_us: int | None, lag_share: float = 1.0) -> None:
+    def __init__(self, events: np.ndarray, pixels: np.ndarray, width: int, midlevel_gap_us: int | None) -> None:
         rank = np.full(int(pixels.max()) + 1, -1, np.int64)
         rank[pixels] = np.arange(pixels.size)
         flat = np.minimum(events["y"].astype(np.int64) * width + events["x"], rank.size - 1)
         r = rank[flat]
         keep = r >= 0
-        r, t, p = r[keep], events["t"][keep].astype(np.int64), events["p"][keep]
-        if midlevel_gap_us is not None and lag_share:
-            shift = _midlevel_shift(r * 2 + p, t, midlevel_gap_us)
+        self.r, self.t, self.p = r[keep], events["t"][keep].astype(np.int64), events["p"][keep]
+        self.n = pixels.size
+        self.midlevel_gap_us = midlevel_gap_us
+        self._shift: np.ndarray | None = None
+
+    @property
+    def shift(self) -> np.ndarray:
+        if self._shift is None:
+            self._shift = _midlevel_shift(self.r * 2 + self.p, self.t, self.midlevel_gap_us)
+        return self._shift
+
+
+class _ExposureSums:
+    """Per pixel of `pixels`, the integral from `lo` of exp(S(t)) (S: the signed event sum since lo), read at any
+    times in [lo, hi] by `at(q)` (q: the times, the same for every pixel). Piecewise linear between events."""
+
+    def __init__(self, ev: _PixelEvents, lo: int, hi: int, c: tuple[float, float], lag_share: float = 1.0) -> None:
+        r, t, p = ev.r, ev.t, ev.p
+        if ev.midlevel_gap_us is not None and lag_share:
+            shift = ev.shift
             t = t - (shift if lag_share == 1.0 else np.round(lag_share * shift).astype(np.int64))
         inside = (t >= lo) & (t <= hi)
-        n = pixels.size
+        n = ev.n
         # each pixel starts with a mark at lo (no level change), so that every time has an event at or before it
         r = np.concatenate([np.arange(n, dtype=np.int64), r[inside]])
         t = np.concatenate([np.full(n, lo, np.int64), t[inside]])
@@ -171,8 +220,13 @@ class _ExposureSums:
         self.lo = lo
         self.n = n
         self.row_key = (np.arange(n, dtype=np.int64) * span - lo)[:, None]
+        self.first = np.r_[np.flatnonzero(first), r.size]  # each pixel's entries (its mark first)
 
     def at(self, q: np.ndarray) -> np.ndarray:
+        """(n_pixels, k): every pixel's integral at the times q (1-D, within [lo, hi])."""
+        if have_numba():
+            return _kernels_clock_offset.integrals_at(self.key, self.first, self.row_key[:, 0], q, self.intercept,
+                                                      self.slope, self.lo)
         j = np.searchsorted(self.key, self.row_key + q, "right") - 1  # at or after the pixel's mark
         return self.intercept[j] + self.slope[j] * (q - self.lo)
 
@@ -193,7 +247,7 @@ def _terms(sums: _ExposureSums, ends: np.ndarray, spans: tuple[int, int], ds: np
     """(len(ds), n_pixels) robust residuals, one row per offset (the cost is a row's sum). `ends`: the previous
     and current windows' (start, end)."""
     q = (ends[:, None] + ds[None, :]).reshape(-1)  # per pixel, in time order when the windows are apart
-    g = sums.at(np.broadcast_to(q, (sums.n, q.size))).reshape(sums.n, 4, ds.size)
+    g = sums.at(q).reshape(sums.n, 4, ds.size)
     mean_p = np.maximum(g[:, 1] - g[:, 0], 1e-9) / spans[0]
     mean_c = np.maximum(g[:, 3] - g[:, 2], 1e-9) / spans[1]
     r = dlog_b[:, None] - np.log(mean_c / mean_p)

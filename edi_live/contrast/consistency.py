@@ -76,20 +76,15 @@ class ConsistencyContrast:
         parts = []
         spread = np.zeros(cand.size)
         for frame in (prev, cur):
-            tab = frame.table
-            pos = np.searchsorted(tab.pixels, cand)
-            pos = np.minimum(pos, max(tab.n_active - 1, 0))
-            hit = (tab.pixels[pos] == cand) if tab.n_active else np.zeros(cand.size, bool)
-            spread[hit] += np.diff(tab.lvl_start)[pos[hit]] - 1
-            parts.append((hit, tab.take(pos[hit])))
+            rows, at = edi.rows_of(frame.table, cand, spread)  # `at`: where in cand, ascending
+            parts.append((at, frame.table.take(rows)))
         # pixels that crossed many levels within an exposure carry more quantisation error in L(f)
         weight = 1.0 / (1.0 + self.spread_weight * spread)
         (hit_p, sub_p), (hit_c, sub_c) = parts
         delta2 = self.delta ** 2
         if edi.have_numba():  # fused kernel for the common single-c case: no temporaries per evaluation
             net = n_on - n_off
-            row_p = np.flatnonzero(hit_p)
-            row_c = np.flatnonzero(hit_c)
+            row_p, row_c = hit_p, hit_c
 
             def jit_cost(c: float, out: np.ndarray | None) -> float:
                 return edi.consistency_cost(c, dlog_b, net, weight, delta2, sub_p, row_p, sub_c, row_c, out)

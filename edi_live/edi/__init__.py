@@ -39,7 +39,7 @@ from edi_live.edi.fused import (RESIDUAL_SPAN, FusedPropagator, FusionPlan, even
                                 fused_log, fusion_plan, fusion_weights, time_share)
 from edi_live.edi.residual_schedule import COLD_CONTEXT as RESIDUAL_COLD_CONTEXT, ResidualCarry
 from edi_live.edi.latent import (Propagator, event_delta, propagate_log, render_buckets, to_uint8, u8_tables)
-from edi_live.edi.levels import LevelTable, build_level_table, empty_table, log_divisor
+from edi_live.edi.levels import LevelTable, build_level_table, empty_table, log_divisor, rows_of
 from edi_live.edi.pairs import consistency_cost, pair_candidates
 from edi_live.edi.running import RunningDivisor
 from edi_live.edi.pixels import (FlickerState, activity_verdicts, background_activity_keep, decay_hot_counts, dilate,
@@ -73,6 +73,6 @@ __all__ = [
     "background_activity_keep", "blurry_to_float", "build_level_table", "consistency_cost", "deblur", "deblur_log",
     "decay_hot_counts", "dilate", "empty_table", "event_delta", "events_at_pixels", "finish_frame_u8", "flat_index",
     "have_numba", "hot_pixel_mask", "isolated_event_mask", "mark_event_pixels", "log_divisor", "log_divisor_events", "new_activity_map",
-    "numpy_reference", "pair_candidates", "propagate_log", "render_buckets", "select",
+    "numpy_reference", "pair_candidates", "propagate_log", "render_buckets", "rows_of", "select",
     "signed_counts", "supported_events_keep", "time_index", "to_uint8", "u8_tables", "update_contradictions", "window",
 ]

@@ -67,7 +67,25 @@ class LevelTable:
         )
 
 
+def rows_of(table: LevelTable, pixels: np.ndarray, spread: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, at): the table rows of those of `pixels` (flat indices, ascending) that are active in the table, and
+    their positions in `pixels` (ascending). Adds each such pixel's number of levels - 1 to `spread[at]` (float64,
+    pixels' size)."""
+    pixels = np.asarray(pixels, dtype=np.int64)
+    if _backend.have_numba():
+        return _kernels_levels.rows_of(table.pixels, table.lvl_start, pixels, spread)
+    if table.n_active == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    pos = np.minimum(np.searchsorted(table.pixels, pixels), table.n_active - 1)
+    at = np.flatnonzero(table.pixels[pos] == pixels)
+    rows = pos[at]
+    spread[at] += np.diff(table.lvl_start)[rows] - 1
+    return rows, at
+
+
 def _ragged_take(start: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    if _backend.have_numba():
+        return _kernels_levels.ragged_take(start, rows)
     lengths = start[rows + 1] - start[rows]
     new_start = np.zeros(rows.size + 1, dtype=np.int64)
     np.cumsum(lengths, out=new_start[1:])

@@ -159,3 +159,91 @@ def test_compiled_profile_point_equals_the_numpy_reference():
             assert cost == pytest.approx(float(np.sum(black_level_terms(s, b, c_ref))), rel=1e-9)
         else:
             assert c != c and cost == np.inf
+
+
+def test_the_policy_samples_only_the_pairs_an_estimate_reads(monkeypatch):
+    """Pairs that leave the pool before the next estimate are not sampled, yet every estimate sees the samples of
+    exactly the last `pool_pairs` pairs (start-up, rechecks, and a start-up estimate put off for too few pixels)."""
+    import edi_live.black_level_policy as policy_module
+    from edi_live.black_level_policy import BlackLevelSettings
+    from edi_live.contrast.black_level import QuietSamples
+
+    sampled: list[int] = []
+    seen: list[tuple[int, list[int]]] = []
+    sizes = {k: (1 if k < 3 else 40) for k in range(60)}  # the first pairs are too small for an estimate
+
+    def sample(pair, taken_off):
+        sampled.append(pair)
+        v = np.full(sizes[pair], float(pair))
+        return QuietSamples(v, v, v)
+
+    def fit(samples, b_range):
+        seen.append((current[0], sorted(set(samples.net.astype(int).tolist()))))
+        return None
+
+    current = [0]
+    monkeypatch.setattr(policy_module, "quiet_samples", sample)
+    monkeypatch.setattr(policy_module, "samples_with_noise", sample)
+    monkeypatch.setattr(policy_module, "fit_black_level", fit)
+    pol = BlackLevelPolicy(None, BlackLevelSettings(pool_pairs=4, min_pairs=2, min_pixels=60, recheck_every=10))
+    for k in range(60):
+        current[0] = k
+        pol.update(k, 0.0)
+    assert seen, "no estimate ran"
+    for k, pairs in seen:
+        assert pairs == list(range(max(0, k - 3), k + 1)), (k, pairs)
+    assert len(seen) >= 5 and len(sampled) < 40, (seen, sampled)
+
+
+def test_compiled_profile_point_stops_only_past_its_bound():
+    from edi_live.contrast import _kernels_black_level
+    from edi_live.contrast.black_level import QuietSamples, black_level_terms, fit_c
+
+    rng = np.random.default_rng(8)
+    n = 3000
+    b_prev = rng.uniform(3, 250, n)
+    net = rng.integers(-3, 4, n).astype(np.float64)
+    b_cur = np.clip((b_prev - 8) * np.exp(0.2 * net + rng.normal(0, 0.05, n)) + 8, 3, 250)
+    s = QuietSamples(b_prev, b_cur, net)
+    for b in (0.0, 8.0, 30.0):
+        c_ref = fit_c(s, b)
+        want = float(np.sum(black_level_terms(s, b, c_ref)))
+        c, cost = _kernels_black_level.profile_point(b_prev, b_cur, net, b, 0.5, 5, 50.0, want * 1.001)
+        assert cost == pytest.approx(want, rel=1e-9) and c == pytest.approx(c_ref, rel=1e-9)
+        c, cost = _kernels_black_level.profile_point(b_prev, b_cur, net, b, 0.5, 5, 50.0, want * 0.999)
+        assert cost == np.inf and c == pytest.approx(c_ref, rel=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_bounded_search_finds_the_exhaustive_profiles_minimum(seed):
+    """fit_black_level skips points that must lose (hidden pixels' floor, a running sum past the best so far);
+    it lands where the documented search on the full numpy profile does: every 4 DN, then every DN within 3 of
+    the best of those, with z from the points 4 DN either side."""
+    import math
+
+    from edi_live.contrast.black_level import QuietSamples, black_level_terms, fit_black_level, fit_c
+
+    rng = np.random.default_rng(seed)
+    n = 4000
+    black = float(rng.choice([0.0, 5.0, 12.0, 30.0]))
+    level = rng.uniform(1.0, 240.0 - black, n) * np.where(rng.random(n) < 0.3, 0.1, 1.0)
+    net = rng.integers(-3, 4, n).astype(np.float64)
+    b_prev = np.round(level + black + rng.normal(0, 0.5, n))
+    b_cur = np.round(np.clip(level * np.exp(0.2 * net + rng.normal(0, 0.03, n)), 0.0, 250.0 - black) + black)
+    s = QuietSamples(b_prev, b_cur, net)
+
+    def cost(b: float) -> float:
+        c = fit_c(s, b)
+        return float(np.sum(black_level_terms(s, b, c))) if c == c else math.inf
+
+    full = {float(b): cost(float(b)) for b in range(0, 61)}
+    b0 = min((float(b) for b in range(0, 61, 4)), key=full.get)
+    want = min((float(b) for b in range(int(max(0, b0 - 3)), int(min(60, b0 + 3)) + 1)), key=full.get)
+    got = fit_black_level(s, (0.0, 60.0))
+    assert got is not None and got.black_level == want, (got, want, black)
+    zs = []
+    for side in (want - 4.0, want + 4.0):
+        if 0 <= side <= 60 and math.isfinite(full[side]):
+            d = black_level_terms(s, side, fit_c(s, side)) - black_level_terms(s, want, fit_c(s, want))
+            zs.append(d.sum() / (math.sqrt(d.size * max(np.mean(d * d) - np.mean(d) ** 2, 0.0)) + 1e-12))
+    assert got.z == pytest.approx(min(zs), rel=1e-6, abs=1e-9)

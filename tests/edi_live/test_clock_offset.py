@@ -137,7 +137,7 @@ def test_the_fits_residual_is_edis_level_tables_and_counts_between_the_frames(sc
     """The fit reads each pixel's integral of exp(S) at the window ends; EDI's own functions (level tables of both
     windows moved by d, the counts between the mid-exposures) must give the same residual."""
     import edi_live.edi as edi
-    from edi_live.contrast.clock_offset import _ExposureSums, _terms
+    from edi_live.contrast.clock_offset import _ExposureSums, _PixelEvents, _terms
 
     cfg = dataclasses.replace(with_effects(scene, "thresholds"), duration_s=0.15)
     sim = simulate(cfg)
@@ -150,7 +150,7 @@ def test_the_fits_residual_is_edis_level_tables_and_counts_between_the_frames(sc
     ev = edi.events_at_pixels(sim.events, w, h, keep.reshape(h, w))
     dlog_b = np.random.default_rng(4).normal(0.0, 0.3, pixels.size)
     lo, hi = prev.exposure_start_us - 2000, cur.exposure_end_us + 2000
-    sums = _ExposureSums(ev, pixels, w, lo, hi, c, None)
+    sums = _ExposureSums(_PixelEvents(ev, pixels, w, None), lo, hi, c)
     ends = np.array([prev.exposure_start_us, prev.exposure_end_us, cur.exposure_start_us, cur.exposure_end_us])
     spans = (prev.exposure_end_us - prev.exposure_start_us, cur.exposure_end_us - cur.exposure_start_us)
     ds = np.array([-2000, -250, 0, 1500, 2000])
@@ -219,12 +219,16 @@ def test_the_fit_runs_in_settle_never_among_latent_frames_and_does_not_depend_on
     cfg = with_effects(scene, "clock_offset")
     sim = simulate(cfg)
     state = {"where": None, "fits": collections.Counter()}
-    real = policy.estimate_clock_offset
+    real = policy.clock_offset_fit
 
     def counted(*args, **kwargs):
-        state["fits"][state["where"]] += 1
-        return real(*args, **kwargs)
-    monkeypatch.setattr(policy, "estimate_clock_offset", counted)
+        fit = real(*args, **kwargs)
+
+        def run(share: float) -> float | None:
+            state["fits"][state["where"]] += 1
+            return fit(share)
+        return run
+    monkeypatch.setattr(policy, "clock_offset_fit", counted)
     rec = EdiReconstructor(cfg.width, cfg.height, clock_offset_us=None)
     for name in ("on_frame", "on_events", "settle"):
         method = getattr(rec, name)
@@ -320,3 +324,65 @@ def test_a_frozen_copy_still_reports_an_estimated_offset_and_keeps_nothing():
     twin.collect(ev)
     assert not twin.collecting and twin._chunks == [] and policy._chunks == []
     assert not ClockOffsetPolicy(1500, 8, 6).frozen().estimated
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_compiled_lookup_equals_a_search_of_the_whole_table(seed):
+    """last_at_or_before searches each pixel's own entries; numpy's searchsorted over the whole sorted table (the
+    reference) gives the same index for every pixel and time in its range, including times before its first
+    event (its mark) and on an entry's exact time."""
+    from edi_live.contrast._kernels_clock_offset import last_at_or_before
+
+    rng = np.random.default_rng(seed)
+    n, span = int(rng.integers(1, 40)), 1000
+    counts = rng.integers(0, 6, n)
+    key = np.concatenate([i * span + np.r_[0, np.sort(rng.choice(np.arange(1, span - 1), c, replace=False))]
+                          for i, c in enumerate(counts)]).astype(np.int64)
+    first = np.r_[0, np.cumsum(counts + 1)].astype(np.int64)
+    lo = 5000
+    row_key = np.arange(n, dtype=np.int64) * span - lo
+    q = np.r_[lo, lo + rng.integers(0, span - 1, 12), lo + key[key < span][-1]].astype(np.int64)
+    want = np.searchsorted(key, row_key[:, None] + q[None, :], "right") - 1
+    np.testing.assert_array_equal(last_at_or_before(key, first, row_key, q), want)
+
+
+def test_the_offset_fit_is_the_same_with_and_without_the_kernels(scene):
+    import edi_live.edi as edi
+
+    cfg = with_effects(scene, "clock_offset")
+    sim = simulate(cfg)
+    h, w = cfg.height, cfg.width
+    sample = np.zeros((h, w), bool)
+    sample.reshape(-1)[np.random.default_rng(1).choice(h * w, 3000, replace=False)] = True
+    frames = [FrameWindow(f.exposure_start_us, f.exposure_end_us, f.image.astype(np.float64),
+                          (f.image > 0) & (f.image < 255)) for f in sim.frames]
+    a, b = frames[2], frames[3]
+    t = sim.events["t"]
+    ev = sim.events[np.searchsorted(t, a.exposure_start_us - 12_000):np.searchsorted(t, b.exposure_end_us + 8_000)]
+    kwargs = dict(midlevel_gap_us=10_000, max_pixels=1500, min_z=2.0, lag_share=0.5)
+    got = estimate_clock_offset(ev, a, b, sample, (0.2, 0.2), **kwargs)
+    with edi.numpy_reference():
+        want = estimate_clock_offset(ev, a, b, sample, (0.2, 0.2), **kwargs)
+    assert got is not None and got == want
+
+
+def test_one_preparation_serves_every_lag_share_as_separate_fits_do(scene):
+    """clock_offset_fit takes the pixels and event shifts once; each share's result is estimate_clock_offset's."""
+    from edi_live.contrast.clock_offset import clock_offset_fit
+
+    cfg = with_effects(scene, "clock_offset")
+    sim = simulate(cfg)
+    h, w = cfg.height, cfg.width
+    sample = np.zeros((h, w), bool)
+    sample.reshape(-1)[np.random.default_rng(2).choice(h * w, 3000, replace=False)] = True
+    frames = [FrameWindow(f.exposure_start_us, f.exposure_end_us, f.image.astype(np.float64),
+                          (f.image > 0) & (f.image < 255)) for f in sim.frames]
+    a, b = frames[3], frames[4]
+    t = sim.events["t"]
+    ev = sim.events[np.searchsorted(t, a.exposure_start_us - 12_000):np.searchsorted(t, b.exposure_end_us + 8_000)]
+    kwargs = dict(midlevel_gap_us=10_000, max_pixels=1500, min_z=2.0)
+    fit = clock_offset_fit(ev, a, b, sample, (0.2, 0.2), **kwargs)
+    shares = (1.0, 0.5, 0.0, 1.0)
+    got = [fit(share) for share in shares]
+    want = [estimate_clock_offset(ev, a, b, sample, (0.2, 0.2), lag_share=share, **kwargs) for share in shares]
+    assert got == want and got[0] is not None and got[1] != got[0]

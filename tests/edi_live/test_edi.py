@@ -219,11 +219,18 @@ def test_black_level_is_taken_off_b_in_every_path(black, rng):
     np.testing.assert_allclose(results[0][0].reshape(-1)[quiet], want, rtol=1e-6)
 
 
-def test_take_restricts_rows(rng):
+def test_take_restricts_rows(backend, rng):
     ev = random_events(rng, 2000, 20, 10, 0, 5000)
     table = edi.build_level_table(ev, 20, 10, 0, 5000)
     rows = np.arange(0, table.n_active, 3)
     sub = table.take(rows)
+    for k, r in enumerate(rows):  # row by row against the table's own slices
+        for start, arrays in (("seg_start", ("seg_on", "seg_off", "seg_frac")), ("lvl_start", ("lvl_frac",))):
+            a, b = getattr(table, start)[r], getattr(table, start)[r + 1]
+            sa, sb = getattr(sub, start)[k], getattr(sub, start)[k + 1]
+            for name in arrays:
+                np.testing.assert_array_equal(getattr(sub, name)[sa:sb], getattr(table, name)[a:b])
+    np.testing.assert_array_equal(sub.lvl_min, table.lvl_min[rows])
     np.testing.assert_array_equal(sub.pixels, table.pixels[rows])
     np.testing.assert_allclose(edi.log_divisor(sub, 0.4), edi.log_divisor(table, 0.4)[rows])
     np.testing.assert_allclose(edi.log_divisor(sub, 0.4, 0.1), edi.log_divisor(table, 0.4, 0.1)[rows])
@@ -342,3 +349,48 @@ def test_empty_exposure_keeps_b(exposure, c, value):
     table = edi.build_level_table(np.zeros(0, EVENT_DTYPE), 3, 3, 5, 5 + exposure)
     out = edi.deblur(b, table, c, informative=informative)
     np.testing.assert_allclose(out, max(value, edi.DARK_FLOOR), rtol=1e-5)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_rows_of_finds_the_active_pixels_and_their_level_spread(backend, seed):
+    """rows_of against a dictionary of the table's pixels: which of the asked pixels are active, in which row, and
+    the number of levels - 1 added to `spread` there (and nowhere else)."""
+    rng = np.random.default_rng(seed)
+    ev = random_events(rng, 600, 20, 10, 0, 5000)
+    table = edi.build_level_table(ev, 20, 10, 0, 5000)
+    asked = np.sort(rng.choice(200, size=int(rng.integers(0, 120)), replace=False)).astype(np.int64)
+    spread = np.full(asked.size, 0.5)
+    rows, at = edi.rows_of(table, asked, spread)
+    row_of = {int(q): r for r, q in enumerate(table.pixels)}
+    want_at = [i for i, q in enumerate(asked) if int(q) in row_of]
+    np.testing.assert_array_equal(at, want_at)
+    np.testing.assert_array_equal(rows, [row_of[int(asked[i])] for i in want_at])
+    want_spread = np.full(asked.size, 0.5)
+    for i in want_at:
+        r = row_of[int(asked[i])]
+        want_spread[i] += table.lvl_start[r + 1] - table.lvl_start[r] - 1
+    np.testing.assert_array_equal(spread, want_spread)
+
+
+def test_rows_of_an_empty_table_finds_nothing(backend):
+    table = edi.build_level_table(np.zeros(0, EVENT_DTYPE), 20, 10, 0, 5000)
+    spread = np.zeros(3)
+    rows, at = edi.rows_of(table, np.array([1, 5, 7]), spread)
+    assert rows.size == 0 and at.size == 0 and not spread.any()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_pair_candidates_match_the_rules_pixel_by_pixel(backend, seed):
+    rng = np.random.default_rng(seed)
+    n = 300
+    inf_p, inf_c = rng.random(n) < 0.8, rng.random(n) < 0.8
+    bp, bc = rng.uniform(0, 255, n).astype(np.float32), rng.uniform(0, 255, n).astype(np.float32)
+    mask = (rng.random(n) < 0.1) if seed % 2 else None
+    n_on = rng.integers(0, 2, n) * (rng.random(n) < 0.3)
+    n_off = rng.integers(0, 2, n) * (rng.random(n) < 0.3)
+    pix_p = np.sort(rng.choice(n, 20, replace=False)).astype(np.int64)
+    pix_c = np.sort(rng.choice(n, 20, replace=False)).astype(np.int64)
+    got = edi.pair_candidates(inf_p, inf_c, bp, bc, 6.0, 250.0, mask, n_on, n_off, pix_p, pix_c)
+    want = [q for q in range(n) if inf_p[q] and inf_c[q] and 6 <= bp[q] <= 250 and 6 <= bc[q] <= 250
+            and (mask is None or not mask[q]) and (n_on[q] + n_off[q] > 0 or q in set(pix_p) or q in set(pix_c))]
+    np.testing.assert_array_equal(got, want)

@@ -6,7 +6,8 @@ whose median is the black level. A given value (flag, TOML key) is never replace
 calibration's) is in use until an estimate is kept, unless it lies above MAX_BLACK_DN, where the fit cannot reach:
 then it is given.
 
-Rules: every pair adds its quiet pixels to a pool of the last `pool_pairs` pairs. At start-up an estimate is due
+Rules: every pair enters a pool of the last `pool_pairs` pairs, with its quiet pixels sampled only when an estimate
+will read it (otherwise an empty placeholder, which leaves the pool before any estimate). At start-up an estimate is due
 once the pool holds `min_pairs` pairs and `min_pixels` pixels (a single pair is too noisy: +-3 DN on the simulator),
 and again on every `startup_step`-th pair after that until it is full; after that every `recheck_every` pairs.
 An estimate is kept only when its cost beats the values 4 DN either side by `info_z` standard error(s) and dark

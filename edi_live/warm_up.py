@@ -5,6 +5,7 @@ camera's data pile up. Runs a throwaway reconstructor and the worker's activity 
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any, Callable
 
 import numpy as np
@@ -100,7 +101,7 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
         edi.mark_event_pixels(events[:10], width, height, marks)
         edi.mark_event_pixels(events[10:11], width, height, marks)
         b = np.linspace(5.0, 200.0, 64)
-        _kernels_black_level.profile_point(b, b + 1.0, np.ones(64), 2.0, 0.5, 5, 50.0)
+        _kernels_black_level.profile_point(b, b + 1.0, np.ones(64), 2.0, 0.5, 5, 50.0, math.inf)
         edi.dilate(np.zeros((height, width), bool), [(0, 0), (0, 1)])
     except Exception:  # noqa: BLE001 - warm-up only; see docstring
         log.debug("kernel warm-up failed", exc_info=True)
@@ -110,7 +111,7 @@ def compiled_signatures() -> dict[str, set[str]]:
     """Each numba kernel's compiled argument-type signatures so far, across the packages (edi_live.edi's own
     kernels and the compiled parts of the calibration and the prediction figure): what a warm-up must cover."""
     from edi_live import edi, hold_average
-    from edi_live.contrast import _kernels_black_level
+    from edi_live.contrast import _kernels_black_level, _kernels_clock_offset
 
-    return edi.compiled_signatures(also=(_kernels_black_level, hold_average))
+    return edi.compiled_signatures(also=(_kernels_black_level, _kernels_clock_offset, hold_average))
 

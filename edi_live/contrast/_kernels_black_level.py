@@ -11,9 +11,11 @@ import numpy as np
 
 @numba.njit(cache=True, nogil=True)
 def profile_point(b_prev: np.ndarray, b_cur: np.ndarray, net: np.ndarray, b: float, delta: float,
-                  iterations: int, miss: float, bound: float = math.inf) -> tuple[float, float]:
+                  iterations: int, miss: float, bound: float) -> tuple[float, float]:
     """(c, cost) at black level b: black_level.fit_c then the sum of black_level.black_level_terms; cost inf when
-    c is not positive, or once the running sum passes `bound` (the terms are >= 0: the cost would be larger)."""
+    c is not positive, or once the running sum passes `bound` (the terms are >= 0: the cost would be larger;
+    math.inf: never). No default: an omitted argument is a numba specialisation of its own, which the warm-up
+    would have to compile apart."""
     n = net.size
     moving = np.empty(n, np.int64)  # only pixels with a net count enter the regression (N = 0 adds nothing)
     d_moving = np.empty(n)  # their log ratios; the others' are taken in the cost's pass (skipped past `bound`)

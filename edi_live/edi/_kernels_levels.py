@@ -286,8 +286,9 @@ def ragged_take(start, rows):
 @njit(cache=True, nogil=True)
 def rows_of(table_pixels, lvl_start, pixels, spread):
     """(rows, at): the table rows holding those of `pixels` (ascending) that are active, and their positions in
-    `pixels` (both merged in one pass: both lists ascend). Adds each such pixel's level count - 1 to spread[at]."""
-    rows = np.empty(min(pixels.size, table_pixels.size), dtype=np.int64)
+    `pixels` (both merged in one pass: both lists ascend). Adds each such pixel's level count - 1 to spread[at].
+    A pixel listed twice matches its row twice, as the numpy path does (hence one slot per pixel)."""
+    rows = np.empty(pixels.size, dtype=np.int64)
     at = np.empty(rows.size, dtype=np.int64)
     m = 0
     r = 0

@@ -4,6 +4,7 @@ scenes built here with the simulator's camera model: recovered within 2 DN, and 
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -153,7 +154,7 @@ def test_compiled_profile_point_equals_the_numpy_reference():
     s = QuietSamples(b_prev, b_cur, net)
     for b in (0.0, 4.0, 8.0, 11.0, 40.0, 300.0):
         c_ref = fit_c(s, b)
-        c, cost = _kernels_black_level.profile_point(b_prev, b_cur, net, b, 0.5, 5, 50.0)
+        c, cost = _kernels_black_level.profile_point(b_prev, b_cur, net, b, 0.5, 5, 50.0, math.inf)
         if c_ref == c_ref:
             assert c == pytest.approx(c_ref, rel=1e-9)
             assert cost == pytest.approx(float(np.sum(black_level_terms(s, b, c_ref))), rel=1e-9)
@@ -219,8 +220,6 @@ def test_the_bounded_search_finds_the_exhaustive_profiles_minimum(seed):
     """fit_black_level skips points that must lose (hidden pixels' floor, a running sum past the best so far);
     it lands where the documented search on the full numpy profile does: every 4 DN, then every DN within 3 of
     the best of those, with z from the points 4 DN either side."""
-    import math
-
     from edi_live.contrast.black_level import QuietSamples, black_level_terms, fit_black_level, fit_c
 
     rng = np.random.default_rng(seed)

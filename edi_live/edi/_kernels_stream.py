@@ -12,11 +12,12 @@ import numpy as np
 from numba import njit
 
 @njit(cache=True, nogil=True)
-def propagate(x, y, p, width, height, mask, use_mask, flat, d_on, d_off, lo, hi, disp, use_disp, v0, scale, bucket_u8,
-              bucket_thr, acc_on, acc_off, use_acc):
+def propagate(x, y, p, width, height, mask, use_mask, flat, d_on, d_off, lo, hi, disp, use_disp, gain, v0, scale,
+              bucket_u8, bucket_thr, acc_on, acc_off, use_acc):
     """The display is rendered from the float64 sum (before its float32 rounding into `flat`) through the
     float64 bucket tables of display_u8 (latent.display_buckets), the same values as display_u8 without an exp
-    per event."""
+    per event; with empty tables (a gain that has none) by display_u8's exp itself."""
+    use_table = bucket_u8.size > 0
     applied = 0
     for i in range(x.size):
         if x[i] >= width or y[i] >= height:
@@ -29,7 +30,7 @@ def propagate(x, y, p, width, height, mask, use_mask, flat, d_on, d_off, lo, hi,
         v = _clip(v, lo, hi)
         flat[q] = v
         if use_disp:
-            disp[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)
+            disp[q] = _u8(v, v0, scale, bucket_u8, bucket_thr) if use_table else _exp_u8(v, gain)
         if use_acc:  # branch-free, as in count_events
             o = np.int64(on)
             acc_on[q] += o
@@ -214,7 +215,7 @@ def _u8(v, v0, scale, bucket_u8, bucket_thr):
     """uint8 rendering of a log intensity without exp: bucket of v, plus one if v reaches the bucket's
     threshold (the tables hold every rounding threshold; a bucket holds at most one)."""
     b = (v - v0) * scale
-    if b < 0.0:
+    if not b >= 0.0:  # below the first step, or NaN (rendered 0, as the exp formula's conversion gives)
         return np.uint8(0)
     if b >= bucket_u8.size:
         return np.uint8(255)

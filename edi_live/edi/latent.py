@@ -40,15 +40,15 @@ def propagate_log(log_image: np.ndarray, events: np.ndarray, c_on: float, c_off:
     flat = log_image.reshape(-1)
     d_on = float(sign) * float(c_on)
     d_off = -float(sign) * float(c_off)
-    tables = display_buckets(float(gain)) if _backend.have_numba() else None
-    if tables is not None and flat.dtype == np.float32 and log_image.flags.c_contiguous and (
+    if _backend.have_numba() and flat.dtype == np.float32 and log_image.flags.c_contiguous and (
             display is None or display.flags.c_contiguous):
+        tables = (display_buckets(float(gain)) or NO_TABLE) if display is not None else NO_TABLE
         ev = window(events, None, None)
         m, use_m = _backend.mask_arg(mask)
         disp = display.reshape(-1) if display is not None else _backend.NO_MASK
         acc_on, acc_off, use_counts = _backend.counts_arg(counts)
         return int(_kernels_stream.propagate(ev["x"], ev["y"], ev["p"], w, h, m, use_m, flat, d_on, d_off, LOG_MIN,
-                                             LOG_MAX, disp, display is not None, *tables, acc_on, acc_off,
+                                             LOG_MAX, disp, display is not None, float(gain), *tables, acc_on, acc_off,
                                              use_counts))
     idx, _, p = select(events, w, h, None, None, mask)
     return _propagate_numpy(flat, idx, p, d_on, d_off, display, gain, counts)
@@ -95,12 +95,12 @@ class Propagator:
         self._counts = counts
         self._acc_on, self._acc_off, self._use_counts = _backend.counts_arg(counts)
         self._d_on, self._d_off = float(c_on), -float(c_off)
-        self._tables = display_buckets(1.0) if _backend.have_numba() else None
+        self._tables = (display_buckets(1.0) or NO_TABLE) if _backend.have_numba() else None  # the path, fixed here
 
     def apply(self, x: np.ndarray, y: np.ndarray, p: np.ndarray) -> None:
-        if _backend.have_numba():
+        if self._tables is not None:
             _kernels_stream.propagate(x, y, p, self._w, self._h, self._m, self._use_m, self._flat, self._d_on,
-                                      self._d_off, LOG_MIN, LOG_MAX, self._disp, True, *self._tables,
+                                      self._d_off, LOG_MIN, LOG_MAX, self._disp, True, 1.0, *self._tables,
                                       self._acc_on, self._acc_off, self._use_counts)
             return
         idx = y.astype(np.int64) * self._w + x
@@ -154,6 +154,9 @@ def render_buckets(n_buckets: int = 8192) -> tuple[float, float, np.ndarray, np.
     return v0, scale, bucket_u8, bucket_thr.astype(np.float32)
 
 
+NO_TABLE = (0.0, 0.0, np.zeros(0, np.uint8), np.zeros(0, np.float64))  # propagate renders with exp
+
+
 @functools.lru_cache(maxsize=8)
 def display_buckets(gain: float = 1.0) -> tuple[float, float, np.ndarray, np.ndarray] | None:
     """The propagation kernel's display rendering as a lookup: clip(gain * exp(v), 0, 255) rounded, for the
@@ -163,13 +166,15 @@ def display_buckets(gain: float = 1.0) -> tuple[float, float, np.ndarray, np.nda
     doubles), and the table is checked against display_u8 around every threshold and bucket start; both being
     step functions that only rise, agreeing at every step means agreeing everywhere. Returns (v0, buckets per
     unit of log L, uint8 value at each bucket start, the bucket's threshold or inf), or None for a gain whose
-    values 1..255 do not all start within (LOG_MIN, 6] (the numpy path renders those)."""
+    values 1..255 do not all start within (LOG_MIN, 6], or if a check ever failed: the kernel then renders with
+    exp (NO_TABLE)."""
     k = np.arange(1, 256)
     lo = np.full(255, LOG_MIN)
     hi = np.full(255, 6.0)
     if _display(lo, gain)[0] >= 1 or _display(hi, gain)[-1] < 255:
         return None
-    for _ in range(2100):  # at most ~64 halvings per exponent step; stops once lo, hi are adjacent
+    for _ in range(2100):  # halving takes ~1100 steps at worst (a threshold near 0, where doubles are densest);
+        # it stops once lo, hi are adjacent
         mid = lo + (hi - lo) / 2
         moved = (mid > lo) & (mid < hi)
         if not moved.any():
@@ -194,7 +199,7 @@ def display_buckets(gain: float = 1.0) -> tuple[float, float, np.ndarray, np.nda
     looked_up = np.empty(probe.size, np.uint8)
     _kernels_stream.display_u8_table(probe, *tables, looked_up)
     if not np.array_equal(looked_up, _display(probe, gain)):
-        raise RuntimeError(f"the display table for gain {gain} differs from exp near a step (exp not monotone here?)")
+        return None  # exp not monotone here? never seen; the kernel's exp is then used as before
     return tables
 
 

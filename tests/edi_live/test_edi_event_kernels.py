@@ -32,7 +32,7 @@ def _display_reference(v: float, gain: float) -> int:
     return int(min(gain * math.exp(min(v, 6.0)) + 0.5, 255.0))
 
 
-def _propagate_reference(flat, disp, acc_on, acc_off, ev, width, height, mask, d_on, d_off):
+def _propagate_reference(flat, disp, acc_on, acc_off, ev, width, height, mask, d_on, d_off, gain=1.0):
     """One event at a time: log L += step in float64, clipped, stored as float32; the display from the float64."""
     applied = 0
     for x, y, p in zip(ev["x"].tolist(), ev["y"].tolist(), ev["p"].tolist()):
@@ -43,7 +43,7 @@ def _propagate_reference(flat, disp, acc_on, acc_off, ev, width, height, mask, d
             continue
         v = min(max(float(flat[q]) + (d_on if p else d_off), edi.LOG_MIN), edi.LOG_MAX)
         flat[q] = np.float32(v)
-        disp[q] = _display_reference(v, 1.0)
+        disp[q] = _display_reference(v, gain)
         if p:
             acc_on[q] += 1
         else:
@@ -103,8 +103,44 @@ def test_the_display_table_equals_exp_at_every_step_and_between(gain):
     assert set(got.tolist()) == set(range(256))
 
 
-def test_a_gain_whose_steps_leave_the_range_has_no_table():
-    assert display_buckets(0.1) is None  # 255 is never reached below log L = 6: the numpy path renders it
+@pytest.mark.parametrize("gain", [0.1, 0.5])
+def test_a_gain_without_a_table_propagates_as_the_plain_loop(gain):
+    """255 is never reached below log L = 6 at these gains: no table, and the kernel renders with exp; the log
+    image is the same per-event clipped sum as with any gain (the gain only scales the display)."""
+    assert display_buckets(gain) is None
+    rng = np.random.default_rng(3)
+    w, h = 30, 20
+    start = rng.uniform(-3.0, 7.0, h * w).astype(np.float32)
+    ev = _random_events(rng, 3000, w, h, 50_000)
+    log_k, disp_k = start.reshape(h, w).copy(), np.zeros((h, w), np.uint8)
+    flat_r, disp_r = start.copy(), np.zeros(w * h, np.uint8)
+    counts_r = (np.zeros(w * h, np.int64), np.zeros(w * h, np.int64))
+    applied = edi.propagate_log(log_k, ev, 0.6, 0.4, display=disp_k, gain=gain)
+    assert applied == _propagate_reference(flat_r, disp_r, *counts_r, ev, w, h, None, 0.6, -0.4, gain)
+    np.testing.assert_array_equal(log_k.reshape(-1), flat_r)
+    np.testing.assert_array_equal(disp_k.reshape(-1), disp_r)
+
+
+def test_a_nan_log_value_renders_black():
+    """As the exp formula's conversion gave: 0, not a read outside the table."""
+    got = np.full(2, 7, np.uint8)
+    _kernels_stream.display_u8_table(np.array([np.nan, -np.nan]), *display_buckets(1.0), got)
+    np.testing.assert_array_equal(got, [0, 0])
+
+
+def test_a_propagator_keeps_the_path_it_was_built_with():
+    """Built under numpy_reference() (tests, benchmarks), applied after it: still the numpy path, and the same
+    log image as the compiled one."""
+    rng = np.random.default_rng(4)
+    ev = _random_events(rng, 500, 10, 8, 10_000)
+    images = []
+    for reference in (True, False):
+        log_l, disp = np.zeros((8, 10), np.float32), np.zeros((8, 10), np.uint8)
+        with (edi.numpy_reference() if reference else _Nothing()):
+            prop = edi.Propagator(log_l, disp, 0.3, 0.2, None, None)
+        prop.apply(ev["x"], ev["y"], ev["p"])
+        images.append(log_l)
+    np.testing.assert_allclose(images[0], images[1], atol=1e-5)
 
 
 def _flicker_run(ev, w, h, *, reference, span_us, parts):

@@ -145,13 +145,20 @@ def render_buckets(n_buckets: int = 8192) -> tuple[float, float, np.ndarray, np.
     thr = hi.astype(np.float64)  # thr[k-1]: the first float32 rendered as >= k
     v0 = float(thr[0])
     scale = n_buckets / (float(thr[-1]) - v0)
+    _, bucket_u8, bucket_thr = _buckets(thr, v0, scale, n_buckets)
+    return v0, scale, bucket_u8, bucket_thr.astype(np.float32)
+
+
+def _buckets(thr: np.ndarray, v0: float, scale: float, n_buckets: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(each bucket's start, the uint8 value there, the threshold inside the bucket or inf) for the ascending
+    thresholds `thr` of the values 1..255 and buckets of width 1 / scale from v0 (at most one threshold each)."""
     starts = v0 + np.arange(n_buckets) / scale
     bucket_u8 = np.searchsorted(thr, starts, side="right").astype(np.uint8)
     bucket_thr = np.full(n_buckets, np.inf)
     owner = np.minimum(((thr - v0) * scale).astype(np.int64), n_buckets - 1)
     inside = thr > starts[owner]
     bucket_thr[owner[inside]] = thr[inside]
-    return v0, scale, bucket_u8, bucket_thr.astype(np.float32)
+    return starts, bucket_u8, bucket_thr
 
 
 NO_TABLE = (0.0, 0.0, np.zeros(0, np.uint8), np.zeros(0, np.float64))  # propagate renders with exp
@@ -187,12 +194,7 @@ def display_buckets(gain: float = 1.0) -> tuple[float, float, np.ndarray, np.nda
     v0 = float(thr[0])
     n_buckets = 1 << int(np.ceil(np.log2(1.01 * (float(thr[-1]) - v0) / gap)))  # each at most one threshold
     scale = n_buckets / ((float(thr[-1]) - v0) * (1.0 + 2.0**-20))  # the last threshold inside the last bucket
-    starts = v0 + np.arange(n_buckets) / scale
-    bucket_u8 = np.searchsorted(thr, starts, side="right").astype(np.uint8)
-    bucket_thr = np.full(n_buckets, np.inf)
-    owner = np.minimum(((thr - v0) * scale).astype(np.int64), n_buckets - 1)
-    inside = thr > starts[owner]
-    bucket_thr[owner[inside]] = thr[inside]
+    starts, bucket_u8, bucket_thr = _buckets(thr, v0, scale, n_buckets)
     tables = (v0, scale, bucket_u8, bucket_thr)
     near = np.concatenate([thr, starts, [LOG_MIN, LOG_MAX, 6.0]])
     probe = np.concatenate([_ulps_around(near, 64), [-np.inf, np.inf]]).clip(LOG_MIN, LOG_MAX)

@@ -140,18 +140,25 @@ def test_a_fixed_c_does_not_estimate_the_black_level(camera_scene):
     assert rec.black_level == 0.0 and not rec.stats()["black_level_estimated"]
 
 
+def _samples_with_black(black: float, n: int, seed: int):
+    """Quiet samples whose log ratios follow c = 0.2 times the net count above `black` DN, with a little noise."""
+    from edi_live.contrast.black_level import QuietSamples
+
+    rng = np.random.default_rng(seed)
+    b_prev = rng.uniform(3, 250, n)
+    net = rng.integers(-3, 4, n).astype(np.float64)
+    b_cur = np.clip((b_prev - black) * np.exp(0.2 * net + rng.normal(0, 0.05, n)) + black, 3, 250)
+    return QuietSamples(b_prev, b_cur, net)
+
+
 def test_compiled_profile_point_equals_the_numpy_reference():
     """The kernel behind fit_black_level gives fit_c's c and the summed black_level_terms at every grid point,
     including b values that hide pixels (the large miss term) and one where no pixel is left (c undefined)."""
     from edi_live.contrast import _kernels_black_level
-    from edi_live.contrast.black_level import QuietSamples, black_level_terms, fit_c
+    from edi_live.contrast.black_level import black_level_terms, fit_c
 
-    rng = np.random.default_rng(5)
-    n = 4000
-    b_prev = rng.uniform(3, 250, n)
-    net = rng.integers(-3, 4, n).astype(np.float64)
-    b_cur = np.clip((b_prev - 8) * np.exp(0.2 * net + rng.normal(0, 0.05, n)) + 8, 3, 250)
-    s = QuietSamples(b_prev, b_cur, net)
+    s = _samples_with_black(8.0, 4000, seed=5)
+    b_prev, b_cur, net = s.b_prev, s.b_cur, s.net
     for b in (0.0, 4.0, 8.0, 11.0, 40.0, 300.0):
         c_ref = fit_c(s, b)
         c, cost = _kernels_black_level.profile_point(b_prev, b_cur, net, b, 0.5, 5, 50.0, math.inf)
@@ -198,14 +205,10 @@ def test_the_policy_samples_only_the_pairs_an_estimate_reads(monkeypatch):
 
 def test_compiled_profile_point_stops_only_past_its_bound():
     from edi_live.contrast import _kernels_black_level
-    from edi_live.contrast.black_level import QuietSamples, black_level_terms, fit_c
+    from edi_live.contrast.black_level import black_level_terms, fit_c
 
-    rng = np.random.default_rng(8)
-    n = 3000
-    b_prev = rng.uniform(3, 250, n)
-    net = rng.integers(-3, 4, n).astype(np.float64)
-    b_cur = np.clip((b_prev - 8) * np.exp(0.2 * net + rng.normal(0, 0.05, n)) + 8, 3, 250)
-    s = QuietSamples(b_prev, b_cur, net)
+    s = _samples_with_black(8.0, 3000, seed=8)
+    b_prev, b_cur, net = s.b_prev, s.b_cur, s.net
     for b in (0.0, 8.0, 30.0):
         c_ref = fit_c(s, b)
         want = float(np.sum(black_level_terms(s, b, c_ref)))

@@ -346,19 +346,25 @@ def test_the_compiled_lookup_equals_a_search_of_the_whole_table(seed):
     np.testing.assert_array_equal(last_at_or_before(key, first, row_key, q), want)
 
 
-def test_the_offset_fit_is_the_same_with_and_without_the_kernels(scene):
-    import edi_live.edi as edi
-
+def _offset_fit_inputs(scene, seed: int, k: int):
+    """A clock-offset scene's events around frames k and k + 1, those frames as windows, and 3000 sample pixels."""
     cfg = with_effects(scene, "clock_offset")
     sim = simulate(cfg)
     h, w = cfg.height, cfg.width
     sample = np.zeros((h, w), bool)
-    sample.reshape(-1)[np.random.default_rng(1).choice(h * w, 3000, replace=False)] = True
+    sample.reshape(-1)[np.random.default_rng(seed).choice(h * w, 3000, replace=False)] = True
     frames = [FrameWindow(f.exposure_start_us, f.exposure_end_us, f.image.astype(np.float64),
                           (f.image > 0) & (f.image < 255)) for f in sim.frames]
-    a, b = frames[2], frames[3]
+    a, b = frames[k], frames[k + 1]
     t = sim.events["t"]
     ev = sim.events[np.searchsorted(t, a.exposure_start_us - 12_000):np.searchsorted(t, b.exposure_end_us + 8_000)]
+    return ev, a, b, sample
+
+
+def test_the_offset_fit_is_the_same_with_and_without_the_kernels(scene):
+    import edi_live.edi as edi
+
+    ev, a, b, sample = _offset_fit_inputs(scene, 1, 2)
     kwargs = dict(midlevel_gap_us=10_000, max_pixels=1500, min_z=2.0, lag_share=0.5)
     got = estimate_clock_offset(ev, a, b, sample, (0.2, 0.2), **kwargs)
     with edi.numpy_reference():
@@ -370,16 +376,7 @@ def test_one_preparation_serves_every_lag_share_as_separate_fits_do(scene):
     """clock_offset_fit takes the pixels and event shifts once; each share's result is estimate_clock_offset's."""
     from edi_live.contrast.clock_offset import clock_offset_fit
 
-    cfg = with_effects(scene, "clock_offset")
-    sim = simulate(cfg)
-    h, w = cfg.height, cfg.width
-    sample = np.zeros((h, w), bool)
-    sample.reshape(-1)[np.random.default_rng(2).choice(h * w, 3000, replace=False)] = True
-    frames = [FrameWindow(f.exposure_start_us, f.exposure_end_us, f.image.astype(np.float64),
-                          (f.image > 0) & (f.image < 255)) for f in sim.frames]
-    a, b = frames[3], frames[4]
-    t = sim.events["t"]
-    ev = sim.events[np.searchsorted(t, a.exposure_start_us - 12_000):np.searchsorted(t, b.exposure_end_us + 8_000)]
+    ev, a, b, sample = _offset_fit_inputs(scene, 2, 3)
     kwargs = dict(midlevel_gap_us=10_000, max_pixels=1500, min_z=2.0)
     fit = clock_offset_fit(ev, a, b, sample, (0.2, 0.2), **kwargs)
     shares = (1.0, 0.5, 0.0, 1.0)

@@ -60,7 +60,8 @@ class ContrastTracker:
              hot: np.ndarray | None, acc: tuple[np.ndarray, np.ndarray], t_last: int,
              has_reference: bool, raw: np.ndarray | None = None) -> tuple[contrast.FrameData, contrast.FramePair | None]:
         """This frame's data and the pair with the previous frame. `window` = (ts, te, f); `acc` holds the ON/OFF
-        counts applied since the previous f, up to `t_last`. Returns (this frame's data for the policy, the new
+        counts applied since the previous f, up to `t_last`, and is the caller's no longer (the pair's counts are
+        made from it in place). Returns (this frame's data for the policy, the new
         pair if one was formed). The frame's level table is not built yet: only the policy reads it, so it waits
         for complete() (frame_calibration calls it after the deblurred frame has left, or at once at start-up)."""
         ts, te, f = window
@@ -93,8 +94,9 @@ class ContrastTracker:
     def _counts_between(self, events: np.ndarray, f: int, hot: np.ndarray | None, acc: tuple[np.ndarray, np.ndarray],
                         t_last: int) -> tuple[np.ndarray, np.ndarray]:
         """ON/OFF counts per pixel from the previous f to this f, without counting any event twice: the
-        accumulator holds what was applied after the previous f (up to t_last); this batch may overlap it."""
-        n_on, n_off = acc[0].copy(), acc[1].copy()
+        accumulator holds what was applied after the previous f (up to t_last); this batch may overlap it. The
+        counts are `acc`'s arrays, changed in place."""
+        n_on, n_off = acc
         t0, t1, sign = _count_range(f, t_last)
         if t1 >= t0:
             edi.add_counts(events, self.width, self.height, n_on, n_off, t0=t0, t1=t1, mask=hot, sign=sign)

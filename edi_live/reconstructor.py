@@ -162,14 +162,13 @@ class EdiReconstructor(ReconstructorView):
         pair, self._pair = self._pair, None
         if self._calib is not None:  # each pixel's noise rate, from the counts of its still intervals (settle)
             self._calib.after_deblur(pair, f - self._ref_t, mask)
-        if pair is not None and self._unreliable is not None and not self.events_ignored:
+        unreliable = self._unreliable if pair is not None and not self.events_ignored else None
+        if unreliable is not None and pair is not None:
             # judged on this deblur; the mask holds from here on (the latent image continues from L(f))
-            self._unreliable.update(pair.n_on, pair.n_off, log_prev, self._latent.log_ref, pair.prev.informative,
-                                    pair.cur.informative, self._c(), busy=frame_counts)
-            self._mask = self._combined_mask()
-            if self._unreliable.count:
-                self._latent.fall_back_to_aps(self._unreliable.mask, pair.cur.blurry, deblurred)
-                mask = self._mask
+            unreliable.update(pair.n_on, pair.n_off, log_prev, self._latent.log_ref, pair.prev.informative,
+                              pair.cur.informative, self._c(), busy=frame_counts)
+            if unreliable.count:
+                self._latent.fall_back_to_aps(unreliable.mask, pair.cur.blurry, deblurred)
         self.has_reference = True
         self._ref_t = f
         self._exposure = (ts, te)
@@ -181,6 +180,9 @@ class EdiReconstructor(ReconstructorView):
         out = self._reconstruction(deblurred, f, "deblurred", n_events)
         if ready is not None:
             ready(out)  # the frame is complete: what follows only readies the state for the events after it
+        if unreliable is not None:  # the mask with this frame's unreliable pixels: the events after it need it
+            self._mask = self._combined_mask()
+            mask = self._mask if unreliable.count else mask
         t = events["t"]
         # the events after the point the latent image has reached (te with the f -> te jump, else f); with the
         # jump, the divisor pass already added (f, te] to the counts the consistency pairs need

@@ -67,6 +67,7 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
                 run = edi.RunningDivisor(width, height, t_lo, t_hi, (t_lo + t_hi) // 2, 0.2, c_off, mask=mask,
                                      event_counts=counts)
                 run.feed(events[:-1])
+                run.remask(None if mask is None else ~mask, events)  # flagged / released on the way: its pixel pass
                 run.feed_from(events[-1:])
                 run.finish((np.zeros(npix, np.int64), np.zeros(npix, np.int64)) if counts is not None else None)
         # its re-mask picks a released pixel's events with the pixel-sample kernel, which with a fixed c (no c

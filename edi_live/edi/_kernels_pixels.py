@@ -252,3 +252,29 @@ def activity_verdicts(t, x, y, width, height, last_t, state, params, out_at, out
     state[0], state[1], state[2], state[3] = begin_w, span_end, n, s
     state[4], state[5], state[6] = windows, active_windows, started
     return nv
+
+
+@njit(cache=True, nogil=True)
+def remask_divisor(old, use_old, new, use_new, seen, on, off, two, counting, back):
+    """RunningDivisor.remask's pass over the pixels (masks as flat uint8, `use_*` False: no mask). Pixels masked
+    since (in `new`, not in `old`) that are active (seen 1 or 2) leave the integral: with two thresholds their
+    OFF count joins `on` (a masked row counts all its events there), seen becomes 3 if `counting` else 0. Pixels
+    released since (in `old`, not in `new`) get seen 0 and back[q] True (`back` all False on entry). Returns
+    (how many left, how many were released)."""
+    gone = 0
+    released = 0
+    for q in range(seen.size):
+        was = use_old and old[q] != 0
+        now = use_new and new[q] != 0
+        if now and not was:
+            s = seen[q]
+            if s == 1 or s == 2:
+                if two:
+                    on[q] += off[q]
+                seen[q] = 3 if counting else 0
+                gone += 1
+        elif was and not now:
+            seen[q] = 0
+            back[q] = True
+            released += 1
+    return gone, released

@@ -104,6 +104,8 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
         b = np.linspace(5.0, 200.0, 64)
         _kernels_black_level.profile_point(b, b + 1.0, np.ones(64), 2.0, 0.5, 5, 50.0, math.inf)
         edi.dilate(np.zeros((height, width), bool), [(0, 0), (0, 1)])
+        for frame in (image, frozen):  # B of a frame with a black level (its look-up; the scene above has none)
+            edi.blurry_to_float(frame, black_level=1.0)
     except Exception:  # noqa: BLE001 - warm-up only; see docstring
         log.debug("kernel warm-up failed", exc_info=True)
 

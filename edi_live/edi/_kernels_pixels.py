@@ -278,3 +278,12 @@ def remask_divisor(old, use_old, new, use_new, seen, on, off, two, counting, bac
             back[q] = True
             released += 1
     return gone, released
+
+
+@njit(cache=True, nogil=True)
+def lookup_u8(img, lut_b, lut_informative, b, informative):
+    """b[q], informative[q] = the tables' entries for the uint8 value img[q] (flat arrays)."""
+    for q in range(img.size):
+        v = img[q]
+        b[q] = lut_b[v]
+        informative[q] = lut_informative[v]

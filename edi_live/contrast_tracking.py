@@ -98,10 +98,9 @@ class ContrastTracker:
         counts are `acc`'s arrays, changed in place."""
         n_on, n_off = acc
         t0, t1, sign = _count_range(f, t_last)
-        if t1 >= t0:
-            edi.add_counts(events, self.width, self.height, n_on, n_off, t0=t0, t1=t1, mask=hot, sign=sign)
-        np.maximum(n_on, 0, out=n_on)
-        np.maximum(n_off, 0, out=n_off)
+        if t1 >= t0:  # floored at 0 where events were taken off (elsewhere the applied counts are >= 0)
+            edi.add_counts(events, self.width, self.height, n_on, n_off, t0=t0, t1=t1, mask=hot, sign=sign,
+                           floor=True)
         return n_on, n_off
 
 

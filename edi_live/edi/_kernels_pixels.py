@@ -287,3 +287,15 @@ def lookup_u8(img, lut_b, lut_informative, b, informative):
         v = img[q]
         b[q] = lut_b[v]
         informative[q] = lut_informative[v]
+
+
+@njit(cache=True, nogil=True)
+def floor_at_pixels(x, y, width, height, on, off):
+    """on[q] and off[q] (flat) raised to 0 where below, at every event's pixel on the sensor."""
+    for i in range(x.size):
+        if x[i] < width and y[i] < height:
+            q = np.int64(y[i]) * width + x[i]
+            if on[q] < 0:
+                on[q] = 0
+            if off[q] < 0:
+                off[q] = 0

@@ -161,19 +161,29 @@ def contradictions(score, own, n_on, n_off, log_prev, log_cur, inf_prev, inf_cur
 
 
 @njit(cache=True, nogil=True)
-def dilate(mask, dy, dx, out):
+def dilate(mask, words, dy, dx, out):
     """out (a copy of mask, (H, W)) |= mask shifted by every (dy[j], dx[j]), clipped at the borders: each marked
-    pixel stamps the offsets around it (marked pixels are few; no pass per offset)."""
+    pixel stamps the offsets around it (marked pixels are few; no pass per offset). `words`: the mask's first
+    8 * words.size pixels as uint64 (may be empty), so that 8 unmarked pixels are skipped at once."""
     h, w = mask.shape
-    for y in range(h):
-        for x in range(w):
-            if not mask[y, x]:
-                continue
-            for j in range(dy.size):
-                yy = y + dy[j]
-                xx = x + dx[j]
-                if 0 <= yy < h and 0 <= xx < w:
-                    out[yy, xx] = True
+    flat = mask.reshape(-1)
+    for k in range(words.size):
+        if words[k] != 0:
+            for q in range(8 * k, 8 * k + 8):
+                if flat[q]:
+                    _stamp(q // w, q % w, h, w, dy, dx, out)
+    for q in range(8 * words.size, flat.size):
+        if flat[q]:
+            _stamp(q // w, q % w, h, w, dy, dx, out)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _stamp(y, x, h, w, dy, dx, out):
+    for j in range(dy.size):
+        yy = y + dy[j]
+        xx = x + dx[j]
+        if 0 <= yy < h and 0 <= xx < w:
+            out[yy, xx] = True
 
 
 @njit(cache=True, nogil=True)

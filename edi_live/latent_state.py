@@ -96,10 +96,16 @@ class LatentState:
             np.clip(lat, edi.LOG_MIN, edi.LOG_MAX, out=lat)
         return edi.to_uint8(self.log_ref), False
 
-    def fall_back_to_aps(self, pixels: np.ndarray, b: np.ndarray, deblurred: np.ndarray) -> None:
+    def fall_back_to_aps(self, pixels: np.ndarray, b: np.ndarray, deblurred: np.ndarray,
+                         image: np.ndarray | None = None, aps: edi.ApsResponse | None = None) -> None:
         """At `pixels` ((H, W) bool), undo the events: L(f) = B (`b`: the frame's ApsResponse.to_float) and the
         latent image restarts there (the reference of this frame only; it is this state's own array until the
-        next frame)."""
+        next frame). Given the frame `image` and `aps` it came with, a uint8 frame takes its values from the
+        tables of its 256 values (edi.u8_tables: the same formulas; one compiled pass, ~10 µs against ~35)."""
+        if image is not None and aps is not None and image.dtype == np.uint8 and edi.have_numba():
+            edi.fall_back_u8(pixels, image, aps.black_level, aps.gamma, self.log_ref, self.log_lat, self.display,
+                             deblurred)
+            return
         idx = np.flatnonzero(pixels)
         log_b = np.clip(np.log(np.maximum(b.reshape(-1)[idx], edi.DARK_FLOOR)), edi.LOG_MIN, edi.LOG_MAX)
         self.log_ref.reshape(-1)[idx] = log_b

@@ -168,7 +168,7 @@ class EdiReconstructor(ReconstructorView):
             unreliable.update(pair.n_on, pair.n_off, log_prev, self._latent.log_ref, pair.prev.informative,
                               pair.cur.informative, self._c(), busy=frame_counts)
             if unreliable.count:
-                self._latent.fall_back_to_aps(unreliable.mask, pair.cur.blurry, deblurred)
+                self._latent.fall_back_to_aps(unreliable.mask, pair.cur.blurry, deblurred, img, self._aps)
         self.has_reference = True
         self._ref_t = f
         self._exposure = (ts, te)

@@ -309,3 +309,16 @@ def floor_at_pixels(x, y, width, height, on, off):
                 on[q] = 0
             if off[q] < 0:
                 off[q] = 0
+
+
+@njit(cache=True, nogil=True)
+def fall_back_u8(pixels, img, lut_log, lut_u8, log_ref, log_lat, display, deblurred):
+    """At the marked pixels (flat bool) of a uint8 frame: both log images get the frame's table entry, both uint8
+    images its rendering (all flat)."""
+    for q in range(pixels.size):
+        if pixels[q]:
+            v = img[q]
+            log_ref[q] = lut_log[v]
+            log_lat[q] = lut_log[v]
+            display[q] = lut_u8[v]
+            deblurred[q] = lut_u8[v]

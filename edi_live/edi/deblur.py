@@ -201,3 +201,20 @@ def finish_frame_u8(image: np.ndarray, saturation: float, divisor: tuple[np.ndar
     np.clip(lat, LOG_MIN, LOG_MAX, out=lat)
     log_lat[...] = lat.reshape(log_lat.shape)
     display[...] = to_uint8(log_lat)
+
+
+def fall_back_u8(pixels: np.ndarray, image: np.ndarray, black_level: float, gamma: float, log_ref: np.ndarray,
+                 log_lat: np.ndarray, display: np.ndarray, deblurred: np.ndarray) -> None:
+    """At `pixels` ((H, W) bool) of a uint8 frame, in place: log_ref and log_lat = clipped log(max(B linearised,
+    floor)), display and deblurred = its uint8 image, from u8_tables (what finish_frame_u8 gives a pixel without
+    events). All (H, W) C-contiguous."""
+    lut_log, lut_u8 = u8_tables(float(black_level), float(gamma))
+    if _backend.have_numba():
+        _kernels_pixels.fall_back_u8(np.ascontiguousarray(pixels, bool).reshape(-1),
+                                     np.ascontiguousarray(image).reshape(-1), lut_log, lut_u8, log_ref.reshape(-1),
+                                     log_lat.reshape(-1), display.reshape(-1), deblurred.reshape(-1))
+        return
+    idx = np.flatnonzero(pixels)
+    values = image.reshape(-1)[idx]
+    for out, table in ((log_ref, lut_log), (log_lat, lut_log), (display, lut_u8), (deblurred, lut_u8)):
+        out.reshape(-1)[idx] = table[values]

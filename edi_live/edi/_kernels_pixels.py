@@ -300,18 +300,6 @@ def lookup_u8(img, lut_b, lut_informative, b, informative):
 
 
 @njit(cache=True, nogil=True)
-def floor_at_pixels(x, y, width, height, on, off):
-    """on[q] and off[q] (flat) raised to 0 where below, at every event's pixel on the sensor."""
-    for i in range(x.size):
-        if x[i] < width and y[i] < height:
-            q = np.int64(y[i]) * width + x[i]
-            if on[q] < 0:
-                on[q] = 0
-            if off[q] < 0:
-                off[q] = 0
-
-
-@njit(cache=True, nogil=True)
 def fall_back_u8(pixels, img, lut_log, lut_u8, log_ref, log_lat, display, deblurred):
     """At the marked pixels (flat bool) of a uint8 frame: both log images get the frame's table entry, both uint8
     images its rendering (all flat)."""

@@ -88,14 +88,13 @@ def add_counts(events: np.ndarray, width: int, height: int, n_on: np.ndarray, n_
                t0: int | None = None, t1: int | None = None, mask: np.ndarray | None = None, sign: int = 1,
                floor: bool = False) -> None:
     """In place: n_on/n_off (flat int64) += sign * ON/OFF counts of the events with t0 <= t <= t1; with `floor`,
-    counts below 0 are then raised to 0 (taking events off only lowers the counts at their pixels, so only
-    those are looked at: the counts must be >= 0 elsewhere)."""
+    counts below 0 are then raised to 0. The kernel floors as it counts (no pass over the image), which is the
+    same for counts >= 0 before the call, as `floor` requires."""
     if _backend.have_numba():
         ev = window(events, t0, t1)
         m, use_m = _backend.mask_arg(mask)
-        _kernels_stream.count_events(ev["x"], ev["y"], ev["p"], width, height, m, use_m, n_on, n_off, int(sign))
-        if floor:
-            _kernels_pixels.floor_at_pixels(ev["x"], ev["y"], width, height, n_on, n_off)
+        _kernels_stream.count_events(ev["x"], ev["y"], ev["p"], width, height, m, use_m, n_on, n_off, int(sign),
+                                     bool(floor))
         return
     idx, _, p = select(events, width, height, t0, t1, mask)
     n_on += sign * np.bincount(idx[p], minlength=n_on.size)

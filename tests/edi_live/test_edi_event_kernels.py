@@ -211,8 +211,9 @@ def test_flicker_cycles_as_the_plain_loop_with_its_span_stop(span_us):
 
 @pytest.mark.parametrize("sign", [1, -1])
 def test_counts_with_a_floor_equal_the_numpy_reference_and_a_plain_count(rng, sign):
-    """add_counts(..., floor=True) adds (or takes off) a window's events and raises counts below 0 to 0: the kernels
-    look only at the events' pixels, the numpy reference floors the whole image; both equal a count done here."""
+    """add_counts(..., floor=True) adds (or takes off) a window's events and raises counts below 0 to 0: the kernel
+    floors as it counts (counts >= 0 before), the numpy reference floors the whole image once at the end; both
+    equal a count done here."""
     w, h = 13, 9
     ev = _random_events(rng, 3000, w, h, 50_000)
     start = rng.integers(0, 4, w * h).astype(np.int64)  # many pixels hold fewer than the events taken off

@@ -36,6 +36,7 @@ class ContrastTracker:
         self._prev: contrast.FrameData | None = None
         self._pairs: collections.deque = collections.deque(maxlen=max(1, history_pairs))
         self._todo: tuple | None = None  # what complete() needs to finish the latest frame's data
+        self._dropped: contrast.FramePair | None = None  # the pair the latest step pushed out of the history
 
     @property
     def pairs(self) -> list[contrast.FramePair]:
@@ -60,7 +61,8 @@ class ContrastTracker:
              hot: np.ndarray | None, acc: tuple[np.ndarray, np.ndarray], t_last: int,
              has_reference: bool, raw: np.ndarray | None = None) -> tuple[contrast.FrameData, contrast.FramePair | None]:
         """This frame's data and the pair with the previous frame. `window` = (ts, te, f); `acc` holds the ON/OFF
-        counts applied since the previous f, up to `t_last`. Returns (this frame's data for the policy, the new
+        counts applied since the previous f, up to `t_last`, and is the caller's no longer (the pair's counts are
+        made from it in place). Returns (this frame's data for the policy, the new
         pair if one was formed). The frame's level table is not built yet: only the policy reads it, so it waits
         for complete() (frame_calibration calls it after the deblurred frame has left, or at once at start-up)."""
         ts, te, f = window
@@ -71,6 +73,8 @@ class ContrastTracker:
         if self._prev is not None and has_reference:
             n_on, n_off = self._counts_between(events, f, hot, acc, t_last)
             pair = contrast.FramePair(self._prev, cur, n_on, n_off, excluded.reshape(-1))
+            if len(self._pairs) == self._pairs.maxlen:  # the pair pushed out is freed in complete(), once the
+                self._dropped = self._pairs[0]  # frame has left: returning its count arrays took ~20 µs
             self._pairs.append(pair)
         self._prev = cur
         return cur, pair
@@ -78,6 +82,7 @@ class ContrastTracker:
     def complete(self) -> None:
         """The level table (on the pixel sample unless the estimator needs the whole image) and event map of the
         frame of the latest step(); a no-op when done. Call before the policy reads that frame or its pairs."""
+        self._dropped = None
         if self._todo is None:
             return
         (cur, events, (ts, te, f), hot, excluded), self._todo = self._todo, None
@@ -93,13 +98,13 @@ class ContrastTracker:
     def _counts_between(self, events: np.ndarray, f: int, hot: np.ndarray | None, acc: tuple[np.ndarray, np.ndarray],
                         t_last: int) -> tuple[np.ndarray, np.ndarray]:
         """ON/OFF counts per pixel from the previous f to this f, without counting any event twice: the
-        accumulator holds what was applied after the previous f (up to t_last); this batch may overlap it."""
-        n_on, n_off = acc[0].copy(), acc[1].copy()
+        accumulator holds what was applied after the previous f (up to t_last); this batch may overlap it. The
+        counts are `acc`'s arrays, changed in place."""
+        n_on, n_off = acc
         t0, t1, sign = _count_range(f, t_last)
-        if t1 >= t0:
-            edi.add_counts(events, self.width, self.height, n_on, n_off, t0=t0, t1=t1, mask=hot, sign=sign)
-        np.maximum(n_on, 0, out=n_on)
-        np.maximum(n_off, 0, out=n_off)
+        if t1 >= t0:  # floored at 0 where events were taken off (elsewhere the applied counts are >= 0)
+            edi.add_counts(events, self.width, self.height, n_on, n_off, t0=t0, t1=t1, mask=hot, sign=sign,
+                           floor=True)
         return n_on, n_off
 
 

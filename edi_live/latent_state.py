@@ -22,19 +22,31 @@ class LatentState:
         self.display = np.zeros((height, width), np.uint8)
         npix = width * height
         self.acc = (np.zeros(npix, np.int64), np.zeros(npix, np.int64))  # ON/OFF applied since f
+        self._spare: tuple[np.ndarray, np.ndarray] | None = None  # zeroed counts for the next take_counts()
 
     def streaming_copy(self) -> "LatentState":
         """Own image and display; the reference and the counts are shared (the copy reads the one and never
         writes the other)."""
         twin = LatentState.__new__(LatentState)
         twin.width, twin.height = self.width, self.height
-        twin.log_ref, twin.acc = self.log_ref, self.acc
+        twin.log_ref, twin.acc, twin._spare = self.log_ref, self.acc, None
         twin.log_lat, twin.display = self.log_lat.copy(), self.display.copy()
         return twin
 
-    def reset_counts(self) -> None:
-        for a in self.acc:
-            a.fill(0)
+    def take_counts(self) -> tuple[np.ndarray, np.ndarray]:
+        """The counts so far, handed over (the caller may change them); counting restarts from zero, in the arrays
+        prepare_counts() zeroed if it ran since the last take (a copy and a fill less before the deblurred frame)."""
+        taken, spare, self._spare = self.acc, self._spare, None
+        self.acc = spare if spare is not None else (np.zeros_like(taken[0]), np.zeros_like(taken[1]))
+        return taken
+
+    def prepare_counts(self) -> None:
+        """Zeroed arrays for the next take_counts(), filled now (after the frame has left) rather than then."""
+        if self._spare is None:
+            npix = self.width * self.height
+            self._spare = (np.empty(npix, np.int64), np.empty(npix, np.int64))
+            for a in self._spare:
+                a.fill(0)
 
     def apply(self, events: np.ndarray, c: tuple[float, float], mask: np.ndarray | None, *, count: bool,
               move: bool, display: bool = True) -> None:
@@ -84,10 +96,16 @@ class LatentState:
             np.clip(lat, edi.LOG_MIN, edi.LOG_MAX, out=lat)
         return edi.to_uint8(self.log_ref), False
 
-    def fall_back_to_aps(self, pixels: np.ndarray, b: np.ndarray, deblurred: np.ndarray) -> None:
+    def fall_back_to_aps(self, pixels: np.ndarray, b: np.ndarray, deblurred: np.ndarray,
+                         image: np.ndarray | None = None, aps: edi.ApsResponse | None = None) -> None:
         """At `pixels` ((H, W) bool), undo the events: L(f) = B (`b`: the frame's ApsResponse.to_float) and the
         latent image restarts there (the reference of this frame only; it is this state's own array until the
-        next frame)."""
+        next frame). Given the frame `image` and `aps` it came with, a uint8 frame takes its values from the
+        tables of its 256 values (edi.u8_tables: the same formulas; one compiled pass, ~10 µs against ~35)."""
+        if image is not None and aps is not None and image.dtype == np.uint8 and edi.have_numba():
+            edi.fall_back_u8(pixels, image, aps.black_level, aps.gamma, self.log_ref, self.log_lat, self.display,
+                             deblurred)
+            return
         idx = np.flatnonzero(pixels)
         log_b = np.clip(np.log(np.maximum(b.reshape(-1)[idx], edi.DARK_FLOOR)), edi.LOG_MIN, edi.LOG_MAX)
         self.log_ref.reshape(-1)[idx] = log_b

@@ -40,7 +40,7 @@ class HotPixels:
 
     @property
     def count(self) -> int:
-        return int(self._mask.sum())
+        return int(np.count_nonzero(self._mask))  # ~2 µs at 240x180, sum() of a bool mask ~13
 
     def end_exposure(self, exposure_us: int) -> None:
         """Fold this exposure's frame_counts into the decaying counts (resetting them) and update the mask."""
@@ -97,6 +97,7 @@ class UnreliablePixels:
         self._shape = (height, width)
         self._grow = [(dy, dx) for dy in range(-grow_px, grow_px + 1) for dx in range(-grow_px, grow_px + 1)
                       if dy * dy + dx * dx <= grow_px * grow_px + grow_px]  # a disk of that radius
+        self._grow_array = np.array(self._grow, np.int64).reshape(-1, 2)  # not converted again per frame
         self.min_events, self.min_change, self.relative = min_events, min_change, relative
         self.saturated_limit, self.decay, self.release = saturated_limit, decay, release
         self._score = np.zeros(width * height, np.float32)
@@ -110,7 +111,7 @@ class UnreliablePixels:
 
     @property
     def count(self) -> int:
-        return int(self._mask.sum())
+        return int(np.count_nonzero(self._mask))  # ~2 µs at 240x180, sum() of a bool mask ~13
 
     def update(self, n_on: np.ndarray, n_off: np.ndarray, log_prev: np.ndarray, log_cur: np.ndarray,
                informative_prev: np.ndarray, informative_cur: np.ndarray, c: tuple[float, float],
@@ -127,7 +128,7 @@ class UnreliablePixels:
         self._own = own
         if len(self._grow) > 1 and own.any():
             # a lamp's halo contradicts the frames less clearly than its core, but just as surely
-            own = edi.dilate(own, self._grow)  # ~0.17 ms as 21 numpy shifts at 240x180, ~0.02 compiled
+            own = edi.dilate(own, self._grow_array)  # ~0.17 ms as 21 numpy shifts at 240x180, ~0.02 compiled
         self._mask = own
 
 
@@ -139,4 +140,9 @@ def combined_mask(hot: HotPixels, unreliable: "UnreliablePixels | None", flicker
         flicker = flicker_pixels.mask
     masks = [m.mask for m in (unreliable,) if m is not None and m.count] + [flicker]
     masks = [m for m in [hot.mask] + masks if m is not None]
-    return None if not masks else masks[0] if len(masks) == 1 else np.logical_or.reduce(masks)
+    if len(masks) < 2:
+        return masks[0] if masks else None
+    out = np.logical_or(masks[0], masks[1])  # pairwise: logical_or.reduce stacks the list into one array first
+    for m in masks[2:]:
+        np.logical_or(out, m, out=out)
+    return out

@@ -83,11 +83,6 @@ class EdiReconstructor(ReconstructorView):
         self._catch_up()
         return self._latent.log_lat.copy()
 
-    @property
-    def applied_counts(self) -> tuple[np.ndarray, np.ndarray]:
-        """Copies of the ON/OFF counts per pixel (flat) applied since the reference time f."""
-        return self._latent.acc[0].copy(), self._latent.acc[1].copy()
-
     # ---- the Reconstructor protocol ----
 
     def mark_gap(self) -> None:
@@ -147,12 +142,13 @@ class EdiReconstructor(ReconstructorView):
             events = self._noise.exposure(events, self._t_last)
         if self._calib is not None:
             t0 = time.perf_counter()
+            # the accumulators are used (and written) only when c is estimated; the pair takes them over
             self._pair, self._aps = self._calib.before_deblur(frame, events, img, self._aps, (ts, te, f), mask,
-                                                              self._latent.acc, self._t_last, self.has_reference)
+                                                              self._latent.take_counts(), self._t_last,
+                                                              self.has_reference)
             self.c_on, self.c_off = self._policy.c
             self.events_ignored = self._policy.events_ignored
             self.last_estimate_ms = (time.perf_counter() - t0) * 1e3
-            self._latent.reset_counts()  # the accumulators are used (and written) only when c is estimated
         frame_counts = self._hot.frame_counts if self._hot.enabled else None
         running = self._ahead.take(events, ts, te, f, self._c(), mask, frame_counts)  # the integral so far, if any
         counts_after_f = None if self._fixed else self._latent.acc
@@ -166,14 +162,13 @@ class EdiReconstructor(ReconstructorView):
         pair, self._pair = self._pair, None
         if self._calib is not None:  # each pixel's noise rate, from the counts of its still intervals (settle)
             self._calib.after_deblur(pair, f - self._ref_t, mask)
-        if pair is not None and self._unreliable is not None and not self.events_ignored:
+        unreliable = self._unreliable if pair is not None and not self.events_ignored else None
+        if unreliable is not None and pair is not None:
             # judged on this deblur; the mask holds from here on (the latent image continues from L(f))
-            self._unreliable.update(pair.n_on, pair.n_off, log_prev, self._latent.log_ref, pair.prev.informative,
-                                    pair.cur.informative, self._c(), busy=frame_counts)
-            self._mask = self._combined_mask()
-            if self._unreliable.count:
-                self._latent.fall_back_to_aps(self._unreliable.mask, pair.cur.blurry, deblurred)
-                mask = self._mask
+            unreliable.update(pair.n_on, pair.n_off, log_prev, self._latent.log_ref, pair.prev.informative,
+                              pair.cur.informative, self._c(), busy=frame_counts)
+            if unreliable.count:
+                self._latent.fall_back_to_aps(unreliable.mask, pair.cur.blurry, deblurred, img, self._aps)
         self.has_reference = True
         self._ref_t = f
         self._exposure = (ts, te)
@@ -185,6 +180,9 @@ class EdiReconstructor(ReconstructorView):
         out = self._reconstruction(deblurred, f, "deblurred", n_events)
         if ready is not None:
             ready(out)  # the frame is complete: what follows only readies the state for the events after it
+        if unreliable is not None:  # the mask with this frame's unreliable pixels: the events after it need it
+            self._mask = self._combined_mask()
+            mask = self._mask if unreliable.count else mask
         t = events["t"]
         # the events after the point the latent image has reached (te with the f -> te jump, else f); with the
         # jump, the divisor pass already added (f, te] to the counts the consistency pairs need
@@ -193,6 +191,8 @@ class EdiReconstructor(ReconstructorView):
                            display=display_current)
         if not display_current:
             self._latent.refresh_display()
+        if self._calib is not None:
+            self._latent.prepare_counts()  # the next frame's take_counts() finds them zeroed
         if frame_counts is not None:
             self._hot.end_exposure(te - ts)
             self._mask = self._combined_mask()

@@ -109,6 +109,11 @@ class ReconstructorView:
         return self._pixel_noise.rates()
 
     @property
+    def applied_counts(self) -> tuple[np.ndarray, np.ndarray]:
+        """Copies of the ON/OFF counts per pixel (flat) applied since the reference time f."""
+        return self._latent.acc[0].copy(), self._latent.acc[1].copy()
+
+    @property
     def hot_pixel_mask(self) -> np.ndarray:
         return self._hot.snapshot()
 

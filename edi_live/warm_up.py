@@ -67,6 +67,7 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
                 run = edi.RunningDivisor(width, height, t_lo, t_hi, (t_lo + t_hi) // 2, 0.2, c_off, mask=mask,
                                      event_counts=counts)
                 run.feed(events[:-1])
+                run.remask(None if mask is None else ~mask, events)  # flagged / released on the way: its pixel pass
                 run.feed_from(events[-1:])
                 run.finish((np.zeros(npix, np.int64), np.zeros(npix, np.int64)) if counts is not None else None)
         # its re-mask picks a released pixel's events with the pixel-sample kernel, which with a fixed c (no c
@@ -103,6 +104,10 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
         b = np.linspace(5.0, 200.0, 64)
         _kernels_black_level.profile_point(b, b + 1.0, np.ones(64), 2.0, 0.5, 5, 50.0, math.inf)
         edi.dilate(np.zeros((height, width), bool), [(0, 0), (0, 1)])
+        logs, shown = np.zeros((2, height, width), np.float32), np.zeros((2, height, width), np.uint8)
+        for frame in (image, frozen):  # B of a frame with a black level (its look-up; the scene above has none)
+            edi.blurry_to_float(frame, black_level=1.0)  # and the fall-back to the APS at unreliable pixels
+            edi.fall_back_u8(np.zeros((height, width), bool), frame, 0.0, 1.0, logs[0], logs[1], shown[0], shown[1])
     except Exception:  # noqa: BLE001 - warm-up only; see docstring
         log.debug("kernel warm-up failed", exc_info=True)
 

@@ -34,7 +34,8 @@ from types import ModuleType
 from edi_live.edi import (_kernels_fused, _kernels_levels, _kernels_pixels, _kernels_residual, _kernels_schedule,
                           _kernels_stream)
 from edi_live.edi._backend import (DARK_FLOOR, LEVEL_CAP, LOG_MAX, LOG_MIN, have_numba, numpy_reference)
-from edi_live.edi.deblur import ApsResponse, blurry_to_float, deblur, deblur_log, finish_frame_u8, log_divisor_events
+from edi_live.edi.deblur import (ApsResponse, blurry_to_float, deblur, deblur_log, fall_back_u8, finish_frame_u8,
+                                 log_divisor_events)
 from edi_live.edi.fused import (RESIDUAL_SPAN, FusedPropagator, FusionPlan, event_mass, forward_plan, fused_frames,
                                 fused_log, fusion_plan, fusion_weights, time_share)
 from edi_live.edi.residual_schedule import COLD_CONTEXT as RESIDUAL_COLD_CONTEXT, ResidualCarry
@@ -71,7 +72,7 @@ __all__ = [
     "fusion_plan", "fusion_weights", "RESIDUAL_COLD_CONTEXT", "RESIDUAL_SPAN", "ResidualCarry",
     "time_share",
     "background_activity_keep", "blurry_to_float", "build_level_table", "consistency_cost", "deblur", "deblur_log",
-    "decay_hot_counts", "dilate", "empty_table", "event_delta", "events_at_pixels", "finish_frame_u8", "flat_index",
+    "decay_hot_counts", "dilate", "empty_table", "event_delta", "events_at_pixels", "fall_back_u8", "finish_frame_u8", "flat_index",
     "have_numba", "hot_pixel_mask", "isolated_event_mask", "mark_event_pixels", "log_divisor", "log_divisor_events", "new_activity_map",
     "numpy_reference", "pair_candidates", "propagate_log", "render_buckets", "rows_of", "select",
     "signed_counts", "supported_events_keep", "time_index", "to_uint8", "u8_tables", "update_contradictions", "window",

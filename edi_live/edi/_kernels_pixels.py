@@ -161,19 +161,29 @@ def contradictions(score, own, n_on, n_off, log_prev, log_cur, inf_prev, inf_cur
 
 
 @njit(cache=True, nogil=True)
-def dilate(mask, dy, dx, out):
+def dilate(mask, words, dy, dx, out):
     """out (a copy of mask, (H, W)) |= mask shifted by every (dy[j], dx[j]), clipped at the borders: each marked
-    pixel stamps the offsets around it (marked pixels are few; no pass per offset)."""
+    pixel stamps the offsets around it (marked pixels are few; no pass per offset). `words`: the mask's first
+    8 * words.size pixels as uint64 (may be empty), so that 8 unmarked pixels are skipped at once."""
     h, w = mask.shape
-    for y in range(h):
-        for x in range(w):
-            if not mask[y, x]:
-                continue
-            for j in range(dy.size):
-                yy = y + dy[j]
-                xx = x + dx[j]
-                if 0 <= yy < h and 0 <= xx < w:
-                    out[yy, xx] = True
+    flat = mask.reshape(-1)
+    for k in range(words.size):
+        if words[k] != 0:
+            for q in range(8 * k, 8 * k + 8):
+                if flat[q]:
+                    _stamp(q // w, q % w, h, w, dy, dx, out)
+    for q in range(8 * words.size, flat.size):
+        if flat[q]:
+            _stamp(q // w, q % w, h, w, dy, dx, out)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _stamp(y, x, h, w, dy, dx, out):
+    for j in range(dy.size):
+        yy = y + dy[j]
+        xx = x + dx[j]
+        if 0 <= yy < h and 0 <= xx < w:
+            out[yy, xx] = True
 
 
 @njit(cache=True, nogil=True)
@@ -252,3 +262,51 @@ def activity_verdicts(t, x, y, width, height, last_t, state, params, out_at, out
     state[0], state[1], state[2], state[3] = begin_w, span_end, n, s
     state[4], state[5], state[6] = windows, active_windows, started
     return nv
+
+
+@njit(cache=True, nogil=True)
+def remask_divisor(old, use_old, new, use_new, seen, on, off, two, counting, back):
+    """RunningDivisor.remask's pass over the pixels (masks as flat uint8, `use_*` False: no mask). Pixels masked
+    since (in `new`, not in `old`) that are active (seen 1 or 2) leave the integral: with two thresholds their
+    OFF count joins `on` (a masked row counts all its events there), seen becomes 3 if `counting` else 0. Pixels
+    released since (in `old`, not in `new`) get seen 0 and back[q] True (`back` all False on entry). Returns
+    (how many left, how many were released)."""
+    gone = 0
+    released = 0
+    for q in range(seen.size):
+        was = use_old and old[q] != 0
+        now = use_new and new[q] != 0
+        if now and not was:
+            s = seen[q]
+            if s == 1 or s == 2:
+                if two:
+                    on[q] += off[q]
+                seen[q] = 3 if counting else 0
+                gone += 1
+        elif was and not now:
+            seen[q] = 0
+            back[q] = True
+            released += 1
+    return gone, released
+
+
+@njit(cache=True, nogil=True)
+def lookup_u8(img, lut_b, lut_informative, b, informative):
+    """b[q], informative[q] = the tables' entries for the uint8 value img[q] (flat arrays)."""
+    for q in range(img.size):
+        v = img[q]
+        b[q] = lut_b[v]
+        informative[q] = lut_informative[v]
+
+
+@njit(cache=True, nogil=True)
+def fall_back_u8(pixels, img, lut_log, lut_u8, log_ref, log_lat, display, deblurred):
+    """At the marked pixels (flat bool) of a uint8 frame: both log images get the frame's table entry, both uint8
+    images its rendering (all flat)."""
+    for q in range(pixels.size):
+        if pixels[q]:
+            v = img[q]
+            log_ref[q] = lut_log[v]
+            log_lat[q] = lut_log[v]
+            display[q] = lut_u8[v]
+            deblurred[q] = lut_u8[v]

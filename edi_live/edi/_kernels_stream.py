@@ -62,7 +62,8 @@ def display_u8_table(v, v0, scale, bucket_u8, bucket_thr, out):
 
 
 @njit(cache=True, nogil=True)
-def count_events(x, y, p, width, height, mask, use_mask, out_on, out_off, sign):
+def count_events(x, y, p, width, height, mask, use_mask, out_on, out_off, sign, floor):
+    """`floor`: counts held at >= 0 as they go (with counts >= 0 before: the result floored at 0 once)."""
     for i in range(x.size):
         if x[i] >= width or y[i] >= height:
             continue
@@ -72,6 +73,9 @@ def count_events(x, y, p, width, height, mask, use_mask, out_on, out_off, sign):
         on = np.int64(p[i])  # branch-free: polarities are unpredictable (two adds beat a mispredict)
         out_on[q] += sign * on
         out_off[q] += sign - sign * on
+        if floor:
+            out_on[q] = max(out_on[q], 0)
+            out_off[q] = max(out_off[q], 0)
 
 
 DIVISOR_STATE = np.dtype([("s", np.float64), ("t", np.float32), ("lvl", np.float32), ("base", np.float32),

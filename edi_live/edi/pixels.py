@@ -11,6 +11,8 @@ import numpy as np
 from edi_live.edi import _backend, _kernels_pixels
 from edi_live.edi.selection import select
 
+_NO_WORDS = np.zeros(0, np.uint64)  # dilate: a mask that cannot be read a word at a time
+
 
 def hot_pixel_mask(counts: np.ndarray, duration_us: float, *, min_rate_hz: float = 300.0,
                    rel_factor: float = 10.0) -> np.ndarray:
@@ -203,7 +205,11 @@ def dilate(mask: np.ndarray, offsets: list[tuple[int, int]]) -> np.ndarray:
     if _backend.have_numba():
         out = np.array(mask, dtype=bool, order="C")  # the mask itself is in the result, whatever the offsets
         off = np.asarray(offsets, np.int64).reshape(-1, 2)
-        _kernels_pixels.dilate(np.ascontiguousarray(mask, bool), off[:, 0].copy(), off[:, 1].copy(), out)
+        m = np.ascontiguousarray(mask, bool)
+        flat = m.reshape(-1)
+        # 8 pixels a word (a pass of ~3 µs at 240x180, not ~15), if the mask's memory allows a uint64 view
+        words = flat[:flat.size // 8 * 8].view(np.uint64) if flat.ctypes.data % 8 == 0 else _NO_WORDS
+        _kernels_pixels.dilate(m, words, off[:, 0].copy(), off[:, 1].copy(), out)
         return out
     out = mask.copy()
     h, w = mask.shape

@@ -85,15 +85,22 @@ def signed_counts(events: np.ndarray, width: int, height: int, *, t0: int | None
 
 
 def add_counts(events: np.ndarray, width: int, height: int, n_on: np.ndarray, n_off: np.ndarray, *,
-               t0: int | None = None, t1: int | None = None, mask: np.ndarray | None = None, sign: int = 1) -> None:
-    """In place: n_on/n_off (flat int64) += sign * ON/OFF counts of the events with t0 <= t <= t1."""
+               t0: int | None = None, t1: int | None = None, mask: np.ndarray | None = None, sign: int = 1,
+               floor: bool = False) -> None:
+    """In place: n_on/n_off (flat int64) += sign * ON/OFF counts of the events with t0 <= t <= t1; with `floor`,
+    counts below 0 are then raised to 0. The kernel floors as it counts (no pass over the image), which is the
+    same for counts >= 0 before the call, as `floor` requires."""
     if _backend.have_numba():
         ev = window(events, t0, t1)
         m, use_m = _backend.mask_arg(mask)
-        _kernels_stream.count_events(ev["x"], ev["y"], ev["p"], width, height, m, use_m, n_on, n_off, int(sign))
+        _kernels_stream.count_events(ev["x"], ev["y"], ev["p"], width, height, m, use_m, n_on, n_off, int(sign),
+                                     bool(floor))
         return
     idx, _, p = select(events, width, height, t0, t1, mask)
     n_on += sign * np.bincount(idx[p], minlength=n_on.size)
     n_off += sign * np.bincount(idx[~p], minlength=n_off.size)
+    if floor:
+        np.maximum(n_on, 0, out=n_on)
+        np.maximum(n_off, 0, out=n_off)
 
 

@@ -191,6 +191,26 @@ def test_bursts_with_zero_dwell_at_the_exposure_edges(polarity, c_off):
         assert delta[0] == pytest.approx(5000 * (2.0 if polarity else -c_off))
 
 
+@pytest.mark.parametrize("black, gamma", [(10.0, 1.0), (np.float64(4.0), 1.0), (3.7, 0.9), (0.0, 2.2)])
+@pytest.mark.parametrize("saturation", [None, 250.0])
+def test_a_non_linear_uint8_frame_looks_up_what_the_numpy_formulas_give(black, gamma, saturation, rng):
+    """B and the informative mask of a uint8 frame with a black level or a gamma come from a 256-entry table: bit
+    for bit the numpy formulas' result, for every value, anywhere in a full-size frame (also read-only or
+    strided)."""
+    image = rng.integers(0, 256, (180, 240)).astype(np.uint8)
+    image[0, :256 - 240], image[-1] = np.arange(16), np.arange(16, 256)  # every value, at the start and the end
+    frozen = image.copy()
+    frozen.setflags(write=False)
+    for frame in (image, frozen, image[:, ::3]):
+        b, informative = edi.blurry_to_float(frame, saturation=saturation, black_level=black, gamma=gamma)
+        with edi.numpy_reference():
+            b_ref, informative_ref = edi.blurry_to_float(frame, saturation=saturation, black_level=black,
+                                                         gamma=gamma)
+        assert b.dtype == np.float32 and b.shape == frame.shape and informative.shape == frame.shape
+        assert np.array_equal(b.view(np.uint32), b_ref.view(np.uint32))
+        assert np.array_equal(informative, informative_ref) and not informative.all() and informative.any()
+
+
 @pytest.mark.parametrize("black", [0.0, 10.0, 37.5])
 def test_black_level_is_taken_off_b_in_every_path(black, rng):
     image = rng.integers(0, 256, (6, 9)).astype(np.uint8)

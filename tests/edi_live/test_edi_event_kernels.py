@@ -207,3 +207,34 @@ def test_flicker_cycles_as_the_plain_loop_with_its_span_stop(span_us):
         assert kernel[4] >= 4 and any(kernel[0])  # flags were set and released
         if span_us:
             assert len(kernel[1]) > parts + 1  # the span stop cut reads
+
+
+@pytest.mark.parametrize("sign", [1, -1])
+def test_counts_with_a_floor_equal_the_numpy_reference_and_a_plain_count(rng, sign):
+    """add_counts(..., floor=True) adds (or takes off) a window's events and raises counts below 0 to 0: the kernel
+    floors as it counts (counts >= 0 before), the numpy reference floors the whole image once at the end; both
+    equal a count done here."""
+    w, h = 13, 9
+    ev = _random_events(rng, 3000, w, h, 50_000)
+    start = rng.integers(0, 4, w * h).astype(np.int64)  # many pixels hold fewer than the events taken off
+    mask = rng.random((h, w)) < 0.1
+    results = []
+    for reference in (False, True):
+        on, off = start.copy(), start[::-1].copy()
+        if reference:
+            with edi.numpy_reference():
+                edi.add_counts(ev, w, h, on, off, t0=10_000, t1=30_000, mask=mask, sign=sign, floor=True)
+        else:
+            edi.add_counts(ev, w, h, on, off, t0=10_000, t1=30_000, mask=mask, sign=sign, floor=True)
+        results.append((on, off))
+    inside = (ev["t"] >= 10_000) & (ev["t"] <= 30_000) & (ev["x"] < w) & (ev["y"] < h)
+    q = ev["y"][inside].astype(np.int64) * w + ev["x"][inside]
+    keep = ~mask.reshape(-1)[q]
+    p = ev["p"][inside]
+    for got in results:
+        for polarity, counts, first in ((True, got[0], start), (False, got[1], start[::-1])):
+            want = first.copy()
+            np.add.at(want, q[keep & (p == polarity)], sign)
+            assert np.array_equal(counts, np.maximum(want, 0))
+    if sign < 0:
+        assert (start - np.bincount(q[keep & p], minlength=w * h) < 0).any()  # the floor had work to do

@@ -131,3 +131,36 @@ def test_a_mask_changed_part_way_equals_that_mask_from_the_start(rng, reference,
     if counting:
         assert np.array_equal(counts_once, counts_run)
     assert all(np.array_equal(a, b) for a, b in zip(acc_once, acc_run))
+
+
+@pytest.mark.parametrize("two", [False, True])
+@pytest.mark.parametrize("counting", [False, True])
+@pytest.mark.parametrize("old_none, new_none", [(False, False), (True, False), (False, True)])
+def test_the_remask_pixel_pass_equals_its_numpy_expression(rng, two, counting, old_none, new_none):
+    """remask's compiled pass over the pixels: an active pixel (seen 1 or 2) masked since leaves the integral (its
+    OFF count joins `on` with two thresholds; seen 3 if counting, else 0), a pixel released since restarts (seen 0)
+    and is marked in `back`; the rest is untouched. Checked against the rule written with numpy masks."""
+    from edi_live.edi import _backend, _kernels_pixels, _kernels_stream
+
+    npix = W * H
+    old = None if old_none else rng.random(npix) < 0.3
+    new = None if new_none else rng.random(npix) < 0.3
+    seen = rng.integers(0, 4, npix).astype(np.uint8)
+    state = np.zeros(npix, _kernels_stream.DIVISOR_STATE_TWO)
+    state["on"], state["off"] = rng.integers(0, 50, npix), rng.integers(0, 50, npix)
+    o = np.zeros(npix, bool) if old is None else old
+    n = np.zeros(npix, bool) if new is None else new
+    gone = n & ~o & ((seen == 1) | (seen == 2))
+    released = o & ~n
+    want_on = state["on"] + np.where(gone & two, state["off"], 0)
+    want_seen = seen.copy()
+    want_seen[gone] = 3 if counting else 0
+    want_seen[released] = 0
+    back = np.zeros(npix, bool)
+    got = _kernels_pixels.remask_divisor(*_backend.mask_arg(old), *_backend.mask_arg(new), seen, state["on"],
+                                         state["off"], two, counting, back)
+    assert got == (int(gone.sum()), int(released.sum()))
+    assert (gone.any() or new is None) and (released.any() or old is None)  # the case has something to do
+    assert np.array_equal(seen, want_seen)
+    assert np.array_equal(state["on"], want_on)
+    assert np.array_equal(back, released)

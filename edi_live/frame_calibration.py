@@ -62,7 +62,8 @@ class FrameCalibration:
                       window: tuple[int, int, int], mask: np.ndarray | None, acc: tuple[np.ndarray, np.ndarray],
                       t_last: int, has_reference: bool) -> tuple[contrast.FramePair | None, edi.ApsResponse]:
         """(the pair formed on this frame, None if there is none or it was dropped; the APS response to deblur
-        with). `acc` (the counts applied since the previous f) becomes the pair's counts, changed in place. Call settle() first: a frame must not start while the previous one's work is pending."""
+        with). `acc` (the counts applied since the previous f) becomes the pair's counts, changed in place.
+        Call settle() first: a frame must not start while the previous one's work is pending."""
         moved = self._offset_used is not None and self.clock.value != self._offset_used
         self._offset_used = self.clock.value
         if self._black_next is not None:

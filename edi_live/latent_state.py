@@ -26,7 +26,8 @@ class LatentState:
 
     def streaming_copy(self) -> "LatentState":
         """Own image and display; the reference and the counts are shared (the copy reads the one and never
-        writes the other)."""
+        writes the other; once the original's frame pair has taken the counts over, they are the pair's, which
+        the deblur thread changes: a copy's counts mean nothing then)."""
         twin = LatentState.__new__(LatentState)
         twin.width, twin.height = self.width, self.height
         twin.log_ref, twin.acc, twin._spare = self.log_ref, self.acc, None

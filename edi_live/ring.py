@@ -24,6 +24,7 @@ The storage itself (a circular array addressed by global index) is `edi_live.rin
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import deque
@@ -36,6 +37,7 @@ from edi_live.ring_items import EventChunk, FrameEntry
 from edi_live.ring_wake import WakeWhen
 
 POLICIES = ("drop_oldest", "wait")
+log = logging.getLogger(__name__)
 
 
 class EventRing:
@@ -373,6 +375,10 @@ class EventRing:
             hi = self._store.search(oldest, stop, t1_us)
             if lo == oldest and oldest > 0 and self._store.t_at(oldest) > t0_us:
                 self.history_truncated += 1
+                if self.history_truncated == 1:  # said once; the summary gives the count
+                    log.warning("the ring's history (half of --ring-events: %d events) no longer holds the start of an "
+                                "APS frame's exposure: it is deblurred from part of its events; raise --ring-events",
+                                self.capacity_events // 2)
             return self._store.copy_out(lo, max(lo, hi))
 
     # ---------------------------------------------------------------- any thread

@@ -177,6 +177,10 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         f"skipped: static {s.get('skipped_static', 0)} (APS frames not deblurred: "
         f"{s.get('skipped_static_deblur', 0)}), max-fps {s.get('skipped_max_fps', 0)}",
     ]
+    if s.get("ring_history_truncated"):
+        lines.append(f"  warning: {s['ring_history_truncated']} exposure window(s) reached back past the ring's history "
+                     f"(half of --ring-events): those APS frames were deblurred from part of their events; raise "
+                     f"--ring-events")
     if s.get("warm_up_s"):
         lines.append(f"  start-up: EDI kernels compiled or loaded in {s['warm_up_s']:.2f} s (once per process, "
                      f"before the input opened; not counted in the time and rates above)")

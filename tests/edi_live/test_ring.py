@@ -103,6 +103,24 @@ def test_window_stops_at_the_read_cursor(rng):
     np.testing.assert_array_equal(ring.window(0, 1000, end_index=100), ev)
 
 
+def test_a_window_past_the_retained_history_is_counted_and_said_once(rng, caplog):
+    """An exposure that started before the oldest event the ring still holds is cut short: counted, and one
+    warning line naming the flag (the summary gives the count)."""
+    ring = EventRing(capacity_events=256, policy="wait")
+    ev = events_at_random_pixels(np.arange(1000), rng)
+    for start in range(0, 1000, 100):
+        ring.push(Packet(events=ev[start:start + 100]), timeout_s=1.0)
+        drain(ring)
+    with caplog.at_level("WARNING", logger="edi_live.ring"):
+        assert ring.window(1000 - 256, 2000).size == 256 and ring.history_truncated == 0  # all still held
+        got = ring.window(500, 2000)
+        ring.window(600, 2000)
+    np.testing.assert_array_equal(got, ev[1000 - 256:])
+    assert ring.history_truncated == 2
+    warnings = [r for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1 and "--ring-events" in warnings[0].getMessage()
+
+
 def test_frame_end_index_is_just_past_its_exposure(rng):
     ring = EventRing(capacity_events=256, policy="wait")
     ev = events_at_random_pixels(np.arange(0, 100, 2), rng)  # t = 0, 2, ..., 98

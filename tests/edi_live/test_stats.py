@@ -58,6 +58,13 @@ def test_summary_shows_frames_the_writers_had_to_skip():
     assert "2 arrived too late" in lossy and "3 items skipped" in lossy
 
 
+def test_summary_says_when_exposures_were_cut_short_by_the_ring():
+    # a ring too small for an exposure deblurs from part of its events: not silent
+    assert "ring's history" not in format_summary({**STATS, "ring_history_truncated": 0}, 1.0)
+    cut = format_summary({**STATS, "ring_history_truncated": 13}, 1.0)
+    assert "warning: 13 exposure window(s)" in cut and "--ring-events" in cut
+
+
 def test_collect_sums_drops_of_every_stage():
     class Ring:
         pushed_events = 5

@@ -24,7 +24,7 @@ Then the ideal camera gives ~0.1 ms and a 1.5 ms offset ~1.6 ms (medians over 11
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -45,12 +45,7 @@ class FrameWindow:
 
 
 def estimate_clock_offset(events: np.ndarray, prev: FrameWindow, cur: FrameWindow, sample: np.ndarray,
-                          c: tuple[float, float], *, black_level: float = 0.0, mask: np.ndarray | None = None,
-                          max_offset_us: int = 4000, step_us: int = 250, coarse_step_us: int = 1000,
-                          midlevel_gap_us: int | None = None, complete_until_us: int | None = None,
-                          max_pixels: int | None = None, b_low: float = 6.0, b_high: float = 250.0,
-                          delta: float = 0.1, min_pixels: int = 30, min_z: float = 0.0,
-                          z_step_us: int = 1000, lag_share: float = 1.0) -> float | None:
+                          c: tuple[float, float], *, lag_share: float = 1.0, **options: Any) -> float | None:
     """d in µs (events late by d: event time = APS time + d) within +-max_offset_us, or None when the frames
     say nothing (too few usable pixels, a flat cost, or the best offset at an edge of the searched range).
     `events`: time-ordered; candidates whose windows the events do not cover are left out (a batch that starts at
@@ -61,12 +56,8 @@ def estimate_clock_offset(events: np.ndarray, prev: FrameWindow, cur: FrameWindo
     max_pixels of them, evenly spread: the cost grows with them); `mask`: pixels whose events are ignored. With
     min_z, the best point must beat both points z_step_us away (those within the covered range) by min_z standard
     errors of the per-pixel cost difference (paired over pixels), else None: a shallow or noisy cost curve says
-    nothing about the offset."""
-    return clock_offset_fit(events, prev, cur, sample, c, black_level=black_level, mask=mask,
-                            max_offset_us=max_offset_us, step_us=step_us, coarse_step_us=coarse_step_us,
-                            midlevel_gap_us=midlevel_gap_us, complete_until_us=complete_until_us,
-                            max_pixels=max_pixels, b_low=b_low, b_high=b_high, delta=delta, min_pixels=min_pixels,
-                            min_z=min_z, z_step_us=z_step_us)(lag_share)
+    nothing about the offset. The options and their defaults are clock_offset_fit's keywords."""
+    return clock_offset_fit(events, prev, cur, sample, c, **options)(lag_share)
 
 
 def clock_offset_fit(events: np.ndarray, prev: FrameWindow, cur: FrameWindow, sample: np.ndarray,

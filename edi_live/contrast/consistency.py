@@ -80,11 +80,10 @@ class ConsistencyContrast:
             parts.append((at, frame.table.take(rows)))
         # pixels that crossed many levels within an exposure carry more quantisation error in L(f)
         weight = 1.0 / (1.0 + self.spread_weight * spread)
-        (hit_p, sub_p), (hit_c, sub_c) = parts
+        (row_p, sub_p), (row_c, sub_c) = parts  # row_*: where in cand each table row's pixel is
         delta2 = self.delta ** 2
         if edi.have_numba():  # fused kernel for the common single-c case: no temporaries per evaluation
             net = n_on - n_off
-            row_p, row_c = hit_p, hit_c
 
             def jit_cost(c: float, out: np.ndarray | None) -> float:
                 return edi.consistency_cost(c, dlog_b, net, weight, delta2, sub_p, row_p, sub_c, row_c, out)
@@ -98,9 +97,9 @@ class ConsistencyContrast:
             """Every pixel's predicted log B_cur - log B_prev (events between the frames and both divisors)."""
             pred = c_on * n_on - c_off * n_off
             if sub_c.n_active:
-                pred[hit_c] += edi.log_divisor(sub_c, c_on, c_off)
+                pred[row_c] += edi.log_divisor(sub_c, c_on, c_off)
             if sub_p.n_active:
-                pred[hit_p] -= edi.log_divisor(sub_p, c_on, c_off)
+                pred[row_p] -= edi.log_divisor(sub_p, c_on, c_off)
             return pred
 
         def terms(c_on: float, c_off: float) -> np.ndarray:

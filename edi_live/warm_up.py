@@ -104,6 +104,11 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
         b = np.linspace(5.0, 200.0, 64)
         _kernels_black_level.profile_point(b, b + 1.0, np.ones(64), 2.0, 0.5, 5, 50.0, math.inf)
         edi.dilate(np.zeros((height, width), bool), [(0, 0), (0, 1)])
+        # a colour source's output demosaic: of the latent display, and of a decoded (read-only) APS frame
+        from edi_live.colour import demosaic
+
+        demosaic(image, "RGGB")
+        demosaic(frozen, "RGGB")
         logs, shown = np.zeros((2, height, width), np.float32), np.zeros((2, height, width), np.uint8)
         for frame in (image, frozen):  # B of a frame with a black level (its look-up; the scene above has none)
             edi.blurry_to_float(frame, black_level=1.0)  # and the fall-back to the APS at unreliable pixels
@@ -114,9 +119,11 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
 
 def compiled_signatures() -> dict[str, set[str]]:
     """Each numba kernel's compiled argument-type signatures so far, across the packages (edi_live.edi's own
-    kernels and the compiled parts of the calibration and the prediction figure): what a warm-up must cover."""
-    from edi_live import edi, hold_average
+    kernels, the compiled parts of the calibration and the prediction figure, and the colour demosaic): what a
+    warm-up must cover."""
+    from edi_live import _kernels_demosaic, edi, hold_average
     from edi_live.contrast import _kernels_black_level, _kernels_clock_offset
 
-    return edi.compiled_signatures(also=(_kernels_black_level, _kernels_clock_offset, hold_average))
+    return edi.compiled_signatures(also=(_kernels_black_level, _kernels_clock_offset, hold_average,
+                                         _kernels_demosaic))
 

@@ -19,6 +19,8 @@ run: median, min and max over the repeats (CPU time of this thread; the machine 
 
     python -m tools.bench_colour            # two DAVIS346-sized scenes, about a minute of CPU
     python -m tools.bench_colour --quick    # smaller and shorter
+    python -m tools.bench_colour --speed 1000 3000 10000   # only the latent-frame cost ratios at these
+        # events per frame, with the compiled demosaic and with OpenCV's alternating (5 repeats unless --repeats)
 """
 
 from __future__ import annotations
@@ -192,11 +194,37 @@ def speed(sim: Simulation, repeats: int, every: int = 1000) -> dict[str, tuple[f
     return {k: (float(np.median(v)), float(min(v)), float(max(v))) for k, v in ratios.items()}
 
 
+def speed_table(everies: list[int], repeats: int) -> None:
+    """Colour / grey latent-frame cost at each events-per-frame, the compiled demosaic and OpenCV's alternating."""
+    import edi_live.colour as colour
+
+    sim = simulate(scenes(False)["blocks, ideal camera"])
+    compiled = colour.have_numba
+    print("| events per latent frame | colour / grey, compiled | colour / grey, OpenCV | --gray / grey |")
+    print("|---|---|---|---|")
+    cell = lambda r: f"{r[0]:.2f} [{r[1]:.2f}, {r[2]:.2f}]"  # noqa: E731
+    try:
+        for every in everies:
+            colour.have_numba = compiled
+            ours = speed(sim, repeats, every)
+            colour.have_numba = lambda: False  # type: ignore[assignment]
+            theirs = speed(sim, repeats, every)
+            print(f"| {every} | {cell(ours['latent'])} | {cell(theirs['latent'])} | {cell(ours['latent, --gray'])} |",
+                  flush=True)
+    finally:
+        colour.have_numba = compiled
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="smaller, shorter scenes and fewer repeats")
     ap.add_argument("--repeats", type=int, default=None, help="timing repeats (default 7, --quick 3)")
+    ap.add_argument("--speed", type=int, nargs="+", metavar="EVERY",
+                    help="only the cost ratios, at these events per latent frame: compiled demosaic and OpenCV's")
     args = ap.parse_args(argv)
+    if args.speed:
+        speed_table(args.speed, args.repeats or 5)
+        return
     repeats = args.repeats or (3 if args.quick else 7)
     sims = {name: simulate(cfg) for name, cfg in scenes(args.quick).items()}
 

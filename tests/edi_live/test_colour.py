@@ -55,3 +55,38 @@ def test_every_demosaicing_method_keeps_a_flat_field(method):
     bgr[...] = (25, 140, 230)
     out = demosaic(mosaic(bgr, "GBRG"), "GBRG", method)
     assert (out[3:-3, 3:-3] == bgr[3:-3, 3:-3]).all()
+
+
+def _mosaics():
+    """Random, black, white and striped 8-bit mosaics, even and odd sizes down to 3x3, one read-only, one a view."""
+    rng = np.random.default_rng(11)
+    for h, w in ((3, 3), (3, 4), (4, 3), (5, 7), (11, 13), (12, 14), (180, 240), (260, 346)):
+        yield rng.integers(0, 256, (h, w), dtype=np.uint8)
+    yield np.zeros((6, 8), np.uint8)
+    yield np.full((6, 8), 255, np.uint8)
+    yield np.tile(np.array([[0, 255], [255, 0]], np.uint8), (5, 6))  # every rounding at its extreme
+    frozen = rng.integers(0, 256, (9, 10), dtype=np.uint8)
+    frozen.setflags(write=False)
+    yield frozen
+    yield rng.integers(0, 256, (10, 24), dtype=np.uint8)[:, ::2]  # not contiguous
+
+
+@pytest.mark.parametrize("pattern", COLOR_FILTERS)
+def test_the_compiled_bilinear_demosaic_is_opencvs_bit_for_bit(pattern):
+    from edi_live.edi import numpy_reference
+
+    for raw in _mosaics():
+        ours = demosaic(raw, pattern)
+        with numpy_reference():  # OpenCV's own conversion
+            theirs = demosaic(raw, pattern)
+        assert ours.shape == theirs.shape == raw.shape + (3,)
+        assert np.array_equal(ours, theirs), (raw.shape, np.argwhere(ours != theirs)[:3])
+
+
+def test_a_tiny_or_16_bit_mosaic_still_demosaics_through_opencv():
+    import cv2
+
+    raw16 = np.random.default_rng(2).integers(0, 4096, (6, 8), dtype=np.uint16)
+    assert np.array_equal(demosaic(raw16, "RGGB"), cv2.cvtColor(raw16, cv2.COLOR_BayerBG2BGR))
+    tiny = np.full((2, 8), 77, np.uint8)
+    assert demosaic(tiny, "RGGB").shape == (2, 8, 3)

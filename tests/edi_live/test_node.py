@@ -328,3 +328,32 @@ def test_a_first_run_reports_the_kernel_compile_apart_from_its_rate(real_recordi
     rate = float(run.group(3)) * {"": 1, "k": 1e3, "M": 1e6, "G": 1e9}[run.group(4)]
     assert run_s + warm_s <= wall_s
     assert rate == pytest.approx(events / run_s, rel=0.05)  # "done in" is rounded to 10 ms
+
+
+_NO_NEW_COLOUR_KERNELS = r"""
+import numpy as np
+from edi_live.colour import demosaic
+from edi_live.config import EdiConfig
+from edi_live.node import default_reconstructor
+from edi_live.warm_up import compiled_signatures, warm_up
+
+warm_up(default_reconstructor, EdiConfig())
+before = compiled_signatures()
+display = np.full((260, 346), 90, np.uint8)  # the latent display, as the reconstructor demosaics it
+decoded = display.copy()
+decoded.setflags(write=False)  # an APS frame decoded in the replay's child, as the prediction figure shows it
+for pattern in ("RGGB", "GBRG"):
+    demosaic(display, pattern)
+    demosaic(decoded, pattern)
+after = compiled_signatures()
+print({name: sorted(after[name] - before.get(name, set())) for name in after if after[name] - before.get(name, set())})
+"""
+
+
+def test_the_warm_up_covers_the_colour_demosaic():
+    """A colour source demosaics every frame it emits with a compiled kernel: the warm-up must have compiled (or
+    loaded) it for the display and for read-only decoded frames, or the first colour frame stalls the stream."""
+    done = subprocess.run([sys.executable, "-c", _NO_NEW_COLOUR_KERNELS], capture_output=True, text=True,
+                          timeout=120, cwd=str(Path(__file__).resolve().parents[2]))
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip().splitlines()[-1] == "{}", f"compiled after the warm-up: {done.stdout[-2000:]}"

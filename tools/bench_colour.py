@@ -21,6 +21,11 @@ run: median, min and max over the repeats (CPU time of this thread; the machine 
     python -m tools.bench_colour --quick    # smaller and shorter
     python -m tools.bench_colour --speed 1000 3000 10000   # only the latent-frame cost ratios at these
         # events per frame, with the compiled demosaic and with OpenCV's alternating (5 repeats unless --repeats)
+    python -m tools.bench_colour --node 1000    # the whole node's CPU, colour against grey (below)
+
+`--node EVERY`: the node as a user runs it (replay at --speed 0, one subscriber receiving every frame, each run in a
+fresh process) on one simulated 346x260 recording whose raw mosaic is stored without its pattern, read once as
+grey and once as colour (`--bayer-pattern RGGB`): the same events and frames, alternating, node CPU seconds.
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMB
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
 import math  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
 
 import cv2  # noqa: E402
@@ -215,13 +221,54 @@ def speed_table(everies: list[int], repeats: int) -> None:
         colour.have_numba = compiled
 
 
+_NODE_RUN = r"""
+import json, sys
+from pathlib import Path
+from tools.bench_stream import run_with_subscriber
+stats, sub, _, _ = run_with_subscriber(Path(sys.argv[1]), json.loads(sys.argv[2]), 0)
+print(json.dumps({"cpu_s": stats["node_cpu_s"], "frames": sub.get("frames", 0)}))
+"""
+
+
+def node_table(every: int, repeats: int, duration_s: float = 1.0) -> None:
+    """Node CPU, colour against grey on the same recording, alternating fresh processes (see the docstring)."""
+    import json
+    import subprocess
+    import tempfile
+    from pathlib import Path
+
+    from edi_live.simulation import preset
+    from tools.colour_recording import write_with_dv_processing
+
+    sim = simulate(dataclasses.replace(preset("colour"), duration_s=duration_s))
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "mosaic.aedat4"
+        write_with_dv_processing(sim, path, raw=True, name_pattern=False)
+        runs: dict[str, list[dict]] = {"grey": [], "colour": []}
+        root = Path(__file__).resolve().parents[1]
+        for _ in range(repeats):
+            for kind, extra in (("grey", {}), ("colour", {"bayer_pattern": sim.config.color_filter})):
+                done = subprocess.run([sys.executable, "-c", _NODE_RUN, str(path), json.dumps({"every": every, **extra})],
+                                      capture_output=True, text=True, cwd=root, check=True)
+                runs[kind].append(json.loads(done.stdout.strip().splitlines()[-1]))
+    ratios = [c["cpu_s"] / g["cpu_s"] for g, c in zip(runs["grey"], runs["colour"])]
+    grey_s = [g["cpu_s"] for g in runs["grey"]]
+    print(f"node, --every {every}, {sim.events.size} events, {runs['grey'][0]['frames']} frames to the subscriber: "
+          f"grey {np.median(grey_s):.2f} s node CPU; colour / grey {np.median(ratios):.2f} "
+          f"[{min(ratios):.2f}, {max(ratios):.2f}] over {repeats} alternating pairs")
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="smaller, shorter scenes and fewer repeats")
     ap.add_argument("--repeats", type=int, default=None, help="timing repeats (default 7, --quick 3)")
     ap.add_argument("--speed", type=int, nargs="+", metavar="EVERY",
                     help="only the cost ratios, at these events per latent frame: compiled demosaic and OpenCV's")
+    ap.add_argument("--node", type=int, metavar="EVERY", help="only the whole node's CPU, colour against grey")
     args = ap.parse_args(argv)
+    if args.node:
+        node_table(args.node, args.repeats or 3)
+        return
     if args.speed:
         speed_table(args.speed, args.repeats or 5)
         return

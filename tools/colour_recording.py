@@ -32,16 +32,17 @@ BORDER = 3
 CAMERA = "DAVIS346COLOR_00000000"
 
 
-def write_with_dv_processing(sim: Simulation, path: Path, raw: bool = False) -> None:
+def write_with_dv_processing(sim: Simulation, path: Path, raw: bool = False, name_pattern: bool = True) -> None:
     """Events and APS frames of `sim` in time order through dv-processing's MonoCameraWriter: BGR frames as DV
-    records a colour camera, or with `raw` the mosaic itself and its pattern as the frame stream's colorFilter."""
+    records a colour camera, or with `raw` the mosaic itself and its pattern as the frame stream's colorFilter
+    (`name_pattern` False: not named, so that a reader takes the mosaic for a grey frame)."""
     import dv_processing as dv
 
     cfg = sim.config
     writer_cfg = dv.io.MonoCameraWriter.Config(CAMERA)
     writer_cfg.addEventStream((cfg.width, cfg.height))
     writer_cfg.addFrameStream((cfg.width, cfg.height))
-    if raw:
+    if raw and name_pattern:
         writer_cfg.addStreamMetadata("frames", ("colorFilter", cfg.color_filter))
     writer = dv.io.MonoCameraWriter(str(path), writer_cfg)
     ev = sim.events

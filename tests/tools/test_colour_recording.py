@@ -33,3 +33,12 @@ def test_a_dv_processing_colour_file_is_read_as_colour_and_deblurred_like_the_si
     blurry = [cpsnr(demosaic(f.image, "GRBG"), sim.gt_at(f.mid_exposure_us)) for f in sim.frames]
     assert np.mean(from_file) > np.mean(blurry) + 3  # deblurring helps on this moving scene
     assert abs(np.mean(from_file) - np.mean(in_memory)) < 0.2  # and the file path loses (almost) nothing
+
+
+def test_a_mosaic_stored_without_its_pattern_reads_as_grey_frames_of_the_same_values(tmp_path, sim):
+    """What bench_colour --node compares: one file, read as grey, or as colour once the pattern is named."""
+    path = tmp_path / "mosaic.aedat4"
+    write_with_dv_processing(sim, path, raw=True, name_pattern=False)
+    frames, events, pattern = read_recording(path)
+    assert pattern is None and events.size == sim.events.size
+    assert all(f.color_filter is None and np.array_equal(f.image, s.image) for f, s in zip(frames, sim.frames))

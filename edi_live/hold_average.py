@@ -2,7 +2,7 @@
 
 Plain functions on numpy arrays. `hold_average` weights each uint8 image by its hold time in µs, sums in integers
 (exact: a constant sequence averages to itself bit for bit) and divides once. The multiply-add is compiled and
-takes eight images per pass over the sum (numpy needs a product temporary and a second pass per image: ~4x the
+takes four images per pass over the sum (numpy needs a product temporary and a second pass per image: ~4x the
 time, which made the prediction figure of edi_live.quality a tenth of the node's CPU on a fast scene; one pass
 per image reads and writes the int32 sum, 4x the bytes of a uint8 image, once per image). Integer sums do not
 depend on their order, so the grouping changes no bit of the result.
@@ -21,15 +21,14 @@ FLOAT32_EXACT_SPAN_US = 2**24 // 255
 """... and whose sums are exact float32 integers (the quotient is then returned as float32)."""
 
 
-GROUP = 8
-"""Images added per pass over the sum."""
+GROUP = 4
+"""Images added per pass over the sum (1, 2, 4, 8 per pass: 151, 107, 104, 112 µs for 33 frames at 240x180)."""
 
 
 @numba.njit(cache=True, nogil=True)
-def _add_scaled8(acc, i0, w0, i1, w1, i2, w2, i3, w3, i4, w4, i5, w5, i6, w6, i7, w7) -> None:  # noqa: ANN001
+def _add_scaled4(acc, i0, w0, i1, w1, i2, w2, i3, w3) -> None:  # noqa: ANN001
     for i in range(acc.size):
-        acc[i] += (i0[i] * w0 + i1[i] * w1 + i2[i] * w2 + i3[i] * w3 + i4[i] * w4 + i5[i] * w5 + i6[i] * w6
-                   + i7[i] * w7)
+        acc[i] += i0[i] * w0 + i1[i] * w1 + i2[i] * w2 + i3[i] * w3
 
 
 def hold_average(images: Sequence[np.ndarray], holds: Sequence[int], span: int) -> np.ndarray:
@@ -41,7 +40,7 @@ def hold_average(images: Sequence[np.ndarray], holds: Sequence[int], span: int) 
     shape = images[0].shape
     acc_type = np.int32 if max(span, sum(holds)) <= INT32_SPAN_US else np.int64  # the sum never wraps
     acc = np.zeros(int(np.prod(shape)), acc_type)
-    # a read-only image is copied: numba types read-only arrays apart, and eight slots would mean up to 2**8
+    # a read-only image is copied: numba types read-only arrays apart, and four slots would mean up to 2**4
     # signatures, each compiled mid-stream (the node's emitted frames are writeable)
     flat = [np.ascontiguousarray(image).reshape(-1) for image in images]
     flat = [f if f.flags.writeable else f.copy() for f in flat]
@@ -50,7 +49,7 @@ def hold_average(images: Sequence[np.ndarray], holds: Sequence[int], span: int) 
         args = []
         for j in range(k, k + GROUP):  # a short last group: the first image again, weighted 0
             args += (flat[j], weights[j]) if j < len(flat) else (flat[k], acc_type(0))
-        _add_scaled8(acc, *args)
+        _add_scaled4(acc, *args)
     acc = acc.reshape(shape)
     if span <= FLOAT32_EXACT_SPAN_US:
         return np.divide(acc, np.float32(span), dtype=np.float32)

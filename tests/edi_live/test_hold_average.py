@@ -54,9 +54,9 @@ def test_no_image_is_an_error_not_an_index_error():
         hold_average([], [], 10)
 
 
-@pytest.mark.parametrize("n", [1, 7, 8, 9, 16, 17, 33])
+@pytest.mark.parametrize("n", [1, 3, 4, 5, 7, 8, 9, 33])
 def test_every_group_size_matches_the_integer_reference(n):
-    """Eight images are added per compiled pass: a short last group (padded with weight-0 images) or a group
+    """Four images are added per compiled pass: a short last group (padded with weight-0 images) or a group
     boundary must not drop, repeat or misweight an image. Reference: the exact int64 sum, divided as the
     function documents (float32 when exact in it)."""
     rng = np.random.default_rng(n)
@@ -93,9 +93,9 @@ def test_read_only_images_compile_no_new_signature():
 
     image = np.full((3, 3), 7, np.uint8)
     hold_average([image, image], [1, 1], 2)
-    before = set(map(str, module._add_scaled8.signatures))
+    before = set(map(str, module._add_scaled4.signatures))
     frozen = image.copy()
     frozen.setflags(write=False)
     out = hold_average([image, frozen, image], [1, 2, 3], 6)
     np.testing.assert_array_equal(out, image.astype(np.float32))
-    assert set(map(str, module._add_scaled8.signatures)) == before
+    assert set(map(str, module._add_scaled4.signatures)) == before

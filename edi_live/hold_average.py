@@ -3,9 +3,9 @@
 Plain functions on numpy arrays. `hold_average` weights each uint8 image by its hold time in µs, sums in integers
 (exact: a constant sequence averages to itself bit for bit) and divides once. The multiply-add is compiled and
 takes four images per pass over the sum (numpy needs a product temporary and a second pass per image: ~4x the
-time, which made the prediction figure of edi_live.quality a tenth of the node's CPU on a fast scene; one pass
-per image reads and writes the int32 sum, 4x the bytes of a uint8 image, once per image). Integer sums do not
-depend on their order, so the grouping changes no bit of the result.
+time, which made the prediction figure of edi_live.quality a tenth of the node's CPU on a fast scene; a pass
+per image read and wrote the int32 sum, 4x a uint8 image's bytes, for every image). Integer sums do not depend
+on their order, so the grouping changes no bit of the result.
 """
 
 from __future__ import annotations

@@ -274,9 +274,8 @@ class PixelNoise:
 
 
 def median_of_sorted(values: np.ndarray) -> np.floating:
-    """np.median of a sorted 1-D array without its selection pass: the mean of the middle one or two values,
-    as numpy's median takes it (its mean of the middle slice), so the result is numpy's bit for bit."""
-    if values.size == 0:
-        raise ValueError("median of no values")
+    """np.median of a sorted 1-D array without NaN, without its selection pass: the mean of the middle one or two
+    values, as numpy's median takes it (its mean of the middle slice), so the result is numpy's bit for bit (NaN
+    with numpy's warning for no values)."""
     half = values.size // 2
     return np.mean(values[half:half + 1] if values.size % 2 else values[half - 1:half + 1])

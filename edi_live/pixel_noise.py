@@ -262,10 +262,20 @@ class PixelNoise:
         self.global_off_hz = pooled_rate(self._off, self._seconds)
         on = shrunk_rate(self._on, self._seconds, self.global_on_hz, self.prior_s)
         off = shrunk_rate(self._off, self._seconds, self.global_off_hz, self.prior_s)
-        p50, p99 = np.percentile(on + off, [50, 99])
+        # the percentiles of sorted copies: the same values (they depend on the multiset only), but numpy's sort
+        # is ~4x faster than its selection on unsorted rates with few ties (a simulated sensor's)
+        p50, p99 = np.percentile(np.sort(on + off, axis=None), [50, 99])
         noisy = noisy_pixels(self._on + self._off, self._seconds, self.global_on_hz + self.global_off_hz,
                              self.noisy_factor, self.prior_s)
         self._summary = {"noise_hz_p50": round(float(p50), 3), "noise_hz_p99": round(float(p99), 3),
-                         "noise_on_hz_p50": round(float(np.median(on)), 3),
-                         "noise_off_hz_p50": round(float(np.median(off)), 3),
+                         "noise_on_hz_p50": round(float(median_of_sorted(np.sort(on, axis=None))), 3),
+                         "noise_off_hz_p50": round(float(median_of_sorted(np.sort(off, axis=None))), 3),
                          "noisy_pixels": int(np.count_nonzero(noisy))}
+
+
+def median_of_sorted(values: np.ndarray) -> np.floating:
+    """np.median of a sorted 1-D array without NaN, without its selection pass: the mean of the middle one or two
+    values, as numpy's median takes it (its mean of the middle slice), so the result is numpy's bit for bit (NaN
+    with numpy's warning for no values)."""
+    half = values.size // 2
+    return np.mean(values[half:half + 1] if values.size % 2 else values[half - 1:half + 1])

@@ -272,3 +272,60 @@ def test_the_noise_flags_and_toml_keys_reach_the_reconstructor():
         NodeConfig.from_options({"replay": "x.aedat4", "noise_stats": "no"})  # a TOML string, not a boolean
     with pytest.raises(ConfigError, match="noise-rate-hz must be a rate"):
         NodeConfig.from_options({"replay": "x.aedat4", "noise_rate_hz": -1})
+
+
+def _summary_reference(noise: PixelNoise) -> dict:
+    """The summary as first written: numpy's selection percentile and median on the unsorted rates."""
+    from edi_live.pixel_noise import noisy_pixels, pooled_rate, shrunk_rate
+
+    on_c, off_c, sec = noise._on, noise._off, noise._seconds
+    g_on, g_off = pooled_rate(on_c, sec), pooled_rate(off_c, sec)
+    on, off = shrunk_rate(on_c, sec, g_on, noise.prior_s), shrunk_rate(off_c, sec, g_off, noise.prior_s)
+    p50, p99 = np.percentile(on + off, [50, 99])
+    noisy = noisy_pixels(on_c + off_c, sec, g_on + g_off, noise.noisy_factor, noise.prior_s)
+    return {"noise_hz_p50": round(float(p50), 3), "noise_hz_p99": round(float(p99), 3),
+            "noise_on_hz_p50": round(float(np.median(on)), 3), "noise_off_hz_p50": round(float(np.median(off)), 3),
+            "noisy_pixels": int(np.count_nonzero(noisy))}
+
+
+@pytest.mark.parametrize("case", ["one_pixel", "odd", "even", "constant", "extremes", "one_seen"])
+def test_summary_percentiles_match_numpy_on_the_unsorted_rates(case):
+    """The summary takes its percentiles from sorted copies (faster); the figures must be numpy's own on the
+    unsorted rates, at odd and even pixel counts (the median's two middle values), ties and extremes."""
+    rng = np.random.default_rng(len(case))
+    h, w = {"one_pixel": (1, 1), "odd": (3, 5), "even": (26, 34)}.get(case, (12, 9))
+    on = rng.gamma(0.5, 0.4, (h, w)).astype(np.float32)
+    off = rng.gamma(0.5, 0.3, (h, w)).astype(np.float32)
+    sec = rng.uniform(0.1, 60.0, (h, w)).astype(np.float32)
+    if case == "constant":
+        on[:], off[:], sec[:] = 0.25, 0.25, 10.0
+    if case == "extremes":
+        on.reshape(-1)[::3], off.reshape(-1)[1::4], sec.reshape(-1)[::5] = 1e6, 0.0, 1e-6
+    if case == "one_seen":
+        sec[:] = 0.0
+        sec[0, 0] = 2.0
+    noise = PixelNoise(w, h, start=NoiseRates(on, off, sec))
+    assert noise.summary() == _summary_reference(noise)
+    n_on = rng.poisson(0.3, h * w)
+    noise.update(n_on, np.zeros(h * w, np.int64), np.full((h, w), 100.0, np.float32),
+                 np.full((h, w), 100.0, np.float32), 40_000)
+    noise._refresh()
+    assert noise.summary() == _summary_reference(noise)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_median_of_sorted_is_numpys_median_bit_for_bit(dtype):
+    from edi_live.pixel_noise import median_of_sorted
+
+    rng = np.random.default_rng(5)
+    cases = [np.array([3.5]), np.array([1.0, 2.0]), np.array([0.1, 0.2]), np.full(6, 0.3), np.full(7, 0.3),
+             np.array([0.0, 1e30, 1e30, 3e38]), np.array([np.float32(16777216.0), np.float32(16777217.0)])]
+    cases += [rng.gamma(0.5, 0.2, n) for n in (2, 3, 1000, 1001, 89960)]
+    cases += [np.round(rng.gamma(0.5, 0.2, 5000), 2)]  # many ties, as a real sensor's rates have
+    for values in cases:
+        values = np.asarray(values, dtype)
+        got = median_of_sorted(np.sort(values))
+        want = np.median(values)
+        assert got.dtype == want.dtype and got.tobytes() == want.tobytes(), (values[:4], got, want)
+    with pytest.warns(RuntimeWarning):  # no values: NaN, as numpy's median gives
+        assert np.isnan(median_of_sorted(np.zeros(0, dtype)))

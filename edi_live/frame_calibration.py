@@ -56,6 +56,7 @@ class FrameCalibration:
         # thinned only where nothing else counts frames between estimates (reestimate_every) or pools pairs (joint)
         every = ps.settled_check_every if not (ps.reestimate_every or policy.pools_pairs) else 1
         self.schedule = CalibrationSchedule(ScheduleSettings(c_every=every))
+        self.tests_skipped = 0  # frames whose c fit test the schedule left out
         self._due: _Due | None = None
         self._black_next: float | None = None  # decided by settle, used from the next frame on
         self._offset_used: int | None = None  # the clock offset of the previous frame
@@ -108,6 +109,7 @@ class FrameCalibration:
                                              and p.cur.table is not None])
             else:
                 self.policy.skip()
+                self.tests_skipped += 1
         new_black = self.black.update(due.pair, due.black_taken_off)
         frame, events, img, mask = due.clock
         black = due.black_taken_off if new_black is None else new_black

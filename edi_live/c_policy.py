@@ -17,6 +17,8 @@ Rules, per APS frame once the estimator has what it needs (a pair for pairwise e
   pairs that no c near the others' explains (a scene cut, a loop seam) set aside; two newest pairs that both
   disagree fail the fit test at once (the threshold changed). While every estimate so far was flat, c is estimated
   again each time the window holds one more pair.
+- Which frames get a fit test at all is edi_live.calibration_schedule's: every frame until c has settled (`settled`),
+  then every `settled_check_every`-th; a left-out frame only counts toward `reestimate_every` (`skip`).
 """
 
 from __future__ import annotations

@@ -127,3 +127,26 @@ def test_a_threshold_that_changes_mid_stream_is_re_estimated_within_check_every_
     assert delay - delay_every <= CHECK_EVERY - 1, (delay, delay_every)
     calm = slice(change_at - 8, change_at)
     assert sum(tested[calm]) <= 0.5 * sum(every[0][calm]), "and the thinned run tests c on far fewer frames"
+
+
+def test_thinned_the_black_level_still_reads_every_pair_it_samples(two_thresholds):
+    """The level tables are left out only where neither a fit test nor the black level's pool reads them: with
+    rechecks every 10 pairs (pooling 4) in the thinned stretch, the black level's fits see what they see with every
+    frame checked (a missing table would fail the sample outright)."""
+    from edi_live.black_level_policy import BlackLevelPolicy, BlackLevelSettings
+
+    scene = two_thresholds[0]
+    fits = {}
+    for every in (1, CHECK_EVERY):
+        rec = EdiReconstructor(scene.width, scene.height, c_init=0.2, settled_check_every=every)
+        rec._black = rec._calib.black = BlackLevelPolicy(None, BlackLevelSettings(pool_pairs=4, recheck_every=10,
+                                                                                  min_pixels=50))
+        seen = []
+        for k, frame in enumerate(scene.frames):
+            stream(dataclasses.replace(scene, frames=[frame], events=scene.events[_event_range(scene, k)]), rec)
+            seen.append((rec._black.estimates, dict(rec._black.last_fit)))
+        fits[every] = seen
+        if every > 1:
+            assert rec._calib.tests_skipped >= 10, "the schedule must thin for the test to mean anything"
+    assert fits[CHECK_EVERY][-1][0] >= 3, "rechecks must run in the thinned stretch"
+    assert fits[CHECK_EVERY] == fits[1]

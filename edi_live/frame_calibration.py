@@ -123,7 +123,8 @@ class FrameCalibration:
             self.pixel_noise.update(*due.noise)
         changed = (due.pairs is None or due.pair is None or new_black is not None or due.moved
                    or (self.policy.reestimations, self.policy.events_ignored, self.clock.value) != before)
-        self.schedule.observe(not changed and self.policy.settled, changed)
+        # a still verdict is not thinned: its test is what brings the events back once the scene moves again
+        self.schedule.observe(not changed and self.policy.settled and not self.policy.events_ignored, changed)
         if self.schedule.plan().c_test or self.black.samples():
             self.tracker.complete()  # the next frame's fit test (or the black level's sample) reads this frame's
         self.last_settle_ms = (time.perf_counter() - t0) * 1e3

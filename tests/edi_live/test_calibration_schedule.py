@@ -150,3 +150,17 @@ def test_thinned_the_black_level_still_reads_every_pair_it_samples(two_threshold
             assert rec._calib.tests_skipped >= 10, "the schedule must thin for the test to mean anything"
     assert fits[CHECK_EVERY][-1][0] >= 3, "rechecks must run in the thinned stretch"
     assert fits[CHECK_EVERY] == fits[1]
+
+
+def test_a_still_scene_whose_events_are_ignored_is_checked_on_every_frame():
+    """Its fit test is what notices that the scene moves again; thinned, the latent frames would stand still for
+    up to settled_check_every frames longer."""
+    scene = make_scene("camera", c_on=0.2, velocity_px_per_ms=(0.0, 0.0), width=64, height=48, n_frames=20,
+                       noise_hz=2.0, seed=4)
+    rec = EdiReconstructor(scene.width, scene.height, settled_check_every=CHECK_EVERY)
+    ignored = []
+    for k, frame in enumerate(scene.frames):
+        stream(dataclasses.replace(scene, frames=[frame], events=scene.events[_event_range(scene, k)]), rec)
+        ignored.append(rec.events_ignored)
+    assert sum(ignored) >= 15, "the events must be ignored for most of the scene for the test to mean anything"
+    assert rec._calib.tests_skipped == 0 and not rec._calib.schedule.thinned

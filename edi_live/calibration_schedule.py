@@ -4,8 +4,8 @@ has just changed, fewer once it has settled.
 Policy only (no math, no clock, no thread): frame_calibration asks it per frame and tells it afterwards whether
 the frame was calm. A frame is calm when the c policy passed its fit test (or had none due) without estimating,
 the black level and clock offset did not move, the frame closed a pair, and the events are not ignored (a still
-scene's test is what notices that it moves again: the latent frames stand still until then). After `calm_frames` calm frames in a
-row the schedule thins out; a change (an estimate, a new black level or offset, a gap) brings back every frame at
+scene's test is what notices that it moves again: the latent frames stand still until then). After
+`calm_frames` calm frames in a row the schedule thins out; a change (an estimate, a new black level or offset, a gap) brings back every frame at
 once, until `calm_frames` calm frames have passed again; a fit test that fails without a change yet (the c policy
 waits for a second failure in a row) brings back every frame until the next calm frame.
 
@@ -77,7 +77,3 @@ class CalibrationSchedule:
             self._calm = 0
         else:
             self._calm = min(self._calm, self.settings.calm_frames - 1)
-
-    def reset(self) -> None:
-        """Back to every frame (e.g. the calibration was restarted from outside)."""
-        self._calm = 0

@@ -5,9 +5,10 @@ Policy only (no math, no clock, no thread): frame_calibration asks it per frame 
 the frame was calm. A frame is calm when the c policy passed its fit test (or had none due) without estimating,
 the black level and clock offset did not move, the frame closed a pair, and the events are not ignored (a still
 scene's test is what notices that it moves again: the latent frames stand still until then). After
-`calm_frames` calm frames in a row the schedule thins out; a change (an estimate, a new black level or offset, a gap) brings back every frame at
-once, until `calm_frames` calm frames have passed again; a fit test that fails without a change yet (the c policy
-waits for a second failure in a row) brings back every frame until the next calm frame.
+`calm_frames` calm frames in a row the schedule thins out; a change (an estimate, a new black level or offset, a
+gap) brings back every frame at once, until `calm_frames` calm frames have passed again; a fit test that fails
+without a change yet (the c policy waits for a second failure in a row) brings back every frame until the next
+calm frame.
 
 Thinned, with k counting the frames since thinning began (k = 0, 1, 2, ...):
 - the c fit test runs on every `c_every`-th frame (k = c_every - 1, 2 c_every - 1, ...): a failure ends the

@@ -17,6 +17,8 @@ Rules, per APS frame once the estimator has what it needs (a pair for pairwise e
   pairs that no c near the others' explains (a scene cut, a loop seam) set aside; two newest pairs that both
   disagree fail the fit test at once (the threshold changed). While every estimate so far was flat, c is estimated
   again each time the window holds one more pair.
+- Which frames get a fit test at all is edi_live.calibration_schedule's: every frame until c has settled (`settled`),
+  then every `settled_check_every`-th; a left-out frame only counts toward `reestimate_every` (`skip`).
 """
 
 from __future__ import annotations
@@ -41,6 +43,8 @@ class PolicySettings:
     c_history: int = 3
     joint_pairs: int = 0  # K > 0: pool the last K pairs (the tracker must keep them)
     outlier_z: float = 6.0  # joint c: a pair whose own misfit at c reaches this is set aside
+    # once c has settled, the fit test on every this-many-th frame (edi_live.calibration_schedule; 1: every frame)
+    settled_check_every: int = 1
 
 
 class ContrastPolicy:
@@ -73,6 +77,23 @@ class ContrastPolicy:
     def estimated(self) -> bool:
         """Whether c comes from an estimate (since the start or the last restart), not from the initial value."""
         return self._estimated
+
+    @property
+    def pools_pairs(self) -> bool:
+        """Joint c: estimates and fit tests read the last K pairs."""
+        return bool(self._joint)
+
+    @property
+    def settled(self) -> bool:
+        """Estimated, past start-up, and nothing pending: no failed fit test waiting for its second, no still verdict
+        waiting for its confirmation (edi_live.calibration_schedule thins the fit tests only then)."""
+        return (self._estimated and self._startup_left <= 0 and not self._fit_fails and not self._still_votes
+                and not (self._joint and not self._history))
+
+    def skip(self) -> None:
+        """A frame whose fit test the schedule left out: it counts toward `reestimate_every` and nothing else."""
+        self._frames_since_estimate += 1
+        self.last_fit = {}
 
     def restart(self) -> None:
         """The frames' calibration changed (e.g. the black level): estimate c afresh, forgetting the history."""

@@ -9,6 +9,8 @@ the c and black level just decided, as before) and the pixel-noise statistics. W
 the next frame: c and the black level never change between two frames, and a frame is deblurred with the values
 in force before it. At start-up (no c estimated yet, also after a black-level restart) the c decision stays before
 the deblur that needs it. (A new clock offset is in use from the next frame on; its pairs start there.)
+Once the calibration has settled, the c fit test and the level tables it reads run on fewer frames
+(calibration_schedule: which frames, and why the other parts are not thinned).
 
 Owned by one EdiReconstructor; runs on whatever thread runs its on_frame / settle (never two at once).
 """
@@ -23,6 +25,7 @@ import numpy as np
 import edi_live.contrast as contrast
 import edi_live.edi as edi
 from edi_live.black_level_policy import BlackLevelPolicy
+from edi_live.calibration_schedule import CalibrationSchedule, ScheduleSettings
 from edi_live.c_policy import ContrastPolicy
 from edi_live.clock_offset_policy import ClockOffsetPolicy
 from edi_live.contrast_tracking import ContrastTracker
@@ -49,6 +52,11 @@ class FrameCalibration:
     def __init__(self, policy: ContrastPolicy, tracker: ContrastTracker, black: BlackLevelPolicy,
                  clock: ClockOffsetPolicy, pixel_noise: PixelNoise) -> None:
         self.policy, self.tracker, self.black, self.clock, self.pixel_noise = policy, tracker, black, clock, pixel_noise
+        ps = policy.settings
+        # thinned only where nothing else counts frames between estimates (reestimate_every) or pools pairs (joint)
+        every = ps.settled_check_every if not (ps.reestimate_every or policy.pools_pairs) else 1
+        self.schedule = CalibrationSchedule(ScheduleSettings(c_every=every))
+        self.tests_skipped = 0  # frames whose c fit test the schedule left out
         self._due: _Due | None = None
         self._black_next: float | None = None  # decided by settle, used from the next frame on
         self._offset_used: int | None = None  # the clock offset of the previous frame
@@ -85,14 +93,23 @@ class FrameCalibration:
             self._due.noise = (pair.n_on, pair.n_off, pair.prev.blurry, pair.cur.blurry, dt_us, mask)
 
     def settle(self) -> None:
-        """The pending work of the latest frame: the c decision, the black level, the noise statistics."""
+        """The pending work of the latest frame: the c decision, the black level, the noise statistics; which of
+        the steady-state checks run on this frame is the schedule's (calibration_schedule)."""
         due, self._due = self._due, None
         if due is None:
             return
         t0 = time.perf_counter()
-        self.tracker.complete()  # the frame's level table: the policies below read it, the deblur did not
+        plan = self.schedule.plan()
+        if plan.c_test or self.black.samples():
+            self.tracker.complete()  # the frame's level table: the policies below read it, the deblur did not
+        before = (self.policy.reestimations, self.policy.events_ignored, self.clock.value)
         if due.pairs is not None:
-            self.policy.update(due.cur, due.pairs)
+            if plan.c_test:  # (an estimate after a failed test uses the pairs whose tables were built)
+                self.policy.update(due.cur, [p for p in due.pairs if p.prev.table is not None
+                                             and p.cur.table is not None])
+            else:
+                self.policy.skip()
+                self.tests_skipped += 1
         new_black = self.black.update(due.pair, due.black_taken_off)
         frame, events, img, mask = due.clock
         black = due.black_taken_off if new_black is None else new_black
@@ -104,4 +121,10 @@ class FrameCalibration:
             self.tracker.windows_moved()  # pairs so far used the old offset; this frame opens the next one
         elif due.noise is not None:
             self.pixel_noise.update(*due.noise)
+        changed = (due.pairs is None or due.pair is None or new_black is not None or due.moved
+                   or (self.policy.reestimations, self.policy.events_ignored, self.clock.value) != before)
+        # a still verdict is not thinned: its test is what brings the events back once the scene moves again
+        self.schedule.observe(not changed and self.policy.settled and not self.policy.events_ignored, changed)
+        if self.schedule.plan().c_test or self.black.samples():
+            self.tracker.complete()  # the next frame's fit test (or the black level's sample) reads this frame's
         self.last_settle_ms = (time.perf_counter() - t0) * 1e3

@@ -36,6 +36,9 @@ class ReconstructorSettings:
     fit_strong: float = 3.0
     c_history: int = 3  # accepted estimates whose median is c
     joint_pairs: int = 0  # > 0: c from the last K pairs pooled, odd pairs set aside (edi_live.contrast.joint)
+    # once the calibration has settled, c's fit test on every this-many-th APS frame, the noise statistics on every
+    # 2nd pair (edi_live.calibration_schedule); 1: every frame. Back to every frame when anything changes
+    settled_check_every: int = 4
     sample_pixels: int = 4000  # pixels on which c is estimated
     mask_hot_pixels: bool = True
     hot_min_rate_hz: float = 300.0
@@ -76,6 +79,9 @@ class ReconstructorSettings:
             raise ConfigError(f"unknown Bayer pattern {self.color_filter!r} (known: {', '.join(COLOR_FILTERS)})")
         if self.demosaic not in DEMOSAIC_METHODS:
             raise ConfigError(f"unknown demosaicing method {self.demosaic!r} (known: {', '.join(DEMOSAIC_METHODS)})")
+        if not (isinstance(self.settled_check_every, int) and 1 <= self.settled_check_every <= 100):
+            raise ConfigError(f"settled_check_every must be a whole number of frames in [1, 100] "
+                              f"(got {self.settled_check_every!r})")
 
     def thresholds(self) -> tuple[float, float, bool]:
         """(c_on, c_off, fixed), checked."""

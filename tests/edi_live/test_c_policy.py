@@ -158,3 +158,29 @@ def test_a_restart_estimates_afresh_and_forgets_the_history():
     est.estimates = [(0.3, 0.3)]
     run(policy, 1)
     assert policy.c == (0.3, 0.3)  # not the median with the 0.2 of before the restart
+
+
+def test_settled_only_after_start_up_and_while_no_failure_or_still_vote_is_pending():
+    est = Scripted(estimates=[(0.3, 0.3), (0.3, 0.3)], misfits=[0.0, 3.5, 0.0])
+    policy = ContrastPolicy(est, 0.2, 0.2, PolicySettings(startup_estimates=2))
+    assert not policy.settled, "nothing estimated yet"
+    run(policy, 1)
+    assert not policy.settled, "one start-up estimate still to come"
+    run(policy, 1)
+    run(policy, 1)  # the fit test passes
+    assert policy.settled
+    run(policy, 1)  # fails once: the second test is pending
+    assert not policy.settled
+    run(policy, 1)  # passes again
+    assert policy.settled and policy.reestimations == 2
+
+
+def test_a_skipped_frame_counts_toward_reestimate_every_and_asks_nothing():
+    est = Scripted(estimates=[(0.3, 0.3)] * 3)
+    policy = ContrastPolicy(est, 0.2, 0.2, PolicySettings(startup_estimates=1, reestimate_every=3))
+    run(policy, 1)
+    policy.skip()
+    policy.skip()
+    assert est.asked == {"estimate": 1, "misfit": 0, "still": 0, "confirm": 0}
+    run(policy, 1)  # the third frame since the estimate: due
+    assert est.asked["estimate"] == 2

@@ -9,7 +9,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from edi_live import _kernels_demosaic
+from edi_live._kernels_demosaic import bilinear_u8
 from edi_live.datatypes import COLOR_FILTERS, ColorFilter
 from edi_live.edi import have_numba
 
@@ -76,7 +76,7 @@ def demosaic(raw: np.ndarray, pattern: ColorFilter, method: str = "bilinear") ->
     raw = np.ascontiguousarray(raw)
     if method == "bilinear" and raw.dtype == np.uint8 and min(raw.shape) >= 3 and have_numba():
         red_in_row0 = "R" in pattern[:2]
-        return _kernels_demosaic.bilinear_u8(raw, red_in_row0, pattern.index("R" if red_in_row0 else "B"))
+        return bilinear_u8(raw, red_in_row0, pattern.index("R" if red_in_row0 else "B"))
     return cv2.cvtColor(raw, DEMOSAIC_METHODS[method][pattern])
 
 

@@ -34,7 +34,7 @@ PURE_MATH = ("edi_live/edi/", "edi_live/contrast/", "edi_live/reconstructor.py",
              "edi_live/reconstructor_settings.py", "edi_live/colour.py", "edi_live/colour_edi.py",
              "edi_live/black_level_policy.py", "edi_live/clock_offset_policy.py", "edi_live/reconstructor_parts.py",
              "edi_live/exposure_ahead.py", "edi_live/flicker_pixels.py", "edi_live/pixel_noise.py",
-             "edi_live/hold_average.py")
+             "edi_live/hold_average.py", "edi_live/_kernels_demosaic.py", "edi_live/calibration_schedule.py")
 PURE_MATH_ALLOWED = {"numpy", "cv2", "numba", "edi_live"}
 PURE_MATH_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.errors", "edi_live.edi", "edi_live.contrast",
                          "edi_live.c_policy", "edi_live.contrast_tracking", "edi_live.latent_state",
@@ -43,7 +43,7 @@ PURE_MATH_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.errors", "edi_live.edi"
                          "edi_live.reconstructor_settings", "edi_live.colour",  # "colour" covers colour_edi
                          "edi_live.black_level_policy", "edi_live.clock_offset_policy", "edi_live.reconstructor_parts",
                          "edi_live.exposure_ahead", "edi_live.flicker_pixels", "edi_live.pixel_noise",
-                         "edi_live.hold_average")
+                         "edi_live.hold_average", "edi_live._kernels_demosaic", "edi_live.calibration_schedule")
 DRIVERS_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.source", "edi_live.errors", "edi_live.aedat4",
                        "edi_live.simulation")  # the emulator's generated scene
 # the simulator is the ground truth: it must not use the EDI code it is there to judge
@@ -61,7 +61,7 @@ STAGES = (
                 "edi_live.frame_gate", "edi_live.held_frames", "edi_live.fused_mode", "edi_live.quiet_reads",
                 "edi_live.reconstructor_settings", "edi_live.black_level_policy",
                 "edi_live.clock_offset_policy", "edi_live.flicker_pixels", "edi_live.pixel_noise",
-                "edi_live.reconstructor_stats")),
+                "edi_live.reconstructor_stats", "edi_live.calibration_schedule")),
     ("publisher", ("edi_live.publisher", "edi_live.writers")),
 )
 NODE = ("edi_live.node", "edi_live.cli", "edi_live.__main__")

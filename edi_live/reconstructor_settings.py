@@ -36,8 +36,8 @@ class ReconstructorSettings:
     fit_strong: float = 3.0
     c_history: int = 3  # accepted estimates whose median is c
     joint_pairs: int = 0  # > 0: c from the last K pairs pooled, odd pairs set aside (edi_live.contrast.joint)
-    # once the calibration has settled, c's fit test on every this-many-th APS frame, the noise statistics on every
-    # 2nd pair (edi_live.calibration_schedule); 1: every frame. Back to every frame when anything changes
+    # once the calibration has settled, c's fit test on every this-many-th APS frame (edi_live.calibration_schedule);
+    # 1: every frame. Back to every frame when anything changes
     settled_check_every: int = 4
     sample_pixels: int = 4000  # pixels on which c is estimated
     mask_hot_pixels: bool = True

@@ -83,12 +83,14 @@ class ReconstructorView:
 
     @property
     def pairs(self) -> list[contrast.FramePair]:
-        """The consecutive-frame pairs the c estimator currently sees (newest last; empty with a fixed c), with the
-        latest frame's level table built even if settle() has not run yet."""
+        """The consecutive-frame pairs the c estimator currently sees whose two frames have their level tables
+        (newest last; empty with a fixed c), the latest frame's built even if settle() has not run yet. Once the
+        calibration has settled, a frame's table is built only where a fit test or the black level reads it
+        (calibration_schedule), so fewer pairs qualify: `settled_check_every=1` keeps every one."""
         if self._tracker is None:
             return []
         self._tracker.complete()
-        return self._tracker.pairs
+        return [p for p in self._tracker.pairs if p.prev.table is not None and p.cur.table is not None]
 
     @property
     def hot_pixels(self) -> int:

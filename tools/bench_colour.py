@@ -20,7 +20,8 @@ run: median, min and max over the repeats (CPU time of this thread; the machine 
     python -m tools.bench_colour            # two DAVIS346-sized scenes, about a minute of CPU
     python -m tools.bench_colour --quick    # smaller and shorter
     python -m tools.bench_colour --speed 1000 3000 10000   # only the latent-frame cost ratios at these
-        # events per frame, with the compiled demosaic and with OpenCV's alternating (5 repeats unless --repeats)
+        # events per frame, with the compiled demosaic, then with OpenCV's (5 repeats unless --repeats; colour
+        # and grey alternate within each repeat)
     python -m tools.bench_colour --node 1000    # the whole node's CPU, colour against grey (below)
 
 `--node EVERY`: the node as a user runs it (replay at --speed 0, one subscriber receiving every frame, each run in a
@@ -108,7 +109,9 @@ def accuracy(sim: Simulation, method: str) -> dict:
     cfg = sim.config
     pattern = cfg.color_filter
     colour = dict(color_filter=pattern, demosaic=method, **_camera(cfg))
-    runners = {"node": EdiReconstructor(cfg.width, cfg.height, **colour),
+    # the node's frames do not depend on it here, but channel_contrast reads every pair's level tables, which a
+    # settled node builds only where its thinned fit test needs them
+    runners = {"node": EdiReconstructor(cfg.width, cfg.height, settled_check_every=1, **colour),
                "oracle": EdiReconstructor(cfg.width, cfg.height, c_on=cfg.c_on, c_off=cfg.c_off, **colour),
                "node, BGR input": EdiReconstructor(cfg.width, cfg.height, **colour)}
     grey = GreyPerChannel(sim, method)
@@ -201,7 +204,8 @@ def speed(sim: Simulation, repeats: int, every: int = 1000) -> dict[str, tuple[f
 
 
 def speed_table(everies: list[int], repeats: int) -> None:
-    """Colour / grey latent-frame cost at each events-per-frame, the compiled demosaic and OpenCV's alternating."""
+    """Colour / grey latent-frame cost at each events-per-frame: `speed` with the compiled demosaic, then with
+    OpenCV's (each ratio from colour and grey runs alternating within a repeat)."""
     import edi_live.colour as colour
 
     sim = simulate(scenes(False)["blocks, ideal camera"])
@@ -266,7 +270,9 @@ def main(argv: list[str] | None = None) -> None:
                     help="only the cost ratios, at these events per latent frame: compiled demosaic and OpenCV's")
     ap.add_argument("--node", type=int, metavar="EVERY", help="only the whole node's CPU, colour against grey")
     args = ap.parse_args(argv)
-    if args.node:
+    if args.node is not None:
+        if args.node < 1:
+            ap.error("--node needs events per frame >= 1")
         node_table(args.node, args.repeats or 3)
         return
     if args.speed:

@@ -38,7 +38,8 @@ def _frames_and_events(path: Path, loops: int):
 def run(events: np.ndarray, frames: list, width: int, height: int, *, chunk: int = 2000,
         verbose: bool = True, label: str = "", **rec_kwargs) -> dict:
     """Feed events and frames in time order; returns the per-frame c trajectory and re-estimation flags."""
-    rec = EdiReconstructor(width, height, **rec_kwargs)
+    # the fit test on every frame (it is what this tool prints), not thinned once the calibration has settled
+    rec = EdiReconstructor(width, height, **{"settled_check_every": 1, **rec_kwargs})
     t = events["t"]
     fed = 0
     cs, flags, infos = [], [], []

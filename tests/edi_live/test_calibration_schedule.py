@@ -164,3 +164,28 @@ def test_a_still_scene_whose_events_are_ignored_is_checked_on_every_frame():
         ignored.append(rec.events_ignored)
     assert sum(ignored) >= 15, "the events must be ignored for most of the scene for the test to mean anything"
     assert rec._calib.tests_skipped == 0 and not rec._calib.schedule.thinned
+
+
+def test_a_settled_reconstructor_offers_only_pairs_with_both_level_tables(two_thresholds):
+    """Thinned, a frame's table is built only where a fit test or the black level reads it; whoever asks for the
+    pairs (tools.bench_colour's per-channel c) reads their tables, so a pair without one must not be offered, and
+    settled_check_every=1 keeps every pair."""
+    scene = two_thresholds[0]
+    thinned = EdiReconstructor(scene.width, scene.height, c_init=0.2, settled_check_every=CHECK_EVERY)
+    stream(scene, thinned)
+    assert thinned._calib.tests_skipped > 0, "the schedule must thin for the test to mean anything"
+    assert all(p.prev.table is not None and p.cur.table is not None for p in thinned.pairs)
+    assert len(thinned._tracker.pairs) > len(thinned.pairs), "some pair lacks a table: the filter is exercised"
+    every = EdiReconstructor(scene.width, scene.height, c_init=0.2, settled_check_every=1)
+    stream(scene, every)
+    assert every.pairs and len(every.pairs) == len(every._tracker.pairs)
+
+
+@pytest.mark.parametrize("knob", [{"joint_pairs": 4}, {"reestimate_every": 5}])
+def test_pooled_or_periodic_estimates_are_never_thinned(two_thresholds, knob):
+    """Joint fits pool the last pairs' tables and a periodic re-estimate counts frames: both need every frame's
+    table, so the schedule stays at every frame."""
+    scene = two_thresholds[0]
+    rec = EdiReconstructor(scene.width, scene.height, c_init=0.2, settled_check_every=CHECK_EVERY, **knob)
+    stream(scene, rec)
+    assert rec._calib.tests_skipped == 0 and not rec._calib.schedule.enabled

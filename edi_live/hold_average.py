@@ -38,6 +38,8 @@ def hold_average(images: Sequence[np.ndarray], holds: Sequence[int], span: int) 
         raise ValueError(f"hold_average needs one hold per image and at least one image (got {len(images)} "
                          f"images, {len(holds)} holds)")
     shape = images[0].shape
+    if any(image.shape != shape for image in images):  # the compiled pass would read past the smaller ones
+        raise ValueError(f"hold_average needs images of one shape (got {sorted({i.shape for i in images})})")
     acc_type = np.int32 if max(span, sum(holds)) <= INT32_SPAN_US else np.int64  # the sum never wraps
     acc = np.zeros(int(np.prod(shape)), acc_type)
     # a read-only image is copied: numba types read-only arrays apart, and four slots would mean up to 2**4

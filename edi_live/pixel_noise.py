@@ -274,8 +274,10 @@ class PixelNoise:
 
 
 def median_of_sorted(values: np.ndarray) -> np.floating:
-    """np.median of a sorted 1-D array without NaN, without its selection pass: the mean of the middle one or two
-    values, as numpy's median takes it (its mean of the middle slice), so the result is numpy's bit for bit (NaN
-    with numpy's warning for no values)."""
+    """np.median of a sorted 1-D array, without its selection pass: the mean of the middle one or two values, as
+    numpy's median takes it (its mean of the middle slice), so the result is numpy's bit for bit (NaN with numpy's
+    warning for no values; NaN when a value is NaN, which sorting puts last)."""
+    if values.size and np.isnan(values[-1]):
+        return values[-1]
     half = values.size // 2
     return np.mean(values[half:half + 1] if values.size % 2 else values[half - 1:half + 1])

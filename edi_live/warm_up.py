@@ -45,7 +45,9 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
             rec.on_events(later[-1:])  # one event: its field views count as C-contiguous, another specialisation
             rec.render()
             t_us += 20_000
-        if edi_config.mode == "fused":  # its plan and propagation kernels, from two references
+        # fused mode's plan and propagation kernels, from two references; nearest mode renders the frames it holds at
+        # a stream's end with the same propagation
+        if edi_config.mode in ("fused", "nearest"):
             from edi_live.datatypes import concat_events
 
             previous = rec.reference_log()

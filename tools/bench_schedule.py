@@ -29,6 +29,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration-s", type=float, default=3.0)
     ap.add_argument("--every", type=int, default=EdiReconstructor(8, 8).settings.settled_check_every)
     args = ap.parse_args(argv)
+    if args.every < 2:
+        ap.error("--every must be at least 2 (1 is the every-frame baseline it is compared with)")
     t_start = time.perf_counter()
     print(f"| scene | frames | every 1: node - oracle f / lat | every {args.every}: node - oracle f / lat | "
           f"difference f / lat | tests left out | re-estimations 1 / {args.every} | frames differing |")

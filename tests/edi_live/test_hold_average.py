@@ -54,6 +54,11 @@ def test_no_image_is_an_error_not_an_index_error():
         hold_average([], [], 10)
 
 
+def test_images_of_different_shapes_are_an_error_not_a_read_past_the_end():
+    with pytest.raises(ValueError, match="one shape"):
+        hold_average([np.full((4, 4), 10, np.uint8), np.full((2, 2), 10, np.uint8)], [1, 1], 2)
+
+
 @pytest.mark.parametrize("n", [1, 3, 4, 5, 7, 8, 9, 33])
 def test_every_group_size_matches_the_integer_reference(n):
     """Four images are added per compiled pass: a short last group (padded with weight-0 images) or a group

@@ -292,6 +292,7 @@ if __name__ == "__main__":
 @pytest.mark.parametrize("name, mode, extra", [("emlb_demo-01_davis346.aedat4", "causal", []),
                                                ("evlib_sample_davis346.aedat4", "causal", []),
                                                ("emlb_demo-01_davis346.aedat4", "fused", []),
+                                               ("emlb_demo-01_davis346.aedat4", "nearest", []),
                                                ("emlb_demo-01_davis346.aedat4", "causal", ["--c", "0.2"])])
 def test_the_warm_up_covers_every_kernel_specialisation_a_replay_needs(real_recordings, name, mode, extra):
     """A numba kernel met with new argument types (a read-only frame, a one-event slice, an exposure without

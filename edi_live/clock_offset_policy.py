@@ -39,7 +39,10 @@ MIDLEVEL_GAP_US = 20_000  # events kept before a pair so that its events find th
 @dataclass(frozen=True)
 class ClockOffsetSettings:
     agree: int = 2  # this many consecutive fits ...
-    agree_us: int = 300  # ... this close together end a round (their mean)
+    # ... this close together end a round (their mean): the fits of a pair scatter by ~+-200 µs on an ideal camera
+    # and more with a real one's effects (astronaut fast: 1831 and 1508 µs for a true 1500, the round ran two more
+    # frames at 300)
+    agree_us: int = 400
     per_round: int = 4  # else a round ends after this many fits (their median)
     max_fits: int = 8  # or, short of that, after this many pairs fitted (each costs a few ms): no change
     recheck_every: int = 1000

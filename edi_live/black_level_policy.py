@@ -76,18 +76,18 @@ class BlackLevelPolicy:
     def estimated(self) -> bool:
         return self.given is None
 
-    def samples(self, ahead: int = 0) -> bool:
-        """Whether the update `ahead` pairs from now reads its pair's frames (their level tables among them);
-        may say yes when it will not (after an estimate the count restarts), never no when it will."""
+    def samples(self) -> bool:
+        """Whether the next update reads its pair's frames (their level tables among them); may say yes when it
+        will not (after an estimate the count restarts), never no when it will."""
         if self.given is not None:
             return False
-        return bool(self._startup_marks) or self._soon(ahead)
+        return bool(self._startup_marks) or self._soon()
 
-    def _soon(self, ahead: int = 0) -> bool:
+    def _soon(self) -> bool:
         # only the pairs the next estimate will pool are sampled (the noise sample alone costs a few ms a pair):
         # after start-up, a pair more than `pool_pairs` before the recheck leaves the pool before it is read
-        return (len(self._pool) + ahead < self._pool.maxlen
-                or self._since + ahead >= self.settings.recheck_every - self._pool.maxlen)
+        return (len(self._pool) < self._pool.maxlen
+                or self._since >= self.settings.recheck_every - self._pool.maxlen)
 
     def update(self, pair: FramePair | None, taken_off: float) -> float | None:
         if self.given is not None or pair is None:

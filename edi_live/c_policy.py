@@ -43,8 +43,6 @@ class PolicySettings:
     c_history: int = 3
     joint_pairs: int = 0  # K > 0: pool the last K pairs (the tracker must keep them)
     outlier_z: float = 6.0  # joint c: a pair whose own misfit at c reaches this is set aside
-    # once c has settled, the fit test on every this-many-th frame (edi_live.calibration_schedule; 1: every frame)
-    settled_check_every: int = 1
 
 
 class ContrastPolicy:

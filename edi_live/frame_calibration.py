@@ -50,11 +50,10 @@ class FrameCalibration:
     """`before_deblur` per frame, `after_deblur` once the frame is deblurred, `settle` when the frame has left."""
 
     def __init__(self, policy: ContrastPolicy, tracker: ContrastTracker, black: BlackLevelPolicy,
-                 clock: ClockOffsetPolicy, pixel_noise: PixelNoise) -> None:
+                 clock: ClockOffsetPolicy, pixel_noise: PixelNoise, settled_check_every: int = 1) -> None:
         self.policy, self.tracker, self.black, self.clock, self.pixel_noise = policy, tracker, black, clock, pixel_noise
-        ps = policy.settings
         # thinned only where nothing else counts frames between estimates (reestimate_every) or pools pairs (joint)
-        every = ps.settled_check_every if not (ps.reestimate_every or policy.pools_pairs) else 1
+        every = settled_check_every if not (policy.settings.reestimate_every or policy.pools_pairs) else 1
         self.schedule = CalibrationSchedule(ScheduleSettings(c_every=every))
         self.tests_skipped = 0  # frames whose c fit test the schedule left out
         self._due: _Due | None = None
@@ -105,8 +104,7 @@ class FrameCalibration:
         before = (self.policy.reestimations, self.policy.events_ignored, self.clock.value)
         if due.pairs is not None:
             if plan.c_test:  # (an estimate after a failed test uses the pairs whose tables were built)
-                self.policy.update(due.cur, [p for p in due.pairs if p.prev.table is not None
-                                             and p.cur.table is not None])
+                self.policy.update(due.cur, [p for p in due.pairs if p.has_tables])
             else:
                 self.policy.skip()
                 self.tests_skipped += 1

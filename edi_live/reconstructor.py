@@ -52,8 +52,9 @@ class EdiReconstructor(ReconstructorView):
                                                                self._tracker is not None)
         self._flicker = FlickerPixels(self.width, self.height) if settings.mask_flicker_pixels else None
         self._pixel_noise = build_noise(settings, self.width, self.height)  # statistics only (pixel_noise.py)
-        self._calib = None if self._tracker is None else FrameCalibration(self._policy, self._tracker, self._black,
-                                                                          self._clock, self._pixel_noise)
+        self._calib = None if self._tracker is None else FrameCalibration(
+            self._policy, self._tracker, self._black, self._clock, self._pixel_noise,
+            settled_check_every=settings.settled_check_every)
         # the next exposure's double integral while it runs (not with the noise filter: it drops events later)
         self._ahead = ExposureAhead(self.width, self.height, settings.deblur_ahead and self._noise is None)
         self._mask: np.ndarray | None = self._hot.mask  # events at these pixels are ignored; replaced, not changed

@@ -80,8 +80,7 @@ def build_calibration(settings: ReconstructorSettings, width: int, height: int) 
     policy = ContrastPolicy(estimator, c_on, c_off, PolicySettings(
         reestimate_every=int(settings.reestimate_every), startup_estimates=settings.history_pairs,
         fit_patience=int(settings.fit_patience), fit_strong=float(settings.fit_strong),
-        c_history=int(settings.c_history), joint_pairs=int(settings.joint_pairs),
-        settled_check_every=int(settings.settled_check_every)))
+        c_history=int(settings.c_history), joint_pairs=int(settings.joint_pairs)))
     tracker = None if fixed else ContrastTracker(width, height, policy,
                                                  history_pairs=max(settings.history_pairs, settings.joint_pairs),
                                                  sample_pixels=settings.sample_pixels)

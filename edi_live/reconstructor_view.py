@@ -90,7 +90,7 @@ class ReconstructorView:
         if self._tracker is None:
             return []
         self._tracker.complete()
-        return [p for p in self._tracker.pairs if p.prev.table is not None and p.cur.table is not None]
+        return [p for p in self._tracker.pairs if p.has_tables]
 
     @property
     def hot_pixels(self) -> int:

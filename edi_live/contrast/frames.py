@@ -38,6 +38,11 @@ class FramePair:
     # estimators may keep their per-pair setup here (a pair is immutable once built; it serves several frames)
     cache: dict = field(default_factory=dict, repr=False, compare=False)
 
+    @property
+    def has_tables(self) -> bool:
+        """Both frames' level tables are built (a settled calibration builds them only where they are read)."""
+        return self.prev.table is not None and self.cur.table is not None
+
 
 class ContrastEstimator(Protocol):
     """What the c policy (edi_live.c_policy) asks of an estimator. z values are "standard errors by which one c

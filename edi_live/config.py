@@ -120,6 +120,7 @@ class EdiConfig:
     # already takes a lamp's drift out, and the mask would cost it 0.3 dB on the realistic simulator)
     flicker_mask: bool | None = None
     fused_residual: bool = True  # fused mode: estimate the log change below one threshold between events
+    divisor_median: bool = True  # deblur with the 3x3 median of log D (edi/smoothing.py); False: per-pixel EDI
     aps_gamma: float | None = None  # APS response exponent; None: 1, or a loaded calibration's
     # events arrive this many µs later than the APS exposure they belong to; None: estimated (from a calibration's)
     clock_offset_us: int | None = None
@@ -169,8 +170,9 @@ class EdiConfig:
         _check(isinstance(self.deblur_ahead, bool), f"deblur-ahead must be true or false (got {self.deblur_ahead!r})")
         _check(self.flicker_mask is None or isinstance(self.flicker_mask, bool),
                f"flicker-mask must be true or false (got {self.flicker_mask!r})")
-        _check(isinstance(self.fused_residual, bool),
-               f"fused-residual must be true or false (got {self.fused_residual!r})")
+        for key in ("fused_residual", "divisor_median"):
+            _check(isinstance(getattr(self, key), bool),
+                   f"{key.replace('_', '-')} must be true or false (got {getattr(self, key)!r})")
         _check(isinstance(self.noise_stats, bool), f"noise-stats must be true or false (got {self.noise_stats!r})")
         _check(self.noise_rate_hz is None or (isinstance(self.noise_rate_hz, (int, float))
                                               and not isinstance(self.noise_rate_hz, bool)
@@ -341,6 +343,7 @@ OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
     "deblur_ahead": ("edi", "deblur_ahead", _bool("deblur-ahead")),
     "flicker_mask": ("edi", "flicker_mask", _bool("flicker-mask")),
     "fused_residual": ("edi", "fused_residual", _bool("fused-residual")),
+    "divisor_median": ("edi", "divisor_median", _bool("divisor-median")),
     "noise_stats": ("edi", "noise_stats", _bool("noise-stats")),
     "noise_rate_hz": ("edi", "noise_rate_hz", _num),
     "gray": ("edi", "gray", _bool("gray")),

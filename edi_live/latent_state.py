@@ -76,26 +76,37 @@ class LatentState:
 
     def set_reference(self, image: np.ndarray, aps: edi.ApsResponse,
                       divisor: tuple[np.ndarray, np.ndarray, np.ndarray | None],
-                      c: tuple[float, float]) -> tuple[np.ndarray, bool]:
+                      c: tuple[float, float], median_step: int = 0) -> tuple[np.ndarray, bool]:
         """Deblur: log L(f) from B and the divisor; the latent image restarts there, moved on to te when the
         divisor carries the f -> te exponent. Returns (L(f) as uint8, whether the display is current: the fused
-        pass of a uint8 frame also renders it; otherwise the caller refreshes it)."""
-        pixels, _, delta_end = divisor
-        if edi.have_numba() and image.dtype == np.uint8 and delta_end is not None:
+        pass of a uint8 frame also renders it; otherwise the caller refreshes it).
+
+        `median_step` > 0: the uint8 L(f) and the latent image at te come from the 3x3 median of the divisor over
+        neighbours that many pixels apart (edi.smoothed_divisor: 1 grey, 2 on a Bayer mosaic); log_ref, which the
+        per-pixel tests and the other modes read, keeps each pixel's own."""
+        pixels, log_d, delta_end = divisor
+        shown = None
+        if median_step and pixels.size:
+            shown = edi.smoothed_divisor(divisor, self.width, self.height, median_step)
+        if image.dtype == np.uint8 and delta_end is not None and (edi.have_numba() or shown is not None):
             deblurred = np.empty((self.height, self.width), np.uint8)
             self.log_ref = np.empty((self.height, self.width), np.float32)
             sat = 255.0 if aps.saturation is None else float(aps.saturation)
             edi.finish_frame_u8(image, sat, divisor, self.log_ref, deblurred, self.log_lat, self.display,
-                                black_level=aps.black_level, gamma=aps.gamma)
+                                black_level=aps.black_level, gamma=aps.gamma, shown=shown)
             return deblurred, True
         b, informative = aps.to_float(image)
         self.log_ref = edi.deblur_log(b, None, c[0], c[1], informative=informative, divisor=divisor)
-        np.copyto(self.log_lat, self.log_ref)
-        if delta_end is not None:
+        log_shown, jump = self.log_ref, delta_end
+        if shown is not None:
+            log_shown = edi.deblur_log(b, None, c[0], c[1], informative=informative, divisor=(pixels, shown[0]))
+            jump = shown[1]
+        np.copyto(self.log_lat, log_shown)
+        if jump is not None:
             lat = self.log_lat.reshape(-1)
-            lat[pixels] += delta_end.astype(np.float32)
+            lat[pixels] += jump.astype(np.float32)
             np.clip(lat, edi.LOG_MIN, edi.LOG_MAX, out=lat)
-        return edi.to_uint8(self.log_ref), False
+        return edi.to_uint8(log_shown), False
 
     def fall_back_to_aps(self, pixels: np.ndarray, b: np.ndarray, deblurred: np.ndarray,
                          image: np.ndarray | None = None, aps: edi.ApsResponse | None = None) -> None:

@@ -159,7 +159,8 @@ class EdiReconstructor(ReconstructorView):
         if self.events_ignored:  # still scene: L(f) = B and the latent image stays there
             divisor = (divisor[0][:0], divisor[1][:0], divisor[2][:0] if divisor[2] is not None else None)
         log_prev = self._latent.log_ref
-        deblurred, display_current = self._latent.set_reference(img, self._aps, divisor, self._c())
+        step = int(self.settings.divisor_median and self._colour is None)  # not on a mosaic (edi/smoothing.py)
+        deblurred, display_current = self._latent.set_reference(img, self._aps, divisor, self._c(), step)
         pair, self._pair = self._pair, None
         if self._calib is not None:  # each pixel's noise rate, from the counts of its still intervals (settle)
             self._calib.after_deblur(pair, f - self._ref_t, mask)

@@ -60,6 +60,9 @@ class ReconstructorSettings:
     clock_offset_start_us: int | None = None
     denoise_us: int = 0  # background-activity filter window; 0 = off
     fused_residual: bool = True  # fused mode: add the sub-threshold residual estimate (+1.4 dB; docs/modes.md)
+    # grey sensors: the deblurred frame and the latent image at te from the 3x3 median of log D, not each pixel's
+    # own (edi.smoothing: ~2 dB at mid-exposure on the simulators); False: plain per-pixel EDI
+    divisor_median: bool = True
     deblur_ahead: bool = True  # accumulate the next exposure's double integral while it runs (exposure_ahead.py)
     mask_unreliable_pixels: bool = True  # ignore events that contradict the APS frames (needs c estimation)
     mask_flicker_pixels: bool = True  # ignore the events of pixels that flicker at a mains period (flicker_pixels)

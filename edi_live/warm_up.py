@@ -72,6 +72,14 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
                 run.remask(None if mask is None else ~mask, events)  # flagged / released on the way: its pixel pass
                 run.feed_from(events[-1:])
                 run.finish((np.zeros(npix, np.int64), np.zeros(npix, np.int64)) if counts is not None else None)
+        # the smoothed deblur (edi/smoothing.py): its median, and the frame finish that shows it, for a writeable
+        # and a read-only (decoded) frame
+        pix, zeros = np.arange(4, dtype=np.int64), np.zeros(4)
+        shown = edi.smoothed_divisor((pix, zeros, zeros), width, height)
+        for frame_image in (image, frozen):
+            edi.finish_frame_u8(frame_image, 255.0, (pix, zeros, zeros), np.empty((height, width), np.float32),
+                                np.empty((height, width), np.uint8), np.empty((height, width), np.float32),
+                                np.empty((height, width), np.uint8), shown=shown)
         # its re-mask picks a released pixel's events with the pixel-sample kernel, which with a fixed c (no c
         # tracker) nothing else has compiled: ring slices, one event, none
         for batch in (events, events[-1:], events[:0]):

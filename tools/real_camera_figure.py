@@ -21,7 +21,7 @@ REAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real
 DEFAULT = [(REAL / "emlb_demo-01_davis346.aedat4", 3), (REAL / "aestream_davis346.aedat4", 2),
            (REAL / "evlib_sample_davis346.aedat4", 2)]
 BEFORE = {"separate_thresholds": False, "mask_unreliable_pixels": False, "mask_flicker_pixels": False,
-          "black_level": 0.0, "clock_offset_us": 0, "noise_stats": False}
+          "black_level": 0.0, "clock_offset_us": 0, "noise_stats": False, "divisor_median": False}
 
 
 def reconstruct(events: np.ndarray, frames: list, index: int, settings: dict) -> tuple:

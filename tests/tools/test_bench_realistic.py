@@ -68,11 +68,12 @@ def test_tone_is_the_response_and_leaves_linear_methods_comparable():
 
 def test_a_node_that_does_not_know_the_response_loses_only_in_linear_light():
     """The node's c absorbs the APS response, so its frames keep the camera's tone: scored there it is close to
-    the oracle that knows gamma; in linear light it loses the tone curve."""
+    the oracle that knows gamma; in linear light it loses the tone curve. Per-pixel EDI on both sides (the node's
+    smoothed divisor would beat the oracle by ~3 dB here, whatever the response)."""
     from edi_live.simulation import with_effects
     sim = ba.simulate(with_effects(_tiny(), "response"))
     gamma = float(sim.camera()["aps_gamma"])
-    node, oracle = ba.run_reconstructor(sim), br.run_oracle_camera(sim)
+    node, oracle = ba.run_reconstructor(sim, divisor_median=False), br.run_oracle_camera(sim)
     toned = br.in_camera_tone(sim)
     tone_gap = ba.score(toned, node).psnr_deblur - ba.score(toned, br.toned(oracle, gamma)).psnr_deblur
     linear_gap = ba.score(sim, node).psnr_deblur - ba.score(sim, oracle).psnr_deblur

@@ -1,0 +1,128 @@
+"""The deblur's correction smoothed across neighbours (edi.smoothing): the 3x3 median of log D at the active pixels,
+and what the reconstructor makes of it (the deblurred frame and the latent start at te; the reference untouched)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import edi_live.edi as edi
+from edi_live.datatypes import EVENT_DTYPE, Frame
+from edi_live.reconstructor import EdiReconstructor
+from edi_live.simulation import preset, simulate
+from tests.edi_live.edi_scenes import psnr
+
+
+def _brute_median(pixels, values, width, height, step):
+    """The definition, one pixel at a time: 9 neighbours `step` apart, 0 where not active, the pixel itself where
+    off the sensor."""
+    grid = {int(q): float(v) for q, v in zip(pixels, values)}
+    out = []
+    for q in pixels:
+        y, x = divmod(int(q), width)
+        around = []
+        for dy in (-step, 0, step):
+            for dx in (-step, 0, step):
+                yy = y + dy if 0 <= y + dy < height else y
+                xx = x + dx if 0 <= x + dx < width else x
+                around.append(grid.get(yy * width + xx, 0.0))
+        out.append(sorted(around)[4])
+    return np.array(out)
+
+
+@pytest.mark.parametrize("reference", [False, True])
+@pytest.mark.parametrize("step", [1, 2])
+def test_the_median_is_the_nine_neighbour_median_of_its_definition(rng, reference, step):
+    for _ in range(40):
+        h, w = (int(v) for v in rng.integers(1, 14, 2))
+        pixels = np.sort(rng.choice(h * w, int(rng.integers(0, h * w + 1)), replace=False))
+        values = rng.normal(0, 1, pixels.size) * (rng.random(pixels.size) < 0.9)
+        if reference:
+            with edi.numpy_reference():
+                got = edi.median_at_pixels(pixels, values, w, h, step)
+        else:
+            got = edi.median_at_pixels(pixels, values, w, h, step)
+        assert np.array_equal(got, _brute_median(pixels, values, w, h, step))
+
+
+def test_a_lone_pixel_loses_its_correction_and_an_edge_keeps_its_own():
+    h, w = 9, 12
+    grid = np.zeros((h, w))
+    grid[:, 6:] = 0.8  # an edge: every pixel right of it has the same log D
+    grid[2, 2] = 1.5  # one pixel alone on the quiet side
+    pixels = np.flatnonzero(grid)
+    med = edi.median_at_pixels(pixels, grid.reshape(-1)[pixels], w, h)
+    out = np.zeros(h * w)
+    out[pixels] = med
+    out = out.reshape(h, w)
+    assert out[2, 2] == 0.0
+    assert np.array_equal(out[:, 6:], grid[:, 6:])
+
+
+def test_on_a_mosaic_only_the_pixels_own_colour_counts():
+    """step 2: a pixel's neighbours are the same-colour pixels two apart; busy pixels of the other colours around
+    it do not keep a lone correction alive."""
+    h, w = 8, 8
+    grid = np.zeros((h, w))
+    grid[1::2, :] = 0.7  # odd rows (other colours) all active
+    grid[0::2, 1::2] = 0.7  # and the other colour of the even rows
+    grid[4, 4] = 1.2  # one pixel of the even-row, even-column colour; its own colour is quiet around it
+    pixels = np.flatnonzero(grid)
+    at = int(np.searchsorted(pixels, 4 * w + 4))
+    assert edi.median_at_pixels(pixels, grid.reshape(-1)[pixels], w, h, step=2)[at] == 0.0
+    assert edi.median_at_pixels(pixels, grid.reshape(-1)[pixels], w, h, step=1)[at] == pytest.approx(0.7)
+
+
+def _still_frame_with_one_event(width=24, height=18):
+    """A flat grey APS frame, and one ON event at one pixel in the middle of its exposure (noise)."""
+    image = np.full((height, width), 120, np.uint8)
+    frame = Frame(image=image, exposure_start_us=1_000, exposure_end_us=21_000)
+    ev = np.zeros(1, EVENT_DTYPE)
+    ev["t"], ev["x"], ev["y"], ev["p"] = 6_000, 7, 5, True
+    return frame, ev
+
+
+@pytest.mark.parametrize("reference", [False, True])
+def test_a_lone_noise_event_does_not_speckle_the_deblurred_frame(reference):
+    """Plain EDI divides the pixel by its own integral and shows a bright dot; with the median it shows B there, and
+    the latent image at te too; the per-pixel reference (what the tests and the other modes read) is EDI's own."""
+    frame, ev = _still_frame_with_one_event()
+    outs = {}
+    for median in (True, False):
+        rec = EdiReconstructor(24, 18, c=0.3, divisor_median=median, black_level=0.0, clock_offset_us=0)
+        if reference:
+            with edi.numpy_reference():
+                out = rec.on_frame(frame, ev)
+        else:
+            out = rec.on_frame(frame, ev)
+        outs[median] = (out.image.copy(), rec.reference_log()[0].copy(), rec.render().image.copy())
+    (img_m, ref_m, lat_m), (img_p, ref_p, lat_p) = outs[True], outs[False]
+    assert img_p[5, 7] >= 120 + 5  # an ON step before f: plain EDI takes the exposure as darker and brightens L(f)
+    assert np.all(img_m == 120)
+    assert np.array_equal(ref_m, ref_p)
+    assert lat_m[5, 7] == 120 and lat_p[5, 7] != 120
+
+
+def test_the_median_gains_at_mid_exposure_on_a_simulated_scene():
+    """The point of it: deblurred frames closer to the ground truth than per-pixel EDI with the same c (+2 dB on
+    the benchmark suites; here a small scene with threshold mismatch and noise), latent frames no worse."""
+    cfg = dataclasses.replace(preset("translate", texture="camera", velocity_px_s=(200.0, 50.0), duration_s=0.3,
+                                     seed=5, noise_rate_hz=0.5), width=120, height=90, c_sigma=0.03)
+    sim = simulate(cfg)
+    mids = {int(sim.gt_frame[i]): i for i in np.flatnonzero(sim.gt_kind == 0)}
+    scores = {}
+    for median in (True, False):
+        rec = EdiReconstructor(cfg.width, cfg.height, c=cfg.c_on, divisor_median=median, black_level=0.0,
+                               clock_offset_us=0)
+        got = []
+        lo = -(2**62)
+        for k, f in enumerate(sim.frames):
+            ev = sim.events[(sim.events["t"] > lo) & (sim.events["t"] <= f.exposure_end_us)]
+            lo = f.exposure_end_us
+            out = rec.on_frame(f, ev)
+            if k >= 1 and k in mids:
+                got.append(psnr(out.image, sim.gt_images[mids[k]]))
+        scores[median] = float(np.mean(got))
+    assert scores[True] > scores[False] + 0.5, scores

@@ -23,6 +23,7 @@ class LatentState:
         npix = width * height
         self.acc = (np.zeros(npix, np.int64), np.zeros(npix, np.int64))  # ON/OFF applied since f
         self._spare: tuple[np.ndarray, np.ndarray] | None = None  # zeroed counts for the next take_counts()
+        self._median_scratch: np.ndarray | None = None  # the smoothed divisor's work grid (kept zeroed)
 
     def streaming_copy(self) -> "LatentState":
         """Own image and display; the reference and the counts are shared (the copy reads the one and never
@@ -30,7 +31,7 @@ class LatentState:
         the deblur thread changes: a copy's counts mean nothing then)."""
         twin = LatentState.__new__(LatentState)
         twin.width, twin.height = self.width, self.height
-        twin.log_ref, twin.acc, twin._spare = self.log_ref, self.acc, None
+        twin.log_ref, twin.acc, twin._spare, twin._median_scratch = self.log_ref, self.acc, None, None
         twin.log_lat, twin.display = self.log_lat.copy(), self.display.copy()
         return twin
 
@@ -87,7 +88,9 @@ class LatentState:
         pixels, log_d, delta_end = divisor
         shown = None
         if median_step and pixels.size:
-            shown = edi.smoothed_divisor(divisor, self.width, self.height, median_step)
+            if self._median_scratch is None:
+                self._median_scratch = np.zeros(self.width * self.height, np.float64)
+            shown = edi.smoothed_divisor(divisor, self.width, self.height, median_step, scratch=self._median_scratch)
         if image.dtype == np.uint8 and delta_end is not None and (edi.have_numba() or shown is not None):
             deblurred = np.empty((self.height, self.width), np.uint8)
             self.log_ref = np.empty((self.height, self.width), np.float32)

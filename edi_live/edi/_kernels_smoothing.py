@@ -13,16 +13,28 @@ from edi_live.edi._kernels_stream import _clip, _u8
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _median9(buf):
-    """The middle of 9 values (insertion sort: 9 values, no allocation)."""
-    for i in range(1, 9):
-        v = buf[i]
-        j = i - 1
-        while j >= 0 and buf[j] > v:
-            buf[j + 1] = buf[j]
-            j -= 1
-        buf[j + 1] = v
-    return buf[4]
+def _median9(p0, p1, p2, p3, p4, p5, p6, p7, p8):
+    """The middle of 9 values by a fixed network of 19 compare-exchanges (min/max, no branch on the data; an
+    insertion sort's unpredictable branches cost ~50 ns a pixel)."""
+    p1, p2 = min(p1, p2), max(p1, p2)
+    p4, p5 = min(p4, p5), max(p4, p5)
+    p7, p8 = min(p7, p8), max(p7, p8)
+    p0, p1 = min(p0, p1), max(p0, p1)
+    p3, p4 = min(p3, p4), max(p3, p4)
+    p6, p7 = min(p6, p7), max(p6, p7)
+    p1, p2 = min(p1, p2), max(p1, p2)
+    p4, p5 = min(p4, p5), max(p4, p5)
+    p7, p8 = min(p7, p8), max(p7, p8)
+    p3 = max(p0, p3)
+    p5 = min(p5, p8)
+    p4, p7 = min(p4, p7), max(p4, p7)
+    p6 = max(p3, p6)
+    p4 = max(p1, p4)
+    p2 = min(p2, p5)
+    p4 = min(p4, p7)
+    p4, p2 = min(p4, p2), max(p4, p2)
+    p4 = max(p6, p4)
+    return min(p4, p2)
 
 
 @njit(cache=True, nogil=True)
@@ -32,23 +44,17 @@ def median_at(pixels, values, width, height, step, grid, out):
     and is left zeroed."""
     for r in range(pixels.size):
         grid[pixels[r]] = values[r]
-    buf = np.empty(9, np.float64)
+    row = step * width
     for r in range(pixels.size):
         q = pixels[r]
         y = q // width
         x = q - y * width
-        k = 0
-        for dy in (-step, 0, step):
-            yy = y + dy
-            if yy < 0 or yy >= height:
-                yy = y
-            for dx in (-step, 0, step):
-                xx = x + dx
-                if xx < 0 or xx >= width:
-                    xx = x
-                buf[k] = grid[yy * width + xx]
-                k += 1
-        out[r] = _median9(buf)
+        up = q - row if y >= step else q
+        dn = q + row if y + step < height else q
+        lf = step if x >= step else 0
+        rt = step if x + step < width else 0
+        out[r] = _median9(grid[up - lf], grid[up], grid[up + rt], grid[q - lf], grid[q], grid[q + rt],
+                          grid[dn - lf], grid[dn], grid[dn + rt])
     for r in range(pixels.size):
         grid[pixels[r]] = 0.0
 

@@ -22,9 +22,12 @@ import numpy as np
 from edi_live.edi import _backend, _kernels_smoothing
 
 
-def median_at_pixels(pixels: np.ndarray, values: np.ndarray, width: int, height: int, step: int = 1) -> np.ndarray:
+def median_at_pixels(pixels: np.ndarray, values: np.ndarray, width: int, height: int, step: int = 1, *,
+                     scratch: np.ndarray | None = None) -> np.ndarray:
     """At each of `pixels` (flat indices, unique), the median of `values` over its 3x3 neighbours `step` pixels apart
-    (float64). A neighbour that is not in `pixels` counts as 0; one off the sensor counts as the pixel itself."""
+    (float64). A neighbour that is not in `pixels` counts as 0; one off the sensor counts as the pixel itself.
+    `scratch`: a zeroed float64 array of width * height to work in, left zeroed (a fresh one per call costs more
+    than the median: its pages are new to the process)."""
     pixels = np.asarray(pixels, np.int64)
     values = np.asarray(values, np.float64)
     if pixels.size != values.size:
@@ -35,8 +38,11 @@ def median_at_pixels(pixels: np.ndarray, values: np.ndarray, width: int, height:
     if pixels.size == 0:
         return out
     if _backend.have_numba():
-        _kernels_smoothing.median_at(pixels, values, int(width), int(height), int(step),
-                                     np.zeros(width * height, np.float64), out)
+        if scratch is None:
+            scratch = np.zeros(width * height, np.float64)
+        elif scratch.dtype != np.float64 or scratch.size != width * height:
+            raise ValueError(f"scratch must be {width * height} float64 values (got {scratch.size} {scratch.dtype})")
+        _kernels_smoothing.median_at(pixels, values, int(width), int(height), int(step), scratch, out)
         return out
     grid = np.zeros(width * height, np.float64)
     grid[pixels] = values
@@ -51,12 +57,13 @@ def median_at_pixels(pixels: np.ndarray, values: np.ndarray, width: int, height:
 
 
 def smoothed_divisor(divisor: tuple[np.ndarray, np.ndarray, np.ndarray | None], width: int, height: int,
-                     step: int = 1) -> tuple[np.ndarray, np.ndarray | None]:
+                     step: int = 1, *, scratch: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
     """(the median of log D at the active pixels, the jump from there to the median of the log divisor at te, or
-    None without an f -> te exponent) for a (pixels, log D, f -> te exponent) divisor of log_divisor_events."""
+    None without an f -> te exponent) for a (pixels, log D, f -> te exponent) divisor of log_divisor_events.
+    `scratch` as for median_at_pixels."""
     pixels, log_d, delta_end = divisor
-    shown = median_at_pixels(pixels, log_d, width, height, step)
+    shown = median_at_pixels(pixels, log_d, width, height, step, scratch=scratch)
     if delta_end is None:
         return shown, None
-    at_te = median_at_pixels(pixels, np.asarray(log_d, np.float64) - delta_end, width, height, step)
+    at_te = median_at_pixels(pixels, np.asarray(log_d, np.float64) - delta_end, width, height, step, scratch=scratch)
     return shown, shown - at_te

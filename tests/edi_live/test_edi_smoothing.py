@@ -126,3 +126,16 @@ def test_the_median_gains_at_mid_exposure_on_a_simulated_scene():
                 got.append(psnr(out.image, sim.gt_images[mids[k]]))
         scores[median] = float(np.mean(got))
     assert scores[True] > scores[False] + 0.5, scores
+
+
+def test_a_scratch_grid_is_left_zeroed_for_the_next_frame_and_a_wrong_one_is_refused(rng):
+    h, w = 10, 14
+    scratch = np.zeros(h * w)
+    for _ in range(5):  # one grid, many frames: each sees only its own pixels
+        pixels = np.sort(rng.choice(h * w, 60, replace=False))
+        values = rng.normal(0, 1, pixels.size)
+        got = edi.median_at_pixels(pixels, values, w, h, scratch=scratch)
+        assert np.array_equal(got, _brute_median(pixels, values, w, h, 1))
+        assert not scratch.any()
+    with pytest.raises(ValueError, match="scratch"):
+        edi.median_at_pixels(pixels, values, w, h, scratch=np.zeros(h * w, np.float32))

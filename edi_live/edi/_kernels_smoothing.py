@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from edi_live.edi._kernels_stream import _clip, _u8
+from edi_live.edi._kernels_stream import _clip, _u8, fill_from_tables
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -64,14 +64,7 @@ def finish_frame_shown_u8(img, sat, dark, lut_log, lut_u8, pixels, log_d, shown_
                           deblurred, log_lat, display, v0, scale, bucket_u8, bucket_thr):
     """_kernels_stream.finish_frame_u8 with the image shown apart from the reference: log_ref from each pixel's own
     log D (`log_d`), the deblurred image from `shown_d`, the latent log image at te from that plus `shown_jump`."""
-    for q in range(img.size):
-        i = img[q]
-        v = lut_log[i]
-        log_ref[q] = v
-        log_lat[q] = v
-        u = lut_u8[i]
-        deblurred[q] = u
-        display[q] = u
+    fill_from_tables(img, lut_log, lut_u8, log_ref, deblurred, log_lat, display)
     for r in range(pixels.size):
         q = pixels[r]
         i = img[q]

@@ -227,14 +227,9 @@ def _u8(v, v0, scale, bucket_u8, bucket_thr):
     return bucket_u8[i] + np.uint8(v >= bucket_thr[i])
 
 
-@njit(cache=True, nogil=True)
-def finish_frame_u8(img, sat, dark, lut_log, lut_u8, pixels, log_d, delta_end, lo, hi, log_ref, deblurred, log_lat,
-                    display, v0, scale, bucket_u8, bucket_thr):
-    """One pass for what follows the divisor of a uint8 APS frame: log L(f) (log B minus log D at the active
-    informative pixels, clipped), its uint8 image, the latent log image at te (plus the f->te exponent) and its
-    uint8 image. Pixels at or below `dark` (the black level) or at/above `sat` are not divided. Inactive pixels
-    come from 256-entry tables of log(max(B - black level, floor)) and its uint8 rendering;
-    active ones are rendered through the bucket tables (v0, scale, bucket_u8, bucket_thr) instead of exp."""
+@njit(cache=True, nogil=True, inline="always")
+def fill_from_tables(img, lut_log, lut_u8, log_ref, deblurred, log_lat, display):
+    """Every pixel as if no event moved it: the log images from lut_log, the uint8 images from lut_u8."""
     for q in range(img.size):
         i = img[q]
         v = lut_log[i]
@@ -243,6 +238,17 @@ def finish_frame_u8(img, sat, dark, lut_log, lut_u8, pixels, log_d, delta_end, l
         u = lut_u8[i]
         deblurred[q] = u
         display[q] = u
+
+
+@njit(cache=True, nogil=True)
+def finish_frame_u8(img, sat, dark, lut_log, lut_u8, pixels, log_d, delta_end, lo, hi, log_ref, deblurred, log_lat,
+                    display, v0, scale, bucket_u8, bucket_thr):
+    """One pass for what follows the divisor of a uint8 APS frame: log L(f) (log B minus log D at the active
+    informative pixels, clipped), its uint8 image, the latent log image at te (plus the f->te exponent) and its
+    uint8 image. Pixels at or below `dark` (the black level) or at/above `sat` are not divided. Inactive pixels
+    come from 256-entry tables of log(max(B - black level, floor)) and its uint8 rendering;
+    active ones are rendered through the bucket tables (v0, scale, bucket_u8, bucket_thr) instead of exp."""
+    fill_from_tables(img, lut_log, lut_u8, log_ref, deblurred, log_lat, display)
     for r in range(pixels.size):
         q = pixels[r]
         i = img[q]

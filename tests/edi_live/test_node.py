@@ -293,7 +293,10 @@ if __name__ == "__main__":
                                                ("evlib_sample_davis346.aedat4", "causal", []),
                                                ("emlb_demo-01_davis346.aedat4", "fused", []),
                                                ("emlb_demo-01_davis346.aedat4", "nearest", []),
-                                               ("emlb_demo-01_davis346.aedat4", "causal", ["--c", "0.2"])])
+                                               ("emlb_demo-01_davis346.aedat4", "causal", ["--c", "0.2"]),
+                                               # exposures without events, read-only, with a fixed c (no still-scene
+                                               # verdict): the per-pixel frame finish, not the smoothed one
+                                               ("evlib_sample_davis346.aedat4", "causal", ["--c", "0.3"])])
 def test_the_warm_up_covers_every_kernel_specialisation_a_replay_needs(real_recordings, name, mode, extra):
     """A numba kernel met with new argument types (a read-only frame, a one-event slice, an exposure without
     events) is compiled on the spot, seconds with a cold cache, stalling the worker mid-stream. After the node's

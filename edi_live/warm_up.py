@@ -85,12 +85,15 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
         for batch in (events, events[-1:], events[:0]):
             edi.events_at_pixels(batch, width, height, np.ones(npix, bool), t_lo, t_hi)
         # exposures without events (a dark or still scene), first and later: empty field views count as
-        # C-contiguous, another specialisation
+        # C-contiguous, another specialisation; a frame without events takes the per-pixel frame finish (no
+        # median), which a read-only frame meets nowhere else once the median is on
         empty = np.zeros(0, EVENT_DTYPE)
-        rec.on_frame(Frame(image, t_us, t_us + 10_000), empty)
+        for frame_image in (image, frozen):
+            rec.on_frame(Frame(frame_image, t_us, t_us + 10_000), empty)
+            t_us += 20_000
         first = make_reconstructor(width, height, edi_config)
         for k in range(3):
-            first.on_frame(Frame(image, k * 20_000, k * 20_000 + 10_000), empty)
+            first.on_frame(Frame(image if k % 2 == 0 else frozen, k * 20_000, k * 20_000 + 10_000), empty)
         # separate thresholds have their own single-pass divisor kernel: the first estimate with c_on != c_off
         # must not compile it mid-stream
         t0 = int(events["t"][0])  # an exposure over these events (fused mode's block above moved t_us on)

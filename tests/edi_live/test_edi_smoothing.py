@@ -139,3 +139,56 @@ def test_a_scratch_grid_is_left_zeroed_for_the_next_frame_and_a_wrong_one_is_ref
         assert not scratch.any()
     with pytest.raises(ValueError, match="scratch"):
         edi.median_at_pixels(pixels, values, w, h, scratch=np.zeros(h * w, np.float32))
+
+
+def _brute_start(image, aps, divisor, step):
+    """The definition of the smoothed deblur, pixel by pixel: (log L(f) of each pixel's own log D, log L(f) of the
+    median, the latent log image at te: that plus median(log D) - median(log D - the f -> te exponent))."""
+    pixels, log_d, delta = divisor
+    h, w = image.shape
+    b, informative = aps.to_float(image)
+    log_b = np.clip(np.log(np.maximum(b.reshape(-1).astype(np.float64), edi.DARK_FLOOR)), edi.LOG_MIN, edi.LOG_MAX)
+    med = _brute_median(pixels, log_d, w, h, step)
+    med_te = med if delta is None else _brute_median(pixels, log_d - delta, w, h, step)
+    own, shown = log_b.copy(), log_b.copy()
+    use = informative.reshape(-1)[pixels]
+    own[pixels[use]] = np.clip(log_b[pixels[use]] - log_d[use], edi.LOG_MIN, edi.LOG_MAX)
+    shown[pixels[use]] = np.clip(log_b[pixels[use]] - med[use], edi.LOG_MIN, edi.LOG_MAX)
+    lat = shown.copy()
+    lat[pixels] = np.clip(shown[pixels] + med - med_te, edi.LOG_MIN, edi.LOG_MAX)
+    return own.reshape(h, w), shown.reshape(h, w), lat.reshape(h, w)
+
+
+@pytest.mark.parametrize("reference", [False, True])
+@pytest.mark.parametrize("step", [1, 2])
+def test_the_reference_the_frame_and_the_latent_start_follow_their_definition(rng, reference, step):
+    """LatentState.set_reference with the median, on every path (uint8 frames with the f -> te exponent: one
+    compiled pass or its numpy reference; uint16 frames and divisors without the exponent: the general path), with
+    a black level and gamma, saturated and dark pixels, read-only frames and values past the log clip."""
+    from edi_live.latent_state import LatentState
+
+    for trial in range(60):
+        h, w = (int(v) for v in rng.integers(2, 12, 2))
+        dtype = np.uint16 if trial % 4 == 3 else np.uint8
+        top = np.iinfo(dtype).max
+        image = rng.integers(0, top + 1, (h, w)).astype(dtype)
+        image[rng.random((h, w)) < 0.1] = top
+        image[rng.random((h, w)) < 0.1] = 0
+        if trial % 2:
+            image.setflags(write=False)
+        pixels = rng.choice(h * w, int(rng.integers(1, h * w + 1)), replace=False).astype(np.int64)
+        scale = 40.0 if trial % 5 == 0 else 1.0
+        log_d, delta = rng.normal(0, scale, pixels.size), rng.normal(0, scale, pixels.size)
+        divisor = (pixels, log_d, None if trial % 3 == 2 else delta)
+        aps = edi.ApsResponse(black_level=12.0 if dtype == np.uint8 and trial % 2 else 0.0,
+                              gamma=2.2 if trial % 3 == 1 else 1.0)
+        state = LatentState(w, h)
+        if reference:
+            with edi.numpy_reference():
+                deblurred, _ = state.set_reference(image, aps, divisor, (0.3, 0.3), step)
+        else:
+            deblurred, _ = state.set_reference(image, aps, divisor, (0.3, 0.3), step)
+        own, shown, lat = _brute_start(image, aps, divisor, step)
+        np.testing.assert_allclose(state.log_ref, own, atol=1e-5)
+        np.testing.assert_allclose(state.log_lat, lat, atol=1e-5)
+        assert np.abs(deblurred.astype(int) - edi.to_uint8(shown.astype(np.float32)).astype(int)).max() <= 1

@@ -248,3 +248,17 @@ def test_the_fused_residual_switch_reaches_the_reconstructor():
     plain = NodeConfig.from_options({"device": "auto", "mode": "fused", "fused_residual": False})
     assert default_reconstructor(16, 12, default.edi).settings.fused_residual is True
     assert default_reconstructor(16, 12, plain.edi).settings.fused_residual is False
+
+
+def test_the_divisor_median_switch_reaches_the_reconstructor():
+    from edi_live.cli_parser import build_parser
+    from edi_live.node import default_reconstructor
+
+    default = NodeConfig.from_options({"device": "auto"})
+    plain = NodeConfig.from_options({"device": "auto", "divisor_median": False})
+    assert default_reconstructor(16, 12, default.edi).settings.divisor_median is True
+    assert default_reconstructor(16, 12, plain.edi).settings.divisor_median is False
+    assert build_parser().parse_args(["--no-divisor-median"]).divisor_median is False
+    from edi_live.reconstructor import EdiReconstructor
+
+    assert EdiReconstructor(16, 12).settings.divisor_median is True  # the library's (and the benchmarks') default

@@ -192,3 +192,18 @@ def test_the_reference_the_frame_and_the_latent_start_follow_their_definition(rn
         np.testing.assert_allclose(state.log_ref, own, atol=1e-5)
         np.testing.assert_allclose(state.log_lat, lat, atol=1e-5)
         assert np.abs(deblurred.astype(int) - edi.to_uint8(shown.astype(np.float32)).astype(int)).max() <= 1
+
+
+def test_a_mosaic_is_not_smoothed():
+    """A colour camera's Bayer mosaic keeps per-pixel EDI (its same-colour footprint is 5x5 px): with the switch on
+    or off, the same deblurred and latent images, and the lone event's pixel stays brightened."""
+    frame, ev = _still_frame_with_one_event()
+    frame = dataclasses.replace(frame, color_filter="RGGB")
+    outs = []
+    for median in (True, False):
+        rec = EdiReconstructor(24, 18, c=0.3, divisor_median=median, black_level=0.0, clock_offset_us=0)
+        out = rec.on_frame(frame, ev)
+        outs.append((out.image.copy(), rec.render().image.copy(), rec.reference_log()[0].copy()))
+    for a, b in zip(*outs):
+        assert np.array_equal(a, b)
+    assert outs[0][2][5, 7] > np.log(120.0) + 0.02  # the pixel's own correction, not the median's (none)

@@ -207,3 +207,18 @@ def test_a_mosaic_is_not_smoothed():
     for a, b in zip(*outs):
         assert np.array_equal(a, b)
     assert outs[0][2][5, 7] > np.log(120.0) + 0.02  # the pixel's own correction, not the median's (none)
+
+
+@pytest.mark.xfail(strict=True, reason="review: restart_pixels restarts at the per-pixel log_ref, not the L(f) shown")
+def test_a_pixel_restarted_after_the_frame_shows_what_the_deblurred_frame_showed():
+    """A pixel the flicker detector flags after the frame restarts at L(f): the L(f) the deblurred frame showed
+    (the median's), not its own per-pixel correction, which the median had dropped (here a lone event's)."""
+    from edi_live.latent_state import LatentState
+
+    image = np.full((6, 8), 120, np.uint8)
+    pixels = np.array([2 * 8 + 3], np.int64)
+    state = LatentState(8, 6)
+    deblurred, _ = state.set_reference(image, edi.ApsResponse(), (pixels, np.array([-0.3]), np.array([0.0])),
+                                       (0.3, 0.3), 1)
+    state.restart_pixels(pixels)
+    assert state.display[2, 3] == deblurred[2, 3]

@@ -1,5 +1,6 @@
-"""The latent image between APS frames: log L(f) of the current reference, log L(t) advanced event by event with
-its uint8 display kept up to date, and the ON/OFF counts applied since f (which the c estimator needs).
+"""The latent image between APS frames: log L(f) of the current reference (each pixel's own, and the one the
+deblurred frame showed: edi.smoothing's), log L(t) advanced event by event with its uint8 display kept up to date,
+and the ON/OFF counts applied since f (which the c estimator needs).
 
 Owns only arrays and the operations on them (edi_live.edi does the math). Emitting a latent frame costs
 O(new events) plus one copy of the display.
@@ -18,6 +19,7 @@ class LatentState:
     def __init__(self, width: int, height: int) -> None:
         self.width, self.height = width, height
         self.log_ref = np.zeros((height, width), np.float32)  # replaced per frame, never changed in place
+        self.log_shown = self.log_ref  # the L(f) the deblurred frame showed (edi.smoothing), or log_ref itself
         self.log_lat = np.zeros((height, width), np.float32)
         self.display = np.zeros((height, width), np.uint8)
         npix = width * height
@@ -32,6 +34,7 @@ class LatentState:
         twin = LatentState.__new__(LatentState)
         twin.width, twin.height = self.width, self.height
         twin.log_ref, twin.acc, twin._spare, twin._median_scratch = self.log_ref, self.acc, None, None
+        twin.log_shown = self.log_shown
         twin.log_lat, twin.display = self.log_lat.copy(), self.display.copy()
         return twin
 
@@ -82,9 +85,10 @@ class LatentState:
         divisor carries the f -> te exponent. Returns (L(f) as uint8, whether the display is current: the fused
         pass of a uint8 frame also renders it; otherwise the caller refreshes it).
 
-        `median_step` > 0: the uint8 L(f) and the latent image at te come from the 3x3 median of the divisor over
-        neighbours that many pixels apart (edi.smoothed_divisor: 1 grey, 2 on a Bayer mosaic); log_ref, which the
-        per-pixel tests and the other modes read, keeps each pixel's own."""
+        `median_step` > 0: the uint8 L(f) (and `log_shown`, its log image) and the latent image at te come from the
+        3x3 median of the divisor over neighbouring pixels (edi.smoothed_divisor; the reconstructor passes 1, and
+        never smooths a Bayer mosaic); log_ref, which the per-pixel tests and nearest and fused modes read, keeps each
+        pixel's own."""
         pixels, log_d, delta_end = divisor
         shown = None
         if median_step and pixels.size:
@@ -94,22 +98,23 @@ class LatentState:
         if image.dtype == np.uint8 and delta_end is not None and (edi.have_numba() or shown is not None):
             deblurred = np.empty((self.height, self.width), np.uint8)
             self.log_ref = np.empty((self.height, self.width), np.float32)
+            self.log_shown = self.log_ref if shown is None else np.empty((self.height, self.width), np.float32)
             sat = 255.0 if aps.saturation is None else float(aps.saturation)
             edi.finish_frame_u8(image, sat, divisor, self.log_ref, deblurred, self.log_lat, self.display,
-                                black_level=aps.black_level, gamma=aps.gamma, shown=shown)
+                                black_level=aps.black_level, gamma=aps.gamma, shown=shown, log_shown=self.log_shown)
             return deblurred, True
         b, informative = aps.to_float(image)
         self.log_ref = edi.deblur_log(b, None, c[0], c[1], informative=informative, divisor=divisor)
-        log_shown, jump = self.log_ref, delta_end
+        self.log_shown, jump = self.log_ref, delta_end
         if shown is not None:
-            log_shown = edi.deblur_log(b, None, c[0], c[1], informative=informative, divisor=(pixels, shown[0]))
+            self.log_shown = edi.deblur_log(b, None, c[0], c[1], informative=informative, divisor=(pixels, shown[0]))
             jump = shown[1]
-        np.copyto(self.log_lat, log_shown)
+        np.copyto(self.log_lat, self.log_shown)
         if jump is not None:
             lat = self.log_lat.reshape(-1)
             lat[pixels] += jump.astype(np.float32)
             np.clip(lat, edi.LOG_MIN, edi.LOG_MAX, out=lat)
-        return edi.to_uint8(log_shown), False
+        return edi.to_uint8(self.log_shown), False
 
     def fall_back_to_aps(self, pixels: np.ndarray, b: np.ndarray, deblurred: np.ndarray,
                          image: np.ndarray | None = None, aps: edi.ApsResponse | None = None) -> None:
@@ -120,18 +125,20 @@ class LatentState:
         if image is not None and aps is not None and image.dtype == np.uint8 and edi.have_numba():
             edi.fall_back_u8(pixels, image, aps.black_level, aps.gamma, self.log_ref, self.log_lat, self.display,
                              deblurred)
-            return
-        idx = np.flatnonzero(pixels)
-        log_b = np.clip(np.log(np.maximum(b.reshape(-1)[idx], edi.DARK_FLOOR)), edi.LOG_MIN, edi.LOG_MAX)
-        self.log_ref.reshape(-1)[idx] = log_b
-        self.log_lat.reshape(-1)[idx] = log_b
-        shown = edi.to_uint8(log_b.astype(np.float32))
-        self.display.reshape(-1)[idx] = shown
-        deblurred.reshape(-1)[idx] = shown
+        else:
+            idx = np.flatnonzero(pixels)
+            log_b = np.clip(np.log(np.maximum(b.reshape(-1)[idx], edi.DARK_FLOOR)), edi.LOG_MIN, edi.LOG_MAX)
+            self.log_ref.reshape(-1)[idx] = log_b
+            self.log_lat.reshape(-1)[idx] = log_b
+            shown = edi.to_uint8(log_b.astype(np.float32))
+            self.display.reshape(-1)[idx] = shown
+            deblurred.reshape(-1)[idx] = shown
+        if self.log_shown is not self.log_ref:  # the L(f) shown is B there too
+            np.copyto(self.log_shown, self.log_ref, where=pixels.reshape(self.log_ref.shape))
 
     def restart_pixels(self, pixels: np.ndarray) -> None:
-        """At `pixels` (flat indices), the latent image goes back to the reference L(f)."""
-        ref = self.log_ref.reshape(-1)[pixels]
+        """At `pixels` (flat indices), the latent image goes back to the L(f) the deblurred frame showed."""
+        ref = self.log_shown.reshape(-1)[pixels]
         self.log_lat.reshape(-1)[pixels] = ref
         self.display.reshape(-1)[pixels] = edi.to_uint8(ref)
 

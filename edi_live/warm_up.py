@@ -77,9 +77,9 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
         pix, zeros = np.arange(4, dtype=np.int64), np.zeros(4)
         shown = edi.smoothed_divisor((pix, zeros, zeros), width, height)
         for frame_image in (image, frozen):
-            edi.finish_frame_u8(frame_image, 255.0, (pix, zeros, zeros), np.empty((height, width), np.float32),
-                                np.empty((height, width), np.uint8), np.empty((height, width), np.float32),
-                                np.empty((height, width), np.uint8), shown=shown)
+            logs = [np.empty((height, width), np.float32) for _ in range(3)]
+            edi.finish_frame_u8(frame_image, 255.0, (pix, zeros, zeros), logs[0], np.empty((height, width), np.uint8),
+                                logs[1], np.empty((height, width), np.uint8), shown=shown, log_shown=logs[2])
         # its re-mask picks a released pixel's events with the pixel-sample kernel, which with a fixed c (no c
         # tracker) nothing else has compiled: ring slices, one event, none
         for batch in (events, events[-1:], events[:0]):

@@ -24,9 +24,10 @@ This package is the EDI math's one public surface: import it as `import edi_live
 below; its underscored modules (the numba kernels) are private. Every function runs a compiled kernel and keeps a
 numpy reference of the same contract (`numpy_reference()`, see _backend).
 
-Modules: selection (time windows, pixel picks, counts), levels (level table, log D), deblur (log L(f)), latent
-(propagation, rendering), smoothing (the 3x3 median of log D), fused (two-frame latent images), pixels (hot pixels, noise and flicker filters, sampling), pairs (the consistency estimator's sums), running (the double
-integral of an exposure accumulated while its events arrive).
+Modules: selection (time windows, pixel picks, counts), levels (level table, log D), deblur (log L(f)), smoothing
+(the 3x3 median of log D), latent (propagation, rendering), fused (two-frame latent images), pixels (hot pixels,
+noise and flicker filters, sampling), pairs (the consistency estimator's sums), running (the double integral of an
+exposure accumulated while its events arrive).
 """
 
 from types import ModuleType
@@ -68,14 +69,14 @@ def compiled_signatures(also: tuple[ModuleType, ...] = ()) -> dict[str, set[str]
 
 
 __all__ = [
-    "ApsResponse", "DARK_FLOOR", "FlickerState", "activity_verdicts", "new_activity_state", "flicker_cycles", "FusedPropagator", "FusionPlan", "LEVEL_CAP", "LOG_MAX", "LOG_MIN", "LevelTable",
-    "Propagator", "RunningDivisor", "add_counts", "compiled_signatures", "event_mass", "forward_plan", "fused_frames", "fused_log",
-    "fusion_plan", "fusion_weights", "RESIDUAL_COLD_CONTEXT", "RESIDUAL_SPAN", "ResidualCarry",
-    "time_share",
-    "background_activity_keep", "blurry_to_float", "build_level_table", "consistency_cost", "deblur", "deblur_log",
-    "decay_hot_counts", "dilate", "empty_table", "event_delta", "events_at_pixels", "fall_back_u8", "finish_frame_u8",
-    "flat_index",
-    "have_numba", "hot_pixel_mask", "median_at_pixels", "smoothed_divisor", "isolated_event_mask", "mark_event_pixels", "log_divisor", "log_divisor_events", "new_activity_map",
-    "numpy_reference", "pair_candidates", "propagate_log", "render_buckets", "rows_of", "select",
-    "signed_counts", "supported_events_keep", "time_index", "to_uint8", "u8_tables", "update_contradictions", "window",
+    "activity_verdicts", "add_counts", "ApsResponse", "background_activity_keep", "blurry_to_float",
+    "build_level_table", "compiled_signatures", "consistency_cost", "DARK_FLOOR", "deblur", "deblur_log",
+    "decay_hot_counts", "dilate", "empty_table", "event_delta", "event_mass", "events_at_pixels", "fall_back_u8",
+    "finish_frame_u8", "flat_index", "flicker_cycles", "FlickerState", "forward_plan", "fused_frames", "fused_log",
+    "FusedPropagator", "fusion_plan", "fusion_weights", "FusionPlan", "have_numba", "hot_pixel_mask",
+    "isolated_event_mask", "LEVEL_CAP", "LevelTable", "log_divisor", "log_divisor_events", "LOG_MAX", "LOG_MIN",
+    "mark_event_pixels", "median_at_pixels", "new_activity_map", "new_activity_state", "numpy_reference",
+    "pair_candidates", "propagate_log", "Propagator", "render_buckets", "RESIDUAL_COLD_CONTEXT", "RESIDUAL_SPAN",
+    "ResidualCarry", "rows_of", "RunningDivisor", "select", "signed_counts", "smoothed_divisor",
+    "supported_events_keep", "time_index", "time_share", "to_uint8", "u8_tables", "update_contradictions", "window",
 ]

@@ -1,5 +1,5 @@
-"""numba kernels of edi_live.edi.smoothing: the 3x3 median of per-pixel values at the active pixels, and the frame
-finish that shows the smoothed divisor while the reference keeps each pixel's own.
+"""numba kernel of edi_live.edi.smoothing: the 3x3 median of per-pixel values at the active pixels (the frame finish
+that shows it is _kernels_stream.finish_frame_u8).
 
 Private to edi_live.edi (see smoothing.py for the contract and the numpy reference).
 """
@@ -9,7 +9,6 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from edi_live.edi._kernels_stream import _clip, _u8, fill_from_tables
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -57,23 +56,3 @@ def median_at(pixels, values, width, height, step, grid, out):
                           grid[dn - lf], grid[dn], grid[dn + rt])
     for r in range(pixels.size):
         grid[pixels[r]] = 0.0
-
-
-@njit(cache=True, nogil=True)
-def finish_frame_shown_u8(img, sat, dark, lut_log, lut_u8, pixels, log_d, shown_d, shown_jump, lo, hi, log_ref,
-                          deblurred, log_lat, display, v0, scale, bucket_u8, bucket_thr):
-    """_kernels_stream.finish_frame_u8 with the image shown apart from the reference: log_ref from each pixel's own
-    log D (`log_d`), the deblurred image from `shown_d`, the latent log image at te from that plus `shown_jump`."""
-    fill_from_tables(img, lut_log, lut_u8, log_ref, deblurred, log_lat, display)
-    for r in range(pixels.size):
-        q = pixels[r]
-        i = img[q]
-        v = lut_log[i]
-        s = v
-        if i > dark and i < sat:
-            log_ref[q] = _clip(v - np.float32(log_d[r]), lo, hi)
-            s = _clip(v - np.float32(shown_d[r]), lo, hi)
-            deblurred[q] = _u8(s, v0, scale, bucket_u8, bucket_thr)
-        w = _clip(s + np.float32(shown_jump[r]), lo, hi)
-        log_lat[q] = w
-        display[q] = _u8(w, v0, scale, bucket_u8, bucket_thr)

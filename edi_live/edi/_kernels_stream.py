@@ -227,43 +227,37 @@ def _u8(v, v0, scale, bucket_u8, bucket_thr):
     return bucket_u8[i] + np.uint8(v >= bucket_thr[i])
 
 
-@njit(cache=True, nogil=True, inline="always")
-def fill_from_tables(img, lut_log, lut_u8, log_ref, deblurred, log_lat, display):
-    """Every pixel as if no event moved it: the log images from lut_log, the uint8 images from lut_u8."""
+@njit(cache=True, nogil=True)
+def finish_frame_u8(img, sat, dark, lut_log, lut_u8, pixels, log_d, shown_d, shown_jump, lo, hi, log_ref, log_shown,
+                    deblurred, log_lat, display, v0, scale, bucket_u8, bucket_thr):
+    """One pass for what follows the divisor of a uint8 APS frame. log_ref: log L(f), log B minus each active
+    informative pixel's own log D (`log_d`), clipped. log_shown and its uint8 image `deblurred`: the same with the
+    log D shown (`shown_d`: the same values for per-pixel EDI, edi.smoothing's median otherwise). The latent log
+    image at te and its uint8 image `display`: the shown L(f) plus `shown_jump` (the f->te exponent, or the
+    smoothed one). Pixels at or below `dark` (the black level) or at/above `sat` are not divided. Inactive pixels
+    come from 256-entry tables of log(max(B - black level, floor)) and its uint8 rendering; active ones are rendered
+    through the bucket tables (v0, scale, bucket_u8, bucket_thr) instead of exp. log_shown may be log_ref itself."""
     for q in range(img.size):
         i = img[q]
         v = lut_log[i]
         log_ref[q] = v
+        log_shown[q] = v
         log_lat[q] = v
         u = lut_u8[i]
         deblurred[q] = u
         display[q] = u
-
-
-@njit(cache=True, nogil=True)
-def finish_frame_u8(img, sat, dark, lut_log, lut_u8, pixels, log_d, delta_end, lo, hi, log_ref, deblurred, log_lat,
-                    display, v0, scale, bucket_u8, bucket_thr):
-    """One pass for what follows the divisor of a uint8 APS frame: log L(f) (log B minus log D at the active
-    informative pixels, clipped), its uint8 image, the latent log image at te (plus the f->te exponent) and its
-    uint8 image. Pixels at or below `dark` (the black level) or at/above `sat` are not divided. Inactive pixels
-    come from 256-entry tables of log(max(B - black level, floor)) and its uint8 rendering;
-    active ones are rendered through the bucket tables (v0, scale, bucket_u8, bucket_thr) instead of exp."""
-    fill_from_tables(img, lut_log, lut_u8, log_ref, deblurred, log_lat, display)
     for r in range(pixels.size):
         q = pixels[r]
         i = img[q]
-        v = lut_log[i]
+        s = lut_log[i]
         if i > dark and i < sat:
-            v = v - np.float32(log_d[r])
-            v = min(max(v, lo), hi)
-            log_ref[q] = v
-            deblurred[q] = _u8(v, v0, scale, bucket_u8, bucket_thr)
-        w = v + np.float32(delta_end[r])
-        w = min(max(w, lo), hi)
+            log_ref[q] = _clip(s - np.float32(log_d[r]), lo, hi)
+            s = _clip(s - np.float32(shown_d[r]), lo, hi)
+            log_shown[q] = s
+            deblurred[q] = _u8(s, v0, scale, bucket_u8, bucket_thr)
+        w = _clip(s + np.float32(shown_jump[r]), lo, hi)
         log_lat[q] = w
         display[q] = _u8(w, v0, scale, bucket_u8, bucket_thr)
-
-
 
 
 DIVISOR_STATE_TWO = np.dtype([("s", np.float64), ("w", np.float64), ("base", np.float64), ("t", np.float32),

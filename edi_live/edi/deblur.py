@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from edi_live.edi import _backend, _kernels_pixels, _kernels_smoothing, _kernels_stream
+from edi_live.edi import _backend, _kernels_pixels, _kernels_stream
 from edi_live.edi._backend import DARK_FLOOR, LOG_MAX, LOG_MIN
 from edi_live.edi.latent import render_buckets, to_uint8, u8_tables
 from edi_live.edi.levels import LevelTable, build_level_table, log_divisor
@@ -179,56 +179,36 @@ def log_divisor_events(events: np.ndarray, width: int, height: int, exposure_sta
 def finish_frame_u8(image: np.ndarray, saturation: float, divisor: tuple[np.ndarray, np.ndarray, np.ndarray],
                     log_ref: np.ndarray, deblurred: np.ndarray, log_lat: np.ndarray, display: np.ndarray, *,
                     black_level: float = 0.0, gamma: float = 1.0,
-                    shown: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+                    shown: tuple[np.ndarray, np.ndarray] | None = None, log_shown: np.ndarray | None = None) -> None:
     """What follows the divisor of a uint8 APS frame, into the given (H, W) arrays: log L(f) (log B minus log D
     at the active informative pixels, clipped) and its uint8 image; the latent log image at te (L(f) plus the
     f -> te exponent of `divisor`, from log_divisor_events) and its uint8 image, B linearised with `black_level`
     and `gamma` (see blurry_to_float). One pass with the kernels.
 
     `shown` = (log D, f -> te jump) per active pixel to show instead (smoothing.smoothed_divisor): the uint8 image
-    of L(f) and the latent image at te come from it; log_ref keeps each pixel's own log L(f)."""
+    of L(f), `log_shown` (its log image; required with `shown`) and the latent image at te come from it, while
+    log_ref keeps each pixel's own log L(f)."""
     pixels, log_d, delta_end = divisor
-    if shown is not None:
-        _finish_shown_u8(image, saturation, divisor, shown, log_ref, deblurred, log_lat, display,
-                         float(black_level), float(gamma))
-        return
+    if delta_end is None or (shown is not None and shown[1] is None):
+        raise ValueError("finish_frame_u8 needs the f -> te exponent (log_divisor_events with counts_after_f)")
+    if shown is not None and log_shown is None:
+        raise ValueError("finish_frame_u8 with `shown` needs a log_shown array for the L(f) it shows")
+    shown_d, shown_jump = (log_d, delta_end) if shown is None else shown
+    log_shown = log_ref if log_shown is None else log_shown
     if _backend.have_numba():
         lut_log, lut_u8 = u8_tables(float(black_level), float(gamma))
         _kernels_stream.finish_frame_u8(np.ascontiguousarray(image).reshape(-1), float(saturation),
-                                        float(black_level), lut_log, lut_u8,
-                                        pixels, log_d, delta_end, np.float32(LOG_MIN), np.float32(LOG_MAX),
-                                        log_ref.reshape(-1), deblurred.reshape(-1), log_lat.reshape(-1),
+                                        float(black_level), lut_log, lut_u8, pixels, log_d, shown_d, shown_jump,
+                                        np.float32(LOG_MIN), np.float32(LOG_MAX), log_ref.reshape(-1),
+                                        log_shown.reshape(-1), deblurred.reshape(-1), log_lat.reshape(-1),
                                         display.reshape(-1), *render_buckets())
         return
     b, informative = blurry_to_float(image, saturation=saturation, black_level=black_level, gamma=gamma)
-    ref = deblur_log(b, None, 1.0, informative=informative, divisor=(pixels, log_d))
-    log_ref[...] = ref
-    deblurred[...] = to_uint8(ref)
-    lat = ref.reshape(-1).copy()
-    lat[pixels] += delta_end.astype(np.float32)
-    np.clip(lat, LOG_MIN, LOG_MAX, out=lat)
-    log_lat[...] = lat.reshape(log_lat.shape)
-    display[...] = to_uint8(log_lat)
-
-
-def _finish_shown_u8(image: np.ndarray, saturation: float, divisor: tuple, shown: tuple, log_ref: np.ndarray,
-                     deblurred: np.ndarray, log_lat: np.ndarray, display: np.ndarray, black_level: float,
-                     gamma: float) -> None:
-    pixels, log_d, _ = divisor
-    shown_d, shown_jump = shown
-    if _backend.have_numba():
-        lut_log, lut_u8 = u8_tables(black_level, gamma)
-        _kernels_smoothing.finish_frame_shown_u8(np.ascontiguousarray(image).reshape(-1), float(saturation),
-                                                 black_level, lut_log, lut_u8, pixels, log_d, shown_d, shown_jump,
-                                                 np.float32(LOG_MIN), np.float32(LOG_MAX), log_ref.reshape(-1),
-                                                 deblurred.reshape(-1), log_lat.reshape(-1), display.reshape(-1),
-                                                 *render_buckets())
-        return
-    b, informative = blurry_to_float(image, saturation=saturation, black_level=black_level, gamma=gamma)
     log_ref[...] = deblur_log(b, None, 1.0, informative=informative, divisor=(pixels, log_d))
-    ref = deblur_log(b, None, 1.0, informative=informative, divisor=(pixels, shown_d))
-    deblurred[...] = to_uint8(ref)
-    lat = ref.reshape(-1).copy()
+    if log_shown is not log_ref:
+        log_shown[...] = deblur_log(b, None, 1.0, informative=informative, divisor=(pixels, shown_d))
+    deblurred[...] = to_uint8(log_shown)
+    lat = log_shown.reshape(-1).copy()
     lat[pixels] += np.asarray(shown_jump).astype(np.float32)
     np.clip(lat, LOG_MIN, LOG_MAX, out=lat)
     log_lat[...] = lat.reshape(log_lat.shape)

@@ -209,7 +209,6 @@ def test_a_mosaic_is_not_smoothed():
     assert outs[0][2][5, 7] > np.log(120.0) + 0.02  # the pixel's own correction, not the median's (none)
 
 
-@pytest.mark.xfail(strict=True, reason="review: restart_pixels restarts at the per-pixel log_ref, not the L(f) shown")
 def test_a_pixel_restarted_after_the_frame_shows_what_the_deblurred_frame_showed():
     """A pixel the flicker detector flags after the frame restarts at L(f): the L(f) the deblurred frame showed
     (the median's), not its own per-pixel correction, which the median had dropped (here a lone event's)."""
@@ -222,3 +221,15 @@ def test_a_pixel_restarted_after_the_frame_shows_what_the_deblurred_frame_showed
                                        (0.3, 0.3), 1)
     state.restart_pixels(pixels)
     assert state.display[2, 3] == deblurred[2, 3]
+
+
+def test_the_frame_finish_refuses_what_it_cannot_render():
+    """Without the f -> te exponent there is no latent image at te to write, and a shown divisor needs an array for
+    the L(f) it shows: both are refused in one line instead of a kernel crash or a silently wrong reference."""
+    image = np.full((4, 5), 100, np.uint8)
+    pix, zeros = np.arange(3, dtype=np.int64), np.zeros(3)
+    arrays = [np.empty((4, 5), t) for t in (np.float32, np.uint8, np.float32, np.uint8)]
+    with pytest.raises(ValueError, match="f -> te exponent"):
+        edi.finish_frame_u8(image, 255.0, (pix, zeros, None), *arrays)
+    with pytest.raises(ValueError, match="log_shown"):
+        edi.finish_frame_u8(image, 255.0, (pix, zeros, zeros), *arrays, shown=(zeros, zeros))

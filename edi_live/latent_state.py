@@ -93,7 +93,7 @@ class LatentState:
         shown = None
         if median_step and pixels.size:
             if self._median_scratch is None:
-                self._median_scratch = np.zeros(self.width * self.height, np.float64)
+                self._median_scratch = edi.new_median_scratch(self.width, self.height)
             shown = edi.smoothed_divisor(divisor, self.width, self.height, median_step, scratch=self._median_scratch)
         if image.dtype == np.uint8 and delta_end is not None and (edi.have_numba() or shown is not None):
             deblurred = np.empty((self.height, self.width), np.uint8)

@@ -11,7 +11,7 @@ from numba import njit
 
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, inline="always", fastmath=True)
 def _median9(p0, p1, p2, p3, p4, p5, p6, p7, p8):
     """The middle of 9 values by a fixed network of 19 compare-exchanges (min/max, no branch on the data; an
     insertion sort's unpredictable branches cost ~50 ns a pixel)."""
@@ -37,22 +37,51 @@ def _median9(p0, p1, p2, p3, p4, p5, p6, p7, p8):
 
 
 @njit(cache=True, nogil=True)
-def median_at(pixels, values, width, height, step, grid, out):
+def median_at(pixels, values, width, height, step, grid, dense, out):
     """out[r] = the median of values over the 3x3 neighbours `step` apart of pixels[r] (0 where a neighbour is not
     in `pixels`; a neighbour off the sensor is the pixel itself). `grid` (width * height float64) must come zeroed
-    and is left zeroed."""
+    and is left zeroed. With step 1 and more than a sixth of the pixels active, the medians come from one dense
+    pass into `dense` (width * height float64, or empty: never dense); the same values either way."""
     for r in range(pixels.size):
         grid[pixels[r]] = values[r]
-    row = step * width
-    for r in range(pixels.size):
-        q = pixels[r]
-        y = q // width
-        x = q - y * width
-        up = q - row if y >= step else q
-        dn = q + row if y + step < height else q
-        lf = step if x >= step else 0
-        rt = step if x + step < width else 0
-        out[r] = _median9(grid[up - lf], grid[up], grid[up + rt], grid[q - lf], grid[q], grid[q + rt],
-                          grid[dn - lf], grid[dn], grid[dn + rt])
+    if step == 1 and dense.size == grid.size and pixels.size * 6 > grid.size:
+        median_dense(grid, width, height, dense)
+        for r in range(pixels.size):
+            out[r] = dense[pixels[r]]
+    else:
+        row = step * width
+        for r in range(pixels.size):
+            q = pixels[r]
+            y = q // width
+            x = q - y * width
+            up = q - row if y >= step else q
+            dn = q + row if y + step < height else q
+            lf = step if x >= step else 0
+            rt = step if x + step < width else 0
+            out[r] = _median9(grid[up - lf], grid[up], grid[up + rt], grid[q - lf], grid[q], grid[q + rt],
+                              grid[dn - lf], grid[dn], grid[dn + rt])
     for r in range(pixels.size):
         grid[pixels[r]] = 0.0
+
+
+@njit(cache=True, nogil=True, fastmath=True)
+def median_dense(grid, width, height, out):
+    """out[q] = the median of grid over the 3x3 neighbours of every pixel q (step 1; a neighbour off the sensor is the
+    pixel itself). Inside the border, row by row on contiguous row views with the same network: LLVM vectorises it
+    (fastmath lets it use vector min/max; the values are finite and min/max are exact either way), ~1 ns a pixel
+    against ~6-7 for median_at's gathers, which pays once more than about a sixth of the pixels are active."""
+    for y in range(height):
+        up = (y - 1 if y > 0 else y) * width
+        mid = y * width
+        dn = (y + 1 if y + 1 < height else y) * width
+        for x in (0, width - 1):
+            lf = x - 1 if x > 0 else x
+            rt = x + 1 if x + 1 < width else x
+            out[mid + x] = _median9(grid[up + lf], grid[up + x], grid[up + rt], grid[mid + lf], grid[mid + x],
+                                    grid[mid + rt], grid[dn + lf], grid[dn + x], grid[dn + rt])
+        a = grid[up:up + width]
+        b = grid[mid:mid + width]
+        c = grid[dn:dn + width]
+        o = out[mid:mid + width]
+        for x in range(1, width - 1):
+            o[x] = _median9(a[x - 1], a[x], a[x + 1], b[x - 1], b[x], b[x + 1], c[x - 1], c[x], c[x + 1])

@@ -22,12 +22,17 @@ import numpy as np
 from edi_live.edi import _backend, _kernels_smoothing
 
 
+def new_median_scratch(width: int, height: int) -> np.ndarray:
+    """Work space for median_at_pixels and smoothed_divisor: a zeroed grid they leave zeroed, and a dense output."""
+    return np.zeros((2, width * height), np.float64)
+
+
 def median_at_pixels(pixels: np.ndarray, values: np.ndarray, width: int, height: int, step: int = 1, *,
                      scratch: np.ndarray | None = None) -> np.ndarray:
     """At each of `pixels` (flat indices, unique), the median of `values` over its 3x3 neighbours `step` pixels apart
     (float64). A neighbour that is not in `pixels` counts as 0; one off the sensor counts as the pixel itself.
-    `scratch`: a zeroed float64 array of width * height to work in, left zeroed (a fresh one per call costs more
-    than the median: its pages are new to the process)."""
+    `scratch`: new_median_scratch(width, height), kept between calls (fresh arrays per call cost more than the median:
+    their pages are new to the process)."""
     pixels = np.asarray(pixels, np.int64)
     values = np.asarray(values, np.float64)
     if pixels.size != values.size:
@@ -39,10 +44,11 @@ def median_at_pixels(pixels: np.ndarray, values: np.ndarray, width: int, height:
         return out
     if _backend.have_numba():
         if scratch is None:
-            scratch = np.zeros(width * height, np.float64)
-        elif scratch.dtype != np.float64 or scratch.size != width * height:
-            raise ValueError(f"scratch must be {width * height} float64 values (got {scratch.size} {scratch.dtype})")
-        _kernels_smoothing.median_at(pixels, values, int(width), int(height), int(step), scratch, out)
+            scratch = new_median_scratch(width, height)
+        elif scratch.dtype != np.float64 or scratch.shape != (2, width * height):
+            raise ValueError(f"scratch must be new_median_scratch({width}, {height}): (2, {width * height}) float64 "
+                             f"(got {scratch.shape} {scratch.dtype})")
+        _kernels_smoothing.median_at(pixels, values, int(width), int(height), int(step), scratch[0], scratch[1], out)
         return out
     grid = np.zeros(width * height, np.float64)
     grid[pixels] = values

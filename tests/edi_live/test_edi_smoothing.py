@@ -130,15 +130,15 @@ def test_the_median_gains_at_mid_exposure_on_a_simulated_scene():
 
 def test_a_scratch_grid_is_left_zeroed_for_the_next_frame_and_a_wrong_one_is_refused(rng):
     h, w = 10, 14
-    scratch = np.zeros(h * w)
-    for _ in range(5):  # one grid, many frames: each sees only its own pixels
-        pixels = np.sort(rng.choice(h * w, 60, replace=False))
+    scratch = edi.new_median_scratch(w, h)
+    for n in (60, 5, 140, 20, 90):  # one grid, many frames (dense and sparse passes): each sees only its own pixels
+        pixels = np.sort(rng.choice(h * w, n, replace=False))
         values = rng.normal(0, 1, pixels.size)
         got = edi.median_at_pixels(pixels, values, w, h, scratch=scratch)
         assert np.array_equal(got, _brute_median(pixels, values, w, h, 1))
-        assert not scratch.any()
+        assert not scratch[0].any()
     with pytest.raises(ValueError, match="scratch"):
-        edi.median_at_pixels(pixels, values, w, h, scratch=np.zeros(h * w, np.float32))
+        edi.median_at_pixels(pixels, values, w, h, scratch=np.zeros(h * w))
 
 
 def _brute_start(image, aps, divisor, step):

@@ -39,29 +39,51 @@ def _median9(p0, p1, p2, p3, p4, p5, p6, p7, p8):
 @njit(cache=True, nogil=True)
 def median_at(pixels, values, width, height, step, grid, dense, out):
     """out[r] = the median of values over the 3x3 neighbours `step` apart of pixels[r] (0 where a neighbour is not
-    in `pixels`; a neighbour off the sensor is the pixel itself). `grid` (width * height float64) must come zeroed
-    and is left zeroed. With step 1 and more than a sixth of the pixels active, the medians come from one dense
-    pass into `dense` (width * height float64, or empty: never dense); the same values either way."""
+    in `pixels`; a neighbour off the sensor is the pixel itself). `grid` (width * height) must come zeroed and is
+    left zeroed; `dense` (width * height, or empty) as for _medians. Values are held in the grid's dtype."""
     for r in range(pixels.size):
         grid[pixels[r]] = values[r]
+    _medians(pixels, width, height, step, grid, dense, out)
+    for r in range(pixels.size):
+        grid[pixels[r]] = 0.0
+
+
+@njit(cache=True, nogil=True)
+def smoothed_pair(pixels, log_d, delta, width, height, step, grid, dense, shown, jump):
+    """edi.smoothed_divisor in one call, in the grid's dtype (float32: what the frame finish reads): shown = the
+    median of log_d, jump = shown - the median of (log_d - delta). grid zeroed in and out."""
+    for r in range(pixels.size):
+        grid[pixels[r]] = log_d[r]
+    _medians(pixels, width, height, step, grid, dense, shown)
+    for r in range(pixels.size):
+        grid[pixels[r]] = log_d[r] - delta[r]
+    _medians(pixels, width, height, step, grid, dense, jump)
+    for r in range(pixels.size):
+        jump[r] = shown[r] - jump[r]
+        grid[pixels[r]] = 0.0
+
+
+@njit(cache=True, nogil=True)
+def _medians(pixels, width, height, step, grid, dense, out):
+    """out[r] = the median over the 3x3 neighbours `step` apart of pixels[r] in `grid`. With step 1 and more than a
+    sixth of the pixels active, from one dense pass into `dense` (width * height, or empty: never dense); the same
+    values either way."""
     if step == 1 and dense.size == grid.size and pixels.size * 6 > grid.size:
         median_dense(grid, width, height, dense)
         for r in range(pixels.size):
             out[r] = dense[pixels[r]]
-    else:
-        row = step * width
-        for r in range(pixels.size):
-            q = pixels[r]
-            y = q // width
-            x = q - y * width
-            up = q - row if y >= step else q
-            dn = q + row if y + step < height else q
-            lf = step if x >= step else 0
-            rt = step if x + step < width else 0
-            out[r] = _median9(grid[up - lf], grid[up], grid[up + rt], grid[q - lf], grid[q], grid[q + rt],
-                              grid[dn - lf], grid[dn], grid[dn + rt])
+        return
+    row = step * width
     for r in range(pixels.size):
-        grid[pixels[r]] = 0.0
+        q = pixels[r]
+        y = q // width
+        x = q - y * width
+        up = q - row if y >= step else q
+        dn = q + row if y + step < height else q
+        lf = step if x >= step else 0
+        rt = step if x + step < width else 0
+        out[r] = _median9(grid[up - lf], grid[up], grid[up + rt], grid[q - lf], grid[q], grid[q + rt],
+                          grid[dn - lf], grid[dn], grid[dn + rt])
 
 
 @njit(cache=True, nogil=True, fastmath=True)

@@ -23,32 +23,22 @@ from edi_live.edi import _backend, _kernels_smoothing
 
 
 def new_median_scratch(width: int, height: int) -> np.ndarray:
-    """Work space for median_at_pixels and smoothed_divisor: a zeroed grid they leave zeroed, and a dense output."""
-    return np.zeros((2, width * height), np.float64)
+    """Work space for smoothed_divisor, kept between frames (fresh arrays per frame cost more than the medians: their
+    pages are new to the process): a zeroed float32 grid it leaves zeroed, and a dense output."""
+    return np.zeros((2, width * height), np.float32)
 
 
-def median_at_pixels(pixels: np.ndarray, values: np.ndarray, width: int, height: int, step: int = 1, *,
-                     scratch: np.ndarray | None = None) -> np.ndarray:
+def median_at_pixels(pixels: np.ndarray, values: np.ndarray, width: int, height: int, step: int = 1) -> np.ndarray:
     """At each of `pixels` (flat indices, unique), the median of `values` over its 3x3 neighbours `step` pixels apart
-    (float64). A neighbour that is not in `pixels` counts as 0; one off the sensor counts as the pixel itself.
-    `scratch`: new_median_scratch(width, height), kept between calls (fresh arrays per call cost more than the median:
-    their pages are new to the process)."""
-    pixels = np.asarray(pixels, np.int64)
-    values = np.asarray(values, np.float64)
-    if pixels.size != values.size:
-        raise ValueError(f"one value per pixel (got {values.size} values for {pixels.size} pixels)")
-    if step < 1:
-        raise ValueError(f"the neighbours' step must be at least 1 (got {step})")
+    (float64). A neighbour that is not in `pixels` counts as 0; one off the sensor counts as the pixel itself."""
+    pixels, values = _checked(pixels, values, step)
     out = np.empty(pixels.size, np.float64)
     if pixels.size == 0:
         return out
     if _backend.have_numba():
-        if scratch is None:
-            scratch = new_median_scratch(width, height)
-        elif scratch.dtype != np.float64 or scratch.shape != (2, width * height):
-            raise ValueError(f"scratch must be new_median_scratch({width}, {height}): (2, {width * height}) float64 "
-                             f"(got {scratch.shape} {scratch.dtype})")
-        _kernels_smoothing.median_at(pixels, values, int(width), int(height), int(step), scratch[0], scratch[1], out)
+        npix = width * height
+        _kernels_smoothing.median_at(pixels, values, int(width), int(height), int(step), np.zeros(npix),
+                                     np.empty(npix), out)
         return out
     grid = np.zeros(width * height, np.float64)
     grid[pixels] = values
@@ -65,11 +55,34 @@ def median_at_pixels(pixels: np.ndarray, values: np.ndarray, width: int, height:
 def smoothed_divisor(divisor: tuple[np.ndarray, np.ndarray, np.ndarray | None], width: int, height: int,
                      step: int = 1, *, scratch: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
     """(the median of log D at the active pixels, the jump from there to the median of the log divisor at te, or
-    None without an f -> te exponent) for a (pixels, log D, f -> te exponent) divisor of log_divisor_events.
-    `scratch` as for median_at_pixels."""
+    None without an f -> te exponent) for a (pixels, log D, f -> te exponent) divisor of log_divisor_events, both
+    float32: the values the frame finish reads (a median of float32-rounded values is the rounded median, so
+    nothing is lost). `scratch`: new_median_scratch(width, height)."""
     pixels, log_d, delta_end = divisor
-    shown = median_at_pixels(pixels, log_d, width, height, step, scratch=scratch)
+    pixels, log_d = _checked(pixels, log_d, step)
     if delta_end is None:
-        return shown, None
-    at_te = median_at_pixels(pixels, np.asarray(log_d, np.float64) - delta_end, width, height, step, scratch=scratch)
-    return shown, shown - at_te
+        return median_at_pixels(pixels, log_d, width, height, step).astype(np.float32), None
+    delta_end = np.asarray(delta_end, np.float64)
+    if not _backend.have_numba():
+        shown = median_at_pixels(pixels, log_d, width, height, step).astype(np.float32)
+        at_te = median_at_pixels(pixels, (log_d - delta_end).astype(np.float32), width, height, step)
+        return shown, shown - at_te.astype(np.float32)
+    if scratch is None:
+        scratch = new_median_scratch(width, height)
+    elif scratch.dtype != np.float32 or scratch.shape != (2, width * height):
+        raise ValueError(f"scratch must be new_median_scratch({width}, {height}): (2, {width * height}) float32 "
+                         f"(got {scratch.shape} {scratch.dtype})")
+    shown, jump = np.empty(pixels.size, np.float32), np.empty(pixels.size, np.float32)
+    if pixels.size:
+        _kernels_smoothing.smoothed_pair(pixels, log_d, delta_end, int(width), int(height), int(step), scratch[0],
+                                         scratch[1], shown, jump)
+    return shown, jump
+
+
+def _checked(pixels: np.ndarray, values: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
+    pixels, values = np.asarray(pixels, np.int64), np.asarray(values, np.float64)
+    if pixels.size != values.size:
+        raise ValueError(f"one value per pixel (got {values.size} values for {pixels.size} pixels)")
+    if step < 1:
+        raise ValueError(f"the neighbours' step must be at least 1 (got {step})")
+    return pixels, values

@@ -128,17 +128,26 @@ def test_the_median_gains_at_mid_exposure_on_a_simulated_scene():
     assert scores[True] > scores[False] + 0.5, scores
 
 
-def test_a_scratch_grid_is_left_zeroed_for_the_next_frame_and_a_wrong_one_is_refused(rng):
+def test_the_smoothed_divisor_is_the_rounded_median_on_one_kept_scratch_and_refuses_a_wrong_one(rng):
+    """smoothed_divisor (the reconstructor's call): float32 medians of log D and of log D - exponent, equal to the
+    definition's medians rounded (rounding is monotonic), compiled and numpy alike, frame after frame on one scratch
+    grid (dense and per-pixel passes), which it leaves zeroed; a scratch of the wrong kind is refused."""
     h, w = 10, 14
     scratch = edi.new_median_scratch(w, h)
-    for n in (60, 5, 140, 20, 90):  # one grid, many frames (dense and sparse passes): each sees only its own pixels
+    for n in (60, 5, 140, 20, 90):
         pixels = np.sort(rng.choice(h * w, n, replace=False))
-        values = rng.normal(0, 1, pixels.size)
-        got = edi.median_at_pixels(pixels, values, w, h, scratch=scratch)
-        assert np.array_equal(got, _brute_median(pixels, values, w, h, 1))
+        log_d, delta = rng.normal(0, 1, n), rng.normal(0, 1, n)
+        shown, jump = edi.smoothed_divisor((pixels, log_d, delta), w, h, scratch=scratch)
+        with edi.numpy_reference():
+            ref = edi.smoothed_divisor((pixels, log_d, delta), w, h)
+        want = _brute_median(pixels, log_d, w, h, 1).astype(np.float32)
+        want_te = _brute_median(pixels, (log_d - delta).astype(np.float32), w, h, 1).astype(np.float32)
+        assert shown.dtype == jump.dtype == np.float32
+        assert np.array_equal(shown, want) and np.array_equal(jump, want - want_te)
+        assert np.array_equal(shown, ref[0]) and np.array_equal(jump, ref[1])
         assert not scratch[0].any()
     with pytest.raises(ValueError, match="scratch"):
-        edi.median_at_pixels(pixels, values, w, h, scratch=np.zeros(h * w))
+        edi.smoothed_divisor((pixels, log_d, delta), w, h, scratch=np.zeros((2, h * w)))
 
 
 def _brute_start(image, aps, divisor, step):

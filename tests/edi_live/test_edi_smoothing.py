@@ -3,6 +3,7 @@ and what the reconstructor makes of it (the deblurred frame and the latent start
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 
 import numpy as np
@@ -242,3 +243,21 @@ def test_the_frame_finish_refuses_what_it_cannot_render():
         edi.finish_frame_u8(image, 255.0, (pix, zeros, None), *arrays)
     with pytest.raises(ValueError, match="log_shown"):
         edi.finish_frame_u8(image, 255.0, (pix, zeros, zeros), *arrays, shown=(zeros, zeros))
+
+
+@pytest.mark.xfail(strict=True, reason="finish_frame_u8 accepts a shown divisor written into log_ref")
+@pytest.mark.parametrize("reference", [False, True])
+def test_the_frame_finish_refuses_a_shown_divisor_written_over_the_reference(reference):
+    """log_shown may be log_ref itself only for per-pixel EDI. With a smoothed divisor shown into log_ref, the
+    compiled pass left the median's L(f) in log_ref (which the unreliable-pixel test and nearest/fused read as each
+    pixel's own) while the numpy reference kept each pixel's own and showed that: the two disagreed silently."""
+    image = np.full((4, 5), 100, np.uint8)
+    pix = np.arange(3, dtype=np.int64)
+    own, shown = np.array([0.5, -0.5, 0.2]), np.zeros(3)
+    log_ref = np.empty((4, 5), np.float32)
+    arrays = [log_ref, np.empty((4, 5), np.uint8), np.empty((4, 5), np.float32), np.empty((4, 5), np.uint8)]
+    with contextlib.ExitStack() as stack:
+        if reference:
+            stack.enter_context(edi.numpy_reference())
+        with pytest.raises(ValueError, match="log_shown"):
+            edi.finish_frame_u8(image, 255.0, (pix, own, shown), *arrays, shown=(shown, shown), log_shown=log_ref)

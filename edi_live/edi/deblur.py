@@ -186,13 +186,14 @@ def finish_frame_u8(image: np.ndarray, saturation: float, divisor: tuple[np.ndar
     and `gamma` (see blurry_to_float). One pass with the kernels.
 
     `shown` = (log D, f -> te jump) per active pixel to show instead (smoothing.smoothed_divisor): the uint8 image
-    of L(f), `log_shown` (its log image; required with `shown`) and the latent image at te come from it, while
-    log_ref keeps each pixel's own log L(f)."""
+    of L(f), `log_shown` (its log image; required with `shown`, apart from log_ref) and the latent image at te come
+    from it, while log_ref keeps each pixel's own log L(f)."""
     pixels, log_d, delta_end = divisor
     if delta_end is None or (shown is not None and shown[1] is None):
         raise ValueError("finish_frame_u8 needs the f -> te exponent (log_divisor_events with counts_after_f)")
-    if shown is not None and log_shown is None:
-        raise ValueError("finish_frame_u8 with `shown` needs a log_shown array for the L(f) it shows")
+    if shown is not None and (log_shown is None or np.shares_memory(log_shown, log_ref)):
+        raise ValueError("finish_frame_u8 with `shown` needs a log_shown array apart from log_ref for the L(f) it "
+                         "shows")
     shown_d, shown_jump = (log_d, delta_end) if shown is None else shown
     log_shown = log_ref if log_shown is None else log_shown
     if _backend.have_numba():

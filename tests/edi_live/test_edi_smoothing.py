@@ -245,7 +245,6 @@ def test_the_frame_finish_refuses_what_it_cannot_render():
         edi.finish_frame_u8(image, 255.0, (pix, zeros, zeros), *arrays, shown=(zeros, zeros))
 
 
-@pytest.mark.xfail(strict=True, reason="finish_frame_u8 accepts a shown divisor written into log_ref")
 @pytest.mark.parametrize("reference", [False, True])
 def test_the_frame_finish_refuses_a_shown_divisor_written_over_the_reference(reference):
     """log_shown may be log_ref itself only for per-pixel EDI. With a smoothed divisor shown into log_ref, the

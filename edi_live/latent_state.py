@@ -18,7 +18,8 @@ import edi_live.edi as edi
 class LatentState:
     def __init__(self, width: int, height: int) -> None:
         self.width, self.height = width, height
-        self.log_ref = np.zeros((height, width), np.float32)  # replaced per frame, never changed in place
+        # replaced per frame; changed in place only by the fall-back to the APS, before anything else reads the frame's
+        self.log_ref = np.zeros((height, width), np.float32)
         self.log_shown = self.log_ref  # the L(f) the deblurred frame showed (edi.smoothing), or log_ref itself
         self.log_lat = np.zeros((height, width), np.float32)
         self.display = np.zeros((height, width), np.uint8)
@@ -28,7 +29,7 @@ class LatentState:
         self._median_scratch: np.ndarray | None = None  # the smoothed divisor's work grid (kept zeroed)
 
     def streaming_copy(self) -> "LatentState":
-        """Own image and display; the reference and the counts are shared (the copy reads the one and never
+        """Own image and display; the references (log_ref, log_shown) and the counts are shared (the copy reads the one and never
         writes the other; once the original's frame pair has taken the counts over, they are the pair's, which
         the deblur thread changes: a copy's counts mean nothing then)."""
         twin = LatentState.__new__(LatentState)

@@ -13,7 +13,8 @@ from numba import njit
 def _median9(p0, p1, p2, p3, p4, p5, p6, p7, p8):
     """The middle of 9 values by a fixed network of 19 compare-exchanges (min/max, no branch on the data; an
     insertion sort's unpredictable branches cost ~50 ns a pixel). Inlined into numba IR, it is compiled with its
-    caller's flags: fastmath in median_dense, not in median_at's per-pixel loop."""
+    caller's flags: fastmath in median_dense, not in median_at's per-pixel loop. Inputs are finite (log D
+    always is); with a NaN the result depends on where it sits."""
     p1, p2 = min(p1, p2), max(p1, p2)
     p4, p5 = min(p4, p5), max(p4, p5)
     p7, p8 = min(p7, p8), max(p7, p8)

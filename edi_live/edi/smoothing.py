@@ -63,15 +63,15 @@ def smoothed_divisor(divisor: tuple[np.ndarray, np.ndarray, np.ndarray | None], 
     if delta_end is None:
         return median_at_pixels(pixels, log_d, width, height, step).astype(np.float32), None
     delta_end = np.asarray(delta_end, np.float64)
+    if scratch is not None and (scratch.dtype != np.float32 or scratch.shape != (2, width * height)):
+        raise ValueError(f"scratch must be new_median_scratch({width}, {height}): (2, {width * height}) float32 "
+                         f"(got {scratch.shape} {scratch.dtype})")
     if not _backend.have_numba():
         shown = median_at_pixels(pixels, log_d, width, height, step).astype(np.float32)
         at_te = median_at_pixels(pixels, (log_d - delta_end).astype(np.float32), width, height, step)
         return shown, shown - at_te.astype(np.float32)
     if scratch is None:
         scratch = new_median_scratch(width, height)
-    elif scratch.dtype != np.float32 or scratch.shape != (2, width * height):
-        raise ValueError(f"scratch must be new_median_scratch({width}, {height}): (2, {width * height}) float32 "
-                         f"(got {scratch.shape} {scratch.dtype})")
     shown, jump = np.empty(pixels.size, np.float32), np.empty(pixels.size, np.float32)
     if pixels.size:
         _kernels_smoothing.smoothed_pair(pixels, log_d, delta_end, int(width), int(height), int(step), scratch[0],

@@ -14,8 +14,10 @@ camera (USB) picks up its own without flags: it is loaded from, and saved to, `c
 refused with one line. Loaded values are starting points: c, the black level and the clock offset are in use from
 the first frame and still estimated from the stream, so that a value a short or unsuitable first run got wrong is
 corrected (and saved corrected) rather than kept for ever; a black level or offset given on the command line wins
-over the file's. The APS response cannot be estimated, so a saved one is used as it is; a black level or offset
-beyond what the estimators search (black_level_policy.MAX_BLACK_DN, clock_offset_policy.MAX_OFFSET_US) is kept.
+over the file's. A black level measured on dark frames (`--calibrate-dark`, edi_live.dark_calibration) is used
+as given, not estimated again. The APS response cannot be estimated, so a saved one is used as it is; a black level
+or offset beyond what the estimators search (black_level_policy.MAX_BLACK_DN, clock_offset_policy.MAX_OFFSET_US) is
+kept.
 """
 
 from __future__ import annotations
@@ -57,6 +59,7 @@ class Calibration:
     clock_offset_us: int = 0  # events arrive this much later than the APS exposure
     aps_gamma: float = 1.0  # APS response exponent
     saved: str = ""  # UTC time of saving, for the person reading the file
+    black_level_measured: bool = False  # on dark frames (--calibrate-dark): used as given, never re-estimated
     noise: NoiseRates | None = field(default=None, compare=False, repr=False)  # per-pixel noise rates
 
     def check_for(self, info: SourceInfo, path: Path | str) -> None:
@@ -96,7 +99,7 @@ def load(path: Path | str) -> Calibration:
               and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in numbers)
               and 0.01 <= cal.c_on <= 2.0 and 0.01 <= cal.c_off <= 2.0 and 0 <= cal.black_level < 128
               and isinstance(cal.clock_offset_us, int) and abs(cal.clock_offset_us) <= 100_000
-              and 0.2 <= cal.aps_gamma <= 5)
+              and 0.2 <= cal.aps_gamma <= 5 and isinstance(cal.black_level_measured, bool))
     except TypeError as exc:
         raise ConfigError(f"calibration {path} lacks a field ({exc})") from None
     if not ok:
@@ -173,17 +176,23 @@ def prepare(edi: EdiConfig, info: SourceInfo, given: Path | None, save_to: Path 
                  path, cal.c_on, cal.c_off, cal.black_level, cal.clock_offset_us,
                  ", per-pixel noise rates" if cal.noise is not None else "")
         edi = dataclasses.replace(edi, start=cal, aps_gamma=cal.aps_gamma if edi.aps_gamma is None else edi.aps_gamma)
+        if cal.black_level_measured and edi.black_level is None:  # measured on dark frames: not a starting value
+            edi = dataclasses.replace(edi, black_level=cal.black_level)
     return edi, save_to if save_to is not None else (default_path(info) if live else None)
 
 
-def from_stats(info: SourceInfo, stats: dict, noise: NoiseRates | None = None) -> Calibration | None:
+def from_stats(info: SourceInfo, stats: dict, noise: NoiseRates | None = None,
+               start: Calibration | None = None) -> Calibration | None:
     """The calibration a finished run used last (its stats, and the per-pixel noise rates it estimated, if any),
-    or None when it never had thresholds."""
+    or None when it never had thresholds. `start`: the calibration the run started from, whose measured black
+    level stays measured while the run used it."""
     c_on, c_off = stats.get("c_on"), stats.get("c_off")
     if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in (c_on, c_off)):
         return None
     if noise is not None and noise.shape != (info.height, info.width):
         noise = None
-    return Calibration(info.label, info.width, info.height, float(c_on), float(c_off),
-                       float(stats.get("black_level_dn") or 0.0), int(stats.get("clock_offset_us") or 0),
-                       float(stats.get("aps_gamma") or 1.0), noise=noise)
+    black = float(stats.get("black_level_dn") or 0.0)
+    measured = start is not None and start.black_level_measured and black == start.black_level
+    return Calibration(info.label, info.width, info.height, float(c_on), float(c_off), black,
+                       int(stats.get("clock_offset_us") or 0), float(stats.get("aps_gamma") or 1.0), noise=noise,
+                       black_level_measured=measured)

@@ -148,6 +148,16 @@ def list_devices_command(flags: dict[str, Any]) -> int:
     return 0
 
 
+def calibrate_dark_command(config: NodeConfig, source: Any, n_frames: int, signals: StopSignals) -> int:
+    """--calibrate-dark N: the black level of N dark frames, written into the calibration file (one line out)."""
+    from edi_live.dark_calibration import calibrate_dark
+
+    result, target = calibrate_dark(source, n_frames, config.save_calibration, signals)
+    print(f"{PROG}: black level {result.black_level:g} DN (noise {result.noise_dn:g} DN, {result.frames} dark "
+          f"frames of {source.info.label}) written to {target}", file=sys.stderr)
+    return 0
+
+
 class _LogHandler(logging.StreamHandler):
     """stderr logging that first erases the live status line on a terminal (it is redrawn at the next tick);
     without this a log message is glued to the end of the status line."""
@@ -241,12 +251,15 @@ def _main(argv: Sequence[str] | None, signals: StopSignals) -> int:
         _setup_logging(level)
         if flags.pop("list_devices", False):
             return list_devices_command(flags)
+        dark_frames = flags.pop("calibrate_dark", None)
         config = build_config(flags, config_path)
         level = config.log_level
         _setup_logging(level)
         _warn_if_exposed(config)
         _warn_ignored(config, set(flags))
         source = make_source(config, explicit=set(flags))
+        if dark_frames is not None:
+            return calibrate_dark_command(config, source, dark_frames, signals)
         from edi_live.node import Node
 
         node = Node(config, source, status_stream=sys.stderr)

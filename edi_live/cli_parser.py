@@ -125,6 +125,10 @@ def build_parser() -> argparse.ArgumentParser:
                           "loads its own from ~/.config/edi-live/calibration/ without this flag")
     edi.add_argument("--save-calibration", metavar="FILE",
                      help="save the calibration in use at the end of the run (a live camera also saves its own)")
+    edi.add_argument("--calibrate-dark", type=int, metavar="N",
+                     help="measure the APS black level on N dark frames (cover the lens) and write it into the "
+                          "calibration (--save-calibration FILE, or a live camera's own file), then exit; later runs "
+                          "use it as given")
     edi.add_argument("--gray", action="store_true",
                      help="a colour camera's frames as grey images (default: colour BGR for a colour camera)")
     edi.add_argument("--bayer-pattern", metavar="PATTERN", type=str.upper,

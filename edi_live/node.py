@@ -102,6 +102,7 @@ class Node:
         self.worker: EdiWorker | None = None
         self.publisher: Any = None
         self._calibration_to: Path | None = None  # where the calibration in use is saved at the end
+        self._calibration_start = None  # the calibration the run started from (its measured black level stays so)
         self.out_writer: OutWriter | None = None
         self.record_writer: RecordWriter | None = None
         self.dv_frames: Any = None  # edi_live.dv_output.DvOutput of the sharp frames (--dv-output)
@@ -220,6 +221,7 @@ class Node:
         info = self.source.info
         self.ring = EventRing(cfg.ring.capacity_events, cfg.ring.capacity_frames, cfg.ring_policy)
         edi_cfg, self._calibration_to = calibration.prepare(cfg.edi, info, cfg.calibration, cfg.save_calibration)
+        self._calibration_start = edi_cfg.start
         # colour: EDI on the Bayer mosaic, with the user's pattern over the source's
         edi_cfg = dataclasses.replace(edi_cfg, color_filter=edi_cfg.color_filter or info.color_filter)
         if edi_cfg.color_filter is not None:
@@ -262,7 +264,8 @@ class Node:
         """--save-calibration (a failure is the run's error), or a live camera's own file (a failure is a warning)."""
         target = self._calibration_to
         noise = self.worker.noise_rates() if target is not None and self.worker is not None else None
-        cal = calibration.from_stats(self.source.info, self.final_stats, noise) if target is not None else None
+        cal = calibration.from_stats(self.source.info, self.final_stats, noise,
+                                     self._calibration_start) if target is not None else None
         if cal is None:
             return
         try:

@@ -1,0 +1,122 @@
+"""The APS black level measured on dark frames, the way it is done for any CMOS camera: cover the lens, take a few
+frames, and the value they sit at is the black level (`edi-live --calibrate-dark N`).
+
+Why a measurement: the node estimates the black level from the stream, but only dark pixels carry it (docs/calibration.md:
+a scene without any pixel near black, such as the realistic benchmark's blocks, leaves it unidentified, and a scene with
+few dark pixels finds it late and low). It belongs to the camera and its bias settings, not to the scene, so a
+measured value is saved in the camera's calibration file and used as given from then on (`black_level_measured`).
+
+This module owns:
+- `measure_black_level`: plain function on frames (the median of every pixel, the spread, a darkness check);
+- `calibrate_dark`: reads N APS frames from a source, measures them, and writes the black level into the camera's
+  calibration file (merged into the file there if it belongs to this camera, else a new one with the node's
+  starting values for everything else).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from edi_live import calibration
+from edi_live.black_level_policy import MAX_BLACK_DN
+from edi_live.edi import blurry_to_float
+from edi_live.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+BRIGHT_DN = 15.0  # a pixel this far above the black level is lit (or hot)
+MAX_BRIGHT_FRACTION = 0.02  # more lit pixels than this: the frames are not dark
+
+
+@dataclass(frozen=True)
+class DarkFrames:
+    black_level: float  # 8-bit DN: the median of every pixel of every frame
+    noise_dn: float  # spread of the pixels within 5 DN of it (hot and lit pixels left out; includes rounding)
+    bright_fraction: float  # pixels more than BRIGHT_DN above it
+    frames: int
+
+
+def measure_black_level(images: Sequence[np.ndarray]) -> DarkFrames:
+    """The black level of dark APS frames (uint8 or uint16, on the 8-bit scale the node works on). Raises
+    ConfigError, saying what was seen, when the frames are not dark: more than 2 % of the pixels lit, or a level
+    above what the node accepts as a black level."""
+    if not images:
+        raise ConfigError("no APS frame to measure the black level on (does the input have APS frames?)")
+    values = np.concatenate([blurry_to_float(np.asarray(image))[0].reshape(-1)
+                             for image in images])
+    black = float(np.median(values))
+    near = values[np.abs(values - black) <= BRIGHT_DN / 3]
+    noise = float(np.std(near)) if near.size else 0.0
+    bright = float(np.mean(values > black + BRIGHT_DN))
+    result = DarkFrames(round(black, 2), round(noise, 2), bright, len(images))
+    if bright > MAX_BRIGHT_FRACTION or black >= MAX_BLACK_DN:
+        p99 = float(np.percentile(values, 99))
+        raise ConfigError(f"the APS frames are not dark (median {black:.1f} DN, 99th percentile {p99:.1f} DN, "
+                          f"{100 * bright:.1f} % of the pixels more than {BRIGHT_DN:g} DN above the median, over "
+                          f"{len(images)} frames): cover the lens and run --calibrate-dark again")
+    return result
+
+
+class _Stop:
+    """What the command line's signal handler stops (StopSignals.attach)."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+
+    def stop(self) -> None:
+        self.event.set()
+
+
+def calibrate_dark(source: Any, n_frames: int, target: Path | None, signals: Any = None) -> tuple[DarkFrames, Path]:
+    """Read `n_frames` APS frames from `source` (a driver, not yet opened), measure their black level and write it
+    into the calibration file `target` (None: a live camera's own file). A signal (through `signals`,
+    cli.StopSignals) or the end of the input before n frames measures what was read, if anything. Returns (the
+    measurement, the file written)."""
+    if n_frames < 1:
+        raise ConfigError(f"--calibrate-dark needs a number of APS frames of at least 1 (got {n_frames})")
+    stop = _Stop()
+    if signals is not None:
+        signals.attach(stop)
+    images: list[np.ndarray] = []
+    with source:
+        info = source.info
+        if target is None:
+            if info.kind not in ("usb", "emulator"):
+                raise ConfigError("--calibrate-dark needs --save-calibration FILE to write to (a live camera writes "
+                                  "its own calibration file)")
+            target = calibration.default_path(info)
+        for packet in source:
+            if stop.event.is_set() or len(images) >= n_frames:
+                break
+            if packet is not None:
+                images.extend(frame.image for frame in packet.frames)
+    if len(images) < n_frames:
+        log.warning("the input ended after %d of %d APS frames; measuring those", len(images), n_frames)
+    result = measure_black_level(images[:n_frames])
+    save_black_level(info, result.black_level, Path(target))
+    return result, Path(target)
+
+
+def save_black_level(info: Any, black_level: float, target: Path) -> calibration.Calibration:
+    """Write a measured black level into the calibration at `target`: that file's other values are kept when it
+    belongs to this camera; otherwise a new file starts from the node's defaults (c 0.2, no clock offset)."""
+    cal = None
+    if target.is_file():
+        try:
+            cal = calibration.load(target)
+            cal.check_for(info, target)
+        except ConfigError as exc:
+            log.warning("%s; writing a new calibration", exc)
+            cal = None
+    if cal is None:
+        cal = calibration.Calibration(info.label, info.width, info.height, 0.2, 0.2)
+    cal = dataclasses.replace(cal, black_level=float(black_level), black_level_measured=True, saved="")
+    calibration.save(cal, target)
+    return cal

@@ -1,0 +1,137 @@
+"""The black level measured on dark frames (--calibrate-dark): the measurement, the file it writes, and a later run
+that uses it as given and keeps it measured."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from edi_live import calibration
+from edi_live.aedat4.writer import Aedat4Writer
+from edi_live.dark_calibration import measure_black_level
+from edi_live.datatypes import EVENT_DTYPE, Frame
+from edi_live.errors import ConfigError
+from edi_live.simulation import preset, simulate, with_effects, write_aedat4
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _dark_images(rng, black: float, n: int = 8, shape=(36, 48), noise: float = 1.0, hot: float = 0.005):
+    images = []
+    for _ in range(n):
+        img = black + rng.normal(0.0, noise, shape)
+        img[rng.random(shape) < hot] = 200.0  # hot pixels
+        images.append(np.clip(np.rint(img), 0, 255).astype(np.uint8))
+    return images
+
+
+@pytest.mark.parametrize("black", [0.0, 4.0, 10.0, 23.0])
+def test_the_black_level_of_dark_frames_is_found_within_half_a_dn(rng, black):
+    result = measure_black_level(_dark_images(rng, black))
+    assert abs(result.black_level - black) <= 0.5
+    assert result.frames == 8 and result.bright_fraction < 0.02
+    if black >= 4:  # (at 0 DN half the noise is clipped away)
+        assert 0.7 <= result.noise_dn <= 1.3
+
+
+def test_16_bit_dark_frames_are_measured_on_the_8_bit_scale(rng):
+    images = [(img.astype(np.uint16) * 257) for img in _dark_images(rng, 12.0)]
+    assert abs(measure_black_level(images).black_level - 12.0) <= 0.5
+
+
+def test_frames_that_are_not_dark_are_refused_saying_what_was_seen(rng):
+    lit = [np.full((36, 48), 120, np.uint8) for _ in range(4)]
+    for img in lit:
+        img[:, :24] = 10  # half the frame dark, half lit: a scene, not a covered lens
+    with pytest.raises(ConfigError, match="not dark .*cover the lens"):
+        measure_black_level(lit)
+    with pytest.raises(ConfigError, match="no APS frame"):
+        measure_black_level([])
+
+
+def _write_dark_recording(path: Path, rng, black: float, n: int = 6, width: int = 48, height: int = 36) -> None:
+    """A covered camera: dark APS frames every 20 ms and a trickle of noise events, as the simulator's camera."""
+    with Aedat4Writer(path, width, height, events=True, frames=True, camera_name="edi-live-sim") as writer:
+        for k, image in enumerate(_dark_images(rng, black, n, (height, width))):
+            ev = np.zeros(5, EVENT_DTYPE)
+            ev["t"] = np.sort(rng.integers(k * 20_000, k * 20_000 + 10_000, 5))
+            ev["x"], ev["y"] = rng.integers(0, width, 5), rng.integers(0, height, 5)
+            writer.write_events(ev)
+            writer.write_frame(Frame(image=image, exposure_start_us=k * 20_000, exposure_end_us=k * 20_000 + 10_000))
+
+
+def _node(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "edi_live", *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=120, env={**os.environ, "PYTHONPATH": str(REPO)})
+
+
+def test_calibrate_dark_writes_the_measured_black_level_and_keeps_the_rest_of_the_cameras_file(tmp_path, rng):
+    dark = tmp_path / "dark.aedat4"
+    _write_dark_recording(dark, rng, 10.0)
+    saved = tmp_path / "cam.json"
+    done = _node("--replay", str(dark), "--speed", "0", "--calibrate-dark", "5", "--save-calibration", str(saved))
+    assert done.returncode == 0, done.stderr
+    cal = calibration.load(saved)
+    assert abs(cal.black_level - 10.0) <= 0.5 and cal.black_level_measured
+    assert (cal.camera, cal.width, cal.height) == ("edi-live-sim", 48, 36)
+    assert f"black level {cal.black_level:g} DN" in done.stderr and str(saved) in done.stderr
+    calibration.save(dataclasses.replace(cal, c_on=0.31, c_off=0.27, clock_offset_us=900), saved)
+    again = _node("--replay", str(dark), "--speed", "0", "--calibrate-dark", "3", "--save-calibration", str(saved))
+    kept = calibration.load(saved)
+    assert again.returncode == 0 and (kept.c_on, kept.c_off, kept.clock_offset_us) == (0.31, 0.27, 900)
+
+
+def test_calibrate_dark_without_a_file_to_write_or_on_a_lit_scene_is_one_line(tmp_path, rng):
+    dark = tmp_path / "dark.aedat4"
+    _write_dark_recording(dark, rng, 10.0)
+    nowhere = _node("--replay", str(dark), "--speed", "0", "--calibrate-dark", "5")
+    lines = [line for line in nowhere.stderr.splitlines() if line.startswith("edi-live: error:")]
+    assert nowhere.returncode == 2 and len(lines) == 1 and "--save-calibration" in lines[0], nowhere.stderr
+    lit = tmp_path / "lit.aedat4"
+    sim = simulate(preset("translate", texture="camera", width=48, height=36, duration_s=0.1, seed=3))
+    write_aedat4(sim, lit)
+    refused = _node("--replay", str(lit), "--speed", "0", "--calibrate-dark", "3", "--save-calibration",
+                    str(tmp_path / "x.json"))
+    lines = [line for line in refused.stderr.splitlines() if line.startswith("edi-live: error:")]
+    assert refused.returncode == 2 and len(lines) == 1 and "not dark" in lines[0], refused.stderr
+    assert not (tmp_path / "x.json").exists()
+
+
+def test_a_measured_black_level_is_used_as_given_and_stays_measured(tmp_path, rng):
+    """A scene without dark pixels (blocks) cannot show the stream its black level: started from the dark frames'
+    measurement, the node uses it from the first frame, never replaces it, and saves it as measured again."""
+    cfg = with_effects(preset("translate", texture="blocks", width=96, height=72, duration_s=0.3,
+                              velocity_px_s=(200.0, 40.0), seed=7), "black_level")
+    scene = tmp_path / "blocks.aedat4"
+    write_aedat4(simulate(cfg), scene)
+    dark = tmp_path / "dark.aedat4"
+    _write_dark_recording(dark, rng, float(cfg.aps_offset_dn), width=96, height=72)
+    cal_file = tmp_path / "cam.json"
+    assert _node("--replay", str(dark), "--speed", "0", "--calibrate-dark", "4", "--save-calibration",
+                 str(cal_file)).returncode == 0
+    measured = calibration.load(cal_file).black_level
+    after = tmp_path / "after.json"
+    run = _node("--replay", str(scene), "--speed", "0", "--no-publish", "--calibration", str(cal_file),
+                "--save-calibration", str(after))
+    assert run.returncode == 0, run.stderr
+    assert f"black level {measured:g} DN," in run.stderr, run.stderr  # given: neither estimated nor a start value
+    saved = calibration.load(after)
+    assert saved.black_level == measured and saved.black_level_measured
+
+
+def test_a_live_camera_measures_into_its_own_file_and_a_lit_one_is_refused(tmp_path):
+    """Without --save-calibration a live camera writes its own calibration file; the emulated camera looks at a
+    lit scene, so the measurement is refused and no file is written."""
+    env = {**os.environ, "PYTHONPATH": str(REPO), "XDG_CONFIG_HOME": str(tmp_path)}
+    done = subprocess.run([sys.executable, "-m", "edi_live", "--device", "davis240", "--usb-backend",
+                           "drivers.emulator:backend", "--calibrate-dark", "3"], cwd=REPO, capture_output=True,
+                          text=True, timeout=120, env=env)
+    lines = [line for line in done.stderr.splitlines() if line.startswith("edi-live: error:")]
+    assert done.returncode == 2 and len(lines) == 1 and "not dark" in lines[0], done.stderr
+    assert not list(tmp_path.rglob("*.json"))

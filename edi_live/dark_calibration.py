@@ -1,9 +1,9 @@
 """The APS black level measured on dark frames, the way it is done for any CMOS camera: cover the lens, take a few
 frames, and the value they sit at is the black level (`edi-live --calibrate-dark N`).
 
-Why a measurement: the node estimates the black level from the stream, but only dark pixels carry it (docs/calibration.md:
-a scene without any pixel near black, such as the realistic benchmark's blocks, leaves it unidentified, and a scene with
-few dark pixels finds it late and low). It belongs to the camera and its bias settings, not to the scene, so a
+Why a measurement: the node estimates the black level from the stream, but only dark pixels carry it
+(docs/calibration.md: a scene without any pixel near black, such as the realistic benchmark's blocks, leaves it
+unidentified, and a scene with few dark pixels finds it late and low). It belongs to the camera and its bias settings, not to the scene, so a
 measured value is saved in the camera's calibration file and used as given from then on (`black_level_measured`).
 
 This module owns:

@@ -93,3 +93,11 @@ def test_a_live_cameras_own_file_of_another_sensor_set_up_is_ignored_with_a_warn
     assert first.returncode == 0 and second.returncode == 0, second.stderr
     assert "not using it" in second.stderr and "starting from the calibration" not in second.stderr
     assert calibration.load(own).width == cal.width, "the run saved its own calibration over the stale one"
+
+
+def test_a_failed_save_leaves_no_temporary_file(tmp_path):
+    target = tmp_path / "cam.json"
+    target.mkdir()  # a folder where the file should go: the rename fails
+    with pytest.raises(ConfigError, match="cannot write calibration"):
+        calibration.save(calibration.Calibration("edi-live-sim", 48, 36, 0.2, 0.2), target)
+    assert [p.name for p in tmp_path.iterdir()] == ["cam.json"]

@@ -16,7 +16,7 @@ from edi_live import calibration
 from edi_live.aedat4.writer import Aedat4Writer
 from edi_live.dark_calibration import measure_black_level
 from edi_live.datatypes import EVENT_DTYPE, Frame
-from edi_live.errors import ConfigError
+from edi_live.errors import ConfigError, EdiLiveError
 from edi_live.simulation import preset, simulate, with_effects, write_aedat4
 
 REPO = Path(__file__).resolve().parents[2]
@@ -135,3 +135,82 @@ def test_a_live_camera_measures_into_its_own_file_and_a_lit_one_is_refused(tmp_p
     lines = [line for line in done.stderr.splitlines() if line.startswith("edi-live: error:")]
     assert done.returncode == 2 and len(lines) == 1 and "not dark" in lines[0], done.stderr
     assert not list(tmp_path.rglob("*.json"))
+
+
+# --- review3: failing-test demonstrations -------------------------------------------------------------------------
+
+def test_a_dim_lit_scene_is_not_taken_for_a_black_level():
+    """An uncovered lens in a dim room: the blocks scene at a tenth of its brightness has no pixel 15 DN above its
+    median, yet it is a scene, not sensor noise (neighbouring pixels agree). Its 'black level' would be used as
+    given for ever, so it must be refused."""
+    sim = simulate(preset("translate", texture="blocks", width=96, height=72, duration_s=0.1, seed=3))
+    dim = [np.rint(frame.image * 0.1).astype(np.uint8) for frame in sim.frames]
+    with pytest.raises(ConfigError, match="not dark"):
+        measure_black_level(dim)
+
+
+def test_dark_frames_with_column_fixed_pattern_noise_and_hot_pixels_are_accepted(rng):
+    """A DAVIS346 dark frame: column offsets (2 DN), read noise and hot pixels; the darkness check must not take
+    the column pattern for a scene."""
+    columns = rng.normal(0.0, 2.0, 48)
+    images = [np.clip(np.rint(img + columns[None, :]), 0, 255).astype(np.uint8) for img in _dark_images(rng, 10.0)]
+    assert abs(measure_black_level(images).black_level - 10.0) <= 1.0
+
+
+def test_an_existing_calibration_that_cannot_be_merged_is_refused_and_left_alone(tmp_path, rng):
+    """--save-calibration naming a corrupt file, or another camera's, must not overwrite it (one line, exit 2)."""
+    dark = tmp_path / "dark.aedat4"
+    _write_dark_recording(dark, rng, 10.0)
+    corrupt = tmp_path / "corrupt.json"
+    corrupt.write_text('{"format": "edi-live calibration", "version": 1, "camera": ')
+    other = tmp_path / "other.json"
+    calibration.save(calibration.Calibration("DAVIS346_00000391", 346, 260, 0.31, 0.27, clock_offset_us=900), other)
+    for target in (corrupt, other):
+        before = target.read_text()
+        done = _node("--replay", str(dark), "--speed", "0", "--calibrate-dark", "3", "--save-calibration",
+                     str(target))
+        lines = [line for line in done.stderr.splitlines() if line.startswith("edi-live: error:")]
+        assert done.returncode == 2 and len(lines) == 1 and str(target) in lines[0], done.stderr
+        assert target.read_text() == before
+
+
+class _StopAfter:
+    """cli.StopSignals stand-in: keeps what it stops, for the test source to stop mid-read (a Ctrl-C)."""
+
+    def __init__(self) -> None:
+        self.target = None
+
+    def attach(self, target) -> None:
+        self.target = target
+
+
+def test_a_signal_before_n_frames_writes_nothing(tmp_path, rng):
+    """Ctrl-C during --calibrate-dark 6 after 2 frames: the camera's 'measured' black level must not come from
+    fewer frames than asked; nothing is written and the error says it was stopped."""
+    from edi_live.dark_calibration import calibrate_dark
+    from edi_live.datatypes import Packet, SourceInfo
+
+    signals = _StopAfter()
+    images = _dark_images(rng, 10.0, n=6)
+
+    class Source:
+        info = SourceInfo(width=48, height=36, name="edi-live-sim", kind="replay")
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def __iter__(self):
+            for k, image in enumerate(images):
+                if k == 2:
+                    signals.target.stop()
+                yield Packet(frames=[Frame(image=image, exposure_start_us=k * 20_000,
+                                           exposure_end_us=k * 20_000 + 10_000)])
+
+    target = tmp_path / "cam.json"
+    with pytest.raises(EdiLiveError, match="stopped"):
+        calibrate_dark(Source(), 6, target, signals)
+    assert not target.exists()
+

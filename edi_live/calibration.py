@@ -148,12 +148,13 @@ def save(cal: Calibration, path: Path | str) -> None:
     if cal.noise is not None:
         data["noise"] = _encode_noise(cal.noise)
     data["saved"] = data["saved"] or time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    tmp = path.with_name(path.name + ".tmp")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
         tmp.write_text(json.dumps(data, indent=1) + "\n")
         os.replace(tmp, path)
     except OSError as exc:
+        tmp.unlink(missing_ok=True)  # no half-written file left next to the target
         raise ConfigError(f"cannot write calibration {path} ({exc.strerror or exc})") from None
 
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import base64
 import binascii
+import contextlib
 import dataclasses
 import json
 import logging
@@ -154,7 +155,8 @@ def save(cal: Calibration, path: Path | str) -> None:
         tmp.write_text(json.dumps(data, indent=1) + "\n")
         os.replace(tmp, path)
     except OSError as exc:
-        tmp.unlink(missing_ok=True)  # no half-written file left next to the target
+        with contextlib.suppress(OSError):  # no half-written file left next to the target
+            tmp.unlink(missing_ok=True)
         raise ConfigError(f"cannot write calibration {path} ({exc.strerror or exc})") from None
 
 

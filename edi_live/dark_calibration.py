@@ -9,8 +9,9 @@ measured value is saved in the camera's calibration file and used as given from 
 This module owns:
 - `measure_black_level`: plain function on frames (the median of every pixel, the spread, a darkness check);
 - `calibrate_dark`: reads N APS frames from a source, measures them, and writes the black level into the camera's
-  calibration file (merged into the file there if it belongs to this camera, else a new one with the node's
-  starting values for everything else).
+  calibration file (merged into the file there, which must be this camera's and readable: another camera's or a
+  corrupt file is refused, not overwritten; without a file, a new one with the node's starting values for
+  everything else).
 """
 
 from __future__ import annotations
@@ -27,7 +28,8 @@ import numpy as np
 from edi_live import calibration
 from edi_live.black_level_policy import MAX_BLACK_DN
 from edi_live.edi import blurry_to_float
-from edi_live.errors import ConfigError
+from edi_live.datatypes import SourceInfo
+from edi_live.errors import ConfigError, EdiLiveError
 
 log = logging.getLogger(__name__)
 
@@ -102,9 +104,9 @@ class _Stop:
 
 def calibrate_dark(source: Any, n_frames: int, target: Path | None, signals: Any = None) -> tuple[DarkFrames, Path]:
     """Read `n_frames` APS frames from `source` (a driver, not yet opened), measure their black level and write it
-    into the calibration file `target` (None: a live camera's own file). A signal (through `signals`,
-    cli.StopSignals) or the end of the input before n frames measures what was read, if anything. Returns (the
-    measurement, the file written)."""
+    into the calibration file `target` (None: a live camera's own file). The end of the input before n frames
+    measures what was read; a signal (through `signals`, cli.StopSignals) before n frames writes nothing, since a
+    measured black level is never re-estimated. Returns (the measurement, the file written)."""
     if n_frames < 1:
         raise ConfigError(f"--calibrate-dark needs a number of APS frames of at least 1 (got {n_frames})")
     stop = _Stop()
@@ -118,11 +120,14 @@ def calibrate_dark(source: Any, n_frames: int, target: Path | None, signals: Any
                 raise ConfigError("--calibrate-dark needs --save-calibration FILE to write to (a live camera writes "
                                   "its own calibration file)")
             target = calibration.default_path(info)
+        existing_calibration(info, Path(target))  # a file that cannot take the value: said before the frames
         for packet in source:
             if stop.event.is_set() or len(images) >= n_frames:
                 break
             if packet is not None:
                 images.extend(frame.image for frame in packet.frames)
+    if stop.event.is_set() and len(images) < n_frames:
+        raise EdiLiveError(f"--calibrate-dark stopped after {len(images)} of {n_frames} APS frames; nothing written")
     if len(images) < n_frames:
         log.warning("the input ended after %d of %d APS frames; measuring those", len(images), n_frames)
     result = measure_black_level(images[:n_frames])
@@ -130,17 +135,28 @@ def calibrate_dark(source: Any, n_frames: int, target: Path | None, signals: Any
     return result, Path(target)
 
 
-def save_black_level(info: Any, black_level: float, target: Path) -> calibration.Calibration:
-    """Write a measured black level into the calibration at `target`: that file's other values are kept when it
-    belongs to this camera; otherwise a new file starts from the node's defaults (c 0.2, no clock offset)."""
-    cal = None
-    if target.is_file():
-        try:
-            cal = calibration.load(target)
-            cal.check_for(info, target)
-        except ConfigError as exc:
-            log.warning("%s; writing a new calibration", exc)
-            cal = None
+def existing_calibration(info: SourceInfo, target: Path) -> calibration.Calibration | None:
+    """This camera's calibration at `target`, or None when there is no file. A file that cannot be read, or that
+    belongs to another camera, is a ConfigError: it is not overwritten."""
+    if not target.exists():
+        return None
+    try:
+        cal = calibration.load(target)
+    except ConfigError as exc:
+        raise ConfigError(f"{exc}; --calibrate-dark does not overwrite it: move it away or name another "
+                          f"--save-calibration file") from None
+    if (cal.camera, cal.width, cal.height) != (info.label, info.width, info.height):
+        raise ConfigError(f"calibration {target} is for {cal.camera} ({cal.width}x{cal.height}), not this camera "
+                          f"{info.label} ({info.width}x{info.height}); --calibrate-dark does not overwrite it: move "
+                          f"it away or name another --save-calibration file")
+    return cal
+
+
+def save_black_level(info: SourceInfo, black_level: float, target: Path) -> calibration.Calibration:
+    """Write a measured black level into the calibration at `target`, keeping that file's other values (it must
+    be this camera's: existing_calibration); without a file, a new one starts from the node's defaults (c 0.2,
+    no clock offset)."""
+    cal = existing_calibration(info, target)
     if cal is None:
         cal = calibration.Calibration(info.label, info.width, info.height, 0.2, 0.2)
     cal = dataclasses.replace(cal, black_level=float(black_level), black_level_measured=True, saved="")

@@ -101,3 +101,14 @@ def test_a_failed_save_leaves_no_temporary_file(tmp_path):
     with pytest.raises(ConfigError, match="cannot write calibration"):
         calibration.save(calibration.Calibration("edi-live-sim", 48, 36, 0.2, 0.2), target)
     assert [p.name for p in tmp_path.iterdir()] == ["cam.json"]
+
+
+def test_a_measured_black_level_stays_measured_through_the_stats_rounding():
+    """The stats carry the black level to 2 decimals; a measured 10.125 DN that the run used as given must be
+    saved as it was measured, not as a 10.12 DN starting value to be estimated again."""
+    info = SourceInfo(width=48, height=36, name="edi-live-sim")
+    start = calibration.Calibration(info.label, 48, 36, 0.2, 0.2, black_level=10.125, black_level_measured=True)
+    cal = calibration.from_stats(info, {"c_on": 0.2, "c_off": 0.2, "black_level_dn": 10.12}, start=start)
+    assert cal.black_level_measured and cal.black_level == 10.125
+    replaced = calibration.from_stats(info, {"c_on": 0.2, "c_off": 0.2, "black_level_dn": 5.0}, start=start)
+    assert not replaced.black_level_measured and replaced.black_level == 5.0

@@ -195,7 +195,10 @@ def from_stats(info: SourceInfo, stats: dict, noise: NoiseRates | None = None,
     if noise is not None and noise.shape != (info.height, info.width):
         noise = None
     black = float(stats.get("black_level_dn") or 0.0)
-    measured = start is not None and start.black_level_measured and black == start.black_level
+    # the stats round the black level to 0.01 DN: within that, the run used the measured value as given
+    measured = start is not None and start.black_level_measured and abs(black - start.black_level) < 0.006
+    if measured:
+        black = start.black_level
     return Calibration(info.label, info.width, info.height, float(c_on), float(c_off), black,
                        int(stats.get("clock_offset_us") or 0), float(stats.get("aps_gamma") or 1.0), noise=noise,
                        black_level_measured=measured)

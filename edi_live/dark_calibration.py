@@ -3,8 +3,9 @@ frames, and the value they sit at is the black level (`edi-live --calibrate-dark
 
 Why a measurement: the node estimates the black level from the stream, but only dark pixels carry it
 (docs/calibration.md: a scene without any pixel near black, such as the realistic benchmark's blocks, leaves it
-unidentified, and a scene with few dark pixels finds it late and low). It belongs to the camera and its bias settings, not to the scene, so a
-measured value is saved in the camera's calibration file and used as given from then on (`black_level_measured`).
+unidentified, and a scene with few dark pixels finds it late and low). It belongs to the camera and its bias
+settings, not to the scene, so a measured value is saved in the camera's calibration file and used as given from
+then on (`black_level_measured`).
 
 This module owns:
 - `measure_black_level`: plain function on frames (the median of every pixel, the spread, a darkness check);

@@ -175,8 +175,9 @@ def prepare(edi: EdiConfig, info: SourceInfo, given: Path | None, save_to: Path 
                 raise
             log.warning("%s; not using it", exc)  # the camera's own file, but of another sensor set-up
             return edi, save_to if save_to is not None else default_path(info)
-        log.info("starting from the calibration %s (c_on=%.3f c_off=%.3f, black level %g DN, clock offset %d µs%s)",
-                 path, cal.c_on, cal.c_off, cal.black_level, cal.clock_offset_us,
+        log.info("starting from the calibration %s (c_on=%.3f c_off=%.3f, black level %g DN%s, clock offset %d µs%s)",
+                 path, cal.c_on, cal.c_off, cal.black_level,
+                 " measured on dark frames" if cal.black_level_measured else "", cal.clock_offset_us,
                  ", per-pixel noise rates" if cal.noise is not None else "")
         edi = dataclasses.replace(edi, start=cal, aps_gamma=cal.aps_gamma if edi.aps_gamma is None else edi.aps_gamma)
         if cal.black_level_measured and edi.black_level is None:  # measured on dark frames: not a starting value

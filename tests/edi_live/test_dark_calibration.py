@@ -68,7 +68,7 @@ def _write_dark_recording(path: Path, rng, black: float, n: int = 6, width: int 
 
 def _node(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "edi_live", *args], cwd=REPO, capture_output=True, text=True,
-                          timeout=120, env={**os.environ, "PYTHONPATH": str(REPO)})
+                          timeout=60, env={**os.environ, "PYTHONPATH": str(REPO)})
 
 
 def test_calibrate_dark_writes_the_measured_black_level_and_keeps_the_rest_of_the_cameras_file(tmp_path, rng):
@@ -214,3 +214,16 @@ def test_a_signal_before_n_frames_writes_nothing(tmp_path, rng):
         calibrate_dark(Source(), 6, target, signals)
     assert not target.exists()
 
+
+
+def test_calibrate_dark_with_loop_on_a_recording_without_frames_ends(tmp_path):
+    """--loop would replay a recording without APS frames for ever; each recorded frame is measured once."""
+    events_only = tmp_path / "events.aedat4"
+    with Aedat4Writer(events_only, 48, 36, events=True, frames=False, camera_name="edi-live-sim") as writer:
+        ev = np.zeros(5, EVENT_DTYPE)
+        ev["t"] = np.arange(5) * 1000
+        writer.write_events(ev)
+    done = _node("--replay", str(events_only), "--speed", "0", "--loop", "--calibrate-dark", "3",
+                 "--save-calibration", str(tmp_path / "cam.json"))
+    lines = [line for line in done.stderr.splitlines() if line.startswith("edi-live: error:")]
+    assert done.returncode == 2 and len(lines) == 1 and "no APS frame" in lines[0], done.stderr

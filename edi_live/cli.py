@@ -9,6 +9,7 @@ finishes), the summary, and mapping errors to exit codes: 0 success (also after 
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import inspect
 import logging
@@ -257,6 +258,9 @@ def _main(argv: Sequence[str] | None, signals: StopSignals) -> int:
         _setup_logging(level)
         _warn_if_exposed(config)
         _warn_ignored(config, set(flags))
+        if dark_frames is not None and config.source.loop:  # a recording without frames would loop for ever
+            log.warning("--loop is ignored with --calibrate-dark: each recorded frame is measured once")
+            config = dataclasses.replace(config, source=dataclasses.replace(config.source, loop=False))
         source = make_source(config, explicit=set(flags))
         if dark_frames is not None:
             return calibrate_dark_command(config, source, dark_frames, signals)

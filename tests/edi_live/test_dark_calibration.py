@@ -227,3 +227,15 @@ def test_calibrate_dark_with_loop_on_a_recording_without_frames_ends(tmp_path):
                  "--save-calibration", str(tmp_path / "cam.json"))
     lines = [line for line in done.stderr.splitlines() if line.startswith("edi-live: error:")]
     assert done.returncode == 2 and len(lines) == 1 and "no APS frame" in lines[0], done.stderr
+
+
+def test_many_dark_frames_are_measured_on_an_even_sample_of_them(tmp_path, rng):
+    """--calibrate-dark 300 on a recording of 300 dark frames keeps at most 64 of them (memory stays bounded: a
+    thousand full frames took 1.3 GB) and still finds the level."""
+    dark = tmp_path / "dark.aedat4"
+    _write_dark_recording(dark, rng, 7.0, n=300)
+    saved = tmp_path / "cam.json"
+    done = _node("--replay", str(dark), "--speed", "0", "--calibrate-dark", "300", "--save-calibration", str(saved))
+    assert done.returncode == 0, done.stderr
+    assert abs(calibration.load(saved).black_level - 7.0) <= 0.5
+    assert "60 dark frames" in done.stderr, done.stderr  # every 5th of the 300 (5 = the fewest with at most 64)

@@ -186,10 +186,11 @@ def prepare(edi: EdiConfig, info: SourceInfo, given: Path | None, save_to: Path 
 
 
 def from_stats(info: SourceInfo, stats: dict, noise: NoiseRates | None = None,
-               start: Calibration | None = None) -> Calibration | None:
+               start: Calibration | None = None, black_level_flag: bool = False) -> Calibration | None:
     """The calibration a finished run used last (its stats, and the per-pixel noise rates it estimated, if any),
     or None when it never had thresholds. `start`: the calibration the run started from, whose measured black
-    level stays measured while the run used it."""
+    level stays measured while the run used it, and also when a flag or TOML key (`black_level_flag`) replaced it
+    for this run only: a measurement is not lost to one run's override."""
     c_on, c_off = stats.get("c_on"), stats.get("c_off")
     if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in (c_on, c_off)):
         return None
@@ -197,7 +198,8 @@ def from_stats(info: SourceInfo, stats: dict, noise: NoiseRates | None = None,
         noise = None
     black = float(stats.get("black_level_dn") or 0.0)
     # the stats round the black level to 0.01 DN: within that, the run used the measured value as given
-    measured = start is not None and start.black_level_measured and abs(black - start.black_level) < 0.006
+    measured = start is not None and start.black_level_measured and (black_level_flag
+                                                                    or abs(black - start.black_level) < 0.006)
     if measured:
         black = start.black_level
     return Calibration(info.label, info.width, info.height, float(c_on), float(c_off), black,

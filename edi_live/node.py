@@ -264,8 +264,8 @@ class Node:
         """--save-calibration (a failure is the run's error), or a live camera's own file (a failure is a warning)."""
         target = self._calibration_to
         noise = self.worker.noise_rates() if target is not None and self.worker is not None else None
-        cal = calibration.from_stats(self.source.info, self.final_stats, noise,
-                                     self._calibration_start) if target is not None else None
+        cal = calibration.from_stats(self.source.info, self.final_stats, noise, self._calibration_start,
+                                     self.config.edi.black_level is not None) if target is not None else None
         if cal is None:
             return
         try:

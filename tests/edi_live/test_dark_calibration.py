@@ -123,6 +123,12 @@ def test_a_measured_black_level_is_used_as_given_and_stays_measured(tmp_path, rn
     assert f"black level {measured:g} DN," in run.stderr, run.stderr  # given: neither estimated nor a start value
     saved = calibration.load(after)
     assert saved.black_level == measured and saved.black_level_measured
+    # one run with a --black-level flag uses the flag's value, and the file keeps its measurement
+    flagged = _node("--replay", str(scene), "--speed", "0", "--no-publish", "--calibration", str(after),
+                    "--black-level", "3", "--save-calibration", str(after))
+    assert flagged.returncode == 0 and "black level 3 DN," in flagged.stderr, flagged.stderr
+    kept = calibration.load(after)
+    assert kept.black_level == measured and kept.black_level_measured
 
 
 def test_a_live_camera_measures_into_its_own_file_and_a_lit_one_is_refused(tmp_path):

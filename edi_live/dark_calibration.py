@@ -28,8 +28,8 @@ import numpy as np
 
 from edi_live import calibration
 from edi_live.black_level_policy import MAX_BLACK_DN
-from edi_live.edi import blurry_to_float
 from edi_live.datatypes import SourceInfo
+from edi_live.edi import blurry_to_float
 from edi_live.errors import ConfigError, EdiLiveError
 
 log = logging.getLogger(__name__)
@@ -56,8 +56,8 @@ def measure_black_level(images: Sequence[np.ndarray]) -> DarkFrames:
     above what the node accepts as a black level."""
     if not images:
         raise ConfigError("no APS frame to measure the black level on (does the input have APS frames?)")
-    values = np.concatenate([blurry_to_float(np.asarray(image))[0].reshape(-1)
-                             for image in images])
+    frames = [blurry_to_float(np.asarray(image))[0] for image in images]  # the 8-bit scale, once per frame
+    values = np.concatenate([frame.reshape(-1) for frame in frames])
     black = float(np.median(values))
     near = values[np.abs(values - black) <= BRIGHT_DN / 3]
     noise = float(np.std(near)) if near.size else 0.0
@@ -68,7 +68,7 @@ def measure_black_level(images: Sequence[np.ndarray]) -> DarkFrames:
         raise ConfigError(f"the APS frames are not dark (median {black:.1f} DN, 99th percentile {p99:.1f} DN, "
                           f"{100 * bright:.1f} % of the pixels more than {BRIGHT_DN:g} DN above the median, over "
                           f"{len(images)} frames): cover the lens and run --calibrate-dark again")
-    agreement = _neighbour_correlation(images, black)
+    agreement = _neighbour_correlation(frames, black)
     if agreement > MAX_NEIGHBOUR_CORRELATION:
         raise ConfigError(f"the APS frames are not dark (median {black:.1f} DN, but neighbouring pixels agree like "
                           f"a scene's: correlation {agreement:.2f}, over {len(images)} frames): cover the lens and "
@@ -76,12 +76,13 @@ def measure_black_level(images: Sequence[np.ndarray]) -> DarkFrames:
     return result
 
 
-def _neighbour_correlation(images: Sequence[np.ndarray], black: float) -> float:
+def _neighbour_correlation(frames: Sequence[np.ndarray], black: float) -> float:
     """The lesser of the horizontal and the vertical correlation of adjacent pixels' deviations from `black`
-    (hot pixels clipped), median over the frames: column (or row) offsets raise only one of them, a scene both."""
+    (hot pixels clipped), median over the frames (on the 8-bit scale): column (or row) offsets raise only one of
+    them, a scene both."""
     per_frame = []
-    for image in images:
-        d = np.clip(blurry_to_float(np.asarray(image))[0] - black, -BRIGHT_DN, BRIGHT_DN)
+    for frame in frames:
+        d = np.clip(frame - black, -BRIGHT_DN, BRIGHT_DN)
         pairs = ((d[:, :-1], d[:, 1:]), (d[:-1], d[1:]))
         per_frame.append(min(_correlation(a, b) for a, b in pairs))
     return float(np.median(per_frame))

@@ -105,16 +105,9 @@ class LatentState:
                                 black_level=aps.black_level, gamma=aps.gamma, shown=shown, log_shown=self.log_shown)
             return deblurred, True
         b, informative = aps.to_float(image)
-        self.log_ref = edi.deblur_log(b, None, c[0], c[1], informative=informative, divisor=divisor)
-        self.log_shown, jump = self.log_ref, delta_end
-        if shown is not None:
-            self.log_shown = edi.deblur_log(b, None, c[0], c[1], informative=informative, divisor=(pixels, shown[0]))
-            jump = shown[1]
-        np.copyto(self.log_lat, self.log_shown)
-        if jump is not None:
-            lat = self.log_lat.reshape(-1)
-            lat[pixels] += jump.astype(np.float32)
-            np.clip(lat, edi.LOG_MIN, edi.LOG_MAX, out=lat)
+        shown_d, jump = (None, delta_end) if shown is None else shown
+        self.log_ref, self.log_shown, lat = edi.reference_logs(b, informative, pixels, log_d, shown_d, jump)
+        np.copyto(self.log_lat, lat)
         return edi.to_uint8(self.log_shown), False
 
     def fall_back_to_aps(self, pixels: np.ndarray, b: np.ndarray, deblurred: np.ndarray,

@@ -36,7 +36,7 @@ from edi_live.edi import (_kernels_fused, _kernels_levels, _kernels_pixels, _ker
                           _kernels_smoothing, _kernels_stream)
 from edi_live.edi._backend import (DARK_FLOOR, LEVEL_CAP, LOG_MAX, LOG_MIN, have_numba, numpy_reference)
 from edi_live.edi.deblur import (ApsResponse, blurry_to_float, deblur, deblur_log, fall_back_u8, finish_frame_u8,
-                                 log_divisor_events)
+                                 log_divisor_events, reference_logs)
 from edi_live.edi.fused import (RESIDUAL_SPAN, FusedPropagator, FusionPlan, event_mass, forward_plan, fused_frames,
                                 fused_log, fusion_plan, fusion_weights, time_share)
 from edi_live.edi.residual_schedule import COLD_CONTEXT as RESIDUAL_COLD_CONTEXT, ResidualCarry
@@ -76,7 +76,8 @@ __all__ = [
     "FusedPropagator", "fusion_plan", "fusion_weights", "FusionPlan", "have_numba", "hot_pixel_mask",
     "isolated_event_mask", "LEVEL_CAP", "LevelTable", "log_divisor", "log_divisor_events", "LOG_MAX", "LOG_MIN",
     "mark_event_pixels", "median_at_pixels", "new_activity_map", "new_activity_state", "new_median_scratch",
-    "numpy_reference", "pair_candidates", "propagate_log", "Propagator", "render_buckets", "RESIDUAL_COLD_CONTEXT",
-    "RESIDUAL_SPAN", "ResidualCarry", "rows_of", "RunningDivisor", "select", "signed_counts", "smoothed_divisor",
-    "supported_events_keep", "time_index", "time_share", "to_uint8", "u8_tables", "update_contradictions", "window",
+    "numpy_reference", "pair_candidates", "propagate_log", "Propagator", "reference_logs", "render_buckets",
+    "RESIDUAL_COLD_CONTEXT", "RESIDUAL_SPAN", "ResidualCarry", "rows_of", "RunningDivisor", "select",
+    "signed_counts", "smoothed_divisor", "supported_events_keep", "time_index", "time_share", "to_uint8",
+    "u8_tables", "update_contradictions", "window",
 ]

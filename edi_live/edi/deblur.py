@@ -205,15 +205,31 @@ def finish_frame_u8(image: np.ndarray, saturation: float, divisor: tuple[np.ndar
                                         display.reshape(-1), *render_buckets())
         return
     b, informative = blurry_to_float(image, saturation=saturation, black_level=black_level, gamma=gamma)
-    log_ref[...] = deblur_log(b, None, 1.0, informative=informative, divisor=(pixels, log_d))
+    own, shown_log, lat = reference_logs(b, informative, pixels, log_d,
+                                         None if log_shown is log_ref else shown_d, shown_jump)
+    log_ref[...] = own
     if log_shown is not log_ref:
-        log_shown[...] = deblur_log(b, None, 1.0, informative=informative, divisor=(pixels, shown_d))
-    deblurred[...] = to_uint8(log_shown)
-    lat = log_shown.reshape(-1).copy()
-    lat[pixels] += np.asarray(shown_jump).astype(np.float32)
-    np.clip(lat, LOG_MIN, LOG_MAX, out=lat)
-    log_lat[...] = lat.reshape(log_lat.shape)
+        log_shown[...] = shown_log
+    deblurred[...] = to_uint8(shown_log)
+    log_lat[...] = lat
     display[...] = to_uint8(log_lat)
+
+
+def reference_logs(b: np.ndarray, informative: np.ndarray, pixels: np.ndarray, log_d: np.ndarray,
+                   shown_d: np.ndarray | None = None, jump: np.ndarray | None = None) \
+        -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """With numpy, for any frame (B as float, blurry_to_float): (log L(f) of each pixel's own log D, log L(f) of the
+    log D shown, or the first array itself without `shown_d`, the latent log image at te: the shown one plus `jump`
+    at the active pixels, clipped, or a copy of it without a jump). finish_frame_u8's numpy reference and the
+    reconstructor's path for other frames."""
+    own = deblur_log(b, None, 1.0, informative=informative, divisor=(pixels, log_d))
+    shown = own if shown_d is None else deblur_log(b, None, 1.0, informative=informative, divisor=(pixels, shown_d))
+    lat = shown.copy()
+    if jump is not None:
+        flat = lat.reshape(-1)
+        flat[pixels] += np.asarray(jump).astype(np.float32)
+        np.clip(flat, LOG_MIN, LOG_MAX, out=flat)
+    return own, shown, lat
 
 
 def fall_back_u8(pixels: np.ndarray, image: np.ndarray, black_level: float, gamma: float, log_ref: np.ndarray,

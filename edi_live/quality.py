@@ -64,10 +64,9 @@ import numpy as np
 import edi_live.edi as edi
 from edi_live.datatypes import ColorFilter, Frame, Reconstruction
 from edi_live.hold_average import hold_average
+from edi_live.psnr import PSNR_CAP_DB, psnr_pair, to_8bit_scale
 
-PSNR_CAP_DB = 100.0
 SCORED_MODES = ("causal",)
-_PEAK = 255.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,53 +101,6 @@ class _Window:
     still: np.ndarray  # B_k, float32, 8-bit scale
     valid: np.ndarray  # bool
     active: np.ndarray | None  # bool, events since the previous APS frame
-
-
-def psnr_db(prediction: np.ndarray, target: np.ndarray, mask: np.ndarray | None = None) -> float | None:
-    """PSNR on the 8-bit scale over `mask` (all pixels if None), capped at PSNR_CAP_DB; None if no pixel."""
-    diff = np.asarray(prediction, np.float64) - np.asarray(target, np.float64)
-    if mask is not None:
-        diff = diff[mask]
-    return _psnr_from_sse(float(np.sum(diff * diff)), int(diff.size))
-
-
-def _psnr_from_sse(sse: float, n: int) -> float | None:
-    if n == 0 or not math.isfinite(sse):
-        return None
-    mse = sse / n
-    if mse <= _PEAK**2 * 10 ** (-PSNR_CAP_DB / 10):
-        return PSNR_CAP_DB
-    return 10.0 * math.log10(_PEAK**2 / mse)
-
-
-def _psnr_pair(prediction: np.ndarray, target: np.ndarray, valid: np.ndarray, n_valid: int,
-               active_idx: np.ndarray | None) -> tuple[float | None, float | None]:
-    """(PSNR over the valid pixels, PSNR over the active ones), one pass for the squared errors (float32 is
-    exact here: differences of 8-bit values and their squares, or of a prediction on the same scale)."""
-    sq = np.subtract(prediction, target, dtype=np.float32)
-    np.multiply(sq, sq, out=sq)
-    np.multiply(sq, valid, out=sq)
-    flat = sq.reshape(-1)
-    whole = _psnr_from_sse(float(flat.sum()), n_valid)  # numpy sums float32 pairwise: relative error ~1e-7
-    if active_idx is None or active_idx.size == 0:
-        return whole, None
-    return whole, _psnr_from_sse(float(flat[active_idx].sum()), int(active_idx.size))
-
-
-def to_8bit_scale(image: np.ndarray, saturation: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """APS image -> (B as float32 on the 8-bit scale, informative mask 0 < raw < saturation)."""
-    img = np.asarray(image)
-    full = 65535.0 if img.dtype == np.uint16 else 255.0
-    sat = full if saturation is None else float(saturation)
-    b = img.astype(np.float32)
-    if full != 255.0:
-        b *= np.float32(255.0 / full)
-    valid = img > 0
-    valid &= img < sat
-    if img.dtype.kind == "f":
-        valid &= np.isfinite(b)
-        b = np.nan_to_num(b, nan=0.0, posinf=255.0, neginf=0.0)
-    return b, valid
 
 
 _UNMARKED_MAX = 1 << 18  # events held unmarked at most, 4 MB (no APS frame nor frame sent for that long)
@@ -186,6 +138,7 @@ class PredictionScore:
         self._ref: list[int] = []
         self._img: list[np.ndarray] = []
         self._pending: list[_Window] = []
+        self._due_mid = self._due_end = 2**63  # the earliest mid-exposure and end among the pending windows
         self._prev_b: np.ndarray | None = None  # B_k on the 8-bit scale (converted when first needed)
         self._prev_image: np.ndarray | None = None  # ... and as taken
         self._sent_since_aps = False
@@ -206,6 +159,8 @@ class PredictionScore:
         if not self.enabled or self._events_map is None or len(events) == 0:
             return
         self._events_fed = True
+        if (self._aps_seen + 1) % self._score_every:
+            return  # the next APS frame is not scored: which pixels fired before it is never read
         self._unmarked.append(events)  # (a still scene's reads then mark nothing: ~20 us each, mostly cache misses)
         self._unmarked_n += len(events)
         if self._sent_since_aps or self._unmarked_n > _UNMARKED_MAX:
@@ -244,6 +199,7 @@ class PredictionScore:
                     active = np.repeat(active[..., None], shape[2], axis=2)
             self._pending.append(_Window(frame.seq, frame.exposure_start_us, frame.exposure_end_us, mid, target,
                                          self._prev_b, valid, active))
+            self._due_mid, self._due_end = min(self._due_mid, mid), min(self._due_end, frame.exposure_end_us)
             self._prev_b = target
         else:
             self._prev_b = None
@@ -268,20 +224,28 @@ class PredictionScore:
 
     def on_emitted(self, rec: Reconstruction) -> list[PredictionResult]:
         """A frame the node sent, in emission order. Returns the results it completes."""
-        if not self.enabled or (self._shape is not None and rec.image.shape != self._shape):
+        image = rec.image
+        if not self.enabled or (self._shape is not None and image.shape != self._shape):
             return []  # not an image of this sensor's APS layout: nothing it could predict
-        t, ref = int(rec.t_us), int(rec.ref_t_us)
-        i = bisect.bisect_right(self._t, t)
-        self._t.insert(i, t)
-        self._ref.insert(i, ref)
-        self._img.insert(i, rec.image)
-        self._black, self._gamma = float(rec.black_level), float(rec.aps_gamma)
+        # called for every frame sent (~20k a second at the sensor's rate): the common case appends, in time order
+        t, ref = rec.t_us, rec.ref_t_us
+        if not self._t or t >= self._t[-1]:
+            self._t.append(t)
+            self._ref.append(ref)
+            self._img.append(image)
+        else:
+            i = bisect.bisect_right(self._t, t)
+            self._t.insert(i, t)
+            self._ref.insert(i, ref)
+            self._img.insert(i, image)
+        self._black, self._gamma = rec.black_level, rec.aps_gamma
         self._last_ref, self._last_t = ref, t
         self._sent_since_aps = True
         if self._unmarked:  # the next APS frame is scored: the pixels with events count
             self._mark_unmarked()
-        self._t_max = max(self._t_max, t)
-        out = self._complete(ref, t)
+        if t > self._t_max:
+            self._t_max = t
+        out = self._complete(ref, t) if ref >= self._due_mid or t > self._due_end else []
         if len(self._t) >= 2 * self._pruned_at + 16:
             self._prune()
         return out
@@ -303,10 +267,13 @@ class PredictionScore:
         if not done:
             return []
         self._pending = [w for w in self._pending if not (ref >= w.mid or t > w.end)]
+        self._due_mid = min((w.mid for w in self._pending), default=2**63)
+        self._due_end = min((w.end for w in self._pending), default=2**63)
         return [self._score(w) for w in done]
 
     def _complete_all(self) -> list[PredictionResult]:
         done, self._pending = self._pending, []
+        self._due_mid = self._due_end = 2**63
         return [self._score(w) for w in done]
 
     def _integrate(self, w: _Window) -> tuple[np.ndarray | None, int, float]:
@@ -342,8 +309,8 @@ class PredictionScore:
             if self._black or self._gamma != 1.0:  # the frames are linear: encode them as the APS would
                 prediction = np.float32(self._black) + np.float32(255.0) * (
                     prediction / np.float32(255.0)) ** np.float32(1.0 / self._gamma)
-            pred, pred_a = _psnr_pair(prediction, w.target, w.valid, valid_px, active_idx)
-            still, still_a = _psnr_pair(w.still, w.target, w.valid, valid_px, active_idx)
+            pred, pred_a = psnr_pair(prediction, w.target, w.valid, valid_px, active_idx)
+            still, still_a = psnr_pair(w.still, w.target, w.valid, valid_px, active_idx)
             self.last_prediction = prediction
         result = PredictionResult(w.seq, w.mid, w.start, w.end, pred, still, pred_a, still_a, used, coverage,
                                   valid_px, active_px)

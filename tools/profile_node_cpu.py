@@ -10,6 +10,10 @@ beforehand, so the pump is not in it), every frame submitted to a real Publisher
 receiving everything, and groups cProfile's own-time per function into stages (EDI kernel, render, frame
 bookkeeping, header packing, send, stats, deblur).
 
+`worker` also reports, per APS frame, the thread CPU of the reconstructor's on_frame (the deblur, until the
+deblurred frame is ready) and of settle() (the calibration checks deferred until it has left; none in checkouts
+that predate it): the median frame of each run.
+
 `ab` alternates this checkout and CHECKOUT in child processes (each imports its own edi_live), each child
 running the full node (`tools.bench_stream.run_with_subscriber`: replay --speed 0 decoded in the child process
 as the CLI does, one subscriber receiving every frame) and reporting node CPU seconds (the node process only).
@@ -283,13 +287,36 @@ def filled():
     ring.close()
     return ring, src.info
 cfg = EdiConfig(every=every, deblur_thread=False, **extra)
+per_frame = {"on_frame": [], "settle": []}  # thread CPU per APS frame: its deblur, and the checks deferred after it
+def timed(cls, name):
+    plain = cls.__dict__.get(name)
+    if plain is None:  # an older checkout without deferred checks
+        return
+    def wrapper(self, *args, **kwargs):
+        t0 = time.thread_time()
+        try:
+            return plain(self, *args, **kwargs)
+        finally:
+            if name == "on_frame":
+                per_frame["on_frame"].append(time.thread_time() - t0)
+                per_frame["settle"].append(0.0)
+            elif per_frame["settle"]:  # settle() runs often; it works once per APS frame
+                per_frame["settle"][-1] += time.thread_time() - t0
+    setattr(cls, name, wrapper)
 for counted in (False, True):  # the first run loads the kernels
     ring, info = filled()
-    worker = EdiWorker(ring, default_reconstructor(info.width, info.height, cfg), cfg, [])
+    rec = default_reconstructor(info.width, info.height, cfg)
+    if counted:
+        for name in per_frame:
+            timed(type(rec), name)
+    worker = EdiWorker(ring, rec, cfg, [])
     c0 = time.thread_time()
     worker._run()
     cpu_s = time.thread_time() - c0
-print(json.dumps({"cpu_s": cpu_s, "events": worker.events_in}))
+whole = [a + b for a, b in zip(per_frame["on_frame"], per_frame["settle"])]
+med = {k: 1e3 * sorted(v)[len(v) // 2] if v else 0.0 for k, v in (*per_frame.items(), ("whole", whole))}
+print(json.dumps({"cpu_s": cpu_s, "events": worker.events_in, "on_frame_ms": med["on_frame"],
+                  "frame_ms": med["whole"]}))
 """
 
 
@@ -299,6 +326,7 @@ def worker_ab(runs: dict[str, tuple[Path, dict]], path: Path, every: int, repeat
     names = list(runs)
     print(f"\n## worker-thread CPU: {path.name}, --every {every}, {passes} pass(es), {repeat} alternating pairs")
     cpu: dict[str, list[float]] = {k: [] for k in names}
+    deblur: dict[str, list[tuple[float, float]]] = {k: [] for k in names}
     events = 0
     for i in range(repeat):
         for name in (names if i % 2 == 0 else names[::-1]):
@@ -309,11 +337,17 @@ def worker_ab(runs: dict[str, tuple[Path, dict]], path: Path, every: int, repeat
                 raise SystemExit(f"{name} run failed:\n{out.stderr[-2000:]}")
             got = json.loads(out.stdout.strip().splitlines()[-1])
             cpu[name].append(got["cpu_s"])
+            deblur[name].append((got["on_frame_ms"], got["frame_ms"]))
             events = got["events"]
     for name in names:
         per = [events / c / 1e6 for c in cpu[name]]
         print(f"  {name}: CPU s {[round(c, 3) for c in cpu[name]]}; M events per worker-CPU-s median "
               f"{np.median(per):.2f} ({min(per):.2f}-{max(per):.2f})")
+        ready = [d[0] for d in deblur[name]]
+        whole = [d[1] for d in deblur[name]]
+        print(f"    per APS frame (thread CPU, median frame of each run): deblur until the frame is ready "
+              f"{np.median(ready):.3f} ms ({min(ready):.3f}-{max(ready):.3f}), with the checks deferred after it "
+              f"{np.median(whole):.3f} ms ({min(whole):.3f}-{max(whole):.3f})")
     ratios = [b / a for a, b in zip(cpu[names[0]], cpu[names[1]])]
     print(f"  {names[1]} / {names[0]} CPU per pair: median {np.median(ratios):.3f} "
           f"({min(ratios):.3f}-{max(ratios):.3f})")

@@ -103,6 +103,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="deblur with the 3x3 median of the double integral's log over neighbouring pixels, not each "
                           "pixel's own, so that one pixel's event errors do not speckle the frame (+2 dB at "
                           "mid-exposure on the simulators; default: on; off: plain per-pixel EDI)")
+    edi.add_argument("--latent-denoise", action=argparse.BooleanOptionalAction,
+                     help="grey sensors, causal mode: in latent frames, a pixel whose change since the exposure's end "
+                          "fewer than 2 of its 8 neighbours share shows its value at the exposure's end, so that one "
+                          "pixel's extra or missing event is no dot (one pass over each frame; default: off)")
     edi.add_argument("--reestimate-every", type=int, metavar="K",
                      help="also re-estimate c every K APS frames (default: 0 = only when it stops fitting)")
     edi.add_argument("--black-level", type=float, metavar="DN",

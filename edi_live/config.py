@@ -22,12 +22,13 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Mapping
 
 from edi_live import config_file
 from edi_live.checks import check as _check
 from edi_live.datatypes import COLOR_FILTERS
 from edi_live.checks import check_endpoint, fits_memory, int_in as _int_in, positive_or_none as _positive_or_none
+from edi_live.config_file import as_bool as _bool, as_endpoints as _endpoints, as_number as _num, as_path as _path
 from edi_live.config_file import merge_options, norm_key
 from edi_live.errors import ConfigError
 
@@ -121,6 +122,7 @@ class EdiConfig:
     flicker_mask: bool | None = None
     fused_residual: bool = True  # fused mode: estimate the log change below one threshold between events
     divisor_median: bool = True  # deblur with the 3x3 median of log D (edi/smoothing.py); False: per-pixel EDI
+    latent_denoise: bool = False  # causal latent frames: lone changes since te not shown (edi/smoothing.py)
     aps_gamma: float | None = None  # APS response exponent; None: 1, or a loaded calibration's
     # events arrive this many µs later than the APS exposure they belong to; None: estimated (from a calibration's)
     clock_offset_us: int | None = None
@@ -170,7 +172,7 @@ class EdiConfig:
         _check(isinstance(self.deblur_ahead, bool), f"deblur-ahead must be true or false (got {self.deblur_ahead!r})")
         _check(self.flicker_mask is None or isinstance(self.flicker_mask, bool),
                f"flicker-mask must be true or false (got {self.flicker_mask!r})")
-        for key in ("fused_residual", "divisor_median"):
+        for key in ("fused_residual", "divisor_median", "latent_denoise"):
             _check(isinstance(getattr(self, key), bool),
                    f"{key.replace('_', '-')} must be true or false (got {getattr(self, key)!r})")
         _check(isinstance(self.noise_stats, bool), f"noise-stats must be true or false (got {self.noise_stats!r})")
@@ -287,32 +289,6 @@ def _same_file(a: Path, b: Path) -> bool:
 
 
 # flat option key -> (section, field, converter)
-def _path(v: Any) -> Path | None:
-    return None if v is None else Path(v)
-
-
-def _endpoints(v: Any) -> tuple[str, ...]:
-    if isinstance(v, str):
-        return (v,)
-    _check(isinstance(v, (list, tuple)), f"publish must be a list of endpoints (got {v!r})")
-    return tuple(v)
-
-
-def _num(v: Any) -> Any:
-    _check(not isinstance(v, bool), f"expected a number, not {str(v).lower()} (got {v!r})")
-    return float(v) if isinstance(v, int) else v
-
-
-def _bool(name: str) -> Callable[[Any], bool]:
-    """A switch must be true or false: `loop = "false"` in a TOML file is a string, which Python finds true."""
-
-    def convert(v: Any) -> bool:
-        _check(isinstance(v, bool), f"{name} must be true or false (got {v!r})")
-        return v
-
-    return convert
-
-
 OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
     "device": ("source", "device", None),
     "replay": ("source", "replay", _path),
@@ -344,6 +320,7 @@ OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
     "flicker_mask": ("edi", "flicker_mask", _bool("flicker-mask")),
     "fused_residual": ("edi", "fused_residual", _bool("fused-residual")),
     "divisor_median": ("edi", "divisor_median", _bool("divisor-median")),
+    "latent_denoise": ("edi", "latent_denoise", _bool("latent-denoise")),
     "noise_stats": ("edi", "noise_stats", _bool("noise-stats")),
     "noise_rate_hz": ("edi", "noise_rate_hz", _num),
     "gray": ("edi", "gray", _bool("gray")),

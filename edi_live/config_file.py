@@ -1,11 +1,12 @@
-"""The TOML config file: reading it into the flat option mapping (one key per flag, paths relative to the file)
-and merging the command line's flags over it. Every problem is one ConfigError naming the file."""
+"""The TOML config file: reading it into the flat option mapping (one key per flag, paths relative to the file),
+merging the command line's flags over it, and the converters of the option table's values. Every problem is one
+ConfigError naming the file."""
 
 from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any, Callable, Iterable, Mapping
 
 from edi_live.checks import check as _check
 from edi_live.errors import ConfigError
@@ -67,3 +68,29 @@ def merge_options(file_options: Mapping[str, Any], flag_options: Mapping[str, An
     merged.update(flags)
     return merged
 
+
+# converters of the option table (edi_live.config.OPTION_KEYS): a TOML value or a flag's into the field's type
+def as_path(v: Any) -> Path | None:
+    return None if v is None else Path(v)
+
+
+def as_endpoints(v: Any) -> tuple[str, ...]:
+    if isinstance(v, str):
+        return (v,)
+    _check(isinstance(v, (list, tuple)), f"publish must be a list of endpoints (got {v!r})")
+    return tuple(v)
+
+
+def as_number(v: Any) -> Any:
+    _check(not isinstance(v, bool), f"expected a number, not {str(v).lower()} (got {v!r})")
+    return float(v) if isinstance(v, int) else v
+
+
+def as_bool(name: str) -> Callable[[Any], bool]:
+    """A switch must be true or false: `loop = "false"` in a TOML file is a string, which Python finds true."""
+
+    def convert(v: Any) -> bool:
+        _check(isinstance(v, bool), f"{name} must be true or false (got {v!r})")
+        return v
+
+    return convert

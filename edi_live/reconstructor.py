@@ -58,7 +58,7 @@ class EdiReconstructor(ReconstructorView):
         # the next exposure's double integral while it runs (not with the noise filter: it drops events later)
         self._ahead = ExposureAhead(self.width, self.height, settings.deblur_ahead and self._noise is None)
         self._mask: np.ndarray | None = self._hot.mask  # events at these pixels are ignored; replaced, not changed
-        self._latent = LatentState(self.width, self.height)
+        self._latent = LatentState(self.width, self.height, lone_changes=self.settings.latent_denoise)
         self._carry = edi.ResidualCarry()  # fused mode: what one pair's residual estimate leaves for the next
         self._colour: colour_edi.ColourPlan | None = None  # colour: EDI on the Bayer mosaic, demosaiced for output
         self._pair: contrast.FramePair | None = None  # formed on this frame, judged after its deblur

@@ -25,7 +25,7 @@ below; its underscored modules (the numba kernels) are private. Every function r
 numpy reference of the same contract (`numpy_reference()`, see _backend).
 
 Modules: selection (time windows, pixel picks, counts), levels (level table, log D), deblur (log L(f)), smoothing
-(the 3x3 median of log D), latent (propagation, rendering), fused (two-frame latent images), pixels (hot pixels,
+(the 3x3 median of log D, lone changes in latent frames), latent (propagation, rendering), fused (two-frame latent images), pixels (hot pixels,
 noise and flicker filters, sampling), pairs (the consistency estimator's sums), running (the double integral of an
 exposure accumulated while its events arrive).
 """
@@ -44,7 +44,8 @@ from edi_live.edi.latent import (Propagator, event_delta, propagate_log, render_
 from edi_live.edi.levels import LevelTable, build_level_table, empty_table, log_divisor, rows_of
 from edi_live.edi.pairs import consistency_cost, pair_candidates
 from edi_live.edi.running import RunningDivisor
-from edi_live.edi.smoothing import median_at_pixels, new_median_scratch, smoothed_divisor
+from edi_live.edi.smoothing import (lone_changes_u8, median_at_pixels, new_lone_scratch, new_median_scratch,
+                                    smoothed_divisor)
 from edi_live.edi.pixels import (FlickerState, activity_verdicts, background_activity_keep, decay_hot_counts, dilate,
                                  flicker_cycles, hot_pixel_mask, isolated_event_mask, mark_event_pixels,
                                  new_activity_map, new_activity_state,
@@ -74,8 +75,10 @@ __all__ = [
     "decay_hot_counts", "dilate", "empty_table", "event_delta", "event_mass", "events_at_pixels", "fall_back_u8",
     "finish_frame_u8", "flat_index", "flicker_cycles", "FlickerState", "forward_plan", "fused_frames", "fused_log",
     "FusedPropagator", "fusion_plan", "fusion_weights", "FusionPlan", "have_numba", "hot_pixel_mask",
-    "isolated_event_mask", "LEVEL_CAP", "LevelTable", "log_divisor", "log_divisor_events", "LOG_MAX", "LOG_MIN",
-    "mark_event_pixels", "median_at_pixels", "new_activity_map", "new_activity_state", "new_median_scratch",
+    "isolated_event_mask", "lone_changes_u8", "LEVEL_CAP", "LevelTable", "log_divisor", "log_divisor_events",
+    "LOG_MAX", "LOG_MIN",
+    "mark_event_pixels", "median_at_pixels", "new_activity_map", "new_activity_state", "new_lone_scratch",
+    "new_median_scratch",
     "numpy_reference", "pair_candidates", "propagate_log", "Propagator", "reference_logs", "render_buckets",
     "RESIDUAL_COLD_CONTEXT", "RESIDUAL_SPAN", "ResidualCarry", "rows_of", "RunningDivisor", "select",
     "signed_counts", "smoothed_divisor", "supported_events_keep", "time_index", "time_share", "to_uint8",

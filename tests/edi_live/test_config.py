@@ -250,6 +250,19 @@ def test_the_fused_residual_switch_reaches_the_reconstructor():
     assert default_reconstructor(16, 12, plain.edi).settings.fused_residual is False
 
 
+def test_the_latent_denoise_switch_reaches_the_reconstructor_and_is_off_by_default():
+    from edi_live.cli_parser import build_parser
+    from edi_live.node import default_reconstructor
+
+    default = NodeConfig.from_options({"device": "auto"})
+    on = NodeConfig.from_options({"device": "auto", "latent_denoise": True})
+    assert default_reconstructor(16, 12, default.edi).settings.latent_denoise is False
+    assert default_reconstructor(16, 12, on.edi).settings.latent_denoise is True
+    assert build_parser().parse_args(["--latent-denoise"]).latent_denoise is True
+    with pytest.raises(ConfigError, match="latent-denoise must be true or false"):
+        NodeConfig.from_options({"device": "auto", "latent_denoise": "yes"})
+
+
 def test_the_divisor_median_switch_reaches_the_reconstructor():
     from edi_live.cli_parser import build_parser
     from edi_live.node import default_reconstructor

@@ -260,3 +260,78 @@ def test_the_frame_finish_refuses_a_shown_divisor_written_over_the_reference(ref
             stack.enter_context(edi.numpy_reference())
         with pytest.raises(ValueError, match="log_shown"):
             edi.finish_frame_u8(image, 255.0, (pix, own, shown), *arrays, shown=(shown, shown), log_shown=log_ref)
+
+
+def _brute_lone(log_lat, log_start, display, need, eps):
+    """lone_changes_u8's definition one pixel at a time: a changed pixel with fewer than `need` of its neighbours on
+    the sensor changed the same way shows its start (rendered as the display renders, in float64)."""
+    h, w = log_lat.shape
+    d = log_lat.astype(np.float64) - log_start.astype(np.float64)
+    sign = np.where(d > eps, 1, np.where(d < -eps, -1, 0))
+    out = display.copy()
+    for y in range(h):
+        for x in range(w):
+            if sign[y, x] == 0:
+                continue
+            same = sum(sign[yy, xx] == sign[y, x] for yy in range(max(0, y - 1), min(h, y + 2))
+                       for xx in range(max(0, x - 1), min(w, x + 2)) if (yy, xx) != (y, x))
+            if same < need:
+                out[y, x] = min(int(np.floor(np.exp(min(float(log_start[y, x]), 6.0)) + 0.5)), 255)
+    return out
+
+
+@pytest.mark.parametrize("reference", [False, True])
+def test_lone_changes_follow_their_definition(rng, reference):
+    for _ in range(30):
+        h, w = (int(v) for v in rng.integers(1, 16, 2))
+        start = rng.normal(3.0, 1.5, (h, w)).astype(np.float32)
+        lat = start.copy()
+        moved = rng.random((h, w)) < rng.uniform(0.05, 0.6)
+        lat[moved] += rng.choice([-0.4, -0.2, 0.3], int(moved.sum())).astype(np.float32)
+        lat[rng.random((h, w)) < 0.05] += np.float32(1e-6)  # float residue of steps that cancelled: no change
+        display = edi.to_uint8(lat)
+        need = int(rng.integers(1, 4))
+        with edi.numpy_reference() if reference else contextlib.nullcontext():
+            got = edi.lone_changes_u8(lat, start, display, need=need)
+        assert np.array_equal(got, _brute_lone(lat, start, display, need, edi.smoothing.LONE_EPS))
+
+
+def test_a_lone_dot_shows_its_start_and_a_moving_patch_or_edge_stays():
+    start = np.full((12, 16), np.log(100.0), np.float32)
+    lat = start.copy()
+    lat[2, 3] += 0.4  # a lone ON step
+    lat[6:9, 5:8] -= 0.3  # a 3x3 patch darkens
+    lat[1, 10:15] += 0.4  # a one-pixel-wide line: its ends have one neighbour on it
+    lat[9, 12], lat[9, 13] = lat[9, 12] + 0.4, lat[9, 13] - 0.4  # neighbours moving opposite ways
+    display = edi.to_uint8(lat)
+    got = edi.lone_changes_u8(lat, start, display)
+    changed = got != display
+    assert changed[2, 3] and got[2, 3] == 100
+    assert not changed[6:9, 5:8].any()
+    assert not changed[1, 11:14].any() and changed[1, 10] and changed[1, 14]
+    assert changed[9, 12] and changed[9, 13] and got[9, 12] == got[9, 13] == 100
+    assert changed.sum() == 5
+
+
+def test_latent_denoise_hides_one_pixels_event_after_the_exposure_but_not_a_moving_patch():
+    """The reconstructor with latent_denoise: an event at one pixel after te leaves the latent frame at the value of
+    te there; events at a 3x3 patch show as without it; the deblurred frame and the latent image are not changed."""
+    frame, _ = _still_frame_with_one_event()
+    after = np.zeros(10, EVENT_DTYPE)
+    after["t"] = np.arange(25_000, 25_010)
+    after["x"][0], after["y"][0] = 3, 3  # the lone one
+    after["x"][1:], after["y"][1:] = 12 + np.arange(9) % 3, 8 + np.arange(9) // 3
+    after["p"] = True
+    images = {}
+    for denoise in (False, True):
+        rec = EdiReconstructor(24, 18, c=0.3, latent_denoise=denoise, black_level=0.0, clock_offset_us=0)
+        deblurred = rec.on_frame(frame, np.zeros(0, EVENT_DTYPE)).image.copy()
+        rec.on_events(after, 0)
+        images[denoise] = (deblurred, rec.render().image.copy(), rec.latent_log_image)
+    (deb_p, lat_p, log_p), (deb_d, lat_d, log_d) = images[False], images[True]
+    assert np.array_equal(deb_p, deb_d) and np.array_equal(log_p, log_d)
+    assert lat_p[3, 3] > 120 and lat_d[3, 3] == 120
+    assert np.array_equal(lat_d[8:11, 12:15], lat_p[8:11, 12:15]) and (lat_p[8:11, 12:15] > 120).all()
+    mask = np.ones_like(lat_p, bool)
+    mask[3, 3] = False
+    assert np.array_equal(lat_d[mask], lat_p[mask])

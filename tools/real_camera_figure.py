@@ -1,6 +1,6 @@
 """Before/after pictures of the real DAVIS346 recordings: the APS frame, then the deblurred frame and a latent frame
 10 ms after the exposure, with the previous defaults (one c, every event trusted) and with today's (separate
-c_on/c_off, events that contradict the APS frames ignored). Events reach the reconstructor exactly as the worker
+c_on/c_off, events that contradict the APS frames ignored); the 3x crops also with --latent-denoise. Events reach the reconstructor exactly as the worker
 hands them over (all events in time order, each APS frame once its exposure is in).
 
     python -m tools.real_camera_figure docs/real_before_after.png [RECORDING ...]
@@ -50,7 +50,8 @@ def row(path: Path, index: int, height: int) -> np.ndarray:
 
 
 def detail(name: str, index: int, rows: slice, cols: slice, what: str, height: int) -> np.ndarray:
-    """A 3x crop of one recording: the APS frame, and the latent frame 10 ms later before and now."""
+    """A 3x crop of one recording: the APS frame, and the latent frame 10 ms later before, now, and now with
+    --latent-denoise."""
     events, frames = load_recording(REAL / name)
 
     def zoom(image: np.ndarray) -> np.ndarray:
@@ -58,7 +59,7 @@ def detail(name: str, index: int, rows: slice, cols: slice, what: str, height: i
         return cv2.resize(part, (part.shape[1] * 3, part.shape[0] * 3), interpolation=cv2.INTER_NEAREST)
 
     tiles = [_label(zoom(frames[index].image), f"{what}, 3x: APS frame {index}")]
-    for label, settings in (("before", BEFORE), ("now", {})):
+    for label, settings in (("before", BEFORE), ("now", {}), ("now, --latent-denoise", {"latent_denoise": True})):
         _, latent, _ = reconstruct(events, frames, index, settings)
         tiles.append(_label(zoom(latent.image), f"{label}: latent +10 ms"))
     return np.hstack(_fit(tiles, height))

@@ -122,7 +122,7 @@ class EdiConfig:
     flicker_mask: bool | None = None
     fused_residual: bool = True  # fused mode: estimate the log change below one threshold between events
     divisor_median: bool = True  # deblur with the 3x3 median of log D (edi/smoothing.py); False: per-pixel EDI
-    latent_denoise: bool = False  # causal latent frames: lone changes since te not shown (edi/smoothing.py)
+    latent_denoise: bool = False  # causal latent frames: lone changes since te not shown (edi/lone.py)
     aps_gamma: float | None = None  # APS response exponent; None: 1, or a loaded calibration's
     # events arrive this many µs later than the APS exposure they belong to; None: estimated (from a calibration's)
     clock_offset_us: int | None = None

@@ -17,11 +17,10 @@ import edi_live.edi as edi
 
 class LatentState:
     def __init__(self, width: int, height: int, *, lone_changes: bool = False) -> None:
-        """`lone_changes`: keep the latent image's start (log_start), for shown_image()."""
+        """`lone_changes`: shown_image() hides lone changes since the latent image started (edi.lone)."""
         self.width, self.height = width, height
         self.lone_changes = lone_changes
-        self.log_start: np.ndarray | None = None  # log L at te, or where a pixel restarted since (lone_changes)
-        self._change_scratch: np.ndarray | None = None
+        self._lone: edi.LoneChanges | None = None  # where each pixel started, from the first reference on
         # replaced per frame; changed in place only by the fall-back to the APS, before anything else reads the frame's
         self.log_ref = np.zeros((height, width), np.float32)
         self.log_shown = self.log_ref  # the L(f) the deblurred frame showed (edi.smoothing), or log_ref itself
@@ -33,7 +32,7 @@ class LatentState:
         self._median_scratch: np.ndarray | None = None  # the smoothed divisor's work grid (kept zeroed)
 
     def streaming_copy(self) -> "LatentState":
-        """Own image, display and start (lone_changes); the references (log_ref, log_shown) and the counts are shared (the copy reads the
+        """Own image, display and lone-change state; the references (log_ref, log_shown) and the counts are shared (the copy reads the
         one and never writes the other; once the original's frame pair has taken the counts over, they are the
         pair's, which the deblur thread changes: a copy's counts mean nothing then)."""
         twin = LatentState.__new__(LatentState)
@@ -42,8 +41,7 @@ class LatentState:
         twin.log_shown = self.log_shown
         twin.log_lat, twin.display = self.log_lat.copy(), self.display.copy()
         # its own start: the original's restarts change the original's in place, while the copy streams on
-        twin.lone_changes, twin._change_scratch = self.lone_changes, None
-        twin.log_start = None if self.log_start is None else self.log_start.copy()
+        twin.lone_changes, twin._lone = self.lone_changes, None if self._lone is None else self._lone.copy()
         return twin
 
     def take_counts(self) -> tuple[np.ndarray, np.ndarray]:
@@ -110,28 +108,29 @@ class LatentState:
             sat = 255.0 if aps.saturation is None else float(aps.saturation)
             edi.finish_frame_u8(image, sat, divisor, self.log_ref, deblurred, self.log_lat, self.display,
                                 black_level=aps.black_level, gamma=aps.gamma, shown=shown, log_shown=self.log_shown)
-            self._new_start()
+            self._new_start(self.display)
             return deblurred, True
         b, informative = aps.to_float(image)
         shown_d, jump = (None, delta_end) if shown is None else shown
         self.log_ref, self.log_shown, lat = edi.reference_logs(b, informative, pixels, log_d, shown_d, jump)
         np.copyto(self.log_lat, lat)
-        self._new_start()
+        # the display is refreshed by the caller after later events: the start is shown as the numpy path renders it
+        self._new_start(edi.to_uint8(self.log_lat))
         return edi.to_uint8(self.log_shown), False
 
-    def _new_start(self) -> None:
-        if self.lone_changes:  # a new array: a streaming copy may still read the previous one
-            self.log_start = self.log_lat.copy()
+    def _new_start(self, display: np.ndarray) -> None:
+        if self.lone_changes:
+            if self._lone is None:
+                self._lone = edi.LoneChanges(self.width, self.height)
+            self._lone.restart(self.log_lat, display)
 
     def shown_image(self) -> np.ndarray:
-        """The latent display as shown with lone_changes, a new (H, W) uint8 array: a pixel whose change since the
-        start no two neighbours share shows its start (edi.lone_changes_u8); a copy of the display before the first
+        """The latent display as shown with lone_changes, a new (H, W) uint8 array: a pixel whose change since it
+        started no two neighbours share shows its start (edi.lone); a copy of the display before the first
         reference."""
-        if self.log_start is None:
+        if self._lone is None:
             return self.display.copy()
-        if self._change_scratch is None:
-            self._change_scratch = edi.new_lone_scratch(self.width, self.height)
-        return edi.lone_changes_u8(self.log_lat, self.log_start, self.display, scratch=self._change_scratch)
+        return self._lone.image(self.log_lat, self.display)
 
     def fall_back_to_aps(self, pixels: np.ndarray, b: np.ndarray, deblurred: np.ndarray,
                          image: np.ndarray | None = None, aps: edi.ApsResponse | None = None) -> None:
@@ -152,16 +151,16 @@ class LatentState:
             deblurred.reshape(-1)[idx] = shown
         if self.log_shown is not self.log_ref:  # the L(f) shown is B there too
             np.copyto(self.log_shown, self.log_ref, where=pixels.reshape(self.log_ref.shape))
-        if self.log_start is not None:  # the latent image starts there again
-            np.copyto(self.log_start, self.log_lat, where=pixels.reshape(self.log_lat.shape))
+        if self._lone is not None:  # the latent image starts there again
+            self._lone.restart_at(np.flatnonzero(pixels), self.log_lat, self.display)
 
     def restart_pixels(self, pixels: np.ndarray) -> None:
         """At `pixels` (flat indices), the latent image goes back to the L(f) the deblurred frame showed."""
         ref = self.log_shown.reshape(-1)[pixels]
         self.log_lat.reshape(-1)[pixels] = ref
         self.display.reshape(-1)[pixels] = edi.to_uint8(ref)
-        if self.log_start is not None:
-            self.log_start.reshape(-1)[pixels] = ref
+        if self._lone is not None:
+            self._lone.restart_at(pixels, self.log_lat, self.display)
 
     def refresh_display(self) -> None:
         np.copyto(self.display, edi.to_uint8(self.log_lat))

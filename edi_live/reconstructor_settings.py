@@ -64,7 +64,7 @@ class ReconstructorSettings:
     # own (edi.smoothing: ~2 dB at mid-exposure on the simulators); False: plain per-pixel EDI
     divisor_median: bool = True
     # grey sensors, causal latent frames: a pixel whose change since te no two neighbours share shows its value at te
-    # (edi.lone_changes_u8: no lone dots from one pixel's extra or missing events; one pass over the frame per frame)
+    # (edi/lone.py: no lone dots from one pixel's extra or missing events; one pass over each frame)
     latent_denoise: bool = False
     deblur_ahead: bool = True  # accumulate the next exposure's double integral while it runs (exposure_ahead.py)
     mask_unreliable_pixels: bool = True  # ignore events that contradict the APS frames (needs c estimation)

@@ -25,7 +25,7 @@ below; its underscored modules (the numba kernels) are private. Every function r
 numpy reference of the same contract (`numpy_reference()`, see _backend).
 
 Modules: selection (time windows, pixel picks, counts), levels (level table, log D), deblur (log L(f)), smoothing
-(the 3x3 median of log D, lone changes in latent frames), latent (propagation, rendering), fused (two-frame latent images), pixels (hot pixels,
+(the 3x3 median of log D), lone (lone changes in latent frames), latent (propagation, rendering), fused (two-frame latent images), pixels (hot pixels,
 noise and flicker filters, sampling), pairs (the consistency estimator's sums), running (the double integral of an
 exposure accumulated while its events arrive).
 """
@@ -33,7 +33,7 @@ exposure accumulated while its events arrive).
 from types import ModuleType
 
 from edi_live.edi import (_kernels_fused, _kernels_levels, _kernels_pixels, _kernels_residual, _kernels_schedule,
-                          _kernels_smoothing, _kernels_stream)
+                          _kernels_lone, _kernels_smoothing, _kernels_stream)
 from edi_live.edi._backend import (DARK_FLOOR, LEVEL_CAP, LOG_MAX, LOG_MIN, have_numba, numpy_reference)
 from edi_live.edi.deblur import (ApsResponse, blurry_to_float, deblur, deblur_log, fall_back_u8, finish_frame_u8,
                                  log_divisor_events, reference_logs)
@@ -44,8 +44,8 @@ from edi_live.edi.latent import (Propagator, event_delta, propagate_log, render_
 from edi_live.edi.levels import LevelTable, build_level_table, empty_table, log_divisor, rows_of
 from edi_live.edi.pairs import consistency_cost, pair_candidates
 from edi_live.edi.running import RunningDivisor
-from edi_live.edi.smoothing import (lone_changes_u8, median_at_pixels, new_lone_scratch, new_median_scratch,
-                                    smoothed_divisor)
+from edi_live.edi.lone import LoneChanges, lone_changes_u8, new_lone_scratch
+from edi_live.edi.smoothing import median_at_pixels, new_median_scratch, smoothed_divisor
 from edi_live.edi.pixels import (FlickerState, activity_verdicts, background_activity_keep, decay_hot_counts, dilate,
                                  flicker_cycles, hot_pixel_mask, isolated_event_mask, mark_event_pixels,
                                  new_activity_map, new_activity_state,
@@ -61,7 +61,7 @@ def compiled_signatures(also: tuple[ModuleType, ...] = ()) -> dict[str, set[str]
     compiled functions count too."""
     found = {}
     for module in (_kernels_fused, _kernels_levels, _kernels_pixels, _kernels_residual, _kernels_schedule,
-                   _kernels_smoothing, _kernels_stream, *also):
+                   _kernels_lone, _kernels_smoothing, _kernels_stream, *also):
         for name, fn in vars(module).items():
             signatures = getattr(fn, "signatures", None)
             if signatures is not None:
@@ -75,7 +75,7 @@ __all__ = [
     "decay_hot_counts", "dilate", "empty_table", "event_delta", "event_mass", "events_at_pixels", "fall_back_u8",
     "finish_frame_u8", "flat_index", "flicker_cycles", "FlickerState", "forward_plan", "fused_frames", "fused_log",
     "FusedPropagator", "fusion_plan", "fusion_weights", "FusionPlan", "have_numba", "hot_pixel_mask",
-    "isolated_event_mask", "lone_changes_u8", "LEVEL_CAP", "LevelTable", "log_divisor", "log_divisor_events",
+    "isolated_event_mask", "LoneChanges", "lone_changes_u8", "LEVEL_CAP", "LevelTable", "log_divisor", "log_divisor_events",
     "LOG_MAX", "LOG_MIN",
     "mark_event_pixels", "median_at_pixels", "new_activity_map", "new_activity_state", "new_lone_scratch",
     "new_median_scratch",

@@ -1,15 +1,12 @@
-"""numba kernels of edi_live.edi.smoothing: the 3x3 median of per-pixel values at the active pixels (the frame finish
-that shows it is _kernels_stream.finish_frame_u8), and the latent image without its lone changes.
+"""numba kernel of edi_live.edi.smoothing: the 3x3 median of per-pixel values at the active pixels (the frame finish
+that shows it is _kernels_stream.finish_frame_u8).
 
 Private to edi_live.edi (see smoothing.py for the contract and the numpy reference).
 """
 
 from __future__ import annotations
 
-import numpy as np
 from numba import njit
-
-from edi_live.edi._kernels_stream import _u8
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -110,53 +107,3 @@ def median_dense(grid, width, height, out):
         o = out[mid:mid + width]
         for x in range(1, width - 1):
             o[x] = _median9(a[x - 1], a[x], a[x + 1], b[x - 1], b[x], b[x + 1], c[x - 1], c[x], c[x + 1])
-
-
-
-
-@njit(cache=True, nogil=True, fastmath=True)
-def _change_signs(log_lat, log_start, width, height, eps, padded):
-    """padded[(y + 1) * (width + 2) + x + 1] = the sign of pixel (x, y)'s log change beyond eps; the border stays 0."""
-    pw = width + 2
-    for y in range(height):
-        row = y * width
-        p = padded[(y + 1) * pw + 1:(y + 1) * pw + 1 + width]
-        for x in range(width):
-            d = log_lat[row + x] - log_start[row + x]
-            p[x] = np.int8(d > eps) - np.int8(d < -eps)
-
-
-@njit(cache=True, nogil=True, fastmath=True)
-def _lone_rows(padded, width, height, need, lone):
-    """lone[y * width + x] = 1 where pixel (x, y) changed and fewer than `need` of its 8 neighbours changed the same
-    way (the padded border counts as unchanged); row by row on contiguous views, which LLVM vectorises."""
-    pw = width + 2
-    for y in range(height):
-        a = padded[y * pw:y * pw + pw]
-        b = padded[(y + 1) * pw:(y + 1) * pw + pw]
-        c = padded[(y + 2) * pw:(y + 2) * pw + pw]
-        o = lone[y * width:y * width + width]
-        for x in range(width):
-            s = b[x + 1]
-            same = (np.int8(a[x] == s) + np.int8(a[x + 1] == s) + np.int8(a[x + 2] == s) + np.int8(b[x] == s)
-                    + np.int8(b[x + 2] == s) + np.int8(c[x] == s) + np.int8(c[x + 1] == s) + np.int8(c[x + 2] == s))
-            o[x] = np.int8(s != 0) & np.int8(same < need)
-
-
-@njit(cache=True, nogil=True)
-def lone_changes_u8(log_lat, log_start, display, width, height, need, eps, padded, lone, v0, scale, bucket_u8,
-                    bucket_thr, out):
-    """out = display, except at a pixel whose log changed by more than eps since log_start while fewer than `need`
-    of its 8 neighbours (on the sensor) changed in the same direction: there the uint8 rendering of log_start (the
-    display's bucket tables). Work arrays: `padded` int8 ((height + 2) * (width + 2), border zero: only its inside
-    is written) and `lone` int8 (width * height rounded up to a multiple of 8; the rest zero). Two vectorised passes
-    and a copy with rare exceptions."""
-    _change_signs(log_lat, log_start, width, height, eps, padded)
-    _lone_rows(padded, width, height, need, lone)
-    out[:] = display
-    words = lone.view(np.uint64)  # lone pixels are few: skip eight verdicts at a time
-    for k in range(words.size):
-        if words[k] != 0:
-            for i in range(8 * k, 8 * k + 8):
-                if lone[i]:
-                    out[i] = _u8(np.float64(log_start[i]), v0, scale, bucket_u8, bucket_thr)

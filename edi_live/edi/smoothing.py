@@ -10,12 +10,6 @@ is never filtered: only the correction is. On the simulators this gains ~2 dB on
 (ideal and realistic camera; docs/accuracy.md), and starting the latent image at te from the smoothed correction
 (log L(te) = log B - median(log D - the f -> te exponent)) gains a few tenths on latent frames.
 
-A neighbourhood test also serves the latent frames (`lone_changes_u8`, opt-in: `--latent-denoise`): between APS
-frames each pixel moves by its own events, so one pixel's extra or missing event shows as a dot (a step of c, x1.5
-at c = 0.4), and a region the events cross and leave is left speckled. A pixel whose change since the latent
-image's start no two neighbours share is shown at its start; a moving edge, where neighbours change together, is
-shown as it is. (A 3x3 median of the changes removed more dots but also thin moving detail: docs/accuracy.md.)
-
 `step` 2 takes the neighbours of a pixel's own colour on a Bayer mosaic. The reconstructor does not smooth a
 mosaic: its same-colour footprint spans 5x5 pixels, and on the colour benchmark the median cost 1.3 dB at f on
 the blocks scene (mixing the channels, step 1, cost 2.7 dB).
@@ -26,7 +20,6 @@ from __future__ import annotations
 import numpy as np
 
 from edi_live.edi import _backend, _kernels_smoothing
-from edi_live.edi.latent import display_buckets
 
 
 def new_median_scratch(width: int, height: int) -> np.ndarray:
@@ -84,58 +77,6 @@ def smoothed_divisor(divisor: tuple[np.ndarray, np.ndarray, np.ndarray | None], 
         _kernels_smoothing.smoothed_pair(pixels, log_d, delta_end, int(width), int(height), int(step), scratch[0],
                                          scratch[1], shown, jump)
     return shown, jump
-
-
-LONE_NEED = 2
-"""Neighbours that must have changed the same way for a pixel's change to be shown (lone_changes_u8): 1 kept pairs
-of dots, 3 started to eat thin moving edges (docs/accuracy.md, "Lone changes in latent frames")."""
-LONE_EPS = 1e-4
-"""A log change at most this large is no change: float32 sums of steps that cancel leave ~1e-7 (a step is >= 0.01)."""
-
-
-def lone_changes_u8(log_lat: np.ndarray, log_start: np.ndarray, display: np.ndarray, *, need: int = LONE_NEED,
-                    eps: float = LONE_EPS, scratch: np.ndarray | None = None) -> np.ndarray:
-    """The latent display (H, W) uint8 as a new array, except at pixels whose log intensity moved (by more than `eps`)
-    since `log_start` while fewer than `need` of their 8 neighbours on the sensor moved the same way: those show
-    their start, rendered as the display renders (clip(exp(v), 0, 255) rounded, in float64). log_lat and log_start
-    (H, W) float32; `scratch`: new_lone_scratch(W, H), kept between calls."""
-    log_lat, log_start, display = np.asarray(log_lat), np.asarray(log_start), np.asarray(display)
-    if (log_lat.shape != log_start.shape or log_lat.shape != display.shape or log_lat.ndim != 2
-            or log_lat.dtype != np.float32 or log_start.dtype != np.float32 or display.dtype != np.uint8):
-        raise ValueError(f"lone_changes_u8 needs (H, W) float32 log images and a uint8 display of one shape (got "
-                         f"{log_lat.shape} {log_lat.dtype}, {log_start.shape} {log_start.dtype}, {display.shape} "
-                         f"{display.dtype})")
-    height, width = log_lat.shape
-    tables = display_buckets(1.0) if _backend.have_numba() else None
-    if tables is None:
-        d = log_lat - log_start
-        sign = (d > eps).astype(np.int8) - (d < -eps).astype(np.int8)
-        pad = np.pad(sign, 1)  # off the sensor: no change, which never matches a changed pixel
-        same = sum((pad[dy:dy + height, dx:dx + width] == sign).astype(np.int8)
-                   for dy in range(3) for dx in range(3) if (dy, dx) != (1, 1))
-        lone = (sign != 0) & (same < need)
-        start_u8 = np.minimum(np.exp(np.minimum(log_start.astype(np.float64), 6.0)) + 0.5, 255.0).astype(np.uint8)
-        return np.where(lone, start_u8, display)
-    if scratch is None or scratch.dtype != np.int8 or scratch.shape != (_lone_scratch_size(width, height),):
-        scratch = new_lone_scratch(width, height)
-    out = np.empty((height, width), np.uint8)
-    grid = -(-(height + 2) * (width + 2) // 8) * 8
-    padded, lone = scratch[:(height + 2) * (width + 2)], scratch[grid:]
-    _kernels_smoothing.lone_changes_u8(np.ascontiguousarray(log_lat).reshape(-1),
-                                       np.ascontiguousarray(log_start).reshape(-1),
-                                       np.ascontiguousarray(display).reshape(-1), width, height, int(need), float(eps),
-                                       padded, lone, *tables, out.reshape(-1))
-    return out
-
-
-def new_lone_scratch(width: int, height: int) -> np.ndarray:
-    """Work space for lone_changes_u8, kept between frames: a zero-bordered sign grid and a per-pixel verdict."""
-    return np.zeros(_lone_scratch_size(width, height), np.int8)
-
-
-def _lone_scratch_size(width: int, height: int) -> int:
-    """The sign grid, rounded up to 8 bytes, then the verdicts, rounded up to 8 (read 8 at a time)."""
-    return -(-(height + 2) * (width + 2) // 8) * 8 + -(-width * height // 8) * 8
 
 
 def _checked(pixels: np.ndarray, values: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:

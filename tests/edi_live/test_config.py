@@ -250,28 +250,20 @@ def test_the_fused_residual_switch_reaches_the_reconstructor():
     assert default_reconstructor(16, 12, plain.edi).settings.fused_residual is False
 
 
-def test_the_latent_denoise_switch_reaches_the_reconstructor_and_is_off_by_default():
+@pytest.mark.parametrize("key, default", [("divisor_median", True), ("latent_denoise", False)])
+def test_a_reconstructor_switch_reaches_the_reconstructor_with_its_default(key, default):
+    """The node's default is the library's (and the benchmarks'); the flag and the TOML key flip it; a TOML
+    string is refused."""
     from edi_live.cli_parser import build_parser
     from edi_live.node import default_reconstructor
-
-    default = NodeConfig.from_options({"device": "auto"})
-    on = NodeConfig.from_options({"device": "auto", "latent_denoise": True})
-    assert default_reconstructor(16, 12, default.edi).settings.latent_denoise is False
-    assert default_reconstructor(16, 12, on.edi).settings.latent_denoise is True
-    assert build_parser().parse_args(["--latent-denoise"]).latent_denoise is True
-    with pytest.raises(ConfigError, match="latent-denoise must be true or false"):
-        NodeConfig.from_options({"device": "auto", "latent_denoise": "yes"})
-
-
-def test_the_divisor_median_switch_reaches_the_reconstructor():
-    from edi_live.cli_parser import build_parser
-    from edi_live.node import default_reconstructor
-
-    default = NodeConfig.from_options({"device": "auto"})
-    plain = NodeConfig.from_options({"device": "auto", "divisor_median": False})
-    assert default_reconstructor(16, 12, default.edi).settings.divisor_median is True
-    assert default_reconstructor(16, 12, plain.edi).settings.divisor_median is False
-    assert build_parser().parse_args(["--no-divisor-median"]).divisor_median is False
     from edi_live.reconstructor import EdiReconstructor
 
-    assert EdiReconstructor(16, 12).settings.divisor_median is True  # the library's (and the benchmarks') default
+    flag = key.replace("_", "-")
+    flipped = NodeConfig.from_options({"device": "auto", key: not default})
+    assert getattr(default_reconstructor(16, 12, NodeConfig.from_options({"device": "auto"}).edi).settings,
+                   key) is default
+    assert getattr(default_reconstructor(16, 12, flipped.edi).settings, key) is (not default)
+    assert getattr(build_parser().parse_args([f"--{'no-' if default else ''}{flag}"]), key) is (not default)
+    assert getattr(EdiReconstructor(16, 12).settings, key) is default
+    with pytest.raises(ConfigError, match=f"{flag} must be true or false"):
+        NodeConfig.from_options({"device": "auto", key: "yes"})

@@ -183,6 +183,8 @@ def _warn_ignored(config: NodeConfig, explicit: set[str]) -> None:
                         ", ".join("--" + name.replace("_", "-") for name in given))
     elif s.emulate_from is None and "speed" in explicit:
         log.warning("ignored with a live camera: --speed (it paces --replay and --emulate-from only)")
+    if config.edi.latent_denoise and config.edi.mode != "causal":
+        log.warning("ignored with --mode %s: --latent-denoise (it filters causal latent frames only)", config.edi.mode)
 
 
 _LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "[::1]", "::1")

@@ -32,9 +32,9 @@ class LatentState:
         self._median_scratch: np.ndarray | None = None  # the smoothed divisor's work grid (kept zeroed)
 
     def streaming_copy(self) -> "LatentState":
-        """Own image, display and lone-change state; the references (log_ref, log_shown) and the counts are shared (the copy reads the
-        one and never writes the other; once the original's frame pair has taken the counts over, they are the
-        pair's, which the deblur thread changes: a copy's counts mean nothing then)."""
+        """Own image, display and lone-change state; the references (log_ref, log_shown) and the counts are shared
+        (the copy reads the one and never writes the other; once the original's frame pair has taken the counts over,
+        they are the pair's, which the deblur thread changes: a copy's counts mean nothing then)."""
         twin = LatentState.__new__(LatentState)
         twin.width, twin.height = self.width, self.height
         twin.log_ref, twin.acc, twin._spare, twin._median_scratch = self.log_ref, self.acc, None, None

@@ -73,7 +73,7 @@ def default_reconstructor(width: int, height: int, edi: EdiConfig) -> Reconstruc
     kwargs["deblur_ahead"] = bool(edi.deblur_ahead)
     kwargs["mask_flicker_pixels"] = edi.mode != "fused" if edi.flicker_mask is None else bool(edi.flicker_mask)
     kwargs["fused_residual"], kwargs["divisor_median"] = bool(edi.fused_residual), bool(edi.divisor_median)
-    kwargs["latent_denoise"] = bool(edi.latent_denoise)
+    kwargs["latent_denoise"] = bool(edi.latent_denoise) and edi.mode == "causal"  # (cli warns otherwise)
     kwargs["noise_stats"], kwargs["noise_rate_hz"], kwargs["noise_start"] = (
         bool(edi.noise_stats), edi.noise_rate_hz, None if edi.start is None else edi.start.noise)
     if edi.mode == "fused":

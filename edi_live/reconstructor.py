@@ -123,6 +123,7 @@ class EdiReconstructor(ReconstructorView):
         self.settle()  # the previous frame's calibration, if the caller did not settle it
         t_start = time.perf_counter()
         self._colour, img = colour_edi.read_frame(self._colour, frame, self.settings)
+        self._latent.lone_changes &= self._colour is None  # a mosaic's neighbours are other colours (edi/lone.py)
         self._behind, self._behind_n = [], 0  # the latent image restarts at this frame's L(f)
         if img.shape != (self.height, self.width):
             raise ConfigError(f"APS frame is {img.shape[1]}x{img.shape[0]} but the reconstructor was set up for "

@@ -1,7 +1,8 @@
-"""Before/after pictures of the real DAVIS346 recordings: the APS frame, then the deblurred frame and a latent frame
-10 ms after the exposure, with the previous defaults (one c, every event trusted) and with today's (separate
-c_on/c_off, events that contradict the APS frames ignored); the 3x crops also with --latent-denoise. Events reach the reconstructor exactly as the worker
-hands them over (all events in time order, each APS frame once its exposure is in).
+"""Before/after pictures of the real DAVIS346 recordings: the APS frame, then the deblurred frame and a latent frame 10
+ms after the exposure, with the previous defaults (one c, every event trusted) and with today's (separate c_on/c_off,
+events that contradict the APS frames ignored); the 3x crops also with --latent-denoise. Events reach the
+reconstructor exactly as the worker hands them over (all events in time order, each APS frame once its exposure is
+in).
 
     python -m tools.real_camera_figure docs/real_before_after.png [RECORDING ...]
 """

@@ -24,10 +24,10 @@ This package is the EDI math's one public surface: import it as `import edi_live
 below; its underscored modules (the numba kernels) are private. Every function runs a compiled kernel and keeps a
 numpy reference of the same contract (`numpy_reference()`, see _backend).
 
-Modules: selection (time windows, pixel picks, counts), levels (level table, log D), deblur (log L(f)), smoothing
-(the 3x3 median of log D), lone (lone changes in latent frames), latent (propagation, rendering), fused (two-frame latent images), pixels (hot pixels,
-noise and flicker filters, sampling), pairs (the consistency estimator's sums), running (the double integral of an
-exposure accumulated while its events arrive).
+Modules: selection (time windows, pixel picks, counts), levels (level table, log D), deblur (log L(f)), smoothing (the
+3x3 median of log D), lone (lone changes in latent frames), latent (propagation, rendering), fused (two-frame latent
+images), pixels (hot pixels, noise and flicker filters, sampling), pairs (the consistency estimator's sums), running
+(the double integral of an exposure accumulated while its events arrive).
 """
 
 from types import ModuleType
@@ -75,8 +75,8 @@ __all__ = [
     "decay_hot_counts", "dilate", "empty_table", "event_delta", "event_mass", "events_at_pixels", "fall_back_u8",
     "finish_frame_u8", "flat_index", "flicker_cycles", "FlickerState", "forward_plan", "fused_frames", "fused_log",
     "FusedPropagator", "fusion_plan", "fusion_weights", "FusionPlan", "have_numba", "hot_pixel_mask",
-    "isolated_event_mask", "LoneChanges", "lone_changes_u8", "LEVEL_CAP", "LevelTable", "log_divisor", "log_divisor_events",
-    "LOG_MAX", "LOG_MIN",
+    "isolated_event_mask", "LoneChanges", "lone_changes_u8", "LEVEL_CAP", "LevelTable", "log_divisor",
+    "log_divisor_events", "LOG_MAX", "LOG_MIN",
     "mark_event_pixels", "median_at_pixels", "new_activity_map", "new_activity_state", "new_lone_scratch",
     "new_median_scratch",
     "numpy_reference", "pair_candidates", "propagate_log", "Propagator", "reference_logs", "render_buckets",

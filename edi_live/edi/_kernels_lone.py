@@ -12,7 +12,7 @@ from numba import njit
 
 @njit(cache=True, nogil=True, fastmath=True)
 def _change_signs(log_lat, log_start, width, height, eps, padded):
-    """padded[(y + 1) * (width + 2) + x + 1] = the sign of pixel (x, y)'s log change beyond eps; the border stays 0."""
+    """padded[(y + 1) * (width + 2) + x + 1] = the sign of pixel (x, y)'s log change beyond eps (not the border)."""
     pw = width + 2
     for y in range(height):
         row = y * width
@@ -42,9 +42,18 @@ def _lone_rows(padded, width, height, need, lone):
 @njit(cache=True, nogil=True)
 def lone_changes_u8(log_lat, log_start, display, start_display, width, height, need, eps, padded, lone, out):
     """out = display, except at a pixel whose log changed by more than eps since log_start while fewer than `need`
-    of its 8 neighbours (on the sensor) changed in the same direction: there start_display. Work arrays: `padded`
-    int8 ((height + 2) * (width + 2), border zero: only its inside is written) and `lone` int8 (width * height
-    rounded up to a multiple of 8; the rest zero). Two vectorised passes and a copy with rare exceptions."""
+    of its 8 neighbours (on the sensor) changed in the same direction: there start_display. Work arrays, whatever
+    they hold: `padded` int8 ((height + 2) * (width + 2)) and `lone` int8 (width * height rounded up to a multiple
+    of 8). Their border and tail are zeroed here, not trusted: a scratch of the same length may have served the
+    transposed size, whose signs lie on this size's border (and a stale verdict past the last pixel would be
+    written past `out`). Two vectorised passes and a copy with rare exceptions."""
+    pw = width + 2
+    padded[:pw] = 0
+    padded[(height + 1) * pw:(height + 2) * pw] = 0
+    for y in range(1, height + 1):
+        padded[y * pw] = 0
+        padded[y * pw + pw - 1] = 0
+    lone[width * height:] = 0
     _change_signs(log_lat, log_start, width, height, eps, padded)
     _lone_rows(padded, width, height, need, lone)
     out[:] = display

@@ -58,8 +58,9 @@ def lone_changes_u8(log_lat: np.ndarray, log_start: np.ndarray, display: np.ndar
 
 
 def new_lone_scratch(width: int, height: int) -> np.ndarray:
-    """Work space for lone_changes_u8, kept between frames: a zero-bordered sign grid and the per-pixel verdicts,
-    each on 8-byte boundaries (the verdicts are read 8 at a time)."""
+    """Work space for lone_changes_u8, kept between frames: a sign grid with a border and the per-pixel verdicts, each
+    on 8-byte boundaries (the verdicts are read 8 at a time); any int8 array of its length will do: lone_changes_u8
+    sets what it reads."""
     return np.zeros(_scratch_size(width, height), np.int8)
 
 

@@ -335,6 +335,8 @@ def test_publishing_beyond_loopback_without_curve_is_said_aloud(caplog, tmp_path
     ({"device": "davis240", "speed": 4.0}, "ignored with a live camera: --speed"),
     ({"replay": "x.aedat4", "speed": 4.0}, None),
     ({"device": "davis240", "exposure_us": 5000}, None),
+    ({"replay": "x.aedat4", "latent_denoise": True, "mode": "fused"}, "ignored with --mode fused: --latent-denoise"),
+    ({"replay": "x.aedat4", "latent_denoise": True}, None),
 ])
 def test_options_that_do_nothing_for_the_input_are_said_aloud(caplog, flags, warning):
     from edi_live import cli

@@ -50,6 +50,26 @@ def test_the_whole_frame_test_follows_its_definition(rng, reference):
         assert np.array_equal(got, _brute_lone(lat, start, display, start_display, need, LONE_EPS))
 
 
+def test_a_kept_scratch_of_another_shape_or_any_contents_gives_the_definition(rng):
+    """The scratch is only checked by length: one last used at the transposed size (the same length, its sign grid
+    written where this size's zero border lies), or holding anything at all, must still give the definition's
+    result (the border and the verdicts past the last pixel are the kernel's to set). From the review."""
+    for h, w in ((4, 6), (5, 9), (8, 8), (3, 7)):
+        scratch = edi.new_lone_scratch(w, h)
+        assert scratch.size == edi.new_lone_scratch(h, w).size
+        moved = np.full((w, h), np.log(100.0), np.float32)  # the transposed size, every pixel changed
+        edi.lone_changes_u8(moved + np.float32(0.4), moved, edi.to_uint8(moved + np.float32(0.4)),
+                            edi.to_uint8(moved), scratch=scratch)
+        for kept in (scratch, rng.integers(-128, 128, scratch.size).astype(np.int8)):
+            start = rng.normal(3.0, 1.5, (h, w)).astype(np.float32)
+            lat = start.copy()
+            lat[:, -1] += np.float32(0.4)  # the last column and first row change: their neighbours off the sensor
+            lat[0, :] += np.float32(0.3)  # are the border
+            display, start_display = edi.to_uint8(lat), edi.to_uint8(start)
+            got = edi.lone_changes_u8(lat, start, display, start_display, scratch=kept)
+            assert np.array_equal(got, _brute_lone(lat, start, display, start_display, 2, LONE_EPS))
+
+
 def test_a_lone_dot_shows_its_start_and_a_moving_patch_or_edge_stays():
     start = np.full((12, 16), np.log(100.0), np.float32)
     lat = start.copy()
@@ -152,3 +172,25 @@ def test_latent_denoise_hides_one_pixels_event_after_the_exposure_but_not_a_movi
     others = np.ones_like(lat_p, bool)
     others[3, 3] = False
     assert np.array_equal(lat_d[others], lat_p[others])
+
+
+def test_a_colour_mosaic_or_another_mode_is_not_filtered():
+    """A Bayer mosaic's neighbours are other colours: the reconstructor leaves its frames as they are; the node
+    gives the option to causal mode only (cli warns in the others)."""
+    from edi_live.config import NodeConfig
+    from edi_live.node import default_reconstructor
+
+    frame = Frame(image=np.full((18, 24), 120, np.uint8), exposure_start_us=1_000, exposure_end_us=21_000)
+    after = np.zeros(1, EVENT_DTYPE)
+    after["t"], after["x"], after["y"], after["p"] = 25_000, 3, 3, True
+    latent = {}
+    for denoise in (False, True):
+        rec = EdiReconstructor(24, 18, c=0.3, latent_denoise=denoise, color_filter="RGGB", gray=True,
+                               black_level=0.0, clock_offset_us=0)
+        rec.on_frame(frame, np.zeros(0, EVENT_DTYPE))
+        rec.on_events(after, 0)
+        latent[denoise] = rec.render().image
+    assert np.array_equal(latent[False], latent[True]) and latent[True][3, 3] > 120
+    for mode, on in (("causal", True), ("nearest", False), ("fused", False)):
+        cfg = NodeConfig.from_options({"device": "auto", "mode": mode, "latent_denoise": True})
+        assert default_reconstructor(24, 18, cfg.edi).settings.latent_denoise is on

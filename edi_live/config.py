@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -30,6 +29,7 @@ from edi_live.datatypes import COLOR_FILTERS
 from edi_live.checks import check_endpoint, fits_memory, int_in as _int_in, positive_or_none as _positive_or_none
 from edi_live.config_file import merge_options, norm_key
 from edi_live.errors import ConfigError
+from edi_live.file_roles import check_apart
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
 POLICIES = ("drop_oldest", "wait")
@@ -231,11 +231,10 @@ class NodeConfig:
     save_calibration: Path | None = None  # where to save the calibration in use at the end
 
     def __post_init__(self) -> None:
-        for flag, written in (("out", self.output.out), ("record", self.output.record)):
-            for source_flag, read in (("replay", self.source.replay), ("emulate-from", self.source.emulate_from)):
-                _check(written is None or read is None or not _same_file(written, read),
-                       f"{flag} would overwrite the {source_flag} recording it reads (got {str(written)!r}); "
-                       f"choose another file name")
+        check_apart({"replay": self.source.replay, "emulate-from": self.source.emulate_from,
+                     "calibration": self.calibration},
+                    {"out": self.output.out, "record": self.output.record, "save-calibration": self.save_calibration},
+                    may_update={"save-calibration": "calibration"})
         _positive_or_none("duration", self.duration_s)
         _positive_or_none("status-interval-s", self.status_interval_s)
         _check(self.log_level in LOG_LEVELS,
@@ -274,16 +273,6 @@ class NodeConfig:
     def from_toml(cls, path: str | Path, overrides: Mapping[str, Any] | None = None) -> "NodeConfig":
         """Read `path`, then apply `overrides` (explicit flags) on top."""
         return cls.from_options(merge_options(read_toml(path), overrides or {}))
-
-
-def _same_file(a: Path, b: Path) -> bool:
-    """Whether two paths name one file (also through links, or relative vs absolute spellings)."""
-    try:
-        if Path(a).exists() and Path(b).exists():
-            return os.path.samefile(a, b)
-        return Path(a).resolve() == Path(b).resolve()
-    except OSError:
-        return False
 
 
 # flat option key -> (section, field, converter)

@@ -26,7 +26,8 @@ from typing import Any, Callable, Mapping
 from edi_live import config_file
 from edi_live.checks import check as _check
 from edi_live.datatypes import COLOR_FILTERS
-from edi_live.checks import check_endpoint, fits_memory, int_in as _int_in, positive_or_none as _positive_or_none
+from edi_live.checks import check_endpoint, fits_memory, int_in as _int_in, parse_tcp_endpoint
+from edi_live.checks import positive_or_none as _positive_or_none
 from edi_live.config_file import merge_options, norm_key
 from edi_live.errors import ConfigError
 from edi_live.file_roles import check_apart
@@ -215,6 +216,9 @@ class OutputConfig:
                f"writer queue size must be >= 1 (got {self.queue_items!r})")
         _check(self.out is None or self.record is None or Path(self.out) != Path(self.record),
                f"out and record must be different files (got {str(self.out)!r} twice)")
+        for flag, endpoint in (("--dv-output", self.dv_output), ("--dv-output-events", self.dv_output_events)):
+            if endpoint is not None:  # here, before the node warns that the endpoint is exposed
+                parse_tcp_endpoint(endpoint, flag)
 
 
 @dataclass(frozen=True)

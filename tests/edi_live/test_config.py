@@ -51,6 +51,9 @@ def test_defaults_are_safe():
     ({"device": "auto", "emulate_from": "x"}, "needs --usb-backend"),
     ({"replay": "x", "publish": ["5555"]}, "(got '5555')"),
     ({"replay": "x", "out": "a.aedat4", "record": "a.aedat4"}, "different files"),
+    # checked with the other values: the node used to warn "serving DV on garbage: anyone ... can connect" first
+    ({"replay": "x", "dv_output": "garbage"}, "--dv-output must look like tcp://HOST:PORT"),
+    ({"replay": "x", "dv_output_events": "tcp://0.0.0.0:99999"}, "--dv-output-events must look like tcp://HOST:PORT"),
     ({"replay": "x", "ring_events": 10}, "ring-events"),
     ({"replay": "x", "duration": -2}, "duration must be a positive number (got -2"),
     ({"replay": "x", "frobnicate": 1}, "unknown option(s) frobnicate"),

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -72,7 +73,8 @@ class SourceConfig:
             value = getattr(self, name)
             _check(value is None or (isinstance(value, int) and value > 0),
                    f"{name.replace('_', '-')} must be a positive integer in µs (got {value!r})")
-        _check(self.usb_backend is None or (":" in self.usb_backend and all(self.usb_backend.split(":", 1))),
+        _check(self.usb_backend is None or (isinstance(self.usb_backend, str) and ":" in self.usb_backend
+                                            and all(self.usb_backend.split(":", 1))),
                f"usb-backend must look like MODULE:CALLABLE (got {self.usb_backend!r})")
         _check(self.emulate_from is None or self.usb_backend is not None,
                "emulate-from needs --usb-backend, e.g. --usb-backend drivers.emulator:backend")
@@ -281,6 +283,8 @@ class NodeConfig:
 
 # flat option key -> (section, field, converter)
 def _path(v: Any) -> Path | None:
+    if v is not None and not isinstance(v, (str, os.PathLike)):  # Path(3)'s own message is Python's, not ours
+        raise TypeError("expected a file path")
     return None if v is None else Path(v)
 
 

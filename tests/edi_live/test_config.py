@@ -53,6 +53,10 @@ def test_defaults_are_safe():
     ({"replay": "x", "out": "a.aedat4", "record": "a.aedat4"}, "different files"),
     # checked with the other values: the node used to warn "serving DV on garbage: anyone ... can connect" first
     ({"replay": "x", "dv_output": "garbage"}, "--dv-output must look like tcp://HOST:PORT"),
+    # a TOML value of the wrong type: our message naming the key, not Python's TypeError text
+    ({"replay": 5}, "replay: expected a file path (got 5)"),
+    ({"replay": "x", "out": True}, "out: expected a file path (got True)"),
+    ({"device": "auto", "usb_backend": 5}, "usb-backend must look like MODULE:CALLABLE (got 5)"),
     ({"replay": "x", "dv_output_events": "tcp://0.0.0.0:99999"}, "--dv-output-events must look like tcp://HOST:PORT"),
     ({"replay": "x", "ring_events": 10}, "ring-events"),
     ({"replay": "x", "duration": -2}, "duration must be a positive number (got -2"),

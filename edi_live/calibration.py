@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from edi_live.config import EdiConfig
+from edi_live.config_file import read_limited
 from edi_live.datatypes import SourceInfo
 from edi_live.errors import ConfigError
 from edi_live.pixel_noise import NoiseRates
@@ -81,10 +82,13 @@ def default_path(info: SourceInfo) -> Path:
     return calibration_dir() / f"{info.label}.json"
 
 
+MAX_FILE_BYTES = 64 << 20  # a DAVIS346's file is ~0.5 MB, most of it the noise rates
+
+
 def load(path: Path | str) -> Calibration:
     """Read and check a calibration file; any defect is one ConfigError naming the file."""
     try:
-        data = json.loads(Path(path).read_text())
+        data = json.loads(read_limited(path, MAX_FILE_BYTES).decode("utf-8"))
     except OSError as exc:
         raise ConfigError(f"cannot read calibration {path} ({exc.strerror or exc})") from None
     except (ValueError, UnicodeDecodeError) as exc:

@@ -21,13 +21,25 @@ def norm_key(key: str) -> str:
     return key.strip().lstrip("-").replace("-", "_")
 
 
+MAX_CONFIG_BYTES = 1 << 20
+
+
+def read_limited(path: str | Path, limit: int) -> bytes:
+    """The file's bytes; ValueError past `limit` bytes, read no further: a recording or a device given by mistake
+    (--config /dev/zero, --calibration rec.aedat4) would otherwise be read into memory whole, or for ever."""
+    with Path(path).open("rb") as fh:
+        data = fh.read(limit + 1)
+    if len(data) > limit:
+        raise ValueError(f"larger than {limit >> 20} MiB, far more than such a file holds")
+    return data
+
+
 def read_toml(path: str | Path, known: Iterable[str]) -> dict[str, Any]:
     """The flat key -> value mapping of a TOML config file, whose keys must be among `known`; ConfigError naming
     the file on any problem."""
     path = Path(path)
     try:
-        with path.open("rb") as fh:
-            data = tomllib.load(fh)
+        data = tomllib.loads(read_limited(path, MAX_CONFIG_BYTES).decode("utf-8"))
     except FileNotFoundError:
         raise ConfigError(f"config file {path} not found") from None
     except OSError as exc:

@@ -103,6 +103,15 @@ def test_a_failed_save_leaves_no_temporary_file(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["cam.json"]
 
 
+def test_a_huge_file_given_as_calibration_is_refused_without_reading_it_all(tmp_path):
+    # --calibration /dev/zero (or a recording given by mistake) was read whole: MemoryError or a hang
+    big = tmp_path / "rec.aedat4"
+    with big.open("wb") as fh:
+        fh.truncate(calibration.MAX_FILE_BYTES + 1)  # sparse: no disk used
+    with pytest.raises(ConfigError, match=f"calibration {big} is not a JSON file .larger than 64 MiB"):
+        calibration.load(big)
+
+
 def test_a_save_never_replaces_a_device_or_a_pipe(tmp_path):
     # the rename used to replace whatever was there: as root, --save-calibration /dev/full turned the device
     # into a JSON file

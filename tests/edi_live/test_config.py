@@ -292,3 +292,14 @@ def test_the_divisor_median_switch_reaches_the_reconstructor():
     from edi_live.reconstructor import EdiReconstructor
 
     assert EdiReconstructor(16, 12).settings.divisor_median is True  # the library's (and the benchmarks') default
+
+
+def test_a_huge_config_file_is_refused_without_reading_it_all(tmp_path: Path):
+    # --config /dev/zero ended in "internal error: MemoryError" (or a hang): the file was read whole
+    from edi_live.config_file import MAX_CONFIG_BYTES
+
+    big = tmp_path / "big.toml"
+    with big.open("wb") as fh:
+        fh.truncate(MAX_CONFIG_BYTES + 1)
+    with pytest.raises(ConfigError, match="larger than 1 MiB"):
+        read_toml(big)

@@ -245,3 +245,15 @@ def test_many_dark_frames_are_measured_on_an_even_sample_of_them(tmp_path, rng):
     assert done.returncode == 0, done.stderr
     assert abs(calibration.load(saved).black_level - 7.0) <= 0.5
     assert "60 dark frames" in done.stderr, done.stderr  # every 5th of the 300 (5 = the fewest with at most 64)
+
+
+def test_outputs_that_calibrate_dark_does_not_write_are_said_to_be_ignored(tmp_path, rng):
+    # --record raw.aedat4 beside --calibrate-dark wrote nothing and said nothing
+    dark = tmp_path / "dark.aedat4"
+    _write_dark_recording(dark, rng, 5.0, n=3)
+    done = _node("--replay", str(dark), "--speed", "0", "--calibrate-dark", "3", "--save-calibration",
+                 str(tmp_path / "cam.json"), "--out", str(tmp_path / "sharp.aedat4"), "--record",
+                 str(tmp_path / "raw.aedat4"))
+    assert done.returncode == 0, done.stderr
+    assert "ignored with --calibrate-dark: --out, --record" in done.stderr, done.stderr
+    assert not (tmp_path / "sharp.aedat4").exists() and not (tmp_path / "raw.aedat4").exists()

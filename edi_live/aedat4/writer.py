@@ -71,6 +71,10 @@ class Aedat4Writer:
             self._file = open(self.path, "wb")
         except OSError as exc:
             raise RecordingError(f"cannot create the recording ({exc.strerror or exc})", self.path) from exc
+        if not self._file.seekable():  # a pipe or terminal: the table's offsets and the header patch need seeking
+            self._file.close()
+            raise RecordingError("cannot write a recording to a pipe or terminal: an AEDAT4 file is finalised by "
+                                 "seeking back into it; give a file name", self.path)
         # -1 ("no table") is stored explicitly, not omitted as a FlatBuffers default, so close() can patch it in
         # place; a recording cut off before close() then reads as an interrupted recording in every DV tool
         header, positions = self._header(-1)

@@ -236,6 +236,20 @@ def test_writer_rejects_bad_input_without_damaging_the_file(tmp_path, rng):
         Aedat4Writer(tmp_path / "x.aedat4", 10, 10, compression="gzip")
 
 
+def test_a_pipe_is_refused_at_open_in_one_line():
+    # `--out /dev/stdout | ...` failed at the first packet as "the out-writer thread failed: OSError: [Errno 29]
+    # Illegal seek", after part of the run, and left a header-only file
+    import os
+
+    read_end, write_end = os.pipe()
+    try:
+        with pytest.raises(RecordingError, match="pipe or terminal.*give a file name"):
+            Aedat4Writer(f"/dev/fd/{write_end}", 64, 48)
+    finally:
+        os.close(read_end)
+        os.close(write_end)
+
+
 def test_recording_cut_off_before_close_still_opens_everywhere(tmp_path, rng):
     # a crash (SIGKILL, power loss) leaves no FileDataTable: the header must then say "no table" (-1), which DV
     # tools treat as an interrupted recording and index by walking the packets

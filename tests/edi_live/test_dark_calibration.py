@@ -222,6 +222,33 @@ def test_a_signal_before_n_frames_writes_nothing(tmp_path, rng):
 
 
 
+def test_an_unwritable_target_is_refused_before_any_frame_is_read(tmp_path):
+    # it was found only at the end: a live camera's --calibrate-dark 1000 with the lens covered, then the error
+    from edi_live.dark_calibration import calibrate_dark
+    from edi_live.datatypes import SourceInfo
+
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    iterated = []
+
+    class Source:
+        info = SourceInfo(width=48, height=36, name="edi-live-sim", kind="replay")
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def __iter__(self):
+            iterated.append(True)
+            return iter(())
+
+    with pytest.raises(ConfigError, match="cannot write calibration"):
+        calibrate_dark(Source(), 3, blocker / "cam.json")
+    assert not iterated
+
+
 def test_calibrate_dark_with_loop_on_a_recording_without_frames_ends(tmp_path):
     """--loop would replay a recording without APS frames for ever; each recorded frame is measured once."""
     events_only = tmp_path / "events.aedat4"

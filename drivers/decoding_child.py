@@ -17,7 +17,7 @@ The child is started through a forkserver (spawn where there is none), which imp
 again as "__mp_main__": that module must not start work at import (the CLI's does not). The server also imports
 `drivers._forkserver_warmup`, which calls `warm_decoder()` there once, so every child is forked with the AEDAT4
 reader's numba kernels loaded (a child that loads them itself needs ~0.4 s for its first packet). The parent closes its end
-to stop the child. The child ignores SIGINT and SIGTERM, so Ctrl-C in a terminal (or a signal to the process
+to stop the child. The child ignores SIGINT, SIGTERM and SIGHUP, so Ctrl-C in a terminal (or a signal to the process
 group) stops only the node, which then stops the child.
 """
 
@@ -140,10 +140,14 @@ class _Sender:
         self.sock.close()
 
 
+# the node's stop signals (edi_live.stop_signals): the node stops this child itself, after it stopped reading
+_STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
+
+
 def _child(conn: Any, path: str, max_packet_us: int, loop: bool) -> None:
     """Child process: every pass's packets into the socket `conn`, in order, until the parent goes away."""
     conn = _Sender(conn)
-    for sig in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C / kill of the whole group: the node stops us itself
+    for sig in _STOP_SIGNALS:  # Ctrl-C / kill / hang-up of the whole group: the node stops us itself
         signal.signal(sig, signal.SIG_IGN)
     # no log lines from here: the parent's own reader announced what the header says, and our faults travel to
     # the parent as messages (unformatted lines from this process would interleave with the node's)

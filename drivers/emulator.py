@@ -332,9 +332,9 @@ class EmulatorBackend(usb.backend.IBackend):
         limit = self.faults.get("unplug_after_bytes")
         n = min(len(buff), len(data))
         if limit is not None:
-            n = min(n, int(limit) - self._sent_bytes)
-            if n <= 0:
+            if int(limit) <= self._sent_bytes:  # (not n == 0: an empty part is no reason to unplug)
                 self._unplug()
+            n = min(n, int(limit) - self._sent_bytes)
         buff[:n] = array("B", data[:n])
         self._pending[0] = (data[n:], dev_t)
         if not self._pending[0][0]:

@@ -44,6 +44,7 @@ class _Merger:
         self.events: list[tuple[int, int, np.ndarray]] = []  # (t_first, t_last, events)
         self.n_events = 0
         self.frames: list[tuple[int, int, Frame]] = []  # (exposure end, arrival order, frame)
+        self.frame_start = _NEG_INF  # the newest frame's exposure start: frames come in time order
         self.imu: list[tuple[int, int, np.ndarray]] = []
         self.triggers: list[tuple[int, int, np.ndarray]] = []
         self.order = 0
@@ -73,6 +74,10 @@ class _Merger:
                                            start_us=None if data.start_us is None else data.start_us + off,
                                            end_us=None if data.end_us is None else data.end_us + off)
             key_lo, key = data.exposure_start_us, data.exposure_end_us
+            if key_lo < self.frame_start:  # EDI would take it as the newest reference, seconds in the past
+                raise RecordingError(f"frame exposure starts at {key_lo - off} µs, before the previous frame's "
+                                     f"{self.frame_start - off} µs (frames out of time order)", self.path, pos)
+            self.frame_start = key_lo
             self.order += 1
             bisect.insort(self.frames, (key, self.order, data), key=lambda f: (f[0], f[1]))
         else:

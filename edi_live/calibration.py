@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from edi_live.config import EdiConfig
+from edi_live.config_file import read_limited
 from edi_live.datatypes import SourceInfo
 from edi_live.errors import ConfigError
 from edi_live.pixel_noise import NoiseRates
@@ -81,10 +82,13 @@ def default_path(info: SourceInfo) -> Path:
     return calibration_dir() / f"{info.label}.json"
 
 
+MAX_FILE_BYTES = 64 << 20  # a DAVIS346's file is ~0.5 MB, most of it the noise rates
+
+
 def load(path: Path | str) -> Calibration:
     """Read and check a calibration file; any defect is one ConfigError naming the file."""
     try:
-        data = json.loads(Path(path).read_text())
+        data = json.loads(read_limited(path, MAX_FILE_BYTES).decode("utf-8"))
     except OSError as exc:
         raise ConfigError(f"cannot read calibration {path} ({exc.strerror or exc})") from None
     except (ValueError, UnicodeDecodeError) as exc:
@@ -141,9 +145,30 @@ def _decode_noise(data: Any, shape: tuple[int, int], path: Path | str) -> NoiseR
     return NoiseRates(*arrays)
 
 
+def check_can_save(path: Path | str) -> None:
+    """ConfigError now, rather than after the run has measured everything, when save() could not write `path`:
+    a missing folder that cannot be made, a read-only place, or a target that is not a regular file (the rename
+    would replace a device or a pipe). Leaves nothing behind but the folder save() would make anyway."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        _check_regular(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp.open("w").close()
+        tmp.unlink()
+    except OSError as exc:
+        raise ConfigError(f"cannot write calibration {path} ({exc.strerror or exc})") from None
+
+
+def _check_regular(path: Path) -> None:
+    if path.exists() and not path.is_file():
+        raise ConfigError(f"cannot write calibration {path} (it exists and is not a regular file)")
+
+
 def save(cal: Calibration, path: Path | str) -> None:
     """Write atomically (a temporary file renamed over the target), creating the folder."""
     path = Path(path)
+    _check_regular(path)
     data: dict[str, Any] = {"format": FORMAT, "version": VERSION,
                             **{f.name: getattr(cal, f.name) for f in dataclasses.fields(cal) if f.name != "noise"}}
     if cal.noise is not None:

@@ -1,6 +1,6 @@
 """Value checks for the configuration, each failing with a one-line `ConfigError` that names the option and the
-bad value "(got ...)": integer and positive-number ranges, ZeroMQ endpoints, and sizes against the memory the
-system can still give. No I/O beyond reading /proc/meminfo.
+bad value "(got ...)": integer and positive-number ranges, ZeroMQ and DV network endpoints, and sizes against
+the memory the system can still give. No I/O beyond reading /proc/meminfo.
 """
 
 from __future__ import annotations
@@ -65,3 +65,13 @@ def check_endpoint(endpoint: Any) -> None:
     ok = bool(sep and host) and (port == "*" or (port.isdigit() and 1 <= int(port) <= 65535))
     check(ok, f"publish endpoint {endpoint!r}: a tcp endpoint needs HOST:PORT with a port in 1-65535, or * for any "
               f"free port (e.g. tcp://127.0.0.1:5555)")
+
+
+def parse_tcp_endpoint(endpoint: str, flag: str = "--dv-output") -> tuple[str, int]:
+    """'tcp://HOST:PORT' -> (host, port); ConfigError otherwise. Port 0 picks a free port."""
+    scheme, sep, rest = endpoint.partition("://")
+    host, _, port = rest.rpartition(":")
+    host = host.strip("[]")
+    if scheme != "tcp" or not sep or not host or not port.isdigit() or int(port) > 65535:
+        raise ConfigError(f"{flag} must look like tcp://HOST:PORT, e.g. tcp://127.0.0.1:7777 (got {endpoint!r})")
+    return host, int(port)

@@ -260,6 +260,10 @@ def _main(argv: Sequence[str] | None, signals: StopSignals) -> int:
         _setup_logging(level)
         _warn_if_exposed(config)
         _warn_ignored(config, set(flags))
+        outputs = [f"--{name.replace('_', '-')}" for name in ("out", "record", "dv_output", "dv_output_events")
+                   if getattr(config.output, name) is not None]
+        if dark_frames is not None and outputs:  # it measures and exits: nothing is reconstructed or recorded
+            log.warning("ignored with --calibrate-dark: %s (it only measures the black level)", ", ".join(outputs))
         if dark_frames is not None and config.source.loop:  # a recording without frames would loop for ever
             log.warning("--loop is ignored with --calibrate-dark: each recorded frame is measured once")
             config = dataclasses.replace(config, source=dataclasses.replace(config.source, loop=False))

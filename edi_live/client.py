@@ -1,4 +1,5 @@
-"""`edi_live.client`: subscribe to an edi-live publisher and get `(header, numpy image)` pairs.
+"""`edi_live.client`: subscribe to an edi-live publisher and get `(header, numpy image)` pairs
+(`python -m edi_live.client [ENDPOINT]` prints one line per frame).
 
     from edi_live.client import subscribe
     for header, image in subscribe("tcp://127.0.0.1:5555"):
@@ -220,3 +221,38 @@ def subscribe(endpoint: str = DEFAULT_ENDPOINT, *, newest_only: bool = True, tim
                 raise ClientTimeout(f"no frame from {endpoint} within {timeout_s} s: is edi-live running "
                                     "and publishing there?")
             yield item
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m edi_live.client [ENDPOINT]`: one line per frame received (what edi-live --help promises), until
+    --count frames, a --timeout-s without one, or Ctrl-C. Errors are one line; exit 1."""
+    import argparse
+    import sys
+
+    parser = argparse.ArgumentParser(prog="python -m edi_live.client", description="print the frames an edi-live "
+                                     "publisher sends, one line each")
+    parser.add_argument("endpoint", nargs="?", default=DEFAULT_ENDPOINT, help=f"default: {DEFAULT_ENDPOINT}")
+    parser.add_argument("--curve-server-key", metavar="FILE", help="the publisher's public key (CURVE)")
+    parser.add_argument("--count", type=int, default=0, metavar="N", help="stop after N frames (default: never)")
+    parser.add_argument("--timeout-s", type=float, default=None, metavar="S",
+                        help="give up when no frame arrives for S seconds (default: wait)")
+    args = parser.parse_args(argv)
+    n = 0
+    try:
+        for header, image in subscribe(args.endpoint, timeout_s=args.timeout_s,
+                                       curve_server_key=args.curve_server_key):
+            n += 1
+            print(f"seq {header['seq']} t {header['t']} µs {header['kind']} {image.shape[1]}x{image.shape[0]} "
+                  f"events {header['n_events']} from {header['source']}", flush=True)
+            if n == args.count:
+                break
+    except KeyboardInterrupt:
+        pass
+    except ClientError as exc:
+        print(f"edi-live client: error: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -27,10 +26,12 @@ from typing import Any, Mapping
 from edi_live import config_file
 from edi_live.checks import check as _check
 from edi_live.datatypes import COLOR_FILTERS
-from edi_live.checks import check_endpoint, fits_memory, int_in as _int_in, positive_or_none as _positive_or_none
+from edi_live.checks import check_endpoint, fits_memory, int_in as _int_in, parse_tcp_endpoint
+from edi_live.checks import positive_or_none as _positive_or_none
 from edi_live.config_file import as_bool as _bool, as_endpoints as _endpoints, as_number as _num, as_path as _path
 from edi_live.config_file import merge_options, norm_key
 from edi_live.errors import ConfigError
+from edi_live.file_roles import check_apart
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
 POLICIES = ("drop_oldest", "wait")
@@ -72,7 +73,8 @@ class SourceConfig:
             value = getattr(self, name)
             _check(value is None or (isinstance(value, int) and value > 0),
                    f"{name.replace('_', '-')} must be a positive integer in µs (got {value!r})")
-        _check(self.usb_backend is None or (":" in self.usb_backend and all(self.usb_backend.split(":", 1))),
+        _check(self.usb_backend is None or (isinstance(self.usb_backend, str) and ":" in self.usb_backend
+                                            and all(self.usb_backend.split(":", 1))),
                f"usb-backend must look like MODULE:CALLABLE (got {self.usb_backend!r})")
         _check(self.emulate_from is None or self.usb_backend is not None,
                "emulate-from needs --usb-backend, e.g. --usb-backend drivers.emulator:backend")
@@ -217,6 +219,9 @@ class OutputConfig:
                f"writer queue size must be >= 1 (got {self.queue_items!r})")
         _check(self.out is None or self.record is None or Path(self.out) != Path(self.record),
                f"out and record must be different files (got {str(self.out)!r} twice)")
+        for flag, endpoint in (("--dv-output", self.dv_output), ("--dv-output-events", self.dv_output_events)):
+            if endpoint is not None:  # here, before the node warns that the endpoint is exposed
+                parse_tcp_endpoint(endpoint, flag)
 
 
 @dataclass(frozen=True)
@@ -233,11 +238,10 @@ class NodeConfig:
     save_calibration: Path | None = None  # where to save the calibration in use at the end
 
     def __post_init__(self) -> None:
-        for flag, written in (("out", self.output.out), ("record", self.output.record)):
-            for source_flag, read in (("replay", self.source.replay), ("emulate-from", self.source.emulate_from)):
-                _check(written is None or read is None or not _same_file(written, read),
-                       f"{flag} would overwrite the {source_flag} recording it reads (got {str(written)!r}); "
-                       f"choose another file name")
+        check_apart({"replay": self.source.replay, "emulate-from": self.source.emulate_from,
+                     "calibration": self.calibration},
+                    {"out": self.output.out, "record": self.output.record, "save-calibration": self.save_calibration},
+                    may_update={"save-calibration": "calibration"})
         _positive_or_none("duration", self.duration_s)
         _positive_or_none("status-interval-s", self.status_interval_s)
         _check(self.log_level in LOG_LEVELS,
@@ -276,16 +280,6 @@ class NodeConfig:
     def from_toml(cls, path: str | Path, overrides: Mapping[str, Any] | None = None) -> "NodeConfig":
         """Read `path`, then apply `overrides` (explicit flags) on top."""
         return cls.from_options(merge_options(read_toml(path), overrides or {}))
-
-
-def _same_file(a: Path, b: Path) -> bool:
-    """Whether two paths name one file (also through links, or relative vs absolute spellings)."""
-    try:
-        if Path(a).exists() and Path(b).exists():
-            return os.path.samefile(a, b)
-        return Path(a).resolve() == Path(b).resolve()
-    except OSError:
-        return False
 
 
 # flat option key -> (section, field, converter)

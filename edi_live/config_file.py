@@ -4,6 +4,7 @@ ConfigError naming the file."""
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
@@ -22,13 +23,25 @@ def norm_key(key: str) -> str:
     return key.strip().lstrip("-").replace("-", "_")
 
 
+MAX_CONFIG_BYTES = 1 << 20
+
+
+def read_limited(path: str | Path, limit: int) -> bytes:
+    """The file's bytes; ValueError past `limit` bytes, read no further: a recording or a device given by mistake
+    (--config /dev/zero, --calibration rec.aedat4) would otherwise be read into memory whole, or for ever."""
+    with Path(path).open("rb") as fh:
+        data = fh.read(limit + 1)
+    if len(data) > limit:
+        raise ValueError(f"larger than {limit >> 20} MiB, far more than such a file holds")
+    return data
+
+
 def read_toml(path: str | Path, known: Iterable[str]) -> dict[str, Any]:
     """The flat key -> value mapping of a TOML config file, whose keys must be among `known`; ConfigError naming
     the file on any problem."""
     path = Path(path)
     try:
-        with path.open("rb") as fh:
-            data = tomllib.load(fh)
+        data = tomllib.loads(read_limited(path, MAX_CONFIG_BYTES).decode("utf-8"))
     except FileNotFoundError:
         raise ConfigError(f"config file {path} not found") from None
     except OSError as exc:
@@ -71,6 +84,8 @@ def merge_options(file_options: Mapping[str, Any], flag_options: Mapping[str, An
 
 # converters of the option table (edi_live.config.OPTION_KEYS): a TOML value or a flag's into the field's type
 def as_path(v: Any) -> Path | None:
+    if v is not None and not isinstance(v, (str, os.PathLike)):  # Path(3)'s own message is Python's, not ours
+        raise TypeError("expected a file path")
     return None if v is None else Path(v)
 
 

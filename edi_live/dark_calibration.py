@@ -126,6 +126,7 @@ def calibrate_dark(source: Any, n_frames: int, target: Path | None, signals: Any
                                   "its own calibration file)")
             target = calibration.default_path(info)
         existing_calibration(info, Path(target))  # a file that cannot take the value: said before the frames
+        calibration.check_can_save(target)  # and a place it cannot be written to
         for packet in source:
             if stop.event.is_set() or read >= n_frames:
                 break

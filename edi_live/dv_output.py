@@ -31,8 +31,9 @@ from typing import Any, Callable
 from edi_live.aedat4 import schema as S
 from edi_live.aedat4.compression import compressor
 from edi_live.aedat4.writer import events_payloads, frame_payload, info_xml, io_header
+from edi_live.checks import parse_tcp_endpoint
 from edi_live.datatypes import Frame, Packet, Reconstruction
-from edi_live.errors import BindError, ConfigError, PublishError
+from edi_live.errors import BindError, PublishError
 
 log = logging.getLogger(__name__)
 
@@ -43,16 +44,6 @@ DEFAULT_INBOX = 256
 _STOP_FLUSH_S = 0.5  # at close, how long clients get to take what is already queued for them
 _HEAD = struct.Struct("<ii")
 _RECONSTRUCTION = S.FRAME_SOURCES["reconstruction"]
-
-
-def parse_tcp_endpoint(endpoint: str, flag: str = "--dv-output") -> tuple[str, int]:
-    """'tcp://HOST:PORT' -> (host, port); ConfigError otherwise. Port 0 picks a free port."""
-    scheme, sep, rest = endpoint.partition("://")
-    host, _, port = rest.rpartition(":")
-    host = host.strip("[]")
-    if scheme != "tcp" or not sep or not host or not port.isdigit() or int(port) > 65535:
-        raise ConfigError(f"{flag} must look like tcp://HOST:PORT, e.g. tcp://127.0.0.1:7777 (got {endpoint!r})")
-    return host, int(port)
 
 
 class _Client:

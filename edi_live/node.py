@@ -222,6 +222,8 @@ class Node:
         info = self.source.info
         self.ring = EventRing(cfg.ring.capacity_events, cfg.ring.capacity_frames, cfg.ring_policy)
         edi_cfg, self._calibration_to = calibration.prepare(cfg.edi, info, cfg.calibration, cfg.save_calibration)
+        if cfg.save_calibration is not None:
+            calibration.check_can_save(cfg.save_calibration)  # before the run, not after it has measured everything
         self._calibration_start = edi_cfg.start
         # colour: EDI on the Bayer mosaic, with the user's pattern over the source's
         edi_cfg = dataclasses.replace(edi_cfg, color_filter=edi_cfg.color_filter or info.color_filter)

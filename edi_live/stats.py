@@ -177,6 +177,9 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         f"skipped: static {s.get('skipped_static', 0)} (APS frames not deblurred: "
         f"{s.get('skipped_static_deblur', 0)}), max-fps {s.get('skipped_max_fps', 0)}",
     ]
+    if events and not s.get("aps_frames_in"):
+        lines.append(f"  warning: no APS frame arrived, so none of the {events} events became a frame: EDI needs the "
+                     f"camera's APS frames (an events-only recording, or a camera without them, has none)")
     if s.get("ring_history_truncated"):
         lines.append(f"  warning: {s['ring_history_truncated']} exposure window(s) reached back past the ring's history "
                      f"(half of --ring-events): those APS frames were deblurred from part of their events; raise "

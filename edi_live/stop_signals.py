@@ -1,6 +1,7 @@
-"""SIGINT/SIGTERM for the command line: the first one stops the node cleanly, at any moment from the first line
-of `cli.main()` (a signal during start-up stops the node as soon as it exists, before it opens anything); any
-later one is ignored with one log line while the bounded stop finishes.
+"""SIGINT/SIGTERM/SIGHUP for the command line: the first one stops the node cleanly, at any moment from the first
+line of `cli.main()` (a signal during start-up stops the node as soon as it exists, before it opens anything); any
+later one is ignored with one log line while the bounded stop finishes. SIGHUP (the terminal or ssh session went
+away) stops like SIGTERM, unless it was already ignored when we started (`nohup edi-live ...`).
 """
 
 from __future__ import annotations
@@ -11,10 +12,12 @@ import threading
 from typing import Any
 
 log = logging.getLogger("edi_live")
+# SIGHUP's default action kills the process on the spot: --out left without its table, queued frames lost
+STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
 
 
 class StopSignals:
-    """SIGINT/SIGTERM, handled from the first line of main(): the first one stops the node cleanly (a signal that
+    """SIGINT/SIGTERM/SIGHUP, handled from the first line of main(): the first one stops the node cleanly (a signal that
     arrives while edi-live starts up stops the node as soon as it exists, before any data flows); any later one
     is ignored with one line. The stop itself is bounded (every join has a timeout), and a second Ctrl-C that
     interrupted it would cut the file finalisation short, so the summary would no longer match --out."""
@@ -28,7 +31,9 @@ class StopSignals:
     def install(self) -> None:
         if threading.current_thread() is not threading.main_thread():
             return  # (an in-process call from a thread: Python allows handlers on the main thread only)
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in STOP_SIGNALS:
+            if sig == getattr(signal, "SIGHUP", None) and signal.getsignal(sig) == signal.SIG_IGN:
+                continue  # nohup: the user asked to outlive the terminal
             self._previous[sig] = signal.signal(sig, self._handle)
 
     def restore(self) -> None:

@@ -443,6 +443,9 @@ def main(argv: list[str] | None = None) -> int:
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, lambda *_: viewer.stop.set())
         signal.signal(signal.SIGINT, lambda *_: viewer.stop.set())
+        # a closed terminal or ssh session: its default action killed us with the MP4 unreadable (no moov atom)
+        if hasattr(signal, "SIGHUP") and signal.getsignal(signal.SIGHUP) != signal.SIG_IGN:  # (nohup: ignored)
+            signal.signal(signal.SIGHUP, lambda *_: viewer.stop.set())
     try:
         viewer.run()
     except EdiLiveError as exc:

@@ -335,7 +335,10 @@ class DavisSource:
         """Wait for the camera to come back (same model/serial), then restart streaming with a gap mark."""
         last_wm = self._decoder.watermark_us if self._decoder else self._min_time_us
         self._dropped_before += self._queue.dropped_bytes if self._queue else 0
+        where = self._transport.where if self._transport is not None else f"the {self.model_name}"
         self._close()
+        log.warning("%s was disconnected; waiting for it to come back (--reconnect)", where)
+        away = time.monotonic()
         deadline = None if self.reconnect_timeout_s is None else time.monotonic() + self.reconnect_timeout_s
         while not self._user_stop.is_set():
             self._stop.clear()
@@ -344,6 +347,8 @@ class DavisSource:
                 self._open()
                 self._pending_gap = True
                 self._status.gaps += 1
+                log.warning("%s is back after %.1f s; resumed (what it saw meanwhile is lost, marked as a gap)",
+                            where, time.monotonic() - away)
                 return True
             except (DeviceNotFoundError, DeviceDisconnectedError):
                 self._close()  # not back yet

@@ -9,6 +9,7 @@ close() runs from `__exit__` even when the block raised, so the file is always f
 from __future__ import annotations
 
 import os
+import stat
 import struct
 from xml.sax.saxutils import escape
 
@@ -19,6 +20,13 @@ from edi_live.aedat4.compression import compressor
 from edi_live.aedat4.header import COLOR_FILTER_KEY
 from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, ColorFilter, Frame, as_events
 from edi_live.errors import RecordingError
+
+def _mode(path: str) -> int:
+    try:
+        return os.stat(path).st_mode
+    except OSError:
+        return 0  # not there (yet): open() creates it or says why not
+
 
 _STREAMS = (("events", "EVTS"), ("frames", "FRME"), ("imu", "IMUS"), ("triggers", "TRIG"))
 MAX_EVENTS_PER_PACKET = 1 << 20  # larger write_events() calls are split, keeping packets (and readers) bounded
@@ -67,10 +75,17 @@ class Aedat4Writer:
         self._compress = compressor(compression)
         self._table: list[tuple[int, int, int, int, int, int]] = []
         self._closed = False
+        if stat.S_ISFIFO(_mode(self.path)):  # opening one blocks until a reader comes, and no signal ends that
+            raise RecordingError("cannot write a recording to a pipe or terminal: an AEDAT4 file is finalised by "
+                                 "seeking back into it; give a file name", self.path)
         try:
             self._file = open(self.path, "wb")
         except OSError as exc:
             raise RecordingError(f"cannot create the recording ({exc.strerror or exc})", self.path) from exc
+        if not self._file.seekable():  # a pipe or terminal: the table's offsets and the header patch need seeking
+            self._file.close()
+            raise RecordingError("cannot write a recording to a pipe or terminal: an AEDAT4 file is finalised by "
+                                 "seeking back into it; give a file name", self.path)
         # -1 ("no table") is stored explicitly, not omitted as a FlatBuffers default, so close() can patch it in
         # place; a recording cut off before close() then reads as an interrupted recording in every DV tool
         header, positions = self._header(-1)

@@ -177,6 +177,11 @@ class _PixelEvents:
         return self._shift
 
 
+# |S| beyond this says nothing a pair of 8-bit frames could confirm (their log ratio is at most log(250 / 6) = 3.7),
+# while exp(S) of a stuck pixel (thousands of events of one polarity) overflowed and turned the pair's cost to NaN
+_MAX_LEVEL = 30.0
+
+
 class _ExposureSums:
     """Per pixel of `pixels`, the integral from `lo` of exp(S(t)) (S: the signed event sum since lo), read at any
     times in [lo, hi] by `at(q)` (q: the times, the same for every pixel). Piecewise linear between events."""
@@ -198,7 +203,7 @@ class _ExposureSums:
         self.key, r, t = key[order], r[order], t[order]
         first = np.ones(r.size, bool)
         first[1:] = r[1:] != r[:-1]
-        level = _grouped_cumsum(step[order], first)  # S just after each event
+        level = np.clip(_grouped_cumsum(step[order], first), -_MAX_LEVEL, _MAX_LEVEL)  # S just after each event
         before = np.zeros(r.size)
         before[1:] = level[:-1]
         before[first] = 0.0

@@ -3,6 +3,7 @@ loss), and data received before the fault is kept."""
 
 from __future__ import annotations
 
+import logging
 import time
 
 import numpy as np
@@ -98,7 +99,8 @@ def test_slow_start_sequence_loses_nothing(rng, monkeypatch):
     assert len(flatten(got)[0]) > 1000
 
 
-def test_reconnect_waits_and_resumes(rng):
+def test_reconnect_waits_and_resumes(rng, caplog):
+    caplog.set_level(logging.INFO, logger="drivers")
     packets = _recording(rng)
     want = flatten(packets)[0]
     be = backend(packets, speed=0, unplug_after_bytes=60_000, replug_after_s=0.3)
@@ -120,6 +122,10 @@ def test_reconnect_waits_and_resumes(rng):
     # every event after the reconnect is a recorded event at its recorded time (some were lost in the unplug)
     idx = np.searchsorted(want["t"], after["t"])
     assert np.all(idx < len(want)) and np.array_equal(want["t"][idx], after["t"])
+    # the unplug and the return each told the user (they were silent: a long unplug looked like a still scene)
+    said = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert any("disconnected; waiting for it to come back" in m for m in said), said
+    assert any("is back after" in m and "marked as a gap" in m for m in said), said
 
 
 def test_garbage_words_keep_the_stream_ordered(rng):

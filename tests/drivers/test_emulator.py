@@ -80,3 +80,22 @@ def test_generated_scene_follows_exposure_and_interval_registers():
                 src.stop()
     assert [f.exposure_us for f in frames[:4]] == [8000] * 4
     assert np.diff([f.exposure_start_us for f in frames[:4]]).tolist() == [20000] * 3
+
+
+def test_an_unplug_comes_after_the_bytes_asked_not_at_the_first_empty_part(real_recordings):
+    # a recording with APS frames yields empty word parts; the first of them unplugged the camera at once
+    # (after 364 kB of a 1.5 MB stream, with unplug_after_bytes far beyond the stream)
+    from edi_live.aedat4 import Aedat4Reader
+
+    path = real_recordings["evlib_sample_davis346.aedat4"]
+    want_events = want_frames = 0
+    with Aedat4Reader(path) as reader:  # the recording itself is the oracle
+        for stream, data in reader:
+            want_events += len(data) if stream.name == "events" else 0
+            want_frames += stream.name == "frames"
+    got_events = got_frames = 0
+    with DavisSource("davis346", backend=backend(path, speed=0, unplug_after_bytes=10**9), policy="wait") as src:
+        for p in src:
+            if p is not None:
+                got_events, got_frames = got_events + len(p.events), got_frames + len(p.frames)
+    assert (got_events, got_frames) == (want_events, want_frames) and want_frames > 0

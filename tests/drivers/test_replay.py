@@ -475,3 +475,23 @@ def test_a_failed_warm_up_is_our_error_and_the_forkserver_logs_it(tmp_path, monk
     with caplog.at_level("WARNING", logger="drivers.decoding_child"):
         assert decoding_child.warm_decoder_or_warn() is False
     assert "warming up the AEDAT4 decoder failed" in caplog.text and "first packet" in caplog.text
+
+
+def test_a_frame_back_in_time_is_an_error_after_the_frames_before_it(tmp_path, monkeypatch):
+    # a frame stamped 10 s in the past became EDI's newest reference, was counted as a "static" skip, and the
+    # latent frames after it were built on it: now one error at that frame, the frames before it delivered
+    monkeypatch.setattr(Aedat4Writer, "_check", lambda *a, **k: None)  # the writer itself refuses such a file
+    path = tmp_path / "back.aedat4"
+    t0 = 1_700_000_000_000_000
+    starts = [t0 + 10_000, t0 + 30_000, t0 + 30_000 - 10_000_000, t0 + 50_000]
+    with Aedat4Writer(path, 32, 24) as writer:
+        for k, start in enumerate(starts):
+            ev = np.zeros(10, EVENT_DTYPE)
+            ev["t"] = t0 + 20_000 * k + np.arange(10)
+            writer.write_events(ev)
+            writer.write_frame(Frame(np.full((24, 32), 50, np.uint8), start, start + 5_000))
+    got = []
+    with pytest.raises(RecordingError, match="frames out of time order") as info:
+        for packet in merged_packets(str(path)):
+            got.extend(f.exposure_start_us for f in packet.frames)
+    assert got == starts[:2] and "at byte" in str(info.value)

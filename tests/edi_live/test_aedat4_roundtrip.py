@@ -236,6 +236,45 @@ def test_writer_rejects_bad_input_without_damaging_the_file(tmp_path, rng):
         Aedat4Writer(tmp_path / "x.aedat4", 10, 10, compression="gzip")
 
 
+def test_a_pipe_is_refused_at_open_in_one_line():
+    # `--out /dev/stdout | ...` failed at the first packet as "the out-writer thread failed: OSError: [Errno 29]
+    # Illegal seek", after part of the run, and left a header-only file
+    import os
+
+    read_end, write_end = os.pipe()
+    try:
+        with pytest.raises(RecordingError, match="pipe or terminal.*give a file name"):
+            Aedat4Writer(f"/dev/fd/{write_end}", 64, 48)
+    finally:
+        os.close(read_end)
+        os.close(write_end)
+
+
+def test_a_named_pipe_is_refused_without_waiting_for_a_reader(tmp_path):
+    # `--out FIFO` with nothing reading it blocked in open() for ever; SIGTERM could not end that
+    import os
+    import threading
+
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    raised: list[BaseException] = []
+
+    def construct() -> None:
+        try:
+            Aedat4Writer(fifo, 64, 48)
+        except BaseException as exc:  # handed to the test thread
+            raised.append(exc)
+
+    worker = threading.Thread(target=construct, daemon=True)  # a daemon: a blocked open cannot hang the run
+    worker.start()
+    worker.join(30)
+    if worker.is_alive():
+        with open(fifo, "rb"):  # unblock it, then fail
+            pass
+        pytest.fail("Aedat4Writer blocked opening a named pipe")
+    assert len(raised) == 1 and isinstance(raised[0], RecordingError) and "pipe" in str(raised[0])
+
+
 def test_recording_cut_off_before_close_still_opens_everywhere(tmp_path, rng):
     # a crash (SIGKILL, power loss) leaves no FileDataTable: the header must then say "no table" (-1), which DV
     # tools treat as an interrupted recording and index by walking the packets

@@ -103,6 +103,41 @@ def test_a_failed_save_leaves_no_temporary_file(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["cam.json"]
 
 
+def test_a_huge_file_given_as_calibration_is_refused_without_reading_it_all(tmp_path):
+    # --calibration /dev/zero (or a recording given by mistake) was read whole: MemoryError or a hang
+    big = tmp_path / "rec.aedat4"
+    with big.open("wb") as fh:
+        fh.truncate(calibration.MAX_FILE_BYTES + 1)  # sparse: no disk used
+    with pytest.raises(ConfigError, match=f"calibration {big} is not a JSON file .larger than 64 MiB"):
+        calibration.load(big)
+
+
+def test_a_save_never_replaces_a_device_or_a_pipe(tmp_path):
+    # the rename used to replace whatever was there: as root, --save-calibration /dev/full turned the device
+    # into a JSON file
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    for check in (calibration.check_can_save,
+                  lambda p: calibration.save(calibration.Calibration("edi-live-sim", 48, 36, 0.2, 0.2), p)):
+        with pytest.raises(ConfigError, match="not a regular file"):
+            check(fifo)
+        assert fifo.is_fifo()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pipe"]
+
+
+def test_an_unwritable_save_calibration_fails_before_the_run(real_recordings, tmp_path):
+    # it failed only after the whole run had been measured (a live session's calibration lost at the end)
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    out = tmp_path / "sharp.aedat4"
+    proc = _node("--replay", str(real_recordings["evlib_sample_davis346.aedat4"]), "--speed", "0", "--no-publish",
+                 "--out", str(out), "--save-calibration", str(blocker / "cal.json"))
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("edi-live: error:")]
+    assert proc.returncode == 2 and len(errors) == 1 and "cannot write calibration" in errors[0], proc.stderr
+    assert "frames out" not in proc.stderr and not out.exists(), "the run went ahead before the error"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]
+
+
 def test_a_measured_black_level_stays_measured_through_the_stats_rounding():
     """The stats carry the black level to 2 decimals; a measured 10.125 DN that the run used as given must be
     saved as it was measured, not as a 10.12 DN starting value to be estimated again."""

@@ -303,3 +303,42 @@ def test_subscribe_yields_colour_frames_as_h_w_3_bgr(pub):
         stop.set()
         feeder.join(5)
         gen.close()
+
+
+def _client_cli(*args: str) -> subprocess.CompletedProcess:
+    import os
+    from pathlib import Path
+
+    repo = str(Path(__file__).resolve().parents[2])
+    return subprocess.run([sys.executable, "-m", "edi_live.client", *args], capture_output=True, text=True,
+                          timeout=60, cwd=repo, env={**os.environ, "PYTHONPATH": repo})
+
+
+def test_the_client_command_prints_one_line_per_frame(pub):
+    # `edi-live --help` names `python -m edi_live.client` as what prints the frames; it printed nothing, exit 0
+    stop = threading.Event()
+
+    def feed():
+        i = 0
+        while not stop.wait(0.02):
+            i += 1
+            pub.submit(make_rec(i))
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    try:
+        proc = _client_cli(pub.bound_endpoints[0], "--count", "2", "--timeout-s", "30")
+    finally:
+        stop.set()
+        feeder.join(5)
+    lines = proc.stdout.splitlines()
+    assert proc.returncode == 0 and len(lines) == 2, proc.stderr
+    seqs = [int(line.split()[1]) for line in lines]
+    assert seqs[1] > seqs[0] and all("latent 64x48" in line and "from cam" in line for line in lines), lines
+
+
+def test_the_client_command_without_a_publisher_is_one_error_line():
+    proc = _client_cli("tcp://127.0.0.1:9", "--timeout-s", "0.2")  # nothing publishes there
+    assert proc.returncode == 1 and proc.stdout == ""
+    assert proc.stderr.splitlines() == ["edi-live client: error: no frame from tcp://127.0.0.1:9 within 0.2 s: is "
+                                        "edi-live running and publishing there?"]

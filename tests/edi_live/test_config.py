@@ -51,6 +51,13 @@ def test_defaults_are_safe():
     ({"device": "auto", "emulate_from": "x"}, "needs --usb-backend"),
     ({"replay": "x", "publish": ["5555"]}, "(got '5555')"),
     ({"replay": "x", "out": "a.aedat4", "record": "a.aedat4"}, "different files"),
+    # checked with the other values: the node used to warn "serving DV on garbage: anyone ... can connect" first
+    ({"replay": "x", "dv_output": "garbage"}, "--dv-output must look like tcp://HOST:PORT"),
+    # a TOML value of the wrong type: our message naming the key, not Python's TypeError text
+    ({"replay": 5}, "replay: expected a file path (got 5)"),
+    ({"replay": "x", "out": True}, "out: expected a file path (got True)"),
+    ({"device": "auto", "usb_backend": 5}, "usb-backend must look like MODULE:CALLABLE (got 5)"),
+    ({"replay": "x", "dv_output_events": "tcp://0.0.0.0:99999"}, "--dv-output-events must look like tcp://HOST:PORT"),
     ({"replay": "x", "ring_events": 10}, "ring-events"),
     ({"replay": "x", "duration": -2}, "duration must be a positive number (got -2"),
     ({"replay": "x", "frobnicate": 1}, "unknown option(s) frobnicate"),
@@ -69,21 +76,44 @@ def test_invalid_values_name_the_key_and_the_value(options, fragment):
     assert info.value.exit_code == 2
 
 
-@pytest.mark.parametrize("flag", ["out", "record"])
+@pytest.mark.parametrize("flag", ["out", "record", "save_calibration"])
 def test_outputs_never_overwrite_the_input_recording(tmp_path: Path, monkeypatch, flag):
-    # `--replay rec.aedat4 --out rec.aedat4` emptied the user's recording before reading it
+    # `--replay rec.aedat4 --out rec.aedat4` emptied the user's recording before reading it; `--save-calibration
+    # rec.aedat4` replaced it with the calibration's JSON at the end of the run
+    name = flag.replace("_", "-")
     rec = tmp_path / "rec.aedat4"
     rec.write_bytes(b"a recording")
     (tmp_path / "link.aedat4").symlink_to(rec)
     monkeypatch.chdir(tmp_path)
     for written in ("rec.aedat4", str(rec), "./rec.aedat4", "link.aedat4"):
-        with pytest.raises(ConfigError, match=f"{flag} would overwrite the replay recording"):
+        with pytest.raises(ConfigError, match=f"{name} would overwrite the replay recording"):
             NodeConfig.from_options({"replay": str(rec), flag: written})
     with pytest.raises(ConfigError, match="overwrite the emulate-from recording"):
         NodeConfig.from_options({"device": "davis240", "usb_backend": "drivers.emulator:backend",
                                  "emulate_from": "rec.aedat4", flag: str(rec)})
     assert NodeConfig.from_options({"replay": str(rec), flag: "other.aedat4"}).output is not None
     assert rec.read_bytes() == b"a recording"
+
+
+@pytest.mark.parametrize("a, b", [("out", "save_calibration"), ("record", "save_calibration"), ("out", "record")])
+def test_written_files_are_apart_however_spelled(tmp_path: Path, monkeypatch, a, b):
+    # `--out sharp.aedat4 --save-calibration ./sharp.aedat4` replaced every written frame with the calibration
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError, match="must be different files"):
+        NodeConfig.from_options({"replay": "x.aedat4", a: "f.aedat4", b: str(tmp_path / "f.aedat4")})
+
+
+@pytest.mark.parametrize("flag", ["out", "record"])
+def test_outputs_never_overwrite_the_calibration_read(tmp_path: Path, flag):
+    cal = tmp_path / "cal.json"
+    with pytest.raises(ConfigError, match=f"{flag} would overwrite the calibration file"):
+        NodeConfig.from_options({"replay": "x.aedat4", "calibration": str(cal), flag: str(cal)})
+
+
+def test_a_calibration_may_be_saved_over_the_one_it_started_from(tmp_path: Path):
+    cal = tmp_path / "cal.json"
+    cfg = NodeConfig.from_options({"replay": "x.aedat4", "calibration": str(cal), "save_calibration": str(cal)})
+    assert cfg.save_calibration == cfg.calibration == cal
 
 
 def test_no_publish_empties_the_endpoints():
@@ -267,3 +297,14 @@ def test_a_reconstructor_switch_reaches_the_reconstructor_with_its_default(key, 
     assert getattr(EdiReconstructor(16, 12).settings, key) is default
     with pytest.raises(ConfigError, match=f"{flag} must be true or false"):
         NodeConfig.from_options({"device": "auto", key: "yes"})
+
+
+def test_a_huge_config_file_is_refused_without_reading_it_all(tmp_path: Path):
+    # --config /dev/zero ended in "internal error: MemoryError" (or a hang): the file was read whole
+    from edi_live.config_file import MAX_CONFIG_BYTES
+
+    big = tmp_path / "big.toml"
+    with big.open("wb") as fh:
+        fh.truncate(MAX_CONFIG_BYTES + 1)
+    with pytest.raises(ConfigError, match="larger than 1 MiB"):
+        read_toml(big)

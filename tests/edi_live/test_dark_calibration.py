@@ -222,6 +222,33 @@ def test_a_signal_before_n_frames_writes_nothing(tmp_path, rng):
 
 
 
+def test_an_unwritable_target_is_refused_before_any_frame_is_read(tmp_path):
+    # it was found only at the end: a live camera's --calibrate-dark 1000 with the lens covered, then the error
+    from edi_live.dark_calibration import calibrate_dark
+    from edi_live.datatypes import SourceInfo
+
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    iterated = []
+
+    class Source:
+        info = SourceInfo(width=48, height=36, name="edi-live-sim", kind="replay")
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def __iter__(self):
+            iterated.append(True)
+            return iter(())
+
+    with pytest.raises(ConfigError, match="cannot write calibration"):
+        calibrate_dark(Source(), 3, blocker / "cam.json")
+    assert not iterated
+
+
 def test_calibrate_dark_with_loop_on_a_recording_without_frames_ends(tmp_path):
     """--loop would replay a recording without APS frames for ever; each recorded frame is measured once."""
     events_only = tmp_path / "events.aedat4"
@@ -245,3 +272,15 @@ def test_many_dark_frames_are_measured_on_an_even_sample_of_them(tmp_path, rng):
     assert done.returncode == 0, done.stderr
     assert abs(calibration.load(saved).black_level - 7.0) <= 0.5
     assert "60 dark frames" in done.stderr, done.stderr  # every 5th of the 300 (5 = the fewest with at most 64)
+
+
+def test_outputs_that_calibrate_dark_does_not_write_are_said_to_be_ignored(tmp_path, rng):
+    # --record raw.aedat4 beside --calibrate-dark wrote nothing and said nothing
+    dark = tmp_path / "dark.aedat4"
+    _write_dark_recording(dark, rng, 5.0, n=3)
+    done = _node("--replay", str(dark), "--speed", "0", "--calibrate-dark", "3", "--save-calibration",
+                 str(tmp_path / "cam.json"), "--out", str(tmp_path / "sharp.aedat4"), "--record",
+                 str(tmp_path / "raw.aedat4"))
+    assert done.returncode == 0, done.stderr
+    assert "ignored with --calibrate-dark: --out, --record" in done.stderr, done.stderr
+    assert not (tmp_path / "sharp.aedat4").exists() and not (tmp_path / "raw.aedat4").exists()

@@ -65,6 +65,14 @@ def test_summary_says_when_exposures_were_cut_short_by_the_ring():
     assert "warning: 13 exposure window(s)" in cut and "--ring-events" in cut
 
 
+def test_summary_says_when_events_came_without_any_aps_frame():
+    # an events-only recording ran to "0 frames out" with exit 0 and no word on why
+    none = format_summary({**STATS, "aps_frames_in": 0, "frames_out": 0}, 1.0)
+    assert "warning: no APS frame arrived, so none of the 1000 events became a frame" in none
+    assert "no APS frame" not in format_summary({**STATS, "aps_frames_in": 2}, 1.0)
+    assert "no APS frame" not in format_summary({"events_processed": 0, "aps_frames_in": 0}, 1.0)  # nothing at all
+
+
 def test_collect_sums_drops_of_every_stage():
     class Ring:
         pushed_events = 5

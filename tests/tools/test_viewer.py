@@ -244,13 +244,15 @@ def run_cli(args: list[str], **kwargs) -> subprocess.Popen:
                             stdout=subprocess.PIPE, text=True, **kwargs)
 
 
-def test_cli_ctrl_c_stops_cleanly_and_finalizes_the_mp4(feeder, tmp_path):
+# SIGHUP (terminal closed) killed the viewer on the spot: an MP4 without its moov atom, none of it readable
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
+def test_cli_stop_signals_stop_cleanly_and_finalize_the_mp4(feeder, tmp_path, sig):
     mp4 = tmp_path / "live.mp4"
     proc = run_cli(["--endpoint", feeder.endpoint, "--no-http", "--mp4", str(mp4), "--all"])
     try:
         wait_for(lambda: mp4.is_file() and mp4.stat().st_size > 0, 30)
         time.sleep(0.3)
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(sig)
         _, err = proc.communicate(timeout=20)
     finally:
         if proc.poll() is None:

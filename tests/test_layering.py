@@ -34,7 +34,8 @@ PURE_MATH = ("edi_live/edi/", "edi_live/contrast/", "edi_live/reconstructor.py",
              "edi_live/reconstructor_settings.py", "edi_live/colour.py", "edi_live/colour_edi.py",
              "edi_live/black_level_policy.py", "edi_live/clock_offset_policy.py", "edi_live/reconstructor_parts.py",
              "edi_live/exposure_ahead.py", "edi_live/flicker_pixels.py", "edi_live/pixel_noise.py",
-             "edi_live/hold_average.py", "edi_live/_kernels_demosaic.py", "edi_live/calibration_schedule.py")
+             "edi_live/hold_average.py", "edi_live/_kernels_demosaic.py", "edi_live/calibration_schedule.py",
+             "edi_live/psnr.py")
 PURE_MATH_ALLOWED = {"numpy", "cv2", "numba", "edi_live"}
 PURE_MATH_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.errors", "edi_live.edi", "edi_live.contrast",
                          "edi_live.c_policy", "edi_live.contrast_tracking", "edi_live.latent_state",
@@ -43,7 +44,8 @@ PURE_MATH_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.errors", "edi_live.edi"
                          "edi_live.reconstructor_settings", "edi_live.colour",  # "colour" covers colour_edi
                          "edi_live.black_level_policy", "edi_live.clock_offset_policy", "edi_live.reconstructor_parts",
                          "edi_live.exposure_ahead", "edi_live.flicker_pixels", "edi_live.pixel_noise",
-                         "edi_live.hold_average", "edi_live._kernels_demosaic", "edi_live.calibration_schedule")
+                         "edi_live.hold_average", "edi_live._kernels_demosaic", "edi_live.calibration_schedule",
+                         "edi_live.psnr")
 DRIVERS_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.source", "edi_live.errors", "edi_live.aedat4",
                        "edi_live.simulation")  # the emulator's generated scene
 # the simulator is the ground truth: it must not use the EDI code it is there to judge
@@ -57,6 +59,7 @@ STAGES = (
     ("worker", ("edi_live.worker", "edi_live.deblur_handover", "edi_live.reconstructor", "edi_live.reconstruction",
                 "edi_live.edi", "edi_live.contrast", "edi_live.c_policy", "edi_live.contrast_tracking",
                 "edi_live.latent_state", "edi_live.pixel_masks", "edi_live.quality", "edi_live.hold_average",
+                "edi_live.psnr",
                 "edi_live.nearest_mode",
                 "edi_live.frame_gate", "edi_live.held_frames", "edi_live.fused_mode", "edi_live.quiet_reads",
                 "edi_live.reconstructor_settings", "edi_live.black_level_policy",

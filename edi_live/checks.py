@@ -75,3 +75,24 @@ def parse_tcp_endpoint(endpoint: str, flag: str = "--dv-output") -> tuple[str, i
     if scheme != "tcp" or not sep or not host or not port.isdigit() or int(port) > 65535:
         raise ConfigError(f"{flag} must look like tcp://HOST:PORT, e.g. tcp://127.0.0.1:7777 (got {endpoint!r})")
     return host, int(port)
+
+
+_ANY_HOST = ("*", "0.0.0.0", "::", "")
+
+
+def check_ports_apart(endpoints: list[tuple[str, str]]) -> None:
+    """(flag, endpoint) pairs the node binds: two on one TCP port of one host (or one on every host) cannot both bind,
+    which the bind would only report as the port being taken, as if by another program. ConfigError naming both."""
+    seen: dict[int, list[tuple[str, str, str]]] = {}
+    for flag, endpoint in endpoints:
+        scheme, sep, rest = endpoint.partition("://")
+        host, _, port = rest.rpartition(":")
+        if scheme != "tcp" or not sep or not port.isdigit() or int(port) == 0:
+            continue  # not TCP, or a port picked at bind time
+        host = host.strip("[]")
+        for other_flag, other_endpoint, other_host in seen.get(int(port), []):
+            if host == other_host or host in _ANY_HOST or other_host in _ANY_HOST:
+                same = "given twice" if other_flag == flag else f"given to {other_flag} and {flag}"
+                raise ConfigError(f"port {port} is {same} ({other_endpoint}, {endpoint}): each endpoint the node "
+                                  f"binds needs a port of its own")
+        seen.setdefault(int(port), []).append((flag, endpoint, host))

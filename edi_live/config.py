@@ -27,7 +27,7 @@ from edi_live import config_file
 from edi_live.checks import check as _check
 from edi_live.datatypes import COLOR_FILTERS
 from edi_live.checks import check_endpoint, fits_memory, int_in as _int_in, parse_tcp_endpoint
-from edi_live.checks import positive_or_none as _positive_or_none
+from edi_live.checks import check_ports_apart, positive_or_none as _positive_or_none
 from edi_live.config_file import as_bool as _bool, as_endpoints as _endpoints, as_number as _num, as_path as _path
 from edi_live.config_file import merge_options, norm_key
 from edi_live.errors import ConfigError
@@ -242,6 +242,9 @@ class NodeConfig:
                      "calibration": self.calibration},
                     {"out": self.output.out, "record": self.output.record, "save-calibration": self.save_calibration},
                     may_update={"save-calibration": "calibration"})
+        check_ports_apart([("--publish", e) for e in self.publisher.endpoints]
+                          + [(f, e) for f, e in (("--dv-output", self.output.dv_output),
+                                                 ("--dv-output-events", self.output.dv_output_events)) if e])
         _positive_or_none("duration", self.duration_s)
         _positive_or_none("status-interval-s", self.status_interval_s)
         _check(self.log_level in LOG_LEVELS,

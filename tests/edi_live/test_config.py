@@ -308,3 +308,21 @@ def test_a_huge_config_file_is_refused_without_reading_it_all(tmp_path: Path):
         fh.truncate(MAX_CONFIG_BYTES + 1)
     with pytest.raises(ConfigError, match="larger than 1 MiB"):
         read_toml(big)
+
+
+@pytest.mark.parametrize("options, refused", [
+    ({"publish": ["tcp://127.0.0.1:5555", "tcp://127.0.0.1:5555"]}, "port 5555 is given twice"),
+    ({"dv_output": "tcp://127.0.0.1:7777", "dv_output_events": "tcp://127.0.0.1:7777"},
+     "port 7777 is given to --dv-output and --dv-output-events"),
+    ({"publish": ["tcp://*:7777"], "dv_output": "tcp://127.0.0.1:7777"}, "port 7777 is given to --publish and"),
+    ({"publish": ["tcp://127.0.0.1:5555"], "dv_output": "tcp://127.0.0.2:5555"}, None),  # other hosts
+    ({"publish": ["tcp://127.0.0.1:*", "tcp://127.0.0.1:*"]}, None),  # free ports, picked at bind
+    ({"publish": ["ipc:///tmp/a", "tcp://127.0.0.1:5556"], "dv_output": "tcp://127.0.0.1:5557"}, None),
+])
+def test_two_endpoints_on_one_port_are_refused_before_the_bind_blames_another_program(options, refused):
+    # the second bind failed with 'address in use', which the node reports as another edi-live holding the port
+    if refused is None:
+        NodeConfig.from_options({"replay": "x.aedat4", **options})
+        return
+    with pytest.raises(ConfigError, match=refused):
+        NodeConfig.from_options({"replay": "x.aedat4", **options})

@@ -117,7 +117,7 @@ def calibrate_dark(source: Any, n_frames: int, target: Path | None, signals: Any
         signals.attach(stop)
     images: list[np.ndarray] = []
     read = 0
-    stride = -(-n_frames // MAX_MEASURED_FRAMES)  # many frames: an even sample of them (memory stays bounded)
+    stride = 1  # every frame, until more than MAX_MEASURED_FRAMES are kept: then every other, and so on
     with source:
         info = source.info
         if target is None:
@@ -133,6 +133,8 @@ def calibrate_dark(source: Any, n_frames: int, target: Path | None, signals: Any
             for frame in packet.frames if packet is not None else ():
                 if read < n_frames and read % stride == 0:
                     images.append(np.array(frame.image))  # a copy: a decoder may reuse its buffer
+                    if len(images) > MAX_MEASURED_FRAMES:  # an even sample of what was read, however far it goes
+                        images, stride = images[::2], 2 * stride
                 read += 1
     if stop.event.is_set() and read < n_frames:
         raise EdiLiveError(f"--calibrate-dark stopped after {read} of {n_frames} APS frames; nothing written")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -271,7 +272,19 @@ def test_many_dark_frames_are_measured_on_an_even_sample_of_them(tmp_path, rng):
     done = _node("--replay", str(dark), "--speed", "0", "--calibrate-dark", "300", "--save-calibration", str(saved))
     assert done.returncode == 0, done.stderr
     assert abs(calibration.load(saved).black_level - 7.0) <= 0.5
-    assert "60 dark frames" in done.stderr, done.stderr  # every 5th of the 300 (5 = the fewest with at most 64)
+    measured = int(re.search(r"(\d+) dark frames", done.stderr).group(1))
+    assert 32 < measured <= 64, done.stderr  # an even sample: more than half the cap
+
+
+def test_a_recording_shorter_than_asked_is_measured_on_all_its_frames(tmp_path, rng):
+    """--calibrate-dark 1000 on 4 dark frames measures the 4 (it took only the first: one in every 16 of the
+    1000 asked for), and says the input ended early."""
+    dark = tmp_path / "dark.aedat4"
+    _write_dark_recording(dark, rng, 7.0, n=4)
+    saved = tmp_path / "cam.json"
+    done = _node("--replay", str(dark), "--speed", "0", "--calibrate-dark", "1000", "--save-calibration", str(saved))
+    assert done.returncode == 0, done.stderr
+    assert "ended after 4 of 1000" in done.stderr and "4 dark frames" in done.stderr, done.stderr
 
 
 def test_outputs_that_calibrate_dark_does_not_write_are_said_to_be_ignored(tmp_path, rng):

@@ -191,63 +191,58 @@ class _StopAfter:
         self.target = target
 
 
+class _FrameSource:
+    """A replay-like source of APS frames for calibrate_dark; `before(k)` runs before frame k is handed over."""
+
+    def __init__(self, images, before=None):
+        from edi_live.datatypes import SourceInfo
+
+        self.info = SourceInfo(width=48, height=36, name="edi-live-sim", kind="replay")
+        self.images, self.before, self.iterated = images, before, False
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def __iter__(self):
+        from edi_live.datatypes import Packet
+
+        self.iterated = True
+        for k, image in enumerate(self.images):
+            if self.before is not None:
+                self.before(k)
+            yield Packet(frames=[Frame(image=image, exposure_start_us=k * 20_000, exposure_end_us=k * 20_000 + 10_000)])
+
+
 def test_a_signal_before_n_frames_writes_nothing(tmp_path, rng):
     """Ctrl-C during --calibrate-dark 6 after 2 frames: the camera's 'measured' black level must not come from
     fewer frames than asked; nothing is written and the error says it was stopped."""
     from edi_live.dark_calibration import calibrate_dark
-    from edi_live.datatypes import Packet, SourceInfo
 
     signals = _StopAfter()
-    images = _dark_images(rng, 10.0, n=6)
 
-    class Source:
-        info = SourceInfo(width=48, height=36, name="edi-live-sim", kind="replay")
-
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            return False
-
-        def __iter__(self):
-            for k, image in enumerate(images):
-                if k == 2:
-                    signals.target.stop()
-                yield Packet(frames=[Frame(image=image, exposure_start_us=k * 20_000,
-                                           exposure_end_us=k * 20_000 + 10_000)])
+    def stop_at_the_third(k):
+        if k == 2:
+            signals.target.stop()
 
     target = tmp_path / "cam.json"
     with pytest.raises(EdiLiveError, match="stopped"):
-        calibrate_dark(Source(), 6, target, signals)
+        calibrate_dark(_FrameSource(_dark_images(rng, 10.0, n=6), stop_at_the_third), 6, target, signals)
     assert not target.exists()
-
 
 
 def test_an_unwritable_target_is_refused_before_any_frame_is_read(tmp_path):
     # it was found only at the end: a live camera's --calibrate-dark 1000 with the lens covered, then the error
     from edi_live.dark_calibration import calibrate_dark
-    from edi_live.datatypes import SourceInfo
 
     blocker = tmp_path / "a_file"
     blocker.write_text("")
-    iterated = []
-
-    class Source:
-        info = SourceInfo(width=48, height=36, name="edi-live-sim", kind="replay")
-
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            return False
-
-        def __iter__(self):
-            iterated.append(True)
-            return iter(())
-
+    source = _FrameSource([])
     with pytest.raises(ConfigError, match="cannot write calibration"):
-        calibrate_dark(Source(), 3, blocker / "cam.json")
-    assert not iterated
+        calibrate_dark(source, 3, blocker / "cam.json")
+    assert not source.iterated
 
 
 def test_calibrate_dark_with_loop_on_a_recording_without_frames_ends(tmp_path):

@@ -67,6 +67,7 @@ from edi_live.hold_average import hold_average
 from edi_live.psnr import PSNR_CAP_DB, psnr_pair, to_8bit_scale
 
 SCORED_MODES = ("causal",)
+_NEVER = 2**63  # a time no frame reaches
 
 
 @dataclass(frozen=True, slots=True)
@@ -137,8 +138,7 @@ class PredictionScore:
         self._t: list[int] = []  # held frames, sorted by t_us
         self._ref: list[int] = []
         self._img: list[np.ndarray] = []
-        self._pending: list[_Window] = []
-        self._due_mid = self._due_end = 2**63  # the earliest mid-exposure and end among the pending windows
+        self._set_pending([])
         self._prev_b: np.ndarray | None = None  # B_k on the 8-bit scale (converted when first needed)
         self._prev_image: np.ndarray | None = None  # ... and as taken
         self._sent_since_aps = False
@@ -197,9 +197,8 @@ class PredictionScore:
                 active = self._events_map.reshape(shape[:2])
                 if len(shape) == 3:  # an event marks all three colours of its pixel in the demosaiced frame
                     active = np.repeat(active[..., None], shape[2], axis=2)
-            self._pending.append(_Window(frame.seq, frame.exposure_start_us, frame.exposure_end_us, mid, target,
-                                         self._prev_b, valid, active))
-            self._due_mid, self._due_end = min(self._due_mid, mid), min(self._due_end, frame.exposure_end_us)
+            self._set_pending(self._pending + [_Window(frame.seq, frame.exposure_start_us, frame.exposure_end_us, mid,
+                                                       target, self._prev_b, valid, active)])
             self._prev_b = target
         else:
             self._prev_b = None
@@ -266,14 +265,19 @@ class PredictionScore:
         done = [w for w in self._pending if ref >= w.mid or t > w.end]
         if not done:
             return []
-        self._pending = [w for w in self._pending if not (ref >= w.mid or t > w.end)]
-        self._due_mid = min((w.mid for w in self._pending), default=2**63)
-        self._due_end = min((w.end for w in self._pending), default=2**63)
+        self._set_pending([w for w in self._pending if not (ref >= w.mid or t > w.end)])
         return [self._score(w) for w in done]
 
+    def _set_pending(self, windows: list[_Window]) -> None:
+        """The windows still to score, and the earliest mid-exposure and end among them: on_emitted looks at the
+        windows only once a frame reaches one of those."""
+        self._pending = windows
+        self._due_mid = min((w.mid for w in windows), default=_NEVER)
+        self._due_end = min((w.end for w in windows), default=_NEVER)
+
     def _complete_all(self) -> list[PredictionResult]:
-        done, self._pending = self._pending, []
-        self._due_mid = self._due_end = 2**63
+        done = self._pending
+        self._set_pending([])
         return [self._score(w) for w in done]
 
     def _integrate(self, w: _Window) -> tuple[np.ndarray | None, int, float]:

@@ -67,12 +67,19 @@ def check_endpoint(endpoint: Any) -> None:
               f"free port (e.g. tcp://127.0.0.1:5555)")
 
 
+def _tcp_parts(endpoint: str) -> tuple[str, str] | None:
+    """'tcp://HOST:PORT' -> (HOST without IPv6 brackets, PORT as written); None for another scheme."""
+    scheme, sep, rest = endpoint.partition("://")
+    if scheme != "tcp" or not sep:
+        return None
+    host, _, port = rest.rpartition(":")
+    return host.strip("[]"), port
+
+
 def parse_tcp_endpoint(endpoint: str, flag: str = "--dv-output") -> tuple[str, int]:
     """'tcp://HOST:PORT' -> (host, port); ConfigError otherwise. Port 0 picks a free port."""
-    scheme, sep, rest = endpoint.partition("://")
-    host, _, port = rest.rpartition(":")
-    host = host.strip("[]")
-    if scheme != "tcp" or not sep or not host or not port.isdigit() or int(port) > 65535:
+    host, port = _tcp_parts(endpoint) or ("", "")
+    if not host or not port.isdigit() or int(port) > 65535:
         raise ConfigError(f"{flag} must look like tcp://HOST:PORT, e.g. tcp://127.0.0.1:7777 (got {endpoint!r})")
     return host, int(port)
 
@@ -85,11 +92,9 @@ def check_ports_apart(endpoints: list[tuple[str, str]]) -> None:
     which the bind would only report as the port being taken, as if by another program. ConfigError naming both."""
     seen: dict[int, list[tuple[str, str, str]]] = {}
     for flag, endpoint in endpoints:
-        scheme, sep, rest = endpoint.partition("://")
-        host, _, port = rest.rpartition(":")
-        if scheme != "tcp" or not sep or not port.isdigit() or int(port) == 0:
+        host, port = _tcp_parts(endpoint) or ("", "")
+        if not port.isdigit() or int(port) == 0:
             continue  # not TCP, or a port picked at bind time
-        host = host.strip("[]")
         for other_flag, other_endpoint, other_host in seen.get(int(port), []):
             if host == other_host or host in _ANY_HOST or other_host in _ANY_HOST:
                 same = "given twice" if other_flag == flag else f"given to {other_flag} and {flag}"

@@ -125,10 +125,9 @@ class LatentState:
             self._lone.restart(self.log_lat, display)
 
     def shown_image(self) -> np.ndarray:
-        """The latent display as shown with lone_changes, a new (H, W) uint8 array: a pixel whose change since it
-        started no two neighbours share shows its start (edi.lone); a copy of the display before the first
-        reference."""
-        if self._lone is None:
+        """The latent display as output, a new (H, W) uint8 array: a copy, or with lone_changes (from the first
+        reference on) a pixel whose change since it started no two neighbours share shows its start (edi.lone)."""
+        if not self.lone_changes or self._lone is None:
             return self.display.copy()
         return self._lone.image(self.log_lat, self.display)
 

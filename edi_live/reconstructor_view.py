@@ -124,10 +124,10 @@ class ReconstructorView:
             raise NodeError(f"{what} called before the first APS frame was deblurred (check has_reference first)")
 
     def _latent_image(self) -> np.ndarray:
-        """The latent display as output: a copy (grey; with latent_denoise without its lone changes, a new array), or
-        its demosaic (a new array: no copy needed first)."""
+        """The latent display as output: LatentState.shown_image (grey), or its demosaic (a new array: no copy needed
+        first)."""
         if self._colour is None:
-            return self._latent.shown_image() if self._latent.lone_changes else self._latent.display.copy()
+            return self._latent.shown_image()
         return self._colour.output(self._latent.display)
 
     def stats(self) -> dict:

@@ -68,6 +68,8 @@ class LatentState:
             return
         edi.propagate_log(self.log_lat, events, c[0], c[1], mask=mask, display=self.display if display else None,
                           counts=self.acc if count else None)
+        if self._lone is not None:
+            self._lone.touched(events["x"], events["y"])
 
     def apply_with_frames(self, events: np.ndarray, cuts: Sequence[int], c: tuple[float, float],
                           mask: np.ndarray | None, count: bool, frame: Callable[[int, int], object]) -> list:
@@ -76,12 +78,17 @@ class LatentState:
         x, y, p = events["x"], events["y"], events["p"]
         out = []
         i0 = 0
+        lone = self._lone
         for k, i1 in enumerate(cuts):
             prop.apply(x[i0:i1], y[i0:i1], p[i0:i1])
+            if lone is not None:
+                lone.touched(x[i0:i1], y[i0:i1])
             out.append(frame(k, i1))
             i0 = i1
         if i0 < events.size:
             prop.apply(x[i0:], y[i0:], p[i0:])
+            if lone is not None:
+                lone.touched(x[i0:], y[i0:])
         return out
 
     def set_reference(self, image: np.ndarray, aps: edi.ApsResponse,
@@ -163,6 +170,8 @@ class LatentState:
 
     def refresh_display(self) -> None:
         np.copyto(self.display, edi.to_uint8(self.log_lat))
+        if self._lone is not None:
+            self._lone.changed_everywhere()
 
     def from_reference(self, delta: np.ndarray | float) -> np.ndarray:
         """uint8 image of L(f) * exp(delta), without touching the latent state."""

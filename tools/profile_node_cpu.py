@@ -369,18 +369,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--c", type=float)
     ap.add_argument("--top", type=int, default=25)
     ap.add_argument("--nobody", action="store_true", help="ab: publish with nobody subscribed (node CPU incl. start-up)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="worker: these EdiConfig options against the default, or in both checkouts")
     args = ap.parse_args(argv)
     if not args.input:
         from tools.bench_stream import default_recording
 
         args.input = [default_recording()]
+    from tools.bench_option import parse_setting
+
     if args.mode == "profile":
         for path in args.input:
             profile(path, args.every, {"c": args.c} if args.c else {}, args.top)
     elif args.mode == "worker":
         here = Path(__file__).resolve().parent.parent
         given = {"c": args.c} if args.c else {}
+        chosen = dict(parse_setting(text) for text in args.set)
+        given = {**given, **chosen} if args.other is not None else given
         runs = ({"old": (args.other.resolve(), given), "new": (here, given)} if args.other is not None else
+                {"default": (here, given), " ".join(args.set): (here, {**given, **chosen})} if chosen else
                 {"calibration off": (here, {**CALIBRATION_OFF, **given}), "calibration on": (here, given)})
         for path in args.input:
             worker_ab(runs, path.resolve(), args.every, args.repeat, args.passes)

@@ -44,7 +44,7 @@ from edi_live.edi.latent import (Propagator, event_delta, propagate_log, render_
 from edi_live.edi.levels import LevelTable, build_level_table, empty_table, log_divisor, rows_of
 from edi_live.edi.pairs import consistency_cost, pair_candidates
 from edi_live.edi.running import RunningDivisor
-from edi_live.edi.lone import LoneChanges, lone_changes_u8, new_lone_scratch
+from edi_live.edi.lone import LoneChanges, lone_changes_u8
 from edi_live.edi.smoothing import median_at_pixels, new_median_scratch, smoothed_divisor
 from edi_live.edi.pixels import (FlickerState, activity_verdicts, background_activity_keep, decay_hot_counts, dilate,
                                  flicker_cycles, hot_pixel_mask, isolated_event_mask, mark_event_pixels,
@@ -77,7 +77,7 @@ __all__ = [
     "FusedPropagator", "fusion_plan", "fusion_weights", "FusionPlan", "have_numba", "hot_pixel_mask",
     "isolated_event_mask", "LoneChanges", "lone_changes_u8", "LEVEL_CAP", "LevelTable", "log_divisor",
     "log_divisor_events", "LOG_MAX", "LOG_MIN",
-    "mark_event_pixels", "median_at_pixels", "new_activity_map", "new_activity_state", "new_lone_scratch",
+    "mark_event_pixels", "median_at_pixels", "new_activity_map", "new_activity_state",
     "new_median_scratch",
     "numpy_reference", "pair_candidates", "propagate_log", "Propagator", "reference_logs", "render_buckets",
     "RESIDUAL_COLD_CONTEXT", "RESIDUAL_SPAN", "ResidualCarry", "rows_of", "RunningDivisor", "select",

@@ -50,24 +50,51 @@ def test_the_whole_frame_test_follows_its_definition(rng, reference):
         assert np.array_equal(got, _brute_lone(lat, start, display, start_display, need, LONE_EPS))
 
 
-def test_a_kept_scratch_of_another_shape_or_any_contents_gives_the_definition(rng):
-    """The scratch is only checked by length: one last used at the transposed size (the same length, its sign grid
-    written where this size's zero border lies), or holding anything at all, must still give the definition's
-    result (the border and the verdicts past the last pixel are the kernel's to set). From the review."""
-    for h, w in ((4, 6), (5, 9), (8, 8), (3, 7)):
-        scratch = edi.new_lone_scratch(w, h)
-        assert scratch.size == edi.new_lone_scratch(h, w).size
-        moved = np.full((w, h), np.log(100.0), np.float32)  # the transposed size, every pixel changed
-        edi.lone_changes_u8(moved + np.float32(0.4), moved, edi.to_uint8(moved + np.float32(0.4)),
-                            edi.to_uint8(moved), scratch=scratch)
-        for kept in (scratch, rng.integers(-128, 128, scratch.size).astype(np.int8)):
-            start = rng.normal(3.0, 1.5, (h, w)).astype(np.float32)
-            lat = start.copy()
-            lat[:, -1] += np.float32(0.4)  # the last column and first row change: their neighbours off the sensor
-            lat[0, :] += np.float32(0.3)  # are the border
-            display, start_display = edi.to_uint8(lat), edi.to_uint8(start)
-            got = edi.lone_changes_u8(lat, start, display, start_display, scratch=kept)
-            assert np.array_equal(got, _brute_lone(lat, start, display, start_display, 2, LONE_EPS))
+def test_every_frame_redone_only_in_the_tiles_near_its_events_is_the_whole_frame_test(rng):
+    """LoneChanges redoes the test only in the 8x8 tiles near the events since the previous frame: at every frame
+    cut of a stream of small clusters (which mark a few tiles each, partial tiles at the right and bottom edges
+    included), after restarts, the fall-back to the APS and a rewritten display, the frame shown is the definition
+    applied to the whole image, and most tiles were not redone."""
+    w, h = 45, 29
+    image = rng.integers(20, 230, (h, w)).astype(np.uint8)
+    empty = (np.empty(0, np.int64), np.empty(0, np.float32), np.empty(0, np.float32))
+    state = LatentState(w, h, lone_changes=True)
+    state.set_reference(image, edi.ApsResponse(), empty, (0.3, 0.2))
+    start, start_display = state.log_lat.copy(), state.display.copy()
+    checked = 0
+
+    def frame(k, i):
+        nonlocal checked
+        expected = _brute_lone(state.log_lat, start, state.display, start_display, 2, LONE_EPS)
+        assert np.array_equal(state.shown_image(), expected), f"frame {k} at event {i}"
+        checked += 1
+
+    for step in range(40):
+        n = int(rng.integers(1, 12))
+        ev = np.zeros(n, EVENT_DTYPE)
+        ev["t"] = step * 100 + np.arange(n)
+        cx, cy = int(rng.integers(0, w)), int(rng.integers(0, h))
+        ev["x"] = np.clip(cx + rng.integers(-1, 2, n), 0, w - 1)
+        ev["y"] = np.clip(cy + rng.integers(-1, 2, n), 0, h - 1)
+        ev["p"] = rng.random(n) < 0.5
+        state.apply_with_frames(ev, sorted({int(c) for c in rng.integers(1, n + 1, 2)}), (0.3, 0.2), None, False,
+                                frame)
+        if step == 15:
+            restarted = rng.choice(w * h, 8, replace=False)
+            state.restart_pixels(restarted)
+            start.reshape(-1)[restarted] = state.log_lat.reshape(-1)[restarted]
+            start_display.reshape(-1)[restarted] = state.display.reshape(-1)[restarted]
+        if step == 25:
+            fallen = np.zeros((h, w), bool)
+            fallen[3:6, 40:45] = True
+            state.fall_back_to_aps(fallen, np.full((h, w), 60.0, np.float32), np.zeros((h, w), np.uint8))
+            start[fallen], start_display[fallen] = state.log_lat[fallen], state.display[fallen]
+        if step == 30:
+            state.log_lat += np.float32(0.25)
+            state.refresh_display()
+        frame("end", step)
+    tiles = 6 * 4
+    assert checked > 40 and state._lone.tiles_updated < checked * tiles / 3
 
 
 def test_a_lone_dot_shows_its_start_and_a_moving_patch_or_edge_stays():

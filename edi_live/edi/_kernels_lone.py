@@ -13,23 +13,29 @@ from numba import njit
 TILE_SHIFT = 3  # tiles of 8x8 pixels: a frame of 1000 events touches 3-56 % of them on the recordings at hand
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _mark(xi, yi, width, height, tw, tiles):
+    """Mark the tiles of pixel (xi, yi)'s 3x3 neighbourhood: those of its four corners cover it (a tile is at least
+    3 pixels wide)."""
+    x0 = (xi - 1 if xi > 0 else 0) >> TILE_SHIFT
+    x1 = (xi + 1 if xi + 1 < width else xi) >> TILE_SHIFT
+    y0 = (yi - 1 if yi > 0 else 0) >> TILE_SHIFT
+    y1 = (yi + 1 if yi + 1 < height else yi) >> TILE_SHIFT
+    tiles[y0 * tw + x0] = 1
+    tiles[y0 * tw + x1] = 1
+    tiles[y1 * tw + x0] = 1
+    tiles[y1 * tw + x1] = 1
+
+
 @njit(cache=True, nogil=True)
 def mark_tiles(x, y, width, height, tw, tiles):
-    """tiles[ty * tw + tx] = 1 for every tile that holds a pixel of an event's 3x3 neighbourhood (the tiles of its
-    four corners cover it, a tile being at least 3 pixels wide); events off the sensor mark nothing."""
+    """tiles[ty * tw + tx] = 1 for every tile that holds a pixel of an event's 3x3 neighbourhood; events off the
+    sensor mark nothing."""
     for i in range(x.size):
         xi = np.int64(x[i])
         yi = np.int64(y[i])
-        if xi >= width or yi >= height:
-            continue
-        x0 = (xi - 1 if xi > 0 else 0) >> TILE_SHIFT
-        x1 = (xi + 1 if xi + 1 < width else xi) >> TILE_SHIFT
-        y0 = (yi - 1 if yi > 0 else 0) >> TILE_SHIFT
-        y1 = (yi + 1 if yi + 1 < height else yi) >> TILE_SHIFT
-        tiles[y0 * tw + x0] = 1
-        tiles[y0 * tw + x1] = 1
-        tiles[y1 * tw + x0] = 1
-        tiles[y1 * tw + x1] = 1
+        if xi < width and yi < height:
+            _mark(xi, yi, width, height, tw, tiles)
 
 
 @njit(cache=True, nogil=True)
@@ -37,18 +43,8 @@ def mark_pixel_tiles(pixels, width, height, tw, tiles):
     """mark_tiles for flat pixel indices."""
     for i in range(pixels.size):
         q = np.int64(pixels[i])
-        if q < 0 or q >= width * height:
-            continue
-        xi = q % width
-        yi = q // width
-        x0 = (xi - 1 if xi > 0 else 0) >> TILE_SHIFT
-        x1 = (xi + 1 if xi + 1 < width else xi) >> TILE_SHIFT
-        y0 = (yi - 1 if yi > 0 else 0) >> TILE_SHIFT
-        y1 = (yi + 1 if yi + 1 < height else yi) >> TILE_SHIFT
-        tiles[y0 * tw + x0] = 1
-        tiles[y0 * tw + x1] = 1
-        tiles[y1 * tw + x0] = 1
-        tiles[y1 * tw + x1] = 1
+        if 0 <= q < width * height:
+            _mark(q % width, q // width, width, height, tw, tiles)
 
 
 @njit(cache=True, nogil=True, fastmath=True)

@@ -378,6 +378,8 @@ def main(argv: list[str] | None = None) -> int:
         args.input = [default_recording()]
     from tools.bench_option import parse_setting
 
+    if args.set and args.mode != "worker":
+        ap.error("--set is for the worker mode")
     if args.mode == "profile":
         for path in args.input:
             profile(path, args.every, {"c": args.c} if args.c else {}, args.top)

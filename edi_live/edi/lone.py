@@ -76,7 +76,6 @@ class LoneChanges:
         self.width, self.height, self.need, self.eps = width, height, int(need), float(eps)
         self.start = np.zeros((height, width), np.float32)
         self.start_display = np.zeros((height, width), np.uint8)
-        self._tiled = _backend.have_numba()
         self._tw = _tiles_across(width)
         self._tiles = np.ones(self._tw * _tiles_across(height), np.uint8)  # marked: all, until the first image()
         self._signs = np.zeros((height + 2) * (width + 2), np.int8)  # each pixel's sign of change; border 0
@@ -97,15 +96,15 @@ class LoneChanges:
 
     def restart_at(self, pixels: np.ndarray, log_lat: np.ndarray, display: np.ndarray) -> None:
         """`pixels` (flat indices) start again at their value now."""
-        self.start.reshape(-1)[pixels] = log_lat.reshape(-1)[pixels]
-        self.start_display.reshape(-1)[pixels] = display.reshape(-1)[pixels]
-        if self._tiled:
-            _kernels_lone.mark_pixel_tiles(np.asarray(pixels, np.int64).reshape(-1), self.width, self.height,
-                                           self._tw, self._tiles)
+        flat = np.asarray(pixels, np.int64).reshape(-1)
+        self.start.reshape(-1)[flat] = log_lat.reshape(-1)[flat]
+        self.start_display.reshape(-1)[flat] = display.reshape(-1)[flat]
+        if flat.size:
+            _kernels_lone.mark_pixel_tiles(flat, self.width, self.height, self._tw, self._tiles)
 
     def touched(self, x: np.ndarray, y: np.ndarray) -> None:
         """Events at (x, y) were applied to the latent image (its log values and display)."""
-        if self._tiled and x.size:
+        if x.size:
             _kernels_lone.mark_tiles(x, y, self.width, self.height, self._tw, self._tiles)
 
     def changed_everywhere(self) -> None:
@@ -114,7 +113,8 @@ class LoneChanges:
 
     def image(self, log_lat: np.ndarray, display: np.ndarray) -> np.ndarray:
         """`display` without its lone changes since the start, as a new array."""
-        if not self._tiled:
+        if not _backend.have_numba():  # the numpy reference, whole frame; the next compiled call redoes every tile
+            self._tiles.fill(1)
             return lone_changes_u8(log_lat, self.start, display, self.start_display, need=self.need, eps=self.eps)
         self.tiles_updated += _kernels_lone.update_tiles(
             log_lat.reshape(-1), self.start.reshape(-1), display.reshape(-1), self.start_display.reshape(-1),

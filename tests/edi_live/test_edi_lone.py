@@ -97,6 +97,29 @@ def test_every_frame_redone_only_in_the_tiles_near_its_events_is_the_whole_frame
     assert checked > 40 and state._lone.tiles_updated < checked * tiles / 3
 
 
+def test_the_numpy_reference_is_the_whole_frame_test_whenever_it_is_entered(rng, monkeypatch):
+    """Inside edi.numpy_reference() a state made outside it shows the numpy whole-frame test (not the kernel that
+    the reference is there to check), and back outside the tiles give the definition again. From the review."""
+    import edi_live.edi._kernels_lone as kernels
+
+    w, h = 21, 13
+    empty = (np.empty(0, np.int64), np.empty(0, np.float32), np.empty(0, np.float32))
+    state = LatentState(w, h, lone_changes=True)
+    state.set_reference(rng.integers(20, 230, (h, w)).astype(np.uint8), edi.ApsResponse(), empty, (0.3, 0.2))
+    start, start_display = state.log_lat.copy(), state.display.copy()
+    compiled = kernels.update_tiles
+    for step in range(6):
+        state.apply(_events(rng, 30, w, h, step * 100), (0.3, 0.2), None, count=False, move=True)
+        expected = _brute_lone(state.log_lat, start, state.display, start_display, 2, LONE_EPS)
+        if step % 2:
+            with edi.numpy_reference():
+                monkeypatch.setattr(kernels, "update_tiles", None)  # calling it would raise
+                assert np.array_equal(state.shown_image(), expected)
+            monkeypatch.setattr(kernels, "update_tiles", compiled)
+        else:
+            assert np.array_equal(state.shown_image(), expected)
+
+
 def test_a_lone_dot_shows_its_start_and_a_moving_patch_or_edge_stays():
     start = np.full((12, 16), np.log(100.0), np.float32)
     lat = start.copy()

@@ -29,6 +29,8 @@ from edi_live.errors import ClientError, EdiLiveError
 
 log = logging.getLogger("edi-live-viewer")
 BOUNDARY = "edi-live-frame"
+MP4_SUFFIXES = (".mp4", ".m4v", ".mov", ".avi", ".mkv")
+"""Names OpenCV writes an mp4v video under (.txt fails at the first frame, .png writes something else)."""
 
 EPILOG = """examples:
   python -m tools.viewer                              # then open http://127.0.0.1:8080
@@ -231,6 +233,9 @@ class Recorder:
             if mp4.is_dir() or not folder.is_dir() or not os.access(folder, os.W_OK):
                 why = "is a directory" if mp4.is_dir() else f"folder {folder} is missing or not writable"
                 raise EdiLiveError(f"cannot write --mp4 {mp4}: {why}")
+            if mp4.suffix.lower() not in MP4_SUFFIXES:
+                raise EdiLiveError(f"cannot write --mp4 {mp4}: the name must end in {', '.join(MP4_SUFFIXES)} "
+                                   "(OpenCV picks the container by it)")
 
     def write(self, header: dict, image: np.ndarray) -> None:
         shown = to_u8(image)  # gray or BGR: PNG keeps either as it is, the MP4 is always BGR
@@ -246,6 +251,9 @@ class Recorder:
                     raise EdiLiveError(f"cannot open {self.mp4} for MP4 (mp4v) writing")
                 self._size = size
             if size != self._size:
+                if not self.skipped_size:
+                    log.warning("frame %s is %dx%d, the MP4 is %dx%d: frames of another size are left out of it "
+                                "(counted in the summary)", header["seq"], *size, *self._size)
                 self.skipped_size += 1
                 return
             self._writer.write(shown if shown.ndim == 3 else cv2.cvtColor(shown, cv2.COLOR_GRAY2BGR))
@@ -401,11 +409,13 @@ class Viewer:
         skipped_before = self.sub.skipped
         try:
             item = self.sub.recv(0.1)
+        except ClientError as exc:
+            self._bad(exc)
+            item = None
+        try:  # apart from the frame: a bad stats message must not cost the frame read with it
             self.sub.recv_stats(0)
         except ClientError as exc:
-            self.bad_messages += 1
-            log.warning("ignored a bad message: %s", exc)
-            return
+            self._bad(exc)
         if item is not None:
             header, image = item
             self.rates.add(header["seq"], self.sub.skipped - skipped_before)
@@ -419,6 +429,10 @@ class Viewer:
                 sys.stderr.write(f"\r{line}\x1b[K" if self._tty else line + "\n")
                 sys.stderr.flush()
 
+    def _bad(self, exc: ClientError) -> None:
+        self.bad_messages += 1
+        log.warning("ignored a bad message: %s", exc)
+
     def close(self) -> None:
         self.hub.close()
         self.recorder.close()
@@ -428,6 +442,8 @@ class Viewer:
         if self._tty and not self.args.quiet:
             sys.stderr.write("\n")
         saved = f", {self.recorder.written} saved" if (self.args.mp4 or self.args.png) else ""
+        if self.recorder.skipped_size:
+            saved += f" ({self.recorder.skipped_size} left out of the MP4: another size than its first frame)"
         log.info("received %d frames (lost %d, skipped %d, bad %d)%s", self.rates.frames, self.rates.lost,
                  self.sub.skipped, self.bad_messages, saved)
 

@@ -315,6 +315,10 @@ def test_cli_out_of_range_values_exit_2_without_a_traceback(args, fragment):
     (lambda tmp: ["--png", str(tmp / "file.txt" / "frames")], "cannot create the --png folder"),
     (lambda tmp: ["--mp4", str(tmp / "missing" / "x.mp4")], "cannot write --mp4"),
     (lambda tmp: ["--mp4", str(tmp)], "is a directory"),
+    # OpenCV picks the container by the name's ending: .txt failed at the first frame with OpenCV's own
+    # multi-line warning, and .png wrote an image sequence that no player opens, without a word
+    (lambda tmp: ["--mp4", str(tmp / "x.txt")], "x.txt: the name must end in .mp4"),
+    (lambda tmp: ["--mp4", str(tmp / "x.png")], "x.png: the name must end in .mp4"),
 ])
 def test_cli_unwritable_outputs_fail_at_start_with_one_line(tmp_path, make_args, fragment):
     (tmp_path / "file.txt").write_text("a file where a folder is expected")
@@ -401,3 +405,56 @@ def test_colour_stream_in_png_mp4_and_http(tmp_path):
     cap.release()
     assert ok and frame.shape == (H, W, 3)
     assert np.abs(frame.astype(int) - colour_pattern(0).astype(int))[8:, 8:].mean() < 10  # lossy, same colours
+
+
+def test_a_bad_stats_message_loses_no_frame(tmp_path):
+    """A malformed stats message read in the same step as a good frame threw that frame away: not shown, not
+    counted, not saved (a hostile publisher's garbage stats cost the --mp4/--png most of the stream)."""
+    import zmq
+
+    from edi_live import wire
+
+    ctx = zmq.Context()
+    pub = ctx.socket(zmq.PUB)
+    pub.setsockopt(zmq.LINGER, 0)
+    port = pub.bind_to_random_port("tcp://127.0.0.1")
+    png_dir = tmp_path / "png"
+    v = viewer.Viewer(viewer.build_parser().parse_args(
+        ["--endpoint", f"tcp://127.0.0.1:{port}", "--no-http", "--quiet", "--all", "--png", str(png_dir)]))
+    try:
+        deadline = time.monotonic() + 10
+        while v.rates.frames == 0:  # the slow joiner: repeat frame 0 until the subscription is in place
+            assert time.monotonic() < deadline, "the viewer received nothing"
+            pub.send_multipart(wire.encode_frame(rec(0), 0, "cam"))
+            v._step()
+        while v.sub.recv(0.2) is not None:  # the repeats still queued
+            pass
+        v.rates.frames = 0
+        for i in range(1, 6):
+            pub.send_multipart(wire.encode_frame(rec(i), i, "cam"))
+            pub.send_multipart([b"stats", b"\xc1 not msgpack"])
+        deadline = time.monotonic() + 10
+        while v.rates.frames < 5 and time.monotonic() < deadline:
+            v._step()
+    finally:
+        v.close()
+        ctx.destroy(linger=0)
+    assert v.rates.frames == 5 and v.bad_messages >= 1
+    assert {p.name for p in png_dir.glob("frame_*.png")} >= {f"frame_{i:09d}.png" for i in range(1, 6)}
+
+
+def test_frames_left_out_of_the_mp4_for_their_size_are_reported(tmp_path, caplog):
+    """The MP4 keeps its first frame's size and skips others: it did so silently, the summary saying only
+    'N saved' for fewer frames than received."""
+    recorder = viewer.Recorder(tmp_path / "mixed.mp4", None, 30.0)
+    small = np.zeros((24, 32), np.uint8)
+    with caplog.at_level("INFO", logger="edi-live-viewer"):
+        for seq, image in enumerate([pattern(0), small, pattern(2), small]):
+            recorder.write({"seq": seq}, image)
+        recorder.close()
+    assert recorder.written == 2 and recorder.skipped_size == 2
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1 and "32x24" in warnings[0] and f"{W}x{H}" in warnings[0], warnings
+    cap = cv2.VideoCapture(str(tmp_path / "mixed.mp4"))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 2
+    cap.release()

@@ -24,10 +24,12 @@ when the engine reads, which it does not while the queue is full.
 
 from __future__ import annotations
 
+import argparse
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import zmq
@@ -61,6 +63,19 @@ def _server_public_key(key: str | bytes | os.PathLike) -> bytes:
     return public
 
 
+def _check_port(endpoint: str) -> None:
+    """libzmq takes a tcp port over 65535 modulo 65536 without a word (99999 connects to 34463)."""
+    scheme, _, address = endpoint.partition("://")
+    port = address.rpartition(":")[2]
+    if scheme == "tcp" and not (port.isdigit() and 1 <= int(port) <= 65535):
+        raise ClientError(f"cannot connect to {endpoint}: the port must be 1-65535 (tcp://HOST:PORT)")
+
+
+def _check_timeout(timeout_s: float | None) -> None:
+    if timeout_s is not None and not timeout_s >= 0:  # NaN never ends a wait
+        raise ClientError(f"timeout_s must be a number of seconds >= 0, or None to wait (got {timeout_s!r})")
+
+
 class Subscriber:
     """A SUB socket on one edi-live endpoint (context manager). Frames and stats use separate sockets,
     so waiting for one never consumes the other."""
@@ -76,6 +91,7 @@ class Subscriber:
                 and max_queued_bytes > 0):
             raise ClientError(f"max_bytes and max_queued_bytes must be positive integers "
                               f"(got {max_bytes!r}, {max_queued_bytes!r})")
+        _check_port(endpoint)
         self.endpoint = endpoint
         self.newest_only = newest_only
         self.max_bytes = max_bytes
@@ -137,6 +153,7 @@ class Subscriber:
             sock.connect(self.endpoint)
 
     def _wait(self, sock: zmq.Socket, timeout_s: float | None) -> bool:
+        _check_timeout(timeout_s)
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while True:
             slice_s = _SLICE_S if deadline is None else min(_SLICE_S, deadline - time.monotonic())
@@ -223,18 +240,34 @@ def subscribe(endpoint: str = DEFAULT_ENDPOINT, *, newest_only: bool = True, tim
             yield item
 
 
+def _at_least(kind: type, low: float) -> Callable[[str], Any]:
+    """An argparse type: a `kind` number >= low (NaN refused)."""
+
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            value = None
+        if value is None or not value >= low:
+            raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'} >= {low} "
+                                             f"(got {text!r})")
+        return value
+
+    return parse
+
+
 def main(argv: list[str] | None = None) -> int:
     """`python -m edi_live.client [ENDPOINT]`: one line per frame received (what edi-live --help promises), until
     --count frames, a --timeout-s without one, or Ctrl-C. Errors are one line; exit 1."""
-    import argparse
     import sys
 
     parser = argparse.ArgumentParser(prog="python -m edi_live.client", description="print the frames an edi-live "
                                      "publisher sends, one line each")
     parser.add_argument("endpoint", nargs="?", default=DEFAULT_ENDPOINT, help=f"default: {DEFAULT_ENDPOINT}")
     parser.add_argument("--curve-server-key", metavar="FILE", help="the publisher's public key (CURVE)")
-    parser.add_argument("--count", type=int, default=0, metavar="N", help="stop after N frames (default: never)")
-    parser.add_argument("--timeout-s", type=float, default=None, metavar="S",
+    parser.add_argument("--count", type=_at_least(int, 0), default=0, metavar="N",
+                        help="stop after N frames (default 0: never)")
+    parser.add_argument("--timeout-s", type=_at_least(float, 0), default=None, metavar="S",
                         help="give up when no frame arrives for S seconds (default: wait)")
     args = parser.parse_args(argv)
     n = 0

@@ -342,3 +342,37 @@ def test_the_client_command_without_a_publisher_is_one_error_line():
     assert proc.returncode == 1 and proc.stdout == ""
     assert proc.stderr.splitlines() == ["edi-live client: error: no frame from tcp://127.0.0.1:9 within 0.2 s: is "
                                         "edi-live running and publishing there?"]
+
+
+@pytest.mark.parametrize("endpoint", ["tcp://127.0.0.1:99999", "tcp://127.0.0.1:0", "tcp://127.0.0.1:-5",
+                                      "tcp://127.0.0.1:x"])
+def test_a_tcp_port_out_of_range_is_a_client_error(endpoint):
+    # libzmq wraps a port over 65535 silently: tcp://127.0.0.1:99999 listened on port 34463 for frames, and the
+    # user was told only that no frame came ("is edi-live running?")
+    with pytest.raises(ClientError, match="port"):
+        Subscriber(endpoint)
+
+
+def test_a_nan_timeout_is_a_client_error_not_a_wait_for_ever():
+    outcome: list = []
+
+    def receive():
+        with Subscriber("tcp://127.0.0.1:9") as sub:  # nothing publishes there
+            try:
+                outcome.append(sub.recv(float("nan")))
+            except ClientError as exc:
+                outcome.append(exc)
+
+    thread = threading.Thread(target=receive, daemon=True)
+    thread.start()
+    thread.join(10)
+    assert outcome and isinstance(outcome[0], ClientError) and "timeout" in str(outcome[0])
+
+
+@pytest.mark.parametrize("args,fragment", [
+    (["--timeout-s", "nan"], "--timeout-s"), (["--timeout-s", "-1"], "--timeout-s"),
+    (["--count", "-3"], "--count"),  # never reached: it printed frames for ever
+])
+def test_the_client_command_refuses_bad_numbers(args, fragment):
+    proc = _client_cli("tcp://127.0.0.1:9", *args)
+    assert proc.returncode == 2 and fragment in proc.stderr and "Traceback" not in proc.stderr, proc.stderr

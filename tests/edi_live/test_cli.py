@@ -120,6 +120,21 @@ def test_a_binary_config_is_a_usage_error_and_a_fifo_replay_is_named(tmp_path):
     assert "no such file" not in proc.stderr
 
 
+@pytest.mark.skipif(not hasattr(os, "mkfifo") or not Path("/bin/bash").exists(), reason="needs FIFOs and bash")
+def test_config_from_a_fifo_without_a_writer_ends_and_from_process_substitution_is_read(tmp_path):
+    """--config on a FIFO that nothing writes to blocked in open() for ever; bash's --config <(printf ...) must
+    still be read (the unknown key proves the text arrived)."""
+    fifo = tmp_path / "edi.toml"
+    os.mkfifo(fifo)
+    proc = run_cli("--config", str(fifo), "--no-publish")
+    lines = error_lines(proc.stderr)
+    assert proc.returncode == 2 and len(lines) == 1 and str(fifo) in lines[0] and "pipe" in lines[0], proc.stderr
+    script = f"cd {REPO} && exec {sys.executable} -m edi_live --config <(printf 'speed = 0\\nbogus = 1\\n')"
+    proc = subprocess.run(["/bin/bash", "-c", script], capture_output=True, text=True, timeout=40, env=_env())
+    assert proc.returncode == 2 and error_lines(proc.stderr) == [
+        "edi-live: error: config file /dev/fd/63: unknown key(s) bogus"], proc.stderr
+
+
 def test_not_an_aedat4_file_is_one_line_exit_1(tmp_path):
     bad = tmp_path / "bad.aedat4"
     bad.write_bytes(b"this is not an AEDAT4 file at all" * 10)

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import dataclasses
+import os
+import threading
 from pathlib import Path
 
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from edi_live import config_file
 from edi_live.config import DEFAULT_ENDPOINT, OPTION_KEYS, NodeConfig, merge_options, read_toml
 from edi_live.errors import ConfigError
 
@@ -326,3 +329,55 @@ def test_two_endpoints_on_one_port_are_refused_before_the_bind_blames_another_pr
         return
     with pytest.raises(ConfigError, match=refused):
         NodeConfig.from_options({"replay": "x.aedat4", **options})
+
+
+def _read_in_thread(path: Path) -> tuple[threading.Thread, list]:
+    outcome: list = []
+
+    def read() -> None:
+        try:
+            outcome.append(read_toml(path))
+        except ConfigError as exc:
+            outcome.append(exc)
+
+    thread = threading.Thread(target=read, daemon=True)
+    thread.start()
+    return thread, outcome
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_a_fifo_nothing_writes_to_is_a_config_error_not_a_wait_for_ever(tmp_path: Path, monkeypatch):
+    # open() of a FIFO without a writer blocked for ever, and Ctrl-C only set the stop flag (the open is retried)
+    monkeypatch.setattr(config_file, "PIPE_WAIT_S", 0.2)
+    fifo = tmp_path / "edi.toml"
+    os.mkfifo(fifo)
+    thread, outcome = _read_in_thread(fifo)
+    thread.join(20)
+    if thread.is_alive():  # release the blocked open() before failing
+        os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+        thread.join(5)
+        pytest.fail("reading a FIFO that nothing writes to did not end")
+    assert isinstance(outcome[0], ConfigError) and str(fifo) in str(outcome[0]) and "pipe" in str(outcome[0])
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_a_fifo_is_read_when_its_writer_comes_after_the_reader(tmp_path: Path):
+    fifo = tmp_path / "edi.toml"
+    os.mkfifo(fifo)
+    thread, outcome = _read_in_thread(fifo)
+    with open(fifo, "wb") as writer:  # blocks until the reader has the FIFO open
+        writer.write(b"every = 500\n")
+        writer.flush()
+        writer.write(b"speed = 0\n")
+    thread.join(20)
+    assert outcome == [{"every": 500, "speed": 0}]
+
+
+def test_a_pipe_whose_writer_is_done_is_read_like_bash_process_substitution(tmp_path: Path):
+    read_end, write_end = os.pipe()
+    try:
+        os.write(write_end, b"every = 250\n")
+        os.close(write_end)
+        assert read_toml(Path(f"/proc/self/fd/{read_end}")) == {"every": 250}
+    finally:
+        os.close(read_end)

@@ -33,9 +33,9 @@ from typing import Any
 
 import numpy as np
 import zmq
-import zmq.auth
 
 from edi_live import wire
+from edi_live.curve_keys import load_certificate
 from edi_live.errors import ClientError
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
@@ -57,9 +57,10 @@ def _server_public_key(key: str | bytes | os.PathLike) -> bytes:
     if isinstance(key, str) and len(key) == 40 and not Path(key).exists():
         return key.encode("ascii")
     try:
-        public, _ = zmq.auth.load_certificate(Path(os.fsdecode(key)))
+        public, _ = load_certificate(key)
     except Exception as exc:
-        raise ClientError(f"cannot read CURVE server public key {key}: {exc}") from exc
+        why = getattr(exc, "strerror", None) or exc
+        raise ClientError(f"cannot read CURVE server public key {key}: {why}") from exc
     return public
 
 

@@ -64,8 +64,8 @@ def _read_pipe(fd: int, limit: int, path: str | Path) -> bytes:
     while len(data) <= limit:
         left_ms = (deadline - time.monotonic()) * 1000
         if left_ms <= 0 or not poller.poll(left_ms):
-            raise OSError(errno.ETIMEDOUT, f"it is a pipe that nothing wrote to and closed within {PIPE_WAIT_S:g} s "
-                                           f"(start its writer first, or give a regular file)", str(path))
+            raise OSError(errno.ETIMEDOUT, f"it is a pipe that nothing wrote to and closed within {PIPE_WAIT_S:g} s: "
+                                           f"start its writer first, or give a regular file", str(path))
         try:
             chunk = os.read(fd, limit + 1 - len(data))
         except BlockingIOError:  # woken without data (a writer came and went, another is still there)

@@ -31,6 +31,7 @@ import zmq
 import zmq.auth
 
 from edi_live import wire
+from edi_live.curve_keys import load_certificate
 from edi_live.datatypes import Reconstruction
 from edi_live.errors import BindError, PublishError
 from edi_live.stats import LatencySamples
@@ -66,9 +67,10 @@ def load_secret_key(path: str | os.PathLike) -> tuple[bytes, bytes]:
     """(public, secret) Z85 keys from a ZeroMQ certificate file; PublishError if unusable."""
     path = Path(path)
     try:
-        public, secret = zmq.auth.load_certificate(path)
+        public, secret = load_certificate(path)
     except Exception as exc:  # OSError for a missing file, ValueError for a malformed one
-        raise PublishError(f"cannot read CURVE secret key {path}: {exc}; generate one with "
+        why = getattr(exc, "strerror", None) or exc
+        raise PublishError(f"cannot read CURVE secret key {path}: {why}; generate one with "
                            "`python -m edi_live.publisher --gen-curve-keys DIR`") from exc
     if not secret:
         raise PublishError(f"CURVE key file {path} holds no secret key (pass the *.key_secret file, "

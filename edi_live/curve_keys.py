@@ -1,0 +1,26 @@
+"""ZeroMQ CURVE certificate files: the keys in the ZPL text that `zmq.auth.create_certificates` writes
+(`public-key = "..."`, `secret-key = "..."`, Z85), for the publisher's --curve-secret-key and the subscribers'
+--curve-server-key. Read through config_file.read_limited, so that a key given as a pipe (bash's <(...)) is read
+and a FIFO that nothing writes to ends in an error instead of blocking open() for ever, as zmq.auth's reader did."""
+
+from __future__ import annotations
+
+import os
+
+from edi_live.config_file import read_limited
+
+MAX_KEY_FILE_BYTES = 64 << 10  # a certificate is ~300 bytes
+
+
+def load_certificate(path: str | os.PathLike) -> tuple[bytes, bytes | None]:
+    """(public key, secret key or None for a public certificate), both Z85. OSError if the file cannot be read;
+    ValueError if it is too large or holds no public key."""
+    keys: dict[bytes, bytes] = {}
+    for line in read_limited(path, MAX_KEY_FILE_BYTES).splitlines():
+        name, sep, value = line.strip().partition(b"=")
+        name = name.strip()
+        if sep and name in (b"public-key", b"secret-key") and name not in keys:
+            keys[name] = value.strip(b" \t'\"")
+    if not keys.get(b"public-key"):
+        raise ValueError("no public-key line: not a ZeroMQ certificate file")
+    return keys[b"public-key"], keys.get(b"secret-key") or None

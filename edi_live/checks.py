@@ -59,6 +59,8 @@ def check_endpoint(endpoint: Any) -> None:
     check(isinstance(endpoint, str) and "://" in endpoint and endpoint.split("://", 1)[1] != "",
           f"publish endpoint must look like tcp://HOST:PORT or ipc://PATH (got {endpoint!r})")
     scheme, _, address = endpoint.partition("://")
+    check(scheme != "inproc", f"publish endpoint {endpoint!r} is reachable only from inside the edi-live process; "
+                              "use tcp://HOST:PORT or ipc://PATH")
     if scheme != "tcp":
         return
     host, sep, port = address.rpartition(":")

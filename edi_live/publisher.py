@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import errno
 import logging
 import os
 import threading
@@ -55,8 +56,9 @@ def _bind_message(endpoint: str, exc: zmq.ZMQError) -> str:
     if exc.errno == zmq.EADDRINUSE:
         return (f"cannot publish on {endpoint}: address already in use (another edi-live or program holds "
                 "that port); choose another with --publish tcp://127.0.0.1:PORT")
-    if exc.errno == zmq.EADDRNOTAVAIL:
-        return f"cannot publish on {endpoint}: this machine has no such address; use 127.0.0.1 or 0.0.0.0"
+    if exc.errno in (zmq.EADDRNOTAVAIL, errno.ENODEV):  # ENODEV: a host name that does not resolve (an interface?)
+        return (f"cannot publish on {endpoint}: this machine has no such address or network interface; use "
+                "127.0.0.1 or 0.0.0.0")
     if exc.errno in (zmq.EINVAL, zmq.EPROTONOSUPPORT):
         return (f"cannot publish on {endpoint}: not a valid ZeroMQ endpoint ({exc.strerror}); expected "
                 "tcp://HOST:PORT or ipc:///PATH")

@@ -61,6 +61,9 @@ def test_defaults_are_safe():
     ({"replay": "x", "out": True}, "out: expected a file path (got True)"),
     ({"device": "auto", "usb_backend": 5}, "usb-backend must look like MODULE:CALLABLE (got 5)"),
     ({"replay": "x", "dv_output_events": "tcp://0.0.0.0:99999"}, "--dv-output-events must look like tcp://HOST:PORT"),
+    # accepted, and no subscriber outside the node's own process could ever reach it
+    ({"replay": "x", "publish": ["inproc://frames"]}, "publish endpoint 'inproc://frames' is reachable only from "
+                                                      "inside the edi-live process"),
     ({"replay": "x", "ring_events": 10}, "ring-events"),
     ({"replay": "x", "duration": -2}, "duration must be a positive number (got -2"),
     ({"replay": "x", "frobnicate": 1}, "unknown option(s) frobnicate"),
@@ -125,7 +128,7 @@ def test_no_publish_empties_the_endpoints():
 
 
 @pytest.mark.parametrize("endpoint", ["tcp://127.0.0.1:1", "tcp://127.0.0.1:65535", "tcp://*:*", "tcp://[::1]:5555",
-                                      "ipc:///tmp/edi.sock", "inproc://frames"])
+                                      "ipc:///tmp/edi.sock"])
 def test_valid_endpoints_are_accepted(endpoint):
     assert NodeConfig.from_options({"replay": "x", "publish": [endpoint]}).publisher.endpoints == (endpoint,)
 

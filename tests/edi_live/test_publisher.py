@@ -368,3 +368,11 @@ def test_frames_nobody_subscribes_to_are_counted_not_sent(publisher):
     wait_until(lambda: pub.submit(make_rec(0, 8, 4)) or pub.stats()["unsubscribed"] > unsubscribed,
                "frames kept being sent after the last subscriber left")
     assert pub.stats()["sent"] < sent + 10_000
+
+
+def test_a_host_name_that_does_not_resolve_is_named_as_such():
+    # libzmq takes an unknown name for a network interface and said only 'No such device'
+    pub = Publisher(["tcp://nohost.invalid:5555"], "cam")
+    with pytest.raises(BindError, match="no such address or network interface"):
+        pub.start()
+    pub.close()

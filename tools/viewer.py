@@ -117,13 +117,19 @@ update(); setInterval(update, 1000);
 """
 
 
-def json_safe(value: Any) -> Any:
+_JSON_DEPTH = 32  # msgpack decodes ~1000 levels of nesting, past Python's recursion limit in json.dumps
+
+
+def json_safe(value: Any, depth: int = 0) -> Any:
     """A copy that strict JSON can carry: the node's stats map comes from the network and may hold binary
-    values or keys, msgpack extension types or non-finite floats (bytes become hex, the rest their repr)."""
+    values or keys, msgpack extension types, non-finite floats (bytes become hex, the rest their repr) or
+    nesting deeper than _JSON_DEPTH levels (cut off there, with a string saying so)."""
+    if isinstance(value, (dict, list, tuple)) and depth >= _JSON_DEPTH:
+        return f"(nested deeper than {_JSON_DEPTH} levels)"
     if isinstance(value, dict):
-        return {_json_key(k): json_safe(v) for k, v in value.items()}
+        return {_json_key(k): json_safe(v, depth + 1) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [json_safe(v) for v in value]
+        return [json_safe(v, depth + 1) for v in value]
     if isinstance(value, float):
         return value if math.isfinite(value) else repr(value)
     if value is None or isinstance(value, (bool, int, str)):

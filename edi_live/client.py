@@ -282,6 +282,8 @@ def main(argv: list[str] | None = None) -> int:
                 break
     except KeyboardInterrupt:
         pass
+    except BrokenPipeError:  # the reader went away ('| head'): done; stdout to devnull, so exit's flush is quiet
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     except ClientError as exc:
         print(f"edi-live client: error: {exc}", file=sys.stderr)
         return 1

@@ -4,6 +4,7 @@ ClientError while the subscriber stays usable."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import textwrap
@@ -376,3 +377,35 @@ def test_a_nan_timeout_is_a_client_error_not_a_wait_for_ever():
 def test_the_client_command_refuses_bad_numbers(args, fragment):
     proc = _client_cli("tcp://127.0.0.1:9", *args)
     assert proc.returncode == 2 and fragment in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+
+
+def test_the_client_command_into_a_closed_pipe_ends_quietly(pub):
+    # 'python -m edi_live.client | head -2' ended with a BrokenPipeError traceback once head had its lines
+    from pathlib import Path
+
+    stop = threading.Event()
+
+    def feed():
+        i = 0
+        while not stop.wait(0.02):
+            i += 1
+            pub.submit(make_rec(i))
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    repo = str(Path(__file__).resolve().parents[2])
+    proc = subprocess.Popen([sys.executable, "-m", "edi_live.client", pub.bound_endpoints[0], "--timeout-s", "30"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=repo,
+                            env={**os.environ, "PYTHONPATH": repo})
+    try:
+        assert proc.stdout.readline().startswith("seq ")
+        proc.stdout.close()  # the reader goes away, as head does
+        err = proc.stderr.read()
+        proc.wait(30)
+    finally:
+        stop.set()
+        feeder.join(5)
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    assert proc.returncode == 0 and err == "", err

@@ -230,6 +230,14 @@ def _error_line(exc: BaseException) -> str:
     return f"{PROG}: error: {text}"
 
 
+def _say(text: str) -> None:
+    """One message on stderr; a stderr that went away ('2>&1 | head') does not turn a finished run into an error."""
+    try:
+        print(text, file=sys.stderr, flush=True)
+    except (OSError, ValueError):
+        pass
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """The program (argv None: sys.argv) or an in-process call. SIGINT/SIGTERM are handled from the start; an
     in-process call restores the previous handlers on return. The program, once stopped by a signal, ignores
@@ -280,25 +288,25 @@ def _main(argv: Sequence[str] | None, signals: StopSignals) -> int:
             if node.final_stats and node.started.is_set():  # no summary when it never got going
                 from edi_live.stats import format_summary
 
-                print(format_summary(node.final_stats, node.elapsed_s), file=sys.stderr)
+                _say(format_summary(node.final_stats, node.elapsed_s))
                 if source.info.is_color or config.edi.color_filter:
-                    print(colour_line(source.info, config.edi.color_filter), file=sys.stderr)
+                    _say(colour_line(source.info, config.edi.color_filter))
         return 0
     except SystemExit as exc:  # --help / --version
         return int(exc.code or 0)
     except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr)
+        _say(f"{PROG}: interrupted")
         return 130
     except EdiLiveError as exc:
         if level == "debug":
             traceback.print_exc()
-        print(_error_line(exc), file=sys.stderr)
+        _say(_error_line(exc))
         return exc.exit_code
     except Exception as exc:  # a bug: still one line, the traceback at --log-level debug
         if level == "debug":
             traceback.print_exc()
-        print(_error_line(f"internal error: {type(exc).__name__}: {exc} (rerun with --log-level debug for the "
-                          f"traceback and report it)"), file=sys.stderr)
+        _say(_error_line(f"internal error: {type(exc).__name__}: {exc} (rerun with --log-level debug for the "
+                         f"traceback and report it)"))
         return 1
 
 

@@ -405,6 +405,26 @@ def test_a_second_ctrl_c_is_ignored_and_the_summary_matches_out(real_recordings,
     assert written == _out_frames(out) > 0
 
 
+def test_stderr_into_a_reader_that_went_away_loses_no_frame(real_recordings, tmp_path, needs_reconstructor):
+    """'edi-live ... 2>&1 | head -1': the status line's BrokenPipeError left the supervisor loop and stopped the
+    run part-way (--out kept 244 of 314 frames, exit 1)."""
+    args = ["--replay", str(real_recordings[DEMO]), "--speed", "0", "--no-publish", "--status-interval-s", "0.01"]
+    full = tmp_path / "full.aedat4"
+    assert run_cli(*args, "--out", str(full), timeout_s=120).returncode == 0
+    cut = tmp_path / "cut.aedat4"
+    proc = subprocess.Popen([sys.executable, "-m", "edi_live", *args, "--out", str(cut)], cwd=REPO,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=_env())
+    try:
+        proc.stderr.close()  # the reader is gone before the first status line
+        proc.wait(120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    assert proc.returncode == 0
+    assert _out_frames(cut) == _out_frames(full) > 0
+
+
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
 def test_sigterm_during_start_up_is_a_clean_stop(real_recordings, tmp_path):
     """Issue 15.3: SIGTERM in the first moments (here: while the config file is being read, through a FIFO that

@@ -37,6 +37,32 @@ def test_plain_status_lines_when_not_a_terminal():
     assert len(lines) == 2 and all(x.startswith("edi-live: ") for x in lines) and "\r" not in stream.getvalue()
 
 
+class ClosedPipe(io.StringIO):
+    """stderr piped into a reader that went away ('edi-live ... 2>&1 | head -1')."""
+
+    def __init__(self, tty: bool) -> None:
+        super().__init__()
+        self.tty, self.writes = tty, 0
+
+    def isatty(self) -> bool:
+        return self.tty
+
+    def write(self, text: str) -> int:
+        self.writes += 1
+        raise BrokenPipeError(32, "Broken pipe")
+
+
+def test_a_status_stream_that_went_away_stops_the_status_not_the_run():
+    # the error left the node's supervisor loop, which stopped the run part-way: --out kept 244 of 314 frames
+    for tty in (False, True):
+        stream = ClosedPipe(tty)
+        line = StatusLine(stream, interval_s=0.0)
+        for _ in range(3):
+            line.maybe_draw(lambda: STATS)
+        line.finish()
+        assert stream.writes == 1  # tried once, then left alone
+
+
 def test_rates_between_calls():
     clock = iter([0.0, 2.0, 3.0])
     rates = Rates(clock=lambda: next(clock))

@@ -432,8 +432,11 @@ class Viewer:
             self.hub.status = {"viewer_fps": round(self.rates.fps, 1), "lost": self.rates.lost,
                                "skipped": self.sub.skipped, "line": line, "node": self.sub.last_stats}
             if not self.args.quiet:
-                sys.stderr.write(f"\r{line}\x1b[K" if self._tty else line + "\n")
-                sys.stderr.flush()
+                try:
+                    sys.stderr.write(f"\r{line}\x1b[K" if self._tty else line + "\n")
+                    sys.stderr.flush()
+                except (OSError, ValueError):  # stderr went away ('2>&1 | head'): the status ends, not the run
+                    self.args.quiet = True
 
     def _bad(self, exc: ClientError) -> None:
         self.bad_messages += 1

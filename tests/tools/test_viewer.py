@@ -407,40 +407,89 @@ def test_colour_stream_in_png_mp4_and_http(tmp_path):
     assert np.abs(frame.astype(int) - colour_pattern(0).astype(int))[8:, 8:].mean() < 10  # lossy, same colours
 
 
-def test_a_bad_stats_message_loses_no_frame(tmp_path):
-    """A malformed stats message read in the same step as a good frame threw that frame away: not shown, not
-    counted, not saved (a hostile publisher's garbage stats cost the --mp4/--png most of the stream)."""
+@pytest.fixture
+def raw_pub():
+    """A bare PUB socket the test writes message parts to (a hostile or foreign publisher), and its endpoint."""
     import zmq
-
-    from edi_live import wire
 
     ctx = zmq.Context()
     pub = ctx.socket(zmq.PUB)
     pub.setsockopt(zmq.LINGER, 0)
     port = pub.bind_to_random_port("tcp://127.0.0.1")
+    yield pub, f"tcp://127.0.0.1:{port}"
+    ctx.destroy(linger=0)
+
+
+def joined_viewer(pub, argv: list[str]) -> viewer.Viewer:
+    """A Viewer (not running: the test calls its _step) subscribed to `pub`, with nothing queued and no frame
+    counted yet."""
+    from edi_live import wire
+
+    v = viewer.Viewer(viewer.build_parser().parse_args(argv))
+    deadline = time.monotonic() + 10
+    while v.rates.frames == 0:  # the slow joiner: repeat frame 0 until the subscription is in place
+        assert time.monotonic() < deadline, "the viewer received nothing"
+        pub.send_multipart(wire.encode_frame(rec(0), 0, "cam"))
+        v._step()
+    while v.sub.recv(0.2) is not None:  # the repeats still queued
+        pass
+    v.rates.frames = 0
+    return v
+
+
+def step_until(v: viewer.Viewer, frames: int) -> None:
+    deadline = time.monotonic() + 10
+    while v.rates.frames < frames and time.monotonic() < deadline:
+        v._step()
+
+
+def test_a_bad_stats_message_loses_no_frame(raw_pub, tmp_path):
+    """A malformed stats message read in the same step as a good frame threw that frame away: not shown, not
+    counted, not saved (a hostile publisher's garbage stats cost the --mp4/--png most of the stream)."""
+    from edi_live import wire
+
+    pub, endpoint = raw_pub
     png_dir = tmp_path / "png"
-    v = viewer.Viewer(viewer.build_parser().parse_args(
-        ["--endpoint", f"tcp://127.0.0.1:{port}", "--no-http", "--quiet", "--all", "--png", str(png_dir)]))
+    v = joined_viewer(pub, ["--endpoint", endpoint, "--no-http", "--quiet", "--all", "--png", str(png_dir)])
     try:
-        deadline = time.monotonic() + 10
-        while v.rates.frames == 0:  # the slow joiner: repeat frame 0 until the subscription is in place
-            assert time.monotonic() < deadline, "the viewer received nothing"
-            pub.send_multipart(wire.encode_frame(rec(0), 0, "cam"))
-            v._step()
-        while v.sub.recv(0.2) is not None:  # the repeats still queued
-            pass
-        v.rates.frames = 0
         for i in range(1, 6):
             pub.send_multipart(wire.encode_frame(rec(i), i, "cam"))
             pub.send_multipart([b"stats", b"\xc1 not msgpack"])
-        deadline = time.monotonic() + 10
-        while v.rates.frames < 5 and time.monotonic() < deadline:
-            v._step()
+        step_until(v, 5)
     finally:
         v.close()
-        ctx.destroy(linger=0)
     assert v.rates.frames == 5 and v.bad_messages >= 1
     assert {p.name for p in png_dir.glob("frame_*.png")} >= {f"frame_{i:09d}.png" for i in range(1, 6)}
+
+
+def test_a_status_stream_that_went_away_stops_the_status_not_the_recording(raw_pub, tmp_path, monkeypatch):
+    """'python -m tools.viewer --mp4 x.mp4 2>&1 | head -1': the status line's BrokenPipeError ended the run at
+    its second status line (41 of ~80 frames in the MP4, exit 1, a traceback)."""
+    from edi_live import wire
+
+    class ClosedPipe:
+        def isatty(self) -> bool:
+            return False
+
+        def write(self, text: str) -> int:
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def flush(self) -> None:
+            raise BrokenPipeError(32, "Broken pipe")
+
+    pub, endpoint = raw_pub
+    png_dir = tmp_path / "png"
+    v = joined_viewer(pub, ["--endpoint", endpoint, "--no-http", "--all", "--png", str(png_dir)])
+    monkeypatch.setattr(sys, "stderr", ClosedPipe())
+    try:
+        for i in range(1, 4):
+            v.rates._window_start -= 2.0  # each step draws the status line (due once a second)
+            pub.send_multipart(wire.encode_frame(rec(i), i, "cam"))
+            step_until(v, i)
+    finally:
+        v.close()
+    assert v.rates.frames == 3
+    assert {p.name for p in png_dir.glob("frame_*.png")} >= {f"frame_{i:09d}.png" for i in range(1, 4)}
 
 
 def test_frames_left_out_of_the_mp4_for_their_size_are_reported(tmp_path, caplog):

@@ -167,6 +167,8 @@ class Subscriber:
     def _recv_parts(self, sock: zmq.Socket, timeout_s: float | None,
                     newest: bool) -> tuple[list[zmq.Frame] | None, int]:
         """The next message (or the newest available one when `newest`) and how many were skipped."""
+        if self._ctx.closed:
+            raise ClientError(f"this Subscriber of {self.endpoint} is closed")
         self._reconnect_if_dropped(sock)
         try:  # a message already waiting costs no poll
             parts = sock.recv_multipart(flags=zmq.NOBLOCK, copy=False)
@@ -207,6 +209,9 @@ class Subscriber:
         return self.last_stats
 
     def close(self) -> None:
+        """Close the sockets; closing again does nothing (an explicit close() inside `with` is fine)."""
+        if self._ctx.closed:
+            return
         for sock in self._monitors:
             sock.disable_monitor()
         self._ctx.destroy(linger=0)

@@ -409,3 +409,15 @@ def test_the_client_command_into_a_closed_pipe_ends_quietly(pub):
             proc.kill()
             proc.wait(10)
     assert proc.returncode == 0 and err == "", err
+
+
+def test_close_twice_is_harmless_and_a_receive_after_close_is_a_client_error():
+    # an explicit close() inside 'with Subscriber(...)' raised ZMQError 'Socket operation on non-socket' at the
+    # block's end; a receive after close() raised a bare ZMQError
+    with Subscriber("tcp://127.0.0.1:9") as sub:
+        sub.close()
+    sub.close()
+    with pytest.raises(ClientError, match="closed"):
+        sub.recv(0.1)
+    with pytest.raises(ClientError, match="closed"):
+        sub.recv_stats(0)

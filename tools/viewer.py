@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import html
 import http.server
+import itertools
 import json
 import math
 import logging
@@ -229,6 +230,7 @@ class Recorder:
         self._size: tuple[int, int] | None = None
         self.written = 0
         self.skipped_size = 0
+        self._png_renamed = False
         if png_dir is not None:
             try:
                 png_dir.mkdir(parents=True, exist_ok=True)
@@ -246,9 +248,7 @@ class Recorder:
     def write(self, header: dict, image: np.ndarray) -> None:
         shown = to_u8(image)  # gray or BGR: PNG keeps either as it is, the MP4 is always BGR
         if self.png_dir is not None:
-            path = self.png_dir / f"frame_{header['seq']:09d}.png"
-            if not cv2.imwrite(str(path), shown):
-                raise EdiLiveError(f"cannot write {path}")
+            self._write_png(header["seq"], shown)
         if self.mp4 is not None:
             size = (shown.shape[1], shown.shape[0])
             if self._writer is None:
@@ -264,6 +264,26 @@ class Recorder:
                 return
             self._writer.write(shown if shown.ndim == 3 else cv2.cvtColor(shown, cv2.COLOR_GRAY2BGR))
         self.written += 1
+
+    def _write_png(self, seq: int, shown: np.ndarray) -> None:
+        """frame_SEQ.png, or frame_SEQ_2.png, _3, ... when that name is taken (an earlier recording in the folder,
+        or a publisher restarted: its seq starts again): a saved frame is never overwritten."""
+        ok, png = cv2.imencode(".png", shown)
+        if not ok:
+            raise EdiLiveError(f"cannot encode frame {seq} as PNG")
+        for copy in itertools.count(1):
+            path = self.png_dir / (f"frame_{seq:09d}.png" if copy == 1 else f"frame_{seq:09d}_{copy}.png")
+            try:
+                with open(path, "xb") as fh:
+                    fh.write(png.tobytes())
+                break
+            except FileExistsError:
+                if not self._png_renamed:
+                    self._png_renamed = True
+                    log.warning("%s exists (an earlier recording, or the publisher restarted): frames whose name "
+                                "is taken are saved as frame_SEQ_2.png, _3, ...", path)
+            except OSError as exc:
+                raise EdiLiveError(f"cannot write {path}: {exc.strerror or exc}") from exc
 
     def close(self) -> None:
         if self._writer is not None:

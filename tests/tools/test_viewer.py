@@ -524,3 +524,22 @@ def test_status_json_survives_a_stats_map_nested_a_thousand_deep():
     while isinstance(level, list):
         level, depth = level[0], depth + 1
     assert isinstance(level, str) and depth < 990  # cut off, said in a string
+
+
+def test_png_never_overwrites_a_frame_already_saved(tmp_path, caplog):
+    """A second recording into the same --png folder (or a node restarted mid-recording: its seq starts at 0
+    again) overwrote the frames saved under the same numbers, without a word."""
+    png_dir = tmp_path / "png"
+    png_dir.mkdir()
+    earlier = png_dir / "frame_000000001.png"
+    cv2.imwrite(str(earlier), pattern(77))
+    recorder = viewer.Recorder(None, png_dir, 30.0)
+    with caplog.at_level("INFO", logger="edi-live-viewer"):
+        recorder.write({"seq": 1}, pattern(1))
+        recorder.write({"seq": 1}, pattern(2))  # the publisher restarted
+    np.testing.assert_array_equal(cv2.imread(str(earlier), cv2.IMREAD_UNCHANGED), pattern(77))
+    saved = {p.name: cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in png_dir.glob("frame_*.png")}
+    assert len(saved) == 3 and recorder.written == 2
+    assert sorted(int(image[0, 0]) for image in saved.values()) == [1, 2, 77]
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1 and "frame_000000001.png" in warnings[0], warnings

@@ -525,3 +525,10 @@ def test_a_colour_camera_says_colour_in_the_listing_and_the_summary():
     assert proc.returncode == 0, proc.stderr
     assert "done in" in proc.stderr and "camera: DAVIS346_EMU00001 346x260, colour (RGGB Bayer mosaic)" in proc.stderr
     assert "INFO: DAVIS davis346 at USB 1:7 is a colour DAVIS346: RGGB Bayer mosaic" in proc.stderr  # at start-up
+
+
+def test_the_duration_reached_is_said_as_given(real_recordings, needs_reconstructor):
+    # '--duration 0.05' said '--duration 0.1 s reached' (and 1e-9 said '0.0 s')
+    proc = run_cli("--replay", str(real_recordings[DEMO]), "--loop", "--speed", "0", "--no-publish", "--duration",
+                   "0.05", timeout_s=90)
+    assert proc.returncode == 0 and "--duration 0.05 s reached" in proc.stderr, proc.stderr

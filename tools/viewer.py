@@ -399,6 +399,9 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+_BAD_SHOWN = 10  # bad messages logged one by one; a foreign publisher would otherwise write a line per message
+
+
 class Viewer:
     """The receive loop with its outputs; `run()` until stopped, `close()` finalizes files and sockets."""
 
@@ -460,7 +463,9 @@ class Viewer:
 
     def _bad(self, exc: ClientError) -> None:
         self.bad_messages += 1
-        log.warning("ignored a bad message: %s", exc)
+        if self.bad_messages <= _BAD_SHOWN:
+            more = "; further bad messages are counted in the summary only" if self.bad_messages == _BAD_SHOWN else ""
+            log.warning("ignored a bad message: %s%s", exc, more)
 
     def close(self) -> None:
         self.hub.close()

@@ -543,3 +543,25 @@ def test_png_never_overwrites_a_frame_already_saved(tmp_path, caplog):
     assert sorted(int(image[0, 0]) for image in saved.values()) == [1, 2, 77]
     warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert len(warnings) == 1 and "frame_000000001.png" in warnings[0], warnings
+
+
+def test_a_stream_of_bad_messages_is_counted_not_logged_line_by_line(raw_pub, caplog):
+    """Each bad message was one warning line: a publisher of another protocol version at 1000 frames/s wrote 1000
+    lines a second over the status line."""
+    import msgpack
+
+    pub, endpoint = raw_pub
+    v = joined_viewer(pub, ["--endpoint", endpoint, "--no-http", "--quiet", "--all"])
+    bad = [b"frame", msgpack.packb({"v": 99}), b""]
+    with caplog.at_level("INFO", logger="edi-live-viewer"):
+        try:
+            for _ in range(50):
+                pub.send_multipart(bad)
+            deadline = time.monotonic() + 10
+            while v.bad_messages < 50 and time.monotonic() < deadline:
+                v._step()
+        finally:
+            v.close()
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert v.bad_messages == 50 and 1 <= len(warnings) <= 11, warnings
+    assert "bad 50" in caplog.records[-1].getMessage()  # the closing summary has them all

@@ -246,6 +246,11 @@ def subscribe(endpoint: str = DEFAULT_ENDPOINT, *, newest_only: bool = True, tim
             yield item
 
 
+def _printable(text: str) -> str:
+    """A publisher's string as the terminal may show it: control characters (escape sequences) escaped."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 def _at_least(kind: type, low: float) -> Callable[[str], Any]:
     """An argparse type: a `kind` number >= low (NaN refused)."""
 
@@ -282,7 +287,7 @@ def main(argv: list[str] | None = None) -> int:
                                        curve_server_key=args.curve_server_key):
             n += 1
             print(f"seq {header['seq']} t {header['t']} µs {header['kind']} {image.shape[1]}x{image.shape[0]} "
-                  f"events {header['n_events']} from {header['source']}", flush=True)
+                  f"events {header['n_events']} from {_printable(header['source'])}", flush=True)
             if n == args.count:
                 break
     except KeyboardInterrupt:

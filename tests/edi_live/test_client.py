@@ -421,3 +421,25 @@ def test_close_twice_is_harmless_and_a_receive_after_close_is_a_client_error():
         sub.recv(0.1)
     with pytest.raises(ClientError, match="closed"):
         sub.recv_stats(0)
+
+
+def test_the_client_command_prints_no_control_characters_from_the_publisher(raw_pub):
+    # a publisher's 'source' went to the terminal as it came: escape sequences (clear screen, window title) included
+    sock, endpoint = raw_pub
+    parts = [bytes(p) for p in wire.encode_frame(make_rec(1), 1, "cam\x1b[2J\r\x07evil")]
+    stop = threading.Event()
+
+    def feed():
+        while not stop.wait(0.02):
+            sock.send_multipart(parts)
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    try:
+        proc = _client_cli(endpoint, "--count", "1", "--timeout-s", "30")
+    finally:
+        stop.set()
+        feeder.join(5)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.count("\n") == 1 and not any(c in proc.stdout for c in "\x1b\r\x07"), repr(proc.stdout)
+    assert "from cam\\x1b[2J\\r\\x07evil" in proc.stdout

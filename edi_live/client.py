@@ -9,7 +9,8 @@ With `newest_only=True` (the default) each receive drains the socket and keeps t
 a viewer that falls behind skips to the present instead of lagging (ZMQ_CONFLATE cannot be used: it keeps
 only the last *part* of a multipart message). Every receive has a timeout or waits in short interruptible
 slices. Malformed or oversized messages raise `ClientError`; a receive that times out raises `ClientTimeout`
-(a `ClientError` and a `TimeoutError`) from `subscribe()`, or returns None from `Subscriber.recv()`.
+(a `ClientError` and a `TimeoutError`) from `subscribe()`, or returns None from `Subscriber.recv()`. Handshakes
+that keep failing (CURVE on one side only, a wrong key, a peer that is not ZeroMQ) raise `ClientHandshakeError`.
 
 Memory is bounded before anything is received: libzmq refuses any message part over `max_bytes`
 (ZMQ_MAXMSGSIZE, checked against the part's length prefix, so nothing is allocated) by dropping the connection,
@@ -33,6 +34,7 @@ from typing import Any
 
 import numpy as np
 import zmq
+from zmq.utils.monitor import parse_monitor_message
 
 from edi_live import wire
 from edi_live.curve_keys import load_certificate
@@ -48,6 +50,16 @@ _MAX_DRAIN = 10_000  # bound on messages drained per receive, so a flood cannot 
 
 class ClientTimeout(ClientError, TimeoutError):
     """No message arrived within the timeout."""
+
+
+class ClientHandshakeError(ClientError):
+    """The connection cannot carry frames: CURVE on one side only, a wrong server key, or a peer that does not
+    speak ZeroMQ. Raised by a receive; libzmq itself would retry in silence for ever."""
+
+
+_HANDSHAKE_EVENTS = (zmq.EVENT_CONNECTED | zmq.EVENT_HANDSHAKE_SUCCEEDED | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
+                     | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL | zmq.EVENT_HANDSHAKE_FAILED_AUTH)
+_HANDSHAKE_TRIES = 3  # failures in a row (~0.1 s apart) before they are an error: one can be a publisher stopping
 
 
 def _server_public_key(key: str | bytes | os.PathLike) -> bytes:
@@ -99,6 +111,8 @@ class Subscriber:
         self.received = 0  # frames handed to the caller
         self.skipped = 0  # frames drained and discarded by newest_only
         self.reconnects = 0  # connections re-established after libzmq dropped them (e.g. an oversized part)
+        self._handshake_failures = 0
+        self._handshaking: set[zmq.Socket] = set()  # connected, handshake not yet done
         self.last_stats: dict | None = None
         self._server_key = _server_public_key(curve_server_key) if curve_server_key is not None else None
         wanted = rcvhwm if rcvhwm is not None else (16 if newest_only else 1000)
@@ -134,17 +148,31 @@ class Subscriber:
             sock.close(linger=0)
             raise ClientError(f"cannot connect to {self.endpoint}: {exc.strerror}; expected "
                               "tcp://HOST:PORT or ipc:///PATH") from exc
-        self._monitors[sock] = sock.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+        self._monitors[sock] = sock.get_monitor_socket(zmq.EVENT_DISCONNECTED | _HANDSHAKE_EVENTS)
         return sock
 
     def _reconnect_if_dropped(self, sock: zmq.Socket) -> None:
         """After libzmq dropped the connection (a part over max_bytes, a protocol error: it does not
         reconnect by itself then), connect again. Harmless after an ordinary disconnect."""
         monitor = self._monitors[sock]
-        dropped = False
+        dropped, failure = False, None
         while monitor.poll(0):
-            monitor.recv_multipart()
-            dropped = True
+            event = parse_monitor_message(monitor.recv_multipart())
+            if event["event"] == zmq.EVENT_CONNECTED:
+                self._handshaking.add(sock)
+            elif event["event"] == zmq.EVENT_HANDSHAKE_SUCCEEDED:
+                self._handshaking.discard(sock)
+                self._handshake_failures = 0
+            elif event["event"] == zmq.EVENT_DISCONNECTED:
+                dropped = True
+                if sock in self._handshaking:  # closed before a handshake: a peer that is no ZeroMQ publisher
+                    self._handshaking.discard(sock)
+                    self._handshake_failures += 1
+                    failure = failure or 0
+            else:  # a failed handshake: libzmq retries it for ever, in silence
+                self._handshaking.discard(sock)
+                self._handshake_failures += 1
+                failure = event["value"]
         if dropped:
             self.reconnects += 1
             try:
@@ -152,6 +180,18 @@ class Subscriber:
             except zmq.ZMQError:
                 pass  # already gone
             sock.connect(self.endpoint)
+        if failure == zmq.PROTOCOL_ERROR_ZMTP_MECHANISM_MISMATCH:  # deterministic: say it at once
+            raise ClientHandshakeError(
+                f"the publisher at {self.endpoint} does not encrypt: connect without a CURVE server key"
+                if self._server_key is not None else f"the publisher at {self.endpoint} encrypts (CURVE): give "
+                "its public key (--curve-server-key FILE, curve_server_key=)")
+        if failure is not None and self._handshake_failures >= _HANDSHAKE_TRIES:  # not a publisher restarting
+            raise ClientHandshakeError(
+                f"the encryption handshake with {self.endpoint} keeps failing: that publisher does not encrypt, or "
+                "--curve-server-key is not the public key of its --curve-secret-key" if self._server_key is not None
+                else f"the handshake with {self.endpoint} keeps failing: it encrypts (CURVE: give its public key "
+                "with --curve-server-key), or it does not speak ZeroMQ (edi-live's frames are on --publish, not on "
+                "--dv-output)")
 
     def _wait(self, sock: zmq.Socket, timeout_s: float | None) -> bool:
         _check_timeout(timeout_s)

@@ -25,7 +25,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from edi_live.client import DEFAULT_ENDPOINT, Subscriber
+from edi_live.client import DEFAULT_ENDPOINT, ClientHandshakeError, Subscriber
 from edi_live.errors import ClientError, EdiLiveError
 
 log = logging.getLogger("edi-live-viewer")
@@ -438,11 +438,15 @@ class Viewer:
         skipped_before = self.sub.skipped
         try:
             item = self.sub.recv(0.1)
+        except ClientHandshakeError:
+            raise  # no frame will ever come: the run ends with this one line
         except ClientError as exc:
             self._bad(exc)
             item = None
         try:  # apart from the frame: a bad stats message must not cost the frame read with it
             self.sub.recv_stats(0)
+        except ClientHandshakeError:
+            raise
         except ClientError as exc:
             self._bad(exc)
         if item is not None:

@@ -17,7 +17,7 @@ import pytest
 import zmq
 
 from edi_live import wire
-from edi_live.client import ClientTimeout, Subscriber, subscribe
+from edi_live.client import ClientHandshakeError, ClientTimeout, Subscriber, subscribe
 from edi_live.datatypes import Reconstruction
 from edi_live.errors import ClientError
 from edi_live.publisher import Publisher
@@ -224,6 +224,7 @@ def test_a_part_over_the_limit_is_never_received_and_the_subscriber_recovers(raw
 
 _SLOW_READER = textwrap.dedent("""
     import sys, zmq
+    from zmq.utils.monitor import parse_monitor_message
     from edi_live.client import Subscriber
     pub = zmq.Context().socket(zmq.PUB)
     pub.setsockopt(zmq.LINGER, 0)
@@ -236,11 +237,16 @@ _SLOW_READER = textwrap.dedent("""
         monitor = sub._frames.get_monitor_socket(zmq.EVENT_DISCONNECTED | zmq.EVENT_HANDSHAKE_SUCCEEDED)
         for i in range(2000):  # the subscriber's queue fills up: libzmq stops reading the connection
             pub.send_multipart([b"frame", b"x", b"y" * 100_000])
+        def event(wanted):  # within 5 s of the previous one; the first connection's events are still queued
+            while monitor.poll(5000):
+                if parse_monitor_message(monitor.recv_multipart())["event"] == wanted:
+                    return True
+            return False
+
         # the old client's ZMTP heartbeat timed out (3 s) and reconnected with the full queue; wait for that
         # disconnect (or for 5 s, when there is none) and the new connection's handshake
-        if monitor.poll(5000):
-            monitor.recv_multipart()
-            print("disconnected, reconnected:", bool(monitor.poll(5000)), flush=True)
+        if event(zmq.EVENT_DISCONNECTED):
+            print("disconnected, reconnected:", event(zmq.EVENT_HANDSHAKE_SUCCEEDED), flush=True)
         else:
             print("still connected", flush=True)
         n = 0
@@ -443,3 +449,73 @@ def test_the_client_command_prints_no_control_characters_from_the_publisher(raw_
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.count("\n") == 1 and not any(c in proc.stdout for c in "\x1b\r\x07"), repr(proc.stdout)
     assert "from cam\\x1b[2J\\r\\x07evil" in proc.stdout
+
+
+def _handshake_error(sub: Subscriber) -> ClientHandshakeError:
+    """The error recv() raises once libzmq reported the failed handshakes (it retries every ~0.1 s)."""
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:
+        try:
+            sub.recv(0.2)
+        except ClientHandshakeError as exc:
+            return exc
+    raise AssertionError("no handshake error within 20 s")
+
+
+@pytest.mark.skipif(not zmq.has("curve"), reason="libzmq without CURVE")
+def test_an_encryption_mismatch_or_a_wrong_key_is_named_instead_of_a_silent_wait(tmp_path):
+    # a subscriber with the wrong --curve-server-key, or one when the publisher does not encrypt (or none when it
+    # does), waited for ever: 'no frame ... is edi-live running and publishing there?' with --timeout-s
+    from edi_live.publisher import generate_curve_keys
+
+    public, secret = generate_curve_keys(tmp_path / "keys")
+    other_public, _ = generate_curve_keys(tmp_path / "other")
+    plain = Publisher(["tcp://127.0.0.1:*"], "cam")
+    encrypted = Publisher(["tcp://127.0.0.1:*"], "cam", curve_secret_key=secret)
+    plain.start()
+    encrypted.start()
+    try:
+        cases = [(plain, public, "does not encrypt"), (encrypted, None, "encrypts (CURVE"),
+                 (encrypted, other_public, "--curve-server-key is not the public key")]
+        for pub, key, fragment in cases:
+            endpoint = pub.bound_endpoints[0]
+            with Subscriber(endpoint, curve_server_key=key) as sub:
+                error = _handshake_error(sub)
+            assert fragment in str(error) and endpoint in str(error) and "\n" not in str(error), str(error)
+    finally:
+        plain.close()
+        encrypted.close()
+
+
+def test_a_server_that_is_not_zeromq_is_named():
+    # e.g. the node's --dv-output port given to the client: a silent wait for ever
+    import socket
+
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen(4)
+        endpoint = f"tcp://127.0.0.1:{server.getsockname()[1]}"
+        stop = threading.Event()
+
+        def serve():  # what a DV server does: send its header at once, never read
+            server.settimeout(0.1)
+            held = []
+            while not stop.is_set():
+                try:
+                    conn, _ = server.accept()
+                except OSError:
+                    continue
+                conn.sendall(b"\x20\x0c\x00\x00" + b"IOHE" + b"\x00" * 64)
+                held.append(conn)
+            for conn in held:
+                conn.close()
+
+        thread = threading.Thread(target=serve, daemon=True)
+        thread.start()
+        try:
+            with Subscriber(endpoint) as sub:
+                error = _handshake_error(sub)
+        finally:
+            stop.set()
+            thread.join(5)
+    assert "ZeroMQ" in str(error) and endpoint in str(error), str(error)

@@ -565,3 +565,19 @@ def test_a_stream_of_bad_messages_is_counted_not_logged_line_by_line(raw_pub, ca
     warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
     assert v.bad_messages == 50 and 1 <= len(warnings) <= 11, warnings
     assert "bad 50" in caplog.records[-1].getMessage()  # the closing summary has them all
+
+
+def test_a_publisher_that_encrypts_is_one_error_line_not_a_silent_wait(tmp_path):
+    # without --curve-server-key the viewer showed 'recv 0.0 fps | no stats yet' for ever
+    from edi_live.publisher import generate_curve_keys
+
+    _, secret = generate_curve_keys(tmp_path / "keys")
+    pub = Publisher(["tcp://127.0.0.1:*"], "cam", curve_secret_key=secret)
+    pub.start()
+    try:
+        proc = run_cli(["--endpoint", pub.bound_endpoints[0], "--no-http", "--quiet", "--duration", "60"])
+        err = _finish(proc, 40)
+    finally:
+        pub.close()
+    lines = [line for line in err.splitlines() if line.startswith("viewer: error:")]
+    assert proc.returncode == 1 and len(lines) == 1 and "encrypts (CURVE" in lines[0], err

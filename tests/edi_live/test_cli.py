@@ -353,6 +353,10 @@ def test_publishing_beyond_loopback_without_curve_is_said_aloud(caplog, tmp_path
     ({"device": "davis240", "exposure_us": 5000}, None),
     ({"replay": "x.aedat4", "latent_denoise": True, "mode": "fused"}, "ignored with --mode fused: --latent-denoise"),
     ({"replay": "x.aedat4", "latent_denoise": True}, None),
+    # a fixed c is never estimated: 're-estimated 0 times' in the summary was the only hint
+    ({"replay": "x.aedat4", "c": 0.2, "reestimate_every": 5}, "ignored with a fixed c: --reestimate-every"),
+    ({"replay": "x.aedat4", "c_on": 0.2, "c_off": 0.3, "reestimate_every": 5}, "--reestimate-every"),
+    ({"replay": "x.aedat4", "reestimate_every": 5}, None),
 ])
 def test_options_that_do_nothing_for_the_input_are_said_aloud(caplog, flags, warning):
     from edi_live import cli

@@ -183,6 +183,8 @@ def _warn_ignored(config: NodeConfig, explicit: set[str]) -> None:
                         ", ".join("--" + name.replace("_", "-") for name in given))
     elif s.emulate_from is None and "speed" in explicit:
         log.warning("ignored with a live camera: --speed (it paces --replay and --emulate-from only)")
+    if config.publisher.curve_secret_key is not None and not config.publisher.endpoints:
+        log.warning("ignored with --no-publish: --curve-secret-key (it encrypts the published frames)")
     if config.edi.reestimate_every and (config.edi.c is not None or config.edi.c_on is not None):
         log.warning("ignored with a fixed c: --reestimate-every (c is never estimated)")
     if config.edi.latent_denoise and config.edi.mode != "causal":

@@ -357,6 +357,8 @@ def test_publishing_beyond_loopback_without_curve_is_said_aloud(caplog, tmp_path
     ({"replay": "x.aedat4", "c": 0.2, "reestimate_every": 5}, "ignored with a fixed c: --reestimate-every"),
     ({"replay": "x.aedat4", "c_on": 0.2, "c_off": 0.3, "reestimate_every": 5}, "--reestimate-every"),
     ({"replay": "x.aedat4", "reestimate_every": 5}, None),
+    ({"replay": "x.aedat4", "no_publish": True, "curve_secret_key": "k.key_secret"},
+     "ignored with --no-publish: --curve-secret-key"),
 ])
 def test_options_that_do_nothing_for_the_input_are_said_aloud(caplog, flags, warning):
     from edi_live import cli

@@ -274,16 +274,22 @@ class Recorder:
         for copy in itertools.count(1):
             path = self.png_dir / (f"frame_{seq:09d}.png" if copy == 1 else f"frame_{seq:09d}_{copy}.png")
             try:
-                with open(path, "xb") as fh:
-                    fh.write(png.tobytes())
-                break
+                fh = open(path, "xb")
             except FileExistsError:
                 if not self._png_renamed:
                     self._png_renamed = True
                     log.warning("%s exists (an earlier recording, or the publisher restarted): frames whose name "
                                 "is taken are saved as frame_SEQ_2.png, _3, ...", path)
+                continue
             except OSError as exc:
                 raise EdiLiveError(f"cannot write {path}: {exc.strerror or exc}") from exc
+            try:
+                with fh:
+                    fh.write(png.tobytes())
+            except OSError as exc:  # a full disk: no truncated PNG among the good ones
+                path.unlink(missing_ok=True)
+                raise EdiLiveError(f"cannot write {path}: {exc.strerror or exc}") from exc
+            break
 
     def close(self) -> None:
         if self._writer is not None:

@@ -581,3 +581,31 @@ def test_a_publisher_that_encrypts_is_one_error_line_not_a_silent_wait(tmp_path)
         pub.close()
     lines = [line for line in err.splitlines() if line.startswith("viewer: error:")]
     assert proc.returncode == 1 and len(lines) == 1 and "encrypts (CURVE" in lines[0], err
+
+
+def test_a_png_cut_short_by_a_full_disk_is_removed(tmp_path, monkeypatch):
+    # a disk that filled up mid-write left a truncated frame_SEQ.png, unreadable, among the good ones
+    import builtins
+    import errno
+
+    class FullDisk:
+        def __init__(self, path, mode):
+            self._fh = builtins.open(path, mode)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self._fh.close()
+
+        def write(self, data):
+            self._fh.write(data[: len(data) // 2])
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    png_dir = tmp_path / "png"
+    recorder = viewer.Recorder(None, png_dir, 30.0)
+    recorder.write({"seq": 1}, pattern(1))
+    monkeypatch.setattr(viewer, "open", FullDisk, raising=False)
+    with pytest.raises(viewer.EdiLiveError, match="No space left"):
+        recorder.write({"seq": 2}, pattern(2))
+    assert [p.name for p in png_dir.iterdir()] == ["frame_000000001.png"]

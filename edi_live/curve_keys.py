@@ -1,13 +1,15 @@
 """ZeroMQ CURVE certificate files: the keys in the ZPL text that `zmq.auth.create_certificates` writes
 (`public-key = "..."`, `secret-key = "..."`, Z85), for the publisher's --curve-secret-key and the subscribers'
---curve-server-key. Read through config_file.read_limited, so that a key given as a pipe (bash's <(...)) is read
+--curve-server-key (generating them needs zmq: edi_live.publisher.generate_curve_keys). Read through config_file.read_limited, so that a key given as a pipe (bash's <(...)) is read
 and a FIFO that nothing writes to ends in an error instead of blocking open() for ever, as zmq.auth's reader did."""
 
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 from edi_live.config_file import read_limited
+from edi_live.errors import PublishError
 
 MAX_KEY_FILE_BYTES = 64 << 10  # a certificate is ~300 bytes
 
@@ -24,3 +26,18 @@ def load_certificate(path: str | os.PathLike) -> tuple[bytes, bytes | None]:
     if not keys.get(b"public-key"):
         raise ValueError("no public-key line: not a ZeroMQ certificate file")
     return keys[b"public-key"], keys.get(b"secret-key") or None
+
+
+def load_secret_key(path: str | os.PathLike) -> tuple[bytes, bytes]:
+    """(public, secret) Z85 keys from a ZeroMQ certificate file; PublishError if unusable."""
+    path = Path(path)
+    try:
+        public, secret = load_certificate(path)
+    except Exception as exc:  # OSError for a missing file, ValueError for a malformed one
+        why = getattr(exc, "strerror", None) or exc
+        raise PublishError(f"cannot read CURVE secret key {path}: {why}; generate one with "
+                           "`python -m edi_live.publisher --gen-curve-keys DIR`") from exc
+    if not secret:
+        raise PublishError(f"CURVE key file {path} holds no secret key (pass the *.key_secret file, "
+                           "not the public *.key)")
+    return public, secret

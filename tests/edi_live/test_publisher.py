@@ -379,3 +379,23 @@ def test_a_host_name_that_does_not_resolve_is_named_as_such():
     with pytest.raises(BindError, match="no such address or network interface"):
         pub.start()
     pub.close()
+
+
+def test_gen_curve_keys_never_replaces_a_key_pair(tmp_path, capsys):
+    # a second --gen-curve-keys into the same folder replaced the pair without a word: the old secret key gone,
+    # and every subscriber holding the old public key locked out
+    keys = tmp_path / "k"
+    assert main(["--gen-curve-keys", str(keys)]) == 0
+    before = {p.name: p.read_bytes() for p in keys.iterdir()}
+    assert main(["--gen-curve-keys", str(keys)]) == 1
+    assert {p.name: p.read_bytes() for p in keys.iterdir()} == before
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and "already holds" in err[0] and str(keys) in err[0], err
+
+
+def test_gen_curve_keys_into_an_unwritable_place_is_one_line(tmp_path, capsys):
+    blocker = tmp_path / "file.txt"
+    blocker.write_text("a file where a folder is expected")
+    assert main(["--gen-curve-keys", str(blocker / "keys")]) == 1  # it ended with a FileExistsError traceback
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and "cannot write" in err[0] and str(blocker / "keys") in err[0], err

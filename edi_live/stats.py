@@ -180,6 +180,9 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
     if events and not s.get("aps_frames_in"):
         lines.append(f"  warning: no APS frame arrived, so none of the {events} events became a frame: EDI needs the "
                      f"camera's APS frames (an events-only recording, or a camera without them, has none)")
+    if not events and not s.get("aps_frames_in"):
+        lines.append("  warning: nothing arrived from the input (not one event or APS frame): an empty recording, or a "
+                     "camera or stream that sent nothing before the stop")
     if s.get("ring_history_truncated"):
         lines.append(f"  warning: {s['ring_history_truncated']} exposure window(s) reached back past the ring's history "
                      f"(half of --ring-events): those APS frames were deblurred from part of their events; raise "

@@ -99,6 +99,14 @@ def test_summary_says_when_events_came_without_any_aps_frame():
     assert "no APS frame" not in format_summary({"events_processed": 0, "aps_frames_in": 0}, 1.0)  # nothing at all
 
 
+def test_summary_says_when_nothing_arrived():
+    # an empty recording (a header and no packet) ran to 'done ... 0 frames out' with exit 0 and no word
+    assert "warning: nothing arrived from the input" in format_summary({"events_processed": 0, "aps_frames_in": 0},
+                                                                       1.0)
+    assert "nothing arrived" not in format_summary({**STATS, "aps_frames_in": 0}, 1.0)
+    assert "nothing arrived" not in format_summary({"events_processed": 0, "aps_frames_in": 1}, 1.0)
+
+
 def test_collect_sums_drops_of_every_stage():
     class Ring:
         pushed_events = 5

@@ -46,7 +46,7 @@ DEFAULT_MAX_QUEUED_BYTES = 1 << 30
 """The receive queue's bound: RCVHWM is capped at max_queued_bytes // max_bytes messages (16 by default)."""
 _SLICE_S = 0.1  # longest single wait, so Ctrl-C is noticed even with timeout_s=None
 _MAX_DRAIN = 10_000  # bound on messages drained per receive, so a flood cannot spin forever
-_MAX_PARTS = 4  # parts of a message kept: one more than a frame has, so a wrong count still shows as wrong
+_MAX_PARTS = 4  # parts of a message kept (one more than a frame has, so that 4 is still a wrong count)
 
 
 class ClientTimeout(ClientError, TimeoutError):
@@ -88,20 +88,6 @@ def _check_port(endpoint: str) -> None:
 def _check_timeout(timeout_s: float | None) -> None:
     if timeout_s is not None and not timeout_s >= 0:  # NaN never ends a wait
         raise ClientError(f"timeout_s must be a number of seconds >= 0, or None to wait (got {timeout_s!r})")
-
-
-def _recv_message(sock: zmq.Socket, flags: int) -> tuple[list[zmq.Frame], int]:
-    """(the first _MAX_PARTS parts of one message, its number of parts). libzmq bounds a part's size, not the number
-    of parts: a message of 2 million empty parts (4 MB on the wire) made 2 million Python objects (RSS +1.1 GB);
-    the parts past _MAX_PARTS are received and dropped one at a time."""
-    parts = [sock.recv(flags, copy=False)]
-    count = 1
-    while sock.rcvmore:
-        part = sock.recv(copy=False)
-        count += 1
-        if count <= _MAX_PARTS:
-            parts.append(part)
-    return parts, count
 
 
 class Subscriber:
@@ -226,22 +212,35 @@ class Subscriber:
             raise ClientError(f"this Subscriber of {self.endpoint} is closed")
         self._reconnect_if_dropped(sock)
         try:  # a message already waiting costs no poll
-            parts, count = _recv_message(sock, zmq.NOBLOCK)
+            parts = self._recv_message(sock, zmq.NOBLOCK)
         except zmq.Again:
             if not self._wait(sock, timeout_s):
                 return None, 0
-            parts, count = _recv_message(sock, 0)
+            parts = self._recv_message(sock, 0)
         skipped = 0
         while newest and skipped < _MAX_DRAIN:
             try:
-                parts, count = _recv_message(sock, zmq.NOBLOCK)
+                parts = self._recv_message(sock, zmq.NOBLOCK)
             except zmq.Again:
                 break
             skipped += 1
-        if count > len(parts):
+        return parts, skipped
+
+    def _recv_message(self, sock: zmq.Socket, flags: int) -> list[zmq.Frame]:
+        """One message. libzmq bounds a part's size, not the number of parts: a message of 2 million empty parts
+        (4 MB on the wire) made 2 million Python objects (RSS +1.1 GB), so the parts past _MAX_PARTS are received
+        and dropped one at a time, and such a message is a ClientError at once (not drained past as old)."""
+        parts = [sock.recv(flags, copy=False)]
+        count = 1
+        while sock.rcvmore:
+            part = sock.recv(copy=False)
+            count += 1
+            if count <= _MAX_PARTS:
+                parts.append(part)
+        if count > _MAX_PARTS:
             raise ClientError(f"a message of {count} parts arrived from {self.endpoint} (edi-live sends 3 for a "
                               "frame, 2 for stats): not an edi-live publisher?")
-        return parts, skipped
+        return parts
 
     def recv(self, timeout_s: float | None = None) -> tuple[dict, np.ndarray] | None:
         """The next frame as (header, image), or None if none arrived within timeout_s (None = wait).

@@ -22,6 +22,7 @@ from typing import Any, Sequence
 
 from edi_live.cli_parser import PROG, build_parser
 from edi_live.config import NodeConfig, merge_options, read_toml
+from edi_live.file_roles import check_apart
 from edi_live.datatypes import SourceInfo
 from edi_live.errors import ConfigError, EdiLiveError, RecordingError, SourceError
 from edi_live.stop_signals import StopSignals
@@ -40,6 +41,8 @@ def build_config(flags: dict[str, Any], config_path: Path | None) -> NodeConfig:
     options = merge_options(file_options, flags)
     options.pop("list_devices", None)
     config = NodeConfig.from_options(options)
+    check_apart({"config": config_path}, {"out": config.output.out, "record": config.output.record,
+                                          "save-calibration": config.save_calibration})
     if config.source.device is None and config.source.replay is None and not config.source.dv_input:
         raise ConfigError(f"choose an input: --device davis240|davis346|auto, --replay FILE.aedat4 or --dv-input "
                           f"tcp://HOST:PORT "

@@ -538,3 +538,19 @@ def test_the_duration_reached_is_said_as_given(real_recordings, needs_reconstruc
     proc = run_cli("--replay", str(real_recordings[DEMO]), "--loop", "--speed", "0", "--no-publish", "--duration",
                    "0.05", timeout_s=90)
     assert proc.returncode == 0 and "--duration 0.05 s reached" in proc.stderr, proc.stderr
+
+
+@pytest.mark.parametrize("flag", ["out", "record", "save_calibration"])
+def test_outputs_never_overwrite_the_config_file(tmp_path, monkeypatch, flag):
+    # '--config run.toml --out run.toml' replaced the user's options file with the run's AEDAT4 output
+    from edi_live import cli
+    from edi_live.errors import ConfigError
+
+    config = tmp_path / "run.toml"
+    config.write_text("every = 500\n")
+    monkeypatch.chdir(tmp_path)
+    for written in ("run.toml", str(config), "./run.toml"):
+        with pytest.raises(ConfigError, match=f"{flag.replace('_', '-')} would overwrite the config file"):
+            cli.build_config({"replay": "x.aedat4", flag: written}, config)
+    assert config.read_text() == "every = 500\n"
+    assert cli.build_config({"replay": "x.aedat4", flag: "other.aedat4"}, config) is not None

@@ -83,6 +83,16 @@ def test_invalid_values_name_the_key_and_the_value(options, fragment):
 
 
 @pytest.mark.parametrize("flag", ["out", "record", "save_calibration"])
+def test_outputs_never_overwrite_the_curve_secret_key(tmp_path: Path, flag):
+    # '--curve-secret-key keys/server.key_secret --out keys/server.key_secret' replaced the secret key at start
+    key = tmp_path / "server.key_secret"
+    key.write_text("a secret")
+    with pytest.raises(ConfigError, match="would overwrite the curve-secret-key file"):
+        NodeConfig.from_options({"replay": "x.aedat4", "curve_secret_key": str(key), flag: str(key)})
+    assert key.read_text() == "a secret"
+
+
+@pytest.mark.parametrize("flag", ["out", "record", "save_calibration"])
 def test_outputs_never_overwrite_the_input_recording(tmp_path: Path, monkeypatch, flag):
     # `--replay rec.aedat4 --out rec.aedat4` emptied the user's recording before reading it; `--save-calibration
     # rec.aedat4` replaced it with the calibration's JSON at the end of the run

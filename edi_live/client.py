@@ -37,7 +37,7 @@ import zmq
 from zmq.utils.monitor import parse_monitor_message
 
 from edi_live import wire
-from edi_live.curve_keys import load_certificate
+from edi_live.curve_keys import check_z85, load_certificate
 from edi_live.errors import ClientError
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
@@ -65,10 +65,13 @@ _HANDSHAKE_TRIES = 3  # failures in a row (~0.1 s apart) before they are an erro
 
 def _server_public_key(key: str | bytes | os.PathLike) -> bytes:
     """A Z85 server public key given as the key itself or as a certificate file (server.key)."""
-    if isinstance(key, bytes) and len(key) == 40:
-        return key
-    if isinstance(key, str) and len(key) == 40 and not Path(key).exists():
-        return key.encode("ascii")
+    try:
+        if isinstance(key, bytes) and len(key) == 40:
+            return check_z85(key, "the CURVE server key")
+        if isinstance(key, str) and len(key) == 40 and not Path(key).exists():
+            return check_z85(key.encode("utf-8"), "the CURVE server key")
+    except ValueError as exc:
+        raise ClientError(str(exc)) from None
     try:
         public, _ = load_certificate(key)
     except Exception as exc:

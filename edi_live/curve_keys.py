@@ -12,6 +12,14 @@ from edi_live.config_file import read_limited
 from edi_live.errors import PublishError
 
 MAX_KEY_FILE_BYTES = 64 << 10  # a certificate is ~300 bytes
+_Z85 = frozenset(b"0123456789abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ.-:+=^!/*?&<>()[]{}@%$#")
+
+
+def check_z85(key: bytes, what: str) -> bytes:
+    """The key if it is 40 Z85 characters (32 bytes), else ValueError: libzmq says only 'Invalid argument'."""
+    if len(key) != 40 or not _Z85.issuperset(key):
+        raise ValueError(f"{what} is not a 40-character Z85 key (got {len(key)} characters)")
+    return key
 
 
 def load_certificate(path: str | os.PathLike) -> tuple[bytes, bytes | None]:
@@ -25,7 +33,8 @@ def load_certificate(path: str | os.PathLike) -> tuple[bytes, bytes | None]:
             keys[name] = value.strip(b" \t'\"")
     if not keys.get(b"public-key"):
         raise ValueError("no public-key line: not a ZeroMQ certificate file")
-    return keys[b"public-key"], keys.get(b"secret-key") or None
+    secret = keys.get(b"secret-key") or None
+    return check_z85(keys[b"public-key"], "its public-key"), secret and check_z85(secret, "its secret-key")
 
 
 def load_secret_key(path: str | os.PathLike) -> tuple[bytes, bytes]:

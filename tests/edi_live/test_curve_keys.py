@@ -85,3 +85,33 @@ def test_a_secret_key_fifo_without_a_writer_is_a_publish_error_naming_it(tmp_pat
     finally:
         pub.close()
     assert isinstance(outcome[0], PublishError) and str(fifo) in str(outcome[0]) and "pipe" in str(outcome[0])
+
+
+@pytest.mark.parametrize("line", ['public-key = "tooshort"', 'public-key = "' + '~' * 40 + '"',
+                                  'public-key = "' + "a" * 39 + ' "'])
+def test_a_key_that_is_not_z85_is_refused_when_read(tmp_path: Path, line):
+    # it reached libzmq, whose 'Invalid argument' ended the client and the viewer with a traceback and the node
+    # with 'the main thread failed: ZMQError: Invalid argument'
+    bad = tmp_path / "server.key"
+    bad.write_text(f"metadata\ncurve\n    {line}\n")
+    with pytest.raises(ValueError, match="40-character Z85"):
+        load_certificate(bad)
+    with pytest.raises(ClientError, match="40-character Z85"):
+        Subscriber("tcp://127.0.0.1:9", curve_server_key=bad)
+
+
+def test_a_secret_key_that_is_not_z85_is_a_publish_error(tmp_path: Path):
+    public_file, _ = generate_curve_keys(tmp_path)
+    bad = tmp_path / "bad.key_secret"
+    bad.write_bytes(public_file.read_bytes() + b'    secret-key = "alsoshort"\n')
+    pub = Publisher(["tcp://127.0.0.1:*"], "cam", curve_secret_key=bad)
+    try:
+        with pytest.raises(PublishError, match="40-character Z85"):
+            pub.start()
+    finally:
+        pub.close()
+
+
+def test_a_key_given_as_40_characters_must_be_z85():
+    with pytest.raises(ClientError, match="40-character Z85"):
+        Subscriber("tcp://127.0.0.1:9", curve_server_key='"' * 40)

@@ -331,9 +331,14 @@ def _num(stats: dict, key: str, scale: float = 1.0, fmt: str = "{:.2f}") -> str:
     return fmt.format(value * scale) if isinstance(value, (int, float)) else "-"
 
 
-def status_line(rates: Rates, skipped: int, stats: dict | None) -> str:
+STATS_STALE_S = 3.0  # the node sends stats once a second: older ones describe a node that stopped or went away
+
+
+def status_line(rates: Rates, skipped: int, stats: dict | None, stats_age_s: float = 0.0) -> str:
     parts = [f"recv {rates.fps:6.1f} fps"]
-    if stats:
+    if stats and stats_age_s > STATS_STALE_S:
+        parts.append(f"no stats from the node for {stats_age_s:.0f} s (stopped, or unreachable?)")
+    elif stats:
         c = _num(stats, "c") if "c" in stats else f"{_num(stats, 'c_on')}/{_num(stats, 'c_off')}"
         parts.append(f"node {_num(stats, 'frames_per_s', fmt='{:.1f}')} fps, "
                      f"{_num(stats, 'events_per_s', 1e-6)} Mev/s, c {c}")
@@ -421,6 +426,7 @@ class Viewer:
         self.server = None if args.no_http else MjpegServer(self.hub, *args.http)
         self.sub = Subscriber(args.endpoint, newest_only=not args.all, curve_server_key=args.curve_server_key)
         self._tty = sys.stderr.isatty()
+        self._stats_at = time.monotonic()  # when the newest stats message came
 
     @property
     def url(self) -> str | None:
@@ -450,7 +456,8 @@ class Viewer:
             self._bad(exc)
             item = None
         try:  # apart from the frame: a bad stats message must not cost the frame read with it
-            self.sub.recv_stats(0)
+            if self.sub.recv_stats(0) is not None:
+                self._stats_at = time.monotonic()
         except ClientHandshakeError:
             raise
         except ClientError as exc:
@@ -461,7 +468,8 @@ class Viewer:
             self.hub.put(image)
             self.recorder.write(header, image)
         if self.rates.tick():
-            line = status_line(self.rates, self.sub.skipped, self.sub.last_stats)
+            line = status_line(self.rates, self.sub.skipped, self.sub.last_stats,
+                               time.monotonic() - self._stats_at)
             self.hub.status = {"viewer_fps": round(self.rates.fps, 1), "lost": self.rates.lost,
                                "skipped": self.sub.skipped, "line": line, "node": self.sub.last_stats}
             if not self.args.quiet:

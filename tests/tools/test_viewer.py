@@ -128,6 +128,15 @@ def test_rates_count_seq_gaps_and_status_line():
     assert "predicts" not in viewer.status_line(rates, 0, {"pred_psnr_db": None})
 
 
+def test_stats_that_stopped_coming_are_not_shown_as_current():
+    # a node killed mid-run kept showing 'node 634.1 fps, 0.62 Mev/s' next to 'recv 0.0 fps' for ever
+    rates = viewer.Rates()
+    stats = {"frames_per_s": 634.1, "events_per_s": 6.2e5, "c": 0.44}
+    assert "634.1 fps" in viewer.status_line(rates, 0, stats, stats_age_s=1.0)
+    stale = viewer.status_line(rates, 0, stats, stats_age_s=7.4)
+    assert "634.1" not in stale and "no stats from the node for 7 s" in stale, stale
+
+
 def test_to_u8_scales_other_depths():
     assert viewer.to_u8(np.array([[0, 65535]], np.uint16)).tolist() == [[0, 255]]
     assert viewer.to_u8(np.array([[-3.0, 300.0, np.nan]], np.float32)).tolist() == [[0, 255, 0]]

@@ -394,3 +394,15 @@ def test_a_pipe_whose_writer_is_done_is_read_like_bash_process_substitution(tmp_
         assert read_toml(Path(f"/proc/self/fd/{read_end}")) == {"every": 250}
     finally:
         os.close(read_end)
+
+
+def test_an_ipc_endpoint_never_replaces_a_file(tmp_path: Path):
+    # libzmq unlinks whatever is at an ipc:// path before it binds: '--publish ipc:///home/me/notes.txt' deleted
+    # the notes and left a socket in their place
+    notes = tmp_path / "notes.txt"
+    notes.write_text("precious")
+    with pytest.raises(ConfigError, match="exists and is not a socket"):
+        NodeConfig.from_options({"replay": "x", "publish": [f"ipc://{notes}"]})
+    assert notes.read_text() == "precious"
+    fresh = f"ipc://{tmp_path / 'edi.sock'}"
+    assert NodeConfig.from_options({"replay": "x", "publish": [fresh]}).publisher.endpoints == (fresh,)

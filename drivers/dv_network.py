@@ -133,8 +133,8 @@ class _Feed:
                 if self.owner._stop.is_set():
                     raise _Stopped() from None
                 if self.sock is None:  # still connecting: the server sent nothing
-                    raise ProtocolError(f"{self.where} accepted the connection but sent no {what} within "
-                                        f"{self.owner.connect_timeout_s:.0f} s (an old DV without the network "
+                    raise ProtocolError(f"{self.where} accepted the connection but did not send {what} within "
+                                        f"{self.owner.connect_timeout_s:g} s (an old DV without the network "
                                         f"header, or not a DV output?)") from None
                 continue
             except OSError as exc:

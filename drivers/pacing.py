@@ -1,14 +1,22 @@
 """Pacing: maps sensor time (µs) to host `time.monotonic()` with a speed factor; shared by replay and the emulator.
 
 speed 1 replays in real time, 4 four times faster, 0 as fast as possible. The schedule is anchored once (the first
-timestamp meets the first call), so waiting never accumulates drift.
+timestamp meets the first call), so waiting never accumulates drift. A jump of the recording's clock by more than
+MAX_GAP_US (a clock reset: minutes to years between two packets) is not waited out: the schedule moves past it,
+with one warning.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from typing import Callable
+
+log = logging.getLogger(__name__)
+
+MAX_GAP_US = 60_000_000
+"""Longest pause between two timestamps that is replayed as a pause; a longer one is a jump of the clock."""
 
 
 class Pacer:
@@ -21,6 +29,7 @@ class Pacer:
         self._clock = clock
         self._anchor_t_us: int | None = None
         self._anchor_s = 0.0
+        self._latest_t_us: int | None = None
 
     @property
     def unpaced(self) -> bool:
@@ -29,6 +38,7 @@ class Pacer:
     def anchor(self, t_us: int) -> None:
         """Make sensor time `t_us` correspond to now (done automatically on the first `delay_s`)."""
         self._anchor_t_us, self._anchor_s = int(t_us), self._clock()
+        self._latest_t_us = int(t_us)
 
     def delay_s(self, t_us: int) -> float:
         """Seconds from now until `t_us` is due (<= 0: due already)."""
@@ -36,6 +46,12 @@ class Pacer:
             return 0.0
         if self._anchor_t_us is None:
             self.anchor(t_us)
+        elif int(t_us) - self._latest_t_us > MAX_GAP_US:  # due when the latest timestamp was, not years later
+            gap = int(t_us) - self._latest_t_us
+            self._anchor_t_us += gap
+            log.warning("the recording's clock jumps %s ahead at %d µs: replayed without waiting for it", _span(gap),
+                        self._latest_t_us)
+        self._latest_t_us = int(t_us) if self._latest_t_us is None else max(self._latest_t_us, int(t_us))
         due = self._anchor_s + (int(t_us) - self._anchor_t_us) / (1e6 * self.speed)
         return due - self._clock()
 
@@ -48,3 +64,11 @@ class Pacer:
             return not stop.wait(min(delay, timeout_s)) and delay <= timeout_s
         time.sleep(min(delay, timeout_s))
         return delay <= timeout_s
+
+
+def _span(us: int) -> str:
+    seconds = us / 1e6
+    for unit, size in (("years", 365 * 86400), ("days", 86400), ("hours", 3600), ("minutes", 60)):
+        if seconds >= size:
+            return f"{seconds / size:.1f} {unit}"
+    return f"{seconds:.1f} s"

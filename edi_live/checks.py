@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import os
+import stat
 from typing import Any
 
 from edi_live.errors import ConfigError
@@ -59,6 +60,13 @@ def check_endpoint(endpoint: Any) -> None:
     check(isinstance(endpoint, str) and "://" in endpoint and endpoint.split("://", 1)[1] != "",
           f"publish endpoint must look like tcp://HOST:PORT or ipc://PATH (got {endpoint!r})")
     scheme, _, address = endpoint.partition("://")
+    check(scheme != "inproc", f"publish endpoint {endpoint!r} is reachable only from inside the edi-live process; "
+                              "use tcp://HOST:PORT or ipc://PATH")
+    if scheme == "ipc" and not address.startswith("@"):  # '@': Linux's abstract namespace, no file
+        # libzmq unlinks whatever is at the path before it binds: a file there would be deleted
+        check(not os.path.lexists(address) or stat.S_ISSOCK(os.lstat(address).st_mode),
+              f"publish endpoint {endpoint!r}: {address} exists and is not a socket, and binding would delete it; "
+              "choose another path")
     if scheme != "tcp":
         return
     host, sep, port = address.rpartition(":")

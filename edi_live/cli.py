@@ -22,6 +22,7 @@ from typing import Any, Sequence
 
 from edi_live.cli_parser import PROG, build_parser
 from edi_live.config import NodeConfig, merge_options, read_toml
+from edi_live.file_roles import check_apart
 from edi_live.datatypes import SourceInfo
 from edi_live.errors import ConfigError, EdiLiveError, RecordingError, SourceError
 from edi_live.stop_signals import StopSignals
@@ -40,6 +41,8 @@ def build_config(flags: dict[str, Any], config_path: Path | None) -> NodeConfig:
     options = merge_options(file_options, flags)
     options.pop("list_devices", None)
     config = NodeConfig.from_options(options)
+    check_apart({"config": config_path}, {"out": config.output.out, "record": config.output.record,
+                                          "save-calibration": config.save_calibration})
     if config.source.device is None and config.source.replay is None and not config.source.dv_input:
         raise ConfigError(f"choose an input: --device davis240|davis346|auto, --replay FILE.aedat4 or --dv-input "
                           f"tcp://HOST:PORT "
@@ -183,6 +186,10 @@ def _warn_ignored(config: NodeConfig, explicit: set[str]) -> None:
                         ", ".join("--" + name.replace("_", "-") for name in given))
     elif s.emulate_from is None and "speed" in explicit:
         log.warning("ignored with a live camera: --speed (it paces --replay and --emulate-from only)")
+    if config.publisher.curve_secret_key is not None and not config.publisher.endpoints:
+        log.warning("ignored with --no-publish: --curve-secret-key (it encrypts the published frames)")
+    if config.edi.reestimate_every and (config.edi.c is not None or config.edi.c_on is not None):
+        log.warning("ignored with a fixed c: --reestimate-every (c is never estimated)")
     if config.edi.latent_denoise and config.edi.mode != "causal":
         log.warning("ignored with --mode %s: --latent-denoise (it filters causal latent frames only)", config.edi.mode)
 
@@ -228,6 +235,14 @@ def _setup_logging(level: str, stream: Any = None) -> None:
 def _error_line(exc: BaseException) -> str:
     text = " ".join(str(exc).split()) or type(exc).__name__
     return f"{PROG}: error: {text}"
+
+
+def _say(text: str) -> None:
+    """One message on stderr; a stderr that went away ('2>&1 | head') does not turn a finished run into an error."""
+    try:
+        print(text, file=sys.stderr, flush=True)
+    except (OSError, ValueError):
+        pass
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -280,25 +295,25 @@ def _main(argv: Sequence[str] | None, signals: StopSignals) -> int:
             if node.final_stats and node.started.is_set():  # no summary when it never got going
                 from edi_live.stats import format_summary
 
-                print(format_summary(node.final_stats, node.elapsed_s), file=sys.stderr)
+                _say(format_summary(node.final_stats, node.elapsed_s))
                 if source.info.is_color or config.edi.color_filter:
-                    print(colour_line(source.info, config.edi.color_filter), file=sys.stderr)
+                    _say(colour_line(source.info, config.edi.color_filter))
         return 0
     except SystemExit as exc:  # --help / --version
         return int(exc.code or 0)
     except KeyboardInterrupt:
-        print(f"{PROG}: interrupted", file=sys.stderr)
+        _say(f"{PROG}: interrupted")
         return 130
     except EdiLiveError as exc:
         if level == "debug":
             traceback.print_exc()
-        print(_error_line(exc), file=sys.stderr)
+        _say(_error_line(exc))
         return exc.exit_code
     except Exception as exc:  # a bug: still one line, the traceback at --log-level debug
         if level == "debug":
             traceback.print_exc()
-        print(_error_line(f"internal error: {type(exc).__name__}: {exc} (rerun with --log-level debug for the "
-                          f"traceback and report it)"), file=sys.stderr)
+        _say(_error_line(f"internal error: {type(exc).__name__}: {exc} (rerun with --log-level debug for the "
+                         f"traceback and report it)"))
         return 1
 
 

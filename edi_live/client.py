@@ -9,7 +9,8 @@ With `newest_only=True` (the default) each receive drains the socket and keeps t
 a viewer that falls behind skips to the present instead of lagging (ZMQ_CONFLATE cannot be used: it keeps
 only the last *part* of a multipart message). Every receive has a timeout or waits in short interruptible
 slices. Malformed or oversized messages raise `ClientError`; a receive that times out raises `ClientTimeout`
-(a `ClientError` and a `TimeoutError`) from `subscribe()`, or returns None from `Subscriber.recv()`.
+(a `ClientError` and a `TimeoutError`) from `subscribe()`, or returns None from `Subscriber.recv()`. Handshakes
+that keep failing (CURVE on one side only, a wrong key, a peer that is not ZeroMQ) raise `ClientHandshakeError`.
 
 Memory is bounded before anything is received: libzmq refuses any message part over `max_bytes`
 (ZMQ_MAXMSGSIZE, checked against the part's length prefix, so nothing is allocated) by dropping the connection,
@@ -24,16 +25,19 @@ when the engine reads, which it does not while the queue is full.
 
 from __future__ import annotations
 
+import argparse
 import os
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import zmq
-import zmq.auth
+from zmq.utils.monitor import parse_monitor_message
 
 from edi_live import wire
+from edi_live.curve_keys import check_z85, load_certificate
 from edi_live.errors import ClientError
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
@@ -42,23 +46,51 @@ DEFAULT_MAX_QUEUED_BYTES = 1 << 30
 """The receive queue's bound: RCVHWM is capped at max_queued_bytes // max_bytes messages (16 by default)."""
 _SLICE_S = 0.1  # longest single wait, so Ctrl-C is noticed even with timeout_s=None
 _MAX_DRAIN = 10_000  # bound on messages drained per receive, so a flood cannot spin forever
+_MAX_PARTS = 4  # parts of a message kept (one more than a frame has, so that 4 is still a wrong count)
 
 
 class ClientTimeout(ClientError, TimeoutError):
     """No message arrived within the timeout."""
 
 
+class ClientHandshakeError(ClientError):
+    """The connection cannot carry frames: CURVE on one side only, a wrong server key, or a peer that does not
+    speak ZeroMQ. Raised by a receive; libzmq itself would retry in silence for ever."""
+
+
+_HANDSHAKE_EVENTS = (zmq.EVENT_CONNECTED | zmq.EVENT_HANDSHAKE_SUCCEEDED | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
+                     | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL | zmq.EVENT_HANDSHAKE_FAILED_AUTH)
+_HANDSHAKE_TRIES = 3  # failures in a row (~0.1 s apart) before they are an error: one can be a publisher stopping
+
+
 def _server_public_key(key: str | bytes | os.PathLike) -> bytes:
     """A Z85 server public key given as the key itself or as a certificate file (server.key)."""
-    if isinstance(key, bytes) and len(key) == 40:
-        return key
-    if isinstance(key, str) and len(key) == 40 and not Path(key).exists():
-        return key.encode("ascii")
     try:
-        public, _ = zmq.auth.load_certificate(Path(os.fsdecode(key)))
+        if isinstance(key, bytes) and len(key) == 40:
+            return check_z85(key, "the CURVE server key")
+        if isinstance(key, str) and len(key) == 40 and not Path(key).exists():
+            return check_z85(key.encode("utf-8"), "the CURVE server key")
+    except ValueError as exc:
+        raise ClientError(str(exc)) from None
+    try:
+        public, _ = load_certificate(key)
     except Exception as exc:
-        raise ClientError(f"cannot read CURVE server public key {key}: {exc}") from exc
+        why = getattr(exc, "strerror", None) or exc
+        raise ClientError(f"cannot read CURVE server public key {key}: {why}") from exc
     return public
+
+
+def _check_port(endpoint: str) -> None:
+    """libzmq takes a tcp port over 65535 modulo 65536 without a word (99999 connects to 34463)."""
+    scheme, _, address = endpoint.partition("://")
+    port = address.rpartition(":")[2]
+    if scheme == "tcp" and not (port.isdigit() and 1 <= int(port) <= 65535):
+        raise ClientError(f"cannot connect to {endpoint}: the port must be 1-65535 (tcp://HOST:PORT)")
+
+
+def _check_timeout(timeout_s: float | None) -> None:
+    if timeout_s is not None and not timeout_s >= 0:  # NaN never ends a wait
+        raise ClientError(f"timeout_s must be a number of seconds >= 0, or None to wait (got {timeout_s!r})")
 
 
 class Subscriber:
@@ -76,12 +108,15 @@ class Subscriber:
                 and max_queued_bytes > 0):
             raise ClientError(f"max_bytes and max_queued_bytes must be positive integers "
                               f"(got {max_bytes!r}, {max_queued_bytes!r})")
+        _check_port(endpoint)
         self.endpoint = endpoint
         self.newest_only = newest_only
         self.max_bytes = max_bytes
         self.received = 0  # frames handed to the caller
         self.skipped = 0  # frames drained and discarded by newest_only
         self.reconnects = 0  # connections re-established after libzmq dropped them (e.g. an oversized part)
+        self._handshake_failures = 0
+        self._handshaking: set[zmq.Socket] = set()  # connected, handshake not yet done
         self.last_stats: dict | None = None
         self._server_key = _server_public_key(curve_server_key) if curve_server_key is not None else None
         wanted = rcvhwm if rcvhwm is not None else (16 if newest_only else 1000)
@@ -117,17 +152,31 @@ class Subscriber:
             sock.close(linger=0)
             raise ClientError(f"cannot connect to {self.endpoint}: {exc.strerror}; expected "
                               "tcp://HOST:PORT or ipc:///PATH") from exc
-        self._monitors[sock] = sock.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+        self._monitors[sock] = sock.get_monitor_socket(zmq.EVENT_DISCONNECTED | _HANDSHAKE_EVENTS)
         return sock
 
     def _reconnect_if_dropped(self, sock: zmq.Socket) -> None:
         """After libzmq dropped the connection (a part over max_bytes, a protocol error: it does not
         reconnect by itself then), connect again. Harmless after an ordinary disconnect."""
         monitor = self._monitors[sock]
-        dropped = False
+        dropped, failure = False, None
         while monitor.poll(0):
-            monitor.recv_multipart()
-            dropped = True
+            event = parse_monitor_message(monitor.recv_multipart())
+            if event["event"] == zmq.EVENT_CONNECTED:
+                self._handshaking.add(sock)
+            elif event["event"] == zmq.EVENT_HANDSHAKE_SUCCEEDED:
+                self._handshaking.discard(sock)
+                self._handshake_failures = 0
+            elif event["event"] == zmq.EVENT_DISCONNECTED:
+                dropped = True
+                if sock in self._handshaking:  # closed before a handshake: a peer that is no ZeroMQ publisher
+                    self._handshaking.discard(sock)
+                    self._handshake_failures += 1
+                    failure = failure or 0
+            else:  # a failed handshake: libzmq retries it for ever, in silence
+                self._handshaking.discard(sock)
+                self._handshake_failures += 1
+                failure = event["value"]
         if dropped:
             self.reconnects += 1
             try:
@@ -135,8 +184,21 @@ class Subscriber:
             except zmq.ZMQError:
                 pass  # already gone
             sock.connect(self.endpoint)
+        if failure == zmq.PROTOCOL_ERROR_ZMTP_MECHANISM_MISMATCH:  # deterministic: say it at once
+            raise ClientHandshakeError(
+                f"the publisher at {self.endpoint} does not encrypt: connect without a CURVE server key"
+                if self._server_key is not None else f"the publisher at {self.endpoint} encrypts (CURVE): give "
+                "its public key (--curve-server-key FILE, curve_server_key=)")
+        if failure is not None and self._handshake_failures >= _HANDSHAKE_TRIES:  # not a publisher restarting
+            raise ClientHandshakeError(
+                f"the encryption handshake with {self.endpoint} keeps failing: that publisher does not encrypt, or "
+                "--curve-server-key is not the public key of its --curve-secret-key" if self._server_key is not None
+                else f"the handshake with {self.endpoint} keeps failing: it encrypts (CURVE: give its public key "
+                "with --curve-server-key), or it does not speak ZeroMQ (edi-live's frames are on --publish, not on "
+                "--dv-output)")
 
     def _wait(self, sock: zmq.Socket, timeout_s: float | None) -> bool:
+        _check_timeout(timeout_s)
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while True:
             slice_s = _SLICE_S if deadline is None else min(_SLICE_S, deadline - time.monotonic())
@@ -149,21 +211,39 @@ class Subscriber:
     def _recv_parts(self, sock: zmq.Socket, timeout_s: float | None,
                     newest: bool) -> tuple[list[zmq.Frame] | None, int]:
         """The next message (or the newest available one when `newest`) and how many were skipped."""
+        if self._ctx.closed:
+            raise ClientError(f"this Subscriber of {self.endpoint} is closed")
         self._reconnect_if_dropped(sock)
         try:  # a message already waiting costs no poll
-            parts = sock.recv_multipart(flags=zmq.NOBLOCK, copy=False)
+            parts = self._recv_message(sock, zmq.NOBLOCK)
         except zmq.Again:
             if not self._wait(sock, timeout_s):
                 return None, 0
-            parts = sock.recv_multipart(copy=False)
+            parts = self._recv_message(sock, 0)
         skipped = 0
         while newest and skipped < _MAX_DRAIN:
             try:
-                parts = sock.recv_multipart(flags=zmq.NOBLOCK, copy=False)
+                parts = self._recv_message(sock, zmq.NOBLOCK)
             except zmq.Again:
                 break
             skipped += 1
         return parts, skipped
+
+    def _recv_message(self, sock: zmq.Socket, flags: int) -> list[zmq.Frame]:
+        """One message. libzmq bounds a part's size, not the number of parts: a message of 2 million empty parts
+        (4 MB on the wire) made 2 million Python objects (RSS +1.1 GB), so the parts past _MAX_PARTS are received
+        and dropped one at a time, and such a message is a ClientError at once (not drained past as old)."""
+        parts = [sock.recv(flags, copy=False)]
+        count = 1
+        while sock.rcvmore:
+            part = sock.recv(copy=False)
+            count += 1
+            if count <= _MAX_PARTS:
+                parts.append(part)
+        if count > _MAX_PARTS:
+            raise ClientError(f"a message of {count} parts arrived from {self.endpoint} (edi-live sends 3 for a "
+                              "frame, 2 for stats): not an edi-live publisher?")
+        return parts
 
     def recv(self, timeout_s: float | None = None) -> tuple[dict, np.ndarray] | None:
         """The next frame as (header, image), or None if none arrived within timeout_s (None = wait).
@@ -189,6 +269,9 @@ class Subscriber:
         return self.last_stats
 
     def close(self) -> None:
+        """Close the sockets; closing again does nothing (an explicit close() inside `with` is fine)."""
+        if self._ctx.closed:
+            return
         for sock in self._monitors:
             sock.disable_monitor()
         self._ctx.destroy(linger=0)
@@ -223,18 +306,39 @@ def subscribe(endpoint: str = DEFAULT_ENDPOINT, *, newest_only: bool = True, tim
             yield item
 
 
+def _printable(text: str) -> str:
+    """A publisher's string as the terminal may show it: control characters (escape sequences) escaped."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
+def _at_least(kind: type, low: float) -> Callable[[str], Any]:
+    """An argparse type: a `kind` number >= low (NaN refused)."""
+
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            value = None
+        if value is None or not value >= low:
+            raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'} >= {low} "
+                                             f"(got {text!r})")
+        return value
+
+    return parse
+
+
 def main(argv: list[str] | None = None) -> int:
     """`python -m edi_live.client [ENDPOINT]`: one line per frame received (what edi-live --help promises), until
     --count frames, a --timeout-s without one, or Ctrl-C. Errors are one line; exit 1."""
-    import argparse
     import sys
 
     parser = argparse.ArgumentParser(prog="python -m edi_live.client", description="print the frames an edi-live "
                                      "publisher sends, one line each")
     parser.add_argument("endpoint", nargs="?", default=DEFAULT_ENDPOINT, help=f"default: {DEFAULT_ENDPOINT}")
     parser.add_argument("--curve-server-key", metavar="FILE", help="the publisher's public key (CURVE)")
-    parser.add_argument("--count", type=int, default=0, metavar="N", help="stop after N frames (default: never)")
-    parser.add_argument("--timeout-s", type=float, default=None, metavar="S",
+    parser.add_argument("--count", type=_at_least(int, 0), default=0, metavar="N",
+                        help="stop after N frames (default 0: never)")
+    parser.add_argument("--timeout-s", type=_at_least(float, 0), default=None, metavar="S",
                         help="give up when no frame arrives for S seconds (default: wait)")
     args = parser.parse_args(argv)
     n = 0
@@ -243,11 +347,13 @@ def main(argv: list[str] | None = None) -> int:
                                        curve_server_key=args.curve_server_key):
             n += 1
             print(f"seq {header['seq']} t {header['t']} µs {header['kind']} {image.shape[1]}x{image.shape[0]} "
-                  f"events {header['n_events']} from {header['source']}", flush=True)
+                  f"events {header['n_events']} from {_printable(header['source'])}", flush=True)
             if n == args.count:
                 break
     except KeyboardInterrupt:
         pass
+    except BrokenPipeError:  # the reader went away ('| head'): done; stdout to devnull, so exit's flush is quiet
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     except ClientError as exc:
         print(f"edi-live client: error: {exc}", file=sys.stderr)
         return 1

@@ -239,7 +239,7 @@ class NodeConfig:
 
     def __post_init__(self) -> None:
         check_apart({"replay": self.source.replay, "emulate-from": self.source.emulate_from,
-                     "calibration": self.calibration},
+                     "calibration": self.calibration, "curve-secret-key": self.publisher.curve_secret_key},
                     {"out": self.output.out, "record": self.output.record, "save-calibration": self.save_calibration},
                     may_update={"save-calibration": "calibration"})
         check_ports_apart([("--publish", e) for e in self.publisher.endpoints]

@@ -4,8 +4,12 @@ ConfigError naming the file."""
 
 from __future__ import annotations
 
+import errno
 import os
+import select
+import stat
 import sys
+import time
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
@@ -26,14 +30,50 @@ def norm_key(key: str) -> str:
 MAX_CONFIG_BYTES = 1 << 20
 
 
+PIPE_WAIT_S = 5.0
+"""How long a pipe or FIFO given as a file may take to deliver all of it (bash's <(...) delivers at once)."""
+
+
 def read_limited(path: str | Path, limit: int) -> bytes:
     """The file's bytes; ValueError past `limit` bytes, read no further: a recording or a device given by mistake
-    (--config /dev/zero, --calibration rec.aedat4) would otherwise be read into memory whole, or for ever."""
-    with Path(path).open("rb") as fh:
-        data = fh.read(limit + 1)
+    (--config /dev/zero, --calibration rec.aedat4) would otherwise be read into memory whole, or for ever.
+    A pipe or FIFO must be written and closed within PIPE_WAIT_S, else OSError(ETIMEDOUT)."""
+    # O_NONBLOCK: a FIFO that no program writes to blocked open() for ever, and Ctrl-C only sets the stop flag
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    try:
+        if stat.S_ISFIFO(os.fstat(fd).st_mode):
+            data = _read_pipe(fd, limit, path)
+        else:
+            os.set_blocking(fd, True)
+            with os.fdopen(fd, "rb", closefd=False) as fh:
+                data = fh.read(limit + 1)
+    finally:
+        os.close(fd)
     if len(data) > limit:
         raise ValueError(f"larger than {limit >> 20} MiB, far more than such a file holds")
     return data
+
+
+def _read_pipe(fd: int, limit: int, path: str | Path) -> bytes:
+    """Up to limit + 1 bytes of a pipe, until its writer closes it, waiting at most PIPE_WAIT_S in all. Before any
+    writer opened a FIFO, poll() reports nothing (not even a hang-up), so the wait covers a writer started later."""
+    deadline = time.monotonic() + PIPE_WAIT_S
+    poller = select.poll()
+    poller.register(fd, select.POLLIN)
+    data = bytearray()
+    while len(data) <= limit:
+        left_ms = (deadline - time.monotonic()) * 1000
+        if left_ms <= 0 or not poller.poll(left_ms):
+            raise OSError(errno.ETIMEDOUT, f"it is a pipe that nothing wrote to and closed within {PIPE_WAIT_S:g} s: "
+                                           f"start its writer first, or give a regular file", str(path))
+        try:
+            chunk = os.read(fd, limit + 1 - len(data))
+        except BlockingIOError:  # woken without data (a writer came and went, another is still there)
+            continue
+        if not chunk:
+            break
+        data += chunk
+    return bytes(data)
 
 
 def read_toml(path: str | Path, known: Iterable[str]) -> dict[str, Any]:

@@ -41,6 +41,7 @@ STREAMS = {"frames": "FRME", "events": "EVTS"}
 DEFAULT_MAX_CLIENTS = 10  # as DV's and dv-processing's servers
 DEFAULT_CLIENT_QUEUE = 32  # packets waiting per client before its oldest are dropped
 DEFAULT_INBOX = 256
+_CLIENT_LINES = 20  # log lines about clients connecting and leaving, before they are only counted
 _STOP_FLUSH_S = 0.5  # at close, how long clients get to take what is already queued for them
 _HEAD = struct.Struct("<ii")
 _RECONSTRUCTION = S.FRAME_SOURCES["reconstruction"]
@@ -92,6 +93,7 @@ class DvOutput:
         self._thread: threading.Thread | None = None
         self._last_t = -(2**63)
         self.sent = self.dropped = self.late = self.connections = 0
+        self._client_lines = 0
 
     # ---------------------------------------------------------------- any thread
 
@@ -208,7 +210,7 @@ class DvOutput:
             return
         peer = f"{addr[0]}:{addr[1]}"
         if len(self._clients) >= self.max_clients:
-            log.warning("%s: refused DV client %s (already %d clients)", self.name, peer, self.max_clients)
+            self._client_log(logging.WARNING, "refused DV client %s (already %d clients)", peer, self.max_clients)
             sock.close()
             return
         sock.setblocking(False)
@@ -217,7 +219,7 @@ class DvOutput:
         self._clients[sock.fileno()] = client
         self.connections += 1
         sel.register(sock, selectors.EVENT_READ | selectors.EVENT_WRITE, client)
-        log.info("%s: DV client %s connected", self.name, peer)
+        self._client_log(logging.INFO, "DV client %s connected", peer)
 
     def _service(self, sel: selectors.BaseSelector, client: _Client, mask: int) -> None:
         if mask & selectors.EVENT_READ:
@@ -259,7 +261,15 @@ class DvOutput:
             pass
         client.sock.close()
         if why:
-            log.info("%s: DV client %s %s", self.name, client.peer, why)
+            self._client_log(logging.INFO, "DV client %s %s", client.peer, why)
+
+    def _client_log(self, level: int, message: str, *args: Any) -> None:
+        """The first _CLIENT_LINES lines about clients coming and going; then silence (the closing line counts the
+        connections), so that a client connecting in a loop cannot bury the node's status line."""
+        self._client_lines += 1
+        if self._client_lines <= _CLIENT_LINES:
+            more = "; further client connections are only counted" if self._client_lines == _CLIENT_LINES else ""
+            log.log(level, "%s: " + message + more, self.name, *args)
 
     def _fan_out(self, sel: selectors.BaseSelector) -> None:
         with self._lock:

@@ -1,7 +1,7 @@
 """The files one run reads and the files it writes, and the check that keeps them apart: no file the run writes
-(--out, --record, --save-calibration) may be a file it reads (--replay, --emulate-from, --calibration) or another
-file it writes, however the two paths are spelled (relative, absolute, through a link). Pure path logic: it
-stats paths but opens nothing.
+(--out, --record, --save-calibration) may be a file it reads (--replay, --emulate-from, --calibration, --config)
+or another file it writes, however the two paths are spelled (relative, absolute, through a link). Pure path logic:
+it stats paths but opens nothing.
 """
 
 from __future__ import annotations

@@ -327,7 +327,7 @@ class Node:
             while not self.worker.done.is_set() and not self._stop.is_set():
                 self._stop.wait(_POLL_S)
                 if duration is not None and time.monotonic() - self.t_start >= duration:
-                    log.info("--duration %.1f s reached", duration)
+                    log.info("--duration %g s reached", duration)
                     self._stop.set()
                 if status is not None:
                     status.maybe_draw(self.stats)

@@ -19,8 +19,10 @@ from __future__ import annotations
 
 import argparse
 import collections
+import errno
 import logging
 import os
+import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -31,6 +33,7 @@ import zmq
 import zmq.auth
 
 from edi_live import wire
+from edi_live.curve_keys import load_secret_key
 from edi_live.datatypes import Reconstruction
 from edi_live.errors import BindError, PublishError
 from edi_live.stats import LatencySamples
@@ -54,34 +57,29 @@ def _bind_message(endpoint: str, exc: zmq.ZMQError) -> str:
     if exc.errno == zmq.EADDRINUSE:
         return (f"cannot publish on {endpoint}: address already in use (another edi-live or program holds "
                 "that port); choose another with --publish tcp://127.0.0.1:PORT")
-    if exc.errno == zmq.EADDRNOTAVAIL:
-        return f"cannot publish on {endpoint}: this machine has no such address; use 127.0.0.1 or 0.0.0.0"
+    if exc.errno in (zmq.EADDRNOTAVAIL, errno.ENODEV):  # ENODEV: a host name that does not resolve (an interface?)
+        return (f"cannot publish on {endpoint}: this machine has no such address or network interface; use "
+                "127.0.0.1 or 0.0.0.0")
     if exc.errno in (zmq.EINVAL, zmq.EPROTONOSUPPORT):
         return (f"cannot publish on {endpoint}: not a valid ZeroMQ endpoint ({exc.strerror}); expected "
                 "tcp://HOST:PORT or ipc:///PATH")
     return f"cannot publish on {endpoint}: {exc.strerror}"
 
 
-def load_secret_key(path: str | os.PathLike) -> tuple[bytes, bytes]:
-    """(public, secret) Z85 keys from a ZeroMQ certificate file; PublishError if unusable."""
-    path = Path(path)
-    try:
-        public, secret = zmq.auth.load_certificate(path)
-    except Exception as exc:  # OSError for a missing file, ValueError for a malformed one
-        raise PublishError(f"cannot read CURVE secret key {path}: {exc}; generate one with "
-                           "`python -m edi_live.publisher --gen-curve-keys DIR`") from exc
-    if not secret:
-        raise PublishError(f"CURVE key file {path} holds no secret key (pass the *.key_secret file, "
-                           "not the public *.key)")
-    return public, secret
-
-
 def generate_curve_keys(directory: str | os.PathLike) -> tuple[Path, Path]:
-    """Write `server.key` (public, for subscribers) and `server.key_secret` (for the publisher) into directory."""
+    """Write `server.key` (public, for subscribers) and `server.key_secret` (for the publisher) into directory;
+    PublishError if it already holds either, or cannot be written."""
     directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    public, secret = zmq.auth.create_certificates(directory, "server")
-    os.chmod(secret, 0o600)
+    taken = [p.name for p in (directory / "server.key", directory / "server.key_secret") if p.exists()]
+    if taken:  # its subscribers hold the public key: a new pair would lock them out, and the old secret be lost
+        raise PublishError(f"{directory} already holds a key pair ({taken[0]}), which is never replaced: remove "
+                           "it or choose another folder")
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        public, secret = zmq.auth.create_certificates(directory, "server")
+        os.chmod(secret, 0o600)
+    except OSError as exc:
+        raise PublishError(f"cannot write the keys into {directory}: {exc.strerror or exc}") from exc
     return Path(public), Path(secret)
 
 
@@ -387,7 +385,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--gen-curve-keys", metavar="DIR", required=True,
                         help="write server.key (public, give to subscribers) and server.key_secret (keep private)")
     args = parser.parse_args(argv)
-    public, secret = generate_curve_keys(args.gen_curve_keys)
+    try:
+        public, secret = generate_curve_keys(args.gen_curve_keys)
+    except PublishError as exc:
+        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
+        return 1
     print(f"public key (for subscribers): {public}\nsecret key (for edi-live --curve-secret-key): {secret}")
     return 0
 

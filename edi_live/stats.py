@@ -180,6 +180,9 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
     if events and not s.get("aps_frames_in"):
         lines.append(f"  warning: no APS frame arrived, so none of the {events} events became a frame: EDI needs the "
                      f"camera's APS frames (an events-only recording, or a camera without them, has none)")
+    if not events and not s.get("aps_frames_in"):
+        lines.append("  warning: nothing arrived from the input (not one event or APS frame): an empty recording, or a "
+                     "camera or stream that sent nothing before the stop")
     if s.get("ring_history_truncated"):
         lines.append(f"  warning: {s['ring_history_truncated']} exposure window(s) reached back past the ring's history "
                      f"(half of --ring-events): those APS frames were deblurred from part of their events; raise "
@@ -216,7 +219,7 @@ class StatusLine:
     """A live status line on a TTY (redrawn in place every `interval_s`), plain lines otherwise."""
 
     def __init__(self, stream: TextIO, interval_s: float | None = None, tty: bool | None = None) -> None:
-        self.stream = stream
+        self.stream: TextIO | None = stream
         self.tty = bool(tty if tty is not None else getattr(stream, "isatty", lambda: False)())
         self.interval_s = interval_s if interval_s is not None else (0.5 if self.tty else 5.0)
         self._next = time.monotonic() + self.interval_s
@@ -231,18 +234,26 @@ class StatusLine:
         line = format_status(with_rates(stats_fn(), self._rates))
         if self.tty:
             pad = max(0, self._drawn - len(line))
-            self.stream.write("\r" + line + " " * pad)
+            self._write("\r" + line + " " * pad)
             self._drawn = len(line)
         else:
-            self.stream.write("edi-live: " + line + "\n")
-        self.stream.flush()
+            self._write("edi-live: " + line + "\n")
 
     def finish(self) -> None:
         """End the live line so the next output starts on a fresh line."""
         if self.tty and self._drawn:
-            self.stream.write("\n")
-            self.stream.flush()
+            self._write("\n")
             self._drawn = 0
+
+    def _write(self, text: str) -> None:
+        """A stream that went away ('2>&1 | head', a closed terminal) ends the status, never the run."""
+        if self.stream is None:
+            return
+        try:
+            self.stream.write(text)
+            self.stream.flush()
+        except (OSError, ValueError):  # BrokenPipeError, EIO; ValueError: the stream was closed
+            self.stream = None
 
 
 class LatencySamples:

@@ -100,6 +100,19 @@ def test_connection_refused_is_one_clear_line():
     assert "\n" not in str(err.value) and f"tcp://127.0.0.1:{port}" in str(err.value)
 
 
+def test_a_server_that_sends_nothing_is_one_readable_line():
+    # e.g. --dv-input pointed at edi-live's own ZeroMQ port: it said "sent no the stream header"
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen(1)
+        endpoint = f"tcp://127.0.0.1:{server.getsockname()[1]}"
+        with pytest.raises(ProtocolError) as err:
+            with DvNetworkSource([endpoint], connect_timeout_s=0.2):
+                pass
+    assert str(err.value).startswith(f"{endpoint} accepted the connection but did not send the stream header "
+                                     "within"), str(err.value)
+
+
 def test_unexpected_stream_types_are_refused(real_recordings):
     path = real_recordings["evlib_sample_davis346.aedat4"]
     imu = Peer("imu", path, "--hold-s", "3")

@@ -250,6 +250,24 @@ def test_pacer_arithmetic_with_a_fake_clock():
         Pacer(float("nan"))
 
 
+def test_pacer_skips_a_clock_jump_of_years_with_one_warning_and_keeps_real_pauses(caplog):
+    """A recording whose clock jumps 5 years ahead replayed at --speed 1 waited those 5 years, showing only '0 ev/s'
+    (a pause of a minute or less is the scene's and is kept)."""
+    year_us = 365 * 24 * 3600 * 10**6
+    now = [100.0]
+    pacer = Pacer(1.0, clock=lambda: now[0])
+    with caplog.at_level("WARNING"):
+        assert pacer.delay_s(T0) == 0.0
+        assert pacer.delay_s(T0 + 30_000_000) == pytest.approx(30.0)  # a 30 s pause: waited out
+        now[0] += 30.0
+        jump = T0 + 30_000_000 + 5 * year_us
+        assert pacer.delay_s(jump) <= 0  # due at once, not in 5 years
+        assert pacer.delay_s(jump) <= 0  # asked again while waiting: still one jump
+        assert pacer.delay_s(jump + 1_000_000) == pytest.approx(1.0)  # pacing goes on from there
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1 and "5.0 years" in warnings[0], warnings
+
+
 def test_pacer_wait_returns_false_on_timeout_and_on_stop():
     pacer = Pacer(1.0)
     pacer.anchor(T0)

@@ -120,6 +120,21 @@ def test_a_binary_config_is_a_usage_error_and_a_fifo_replay_is_named(tmp_path):
     assert "no such file" not in proc.stderr
 
 
+@pytest.mark.skipif(not hasattr(os, "mkfifo") or not Path("/bin/bash").exists(), reason="needs FIFOs and bash")
+def test_config_from_a_fifo_without_a_writer_ends_and_from_process_substitution_is_read(tmp_path):
+    """--config on a FIFO that nothing writes to blocked in open() for ever; bash's --config <(printf ...) must
+    still be read (the unknown key proves the text arrived)."""
+    fifo = tmp_path / "edi.toml"
+    os.mkfifo(fifo)
+    proc = run_cli("--config", str(fifo), "--no-publish")
+    lines = error_lines(proc.stderr)
+    assert proc.returncode == 2 and len(lines) == 1 and str(fifo) in lines[0] and "pipe" in lines[0], proc.stderr
+    script = f"cd {REPO} && exec {sys.executable} -m edi_live --config <(printf 'speed = 0\\nbogus = 1\\n')"
+    proc = subprocess.run(["/bin/bash", "-c", script], capture_output=True, text=True, timeout=40, env=_env())
+    assert proc.returncode == 2 and error_lines(proc.stderr) == [
+        "edi-live: error: config file /dev/fd/63: unknown key(s) bogus"], proc.stderr
+
+
 def test_not_an_aedat4_file_is_one_line_exit_1(tmp_path):
     bad = tmp_path / "bad.aedat4"
     bad.write_bytes(b"this is not an AEDAT4 file at all" * 10)
@@ -338,6 +353,12 @@ def test_publishing_beyond_loopback_without_curve_is_said_aloud(caplog, tmp_path
     ({"device": "davis240", "exposure_us": 5000}, None),
     ({"replay": "x.aedat4", "latent_denoise": True, "mode": "fused"}, "ignored with --mode fused: --latent-denoise"),
     ({"replay": "x.aedat4", "latent_denoise": True}, None),
+    # a fixed c is never estimated: 're-estimated 0 times' in the summary was the only hint
+    ({"replay": "x.aedat4", "c": 0.2, "reestimate_every": 5}, "ignored with a fixed c: --reestimate-every"),
+    ({"replay": "x.aedat4", "c_on": 0.2, "c_off": 0.3, "reestimate_every": 5}, "--reestimate-every"),
+    ({"replay": "x.aedat4", "reestimate_every": 5}, None),
+    ({"replay": "x.aedat4", "no_publish": True, "curve_secret_key": "k.key_secret"},
+     "ignored with --no-publish: --curve-secret-key"),
 ])
 def test_options_that_do_nothing_for_the_input_are_said_aloud(caplog, flags, warning):
     from edi_live import cli
@@ -388,6 +409,26 @@ def test_a_second_ctrl_c_is_ignored_and_the_summary_matches_out(real_recordings,
     assert "Traceback" not in err and "KeyboardInterrupt" not in err and not error_lines(err)
     written = int(re.search(r"--out frames written: (\d+)", err).group(1))
     assert written == _out_frames(out) > 0
+
+
+def test_stderr_into_a_reader_that_went_away_loses_no_frame(real_recordings, tmp_path, needs_reconstructor):
+    """'edi-live ... 2>&1 | head -1': the status line's BrokenPipeError left the supervisor loop and stopped the
+    run part-way (--out kept 244 of 314 frames, exit 1)."""
+    args = ["--replay", str(real_recordings[DEMO]), "--speed", "0", "--no-publish", "--status-interval-s", "0.01"]
+    full = tmp_path / "full.aedat4"
+    assert run_cli(*args, "--out", str(full), timeout_s=120).returncode == 0
+    cut = tmp_path / "cut.aedat4"
+    proc = subprocess.Popen([sys.executable, "-m", "edi_live", *args, "--out", str(cut)], cwd=REPO,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=_env())
+    try:
+        proc.stderr.close()  # the reader is gone before the first status line
+        proc.wait(120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    assert proc.returncode == 0
+    assert _out_frames(cut) == _out_frames(full) > 0
 
 
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
@@ -490,3 +531,26 @@ def test_a_colour_camera_says_colour_in_the_listing_and_the_summary():
     assert proc.returncode == 0, proc.stderr
     assert "done in" in proc.stderr and "camera: DAVIS346_EMU00001 346x260, colour (RGGB Bayer mosaic)" in proc.stderr
     assert "INFO: DAVIS davis346 at USB 1:7 is a colour DAVIS346: RGGB Bayer mosaic" in proc.stderr  # at start-up
+
+
+def test_the_duration_reached_is_said_as_given(real_recordings, needs_reconstructor):
+    # '--duration 0.05' said '--duration 0.1 s reached' (and 1e-9 said '0.0 s')
+    proc = run_cli("--replay", str(real_recordings[DEMO]), "--loop", "--speed", "0", "--no-publish", "--duration",
+                   "0.05", timeout_s=90)
+    assert proc.returncode == 0 and "--duration 0.05 s reached" in proc.stderr, proc.stderr
+
+
+@pytest.mark.parametrize("flag", ["out", "record", "save_calibration"])
+def test_outputs_never_overwrite_the_config_file(tmp_path, monkeypatch, flag):
+    # '--config run.toml --out run.toml' replaced the user's options file with the run's AEDAT4 output
+    from edi_live import cli
+    from edi_live.errors import ConfigError
+
+    config = tmp_path / "run.toml"
+    config.write_text("every = 500\n")
+    monkeypatch.chdir(tmp_path)
+    for written in ("run.toml", str(config), "./run.toml"):
+        with pytest.raises(ConfigError, match=f"{flag.replace('_', '-')} would overwrite the config file"):
+            cli.build_config({"replay": "x.aedat4", flag: written}, config)
+    assert config.read_text() == "every = 500\n"
+    assert cli.build_config({"replay": "x.aedat4", flag: "other.aedat4"}, config) is not None

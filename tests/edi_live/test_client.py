@@ -4,6 +4,7 @@ ClientError while the subscriber stays usable."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import textwrap
@@ -16,7 +17,7 @@ import pytest
 import zmq
 
 from edi_live import wire
-from edi_live.client import ClientTimeout, Subscriber, subscribe
+from edi_live.client import ClientHandshakeError, ClientTimeout, Subscriber, subscribe
 from edi_live.datatypes import Reconstruction
 from edi_live.errors import ClientError
 from edi_live.publisher import Publisher
@@ -223,6 +224,7 @@ def test_a_part_over_the_limit_is_never_received_and_the_subscriber_recovers(raw
 
 _SLOW_READER = textwrap.dedent("""
     import sys, zmq
+    from zmq.utils.monitor import parse_monitor_message
     from edi_live.client import Subscriber
     pub = zmq.Context().socket(zmq.PUB)
     pub.setsockopt(zmq.LINGER, 0)
@@ -235,11 +237,16 @@ _SLOW_READER = textwrap.dedent("""
         monitor = sub._frames.get_monitor_socket(zmq.EVENT_DISCONNECTED | zmq.EVENT_HANDSHAKE_SUCCEEDED)
         for i in range(2000):  # the subscriber's queue fills up: libzmq stops reading the connection
             pub.send_multipart([b"frame", b"x", b"y" * 100_000])
+        def event(wanted):  # within 5 s of the previous one; the first connection's events are still queued
+            while monitor.poll(5000):
+                if parse_monitor_message(monitor.recv_multipart())["event"] == wanted:
+                    return True
+            return False
+
         # the old client's ZMTP heartbeat timed out (3 s) and reconnected with the full queue; wait for that
         # disconnect (or for 5 s, when there is none) and the new connection's handshake
-        if monitor.poll(5000):
-            monitor.recv_multipart()
-            print("disconnected, reconnected:", bool(monitor.poll(5000)), flush=True)
+        if event(zmq.EVENT_DISCONNECTED):
+            print("disconnected, reconnected:", event(zmq.EVENT_HANDSHAKE_SUCCEEDED), flush=True)
         else:
             print("still connected", flush=True)
         n = 0
@@ -342,3 +349,199 @@ def test_the_client_command_without_a_publisher_is_one_error_line():
     assert proc.returncode == 1 and proc.stdout == ""
     assert proc.stderr.splitlines() == ["edi-live client: error: no frame from tcp://127.0.0.1:9 within 0.2 s: is "
                                         "edi-live running and publishing there?"]
+
+
+@pytest.mark.parametrize("endpoint", ["tcp://127.0.0.1:99999", "tcp://127.0.0.1:0", "tcp://127.0.0.1:-5",
+                                      "tcp://127.0.0.1:x"])
+def test_a_tcp_port_out_of_range_is_a_client_error(endpoint):
+    # libzmq wraps a port over 65535 silently: tcp://127.0.0.1:99999 listened on port 34463 for frames, and the
+    # user was told only that no frame came ("is edi-live running?")
+    with pytest.raises(ClientError, match="port"):
+        Subscriber(endpoint)
+
+
+def test_a_nan_timeout_is_a_client_error_not_a_wait_for_ever():
+    outcome: list = []
+
+    def receive():
+        with Subscriber("tcp://127.0.0.1:9") as sub:  # nothing publishes there
+            try:
+                outcome.append(sub.recv(float("nan")))
+            except ClientError as exc:
+                outcome.append(exc)
+
+    thread = threading.Thread(target=receive, daemon=True)
+    thread.start()
+    thread.join(10)
+    assert outcome and isinstance(outcome[0], ClientError) and "timeout" in str(outcome[0])
+
+
+@pytest.mark.parametrize("args,fragment", [
+    (["--timeout-s", "nan"], "--timeout-s"), (["--timeout-s", "-1"], "--timeout-s"),
+    (["--count", "-3"], "--count"),  # never reached: it printed frames for ever
+])
+def test_the_client_command_refuses_bad_numbers(args, fragment):
+    proc = _client_cli("tcp://127.0.0.1:9", *args)
+    assert proc.returncode == 2 and fragment in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+
+
+def test_the_client_command_into_a_closed_pipe_ends_quietly(pub):
+    # 'python -m edi_live.client | head -2' ended with a BrokenPipeError traceback once head had its lines
+    from pathlib import Path
+
+    stop = threading.Event()
+
+    def feed():
+        i = 0
+        while not stop.wait(0.02):
+            i += 1
+            pub.submit(make_rec(i))
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    repo = str(Path(__file__).resolve().parents[2])
+    proc = subprocess.Popen([sys.executable, "-m", "edi_live.client", pub.bound_endpoints[0], "--timeout-s", "30"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=repo,
+                            env={**os.environ, "PYTHONPATH": repo})
+    try:
+        assert proc.stdout.readline().startswith("seq ")
+        proc.stdout.close()  # the reader goes away, as head does
+        err = proc.stderr.read()
+        proc.wait(30)
+    finally:
+        stop.set()
+        feeder.join(5)
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    assert proc.returncode == 0 and err == "", err
+
+
+def test_close_twice_is_harmless_and_a_receive_after_close_is_a_client_error():
+    # an explicit close() inside 'with Subscriber(...)' raised ZMQError 'Socket operation on non-socket' at the
+    # block's end; a receive after close() raised a bare ZMQError
+    with Subscriber("tcp://127.0.0.1:9") as sub:
+        sub.close()
+    sub.close()
+    with pytest.raises(ClientError, match="closed"):
+        sub.recv(0.1)
+    with pytest.raises(ClientError, match="closed"):
+        sub.recv_stats(0)
+
+
+def test_the_client_command_prints_no_control_characters_from_the_publisher(raw_pub):
+    # a publisher's 'source' went to the terminal as it came: escape sequences (clear screen, window title) included
+    sock, endpoint = raw_pub
+    parts = [bytes(p) for p in wire.encode_frame(make_rec(1), 1, "cam\x1b[2J\r\x07evil")]
+    stop = threading.Event()
+
+    def feed():
+        while not stop.wait(0.02):
+            sock.send_multipart(parts)
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    try:
+        proc = _client_cli(endpoint, "--count", "1", "--timeout-s", "30")
+    finally:
+        stop.set()
+        feeder.join(5)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.count("\n") == 1 and not any(c in proc.stdout for c in "\x1b\r\x07"), repr(proc.stdout)
+    assert "from cam\\x1b[2J\\r\\x07evil" in proc.stdout
+
+
+def _handshake_error(sub: Subscriber) -> ClientHandshakeError:
+    """The error recv() raises once libzmq reported the failed handshakes (it retries every ~0.1 s)."""
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:
+        try:
+            sub.recv(0.2)
+        except ClientHandshakeError as exc:
+            return exc
+    raise AssertionError("no handshake error within 20 s")
+
+
+@pytest.mark.skipif(not zmq.has("curve"), reason="libzmq without CURVE")
+def test_an_encryption_mismatch_or_a_wrong_key_is_named_instead_of_a_silent_wait(tmp_path):
+    # a subscriber with the wrong --curve-server-key, or one when the publisher does not encrypt (or none when it
+    # does), waited for ever: 'no frame ... is edi-live running and publishing there?' with --timeout-s
+    from edi_live.publisher import generate_curve_keys
+
+    public, secret = generate_curve_keys(tmp_path / "keys")
+    other_public, _ = generate_curve_keys(tmp_path / "other")
+    plain = Publisher(["tcp://127.0.0.1:*"], "cam")
+    encrypted = Publisher(["tcp://127.0.0.1:*"], "cam", curve_secret_key=secret)
+    plain.start()
+    encrypted.start()
+    try:
+        cases = [(plain, public, "does not encrypt"), (encrypted, None, "encrypts (CURVE"),
+                 (encrypted, other_public, "--curve-server-key is not the public key")]
+        for pub, key, fragment in cases:
+            endpoint = pub.bound_endpoints[0]
+            with Subscriber(endpoint, curve_server_key=key) as sub:
+                error = _handshake_error(sub)
+            assert fragment in str(error) and endpoint in str(error) and "\n" not in str(error), str(error)
+    finally:
+        plain.close()
+        encrypted.close()
+
+
+def test_a_server_that_is_not_zeromq_is_named():
+    # e.g. the node's --dv-output port given to the client: a silent wait for ever
+    import socket
+
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen(4)
+        endpoint = f"tcp://127.0.0.1:{server.getsockname()[1]}"
+        stop = threading.Event()
+
+        def serve():  # what a DV server does: send its header at once, never read
+            server.settimeout(0.1)
+            held = []
+            while not stop.is_set():
+                try:
+                    conn, _ = server.accept()
+                except OSError:
+                    continue
+                conn.sendall(b"\x20\x0c\x00\x00" + b"IOHE" + b"\x00" * 64)
+                held.append(conn)
+            for conn in held:
+                conn.close()
+
+        thread = threading.Thread(target=serve, daemon=True)
+        thread.start()
+        try:
+            with Subscriber(endpoint) as sub:
+                error = _handshake_error(sub)
+        finally:
+            stop.set()
+            thread.join(5)
+    assert "ZeroMQ" in str(error) and endpoint in str(error), str(error)
+
+
+def test_a_message_of_a_million_parts_is_refused_without_holding_them(raw_pub):
+    # libzmq bounds a part's size, not the number of parts: 2 million empty parts (4 MB on the wire) became
+    # 2 million Python objects (RSS +1.1 GB) before the part count was checked
+    import tracemalloc
+
+    sock, endpoint = raw_pub
+    with Subscriber(endpoint, newest_only=False) as sub:
+        kind, _ = wait_first(sock, sub, good(1))  # the subscription is in place (and frame 1 received)
+        assert kind == "frame"
+        while sub.recv(0.2) is not None:
+            pass
+        sock.send_multipart([b"frame"] + [b""] * 1_000_000)
+        sock.send_multipart(good(2))
+        assert sub._frames.poll(20_000)
+        tracemalloc.start()
+        try:
+            with pytest.raises(ClientError, match="1000001"):
+                sub.recv(20)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert peak < 10_000_000, peak
+        header, _ = sub.recv(RECV_S)  # the next message is read as usual
+        assert header["seq"] == 2

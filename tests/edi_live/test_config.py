@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import dataclasses
+import os
+import threading
 from pathlib import Path
 
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from edi_live import config_file
 from edi_live.config import DEFAULT_ENDPOINT, OPTION_KEYS, NodeConfig, merge_options, read_toml
 from edi_live.errors import ConfigError
 
@@ -58,6 +61,9 @@ def test_defaults_are_safe():
     ({"replay": "x", "out": True}, "out: expected a file path (got True)"),
     ({"device": "auto", "usb_backend": 5}, "usb-backend must look like MODULE:CALLABLE (got 5)"),
     ({"replay": "x", "dv_output_events": "tcp://0.0.0.0:99999"}, "--dv-output-events must look like tcp://HOST:PORT"),
+    # accepted, and no subscriber outside the node's own process could ever reach it
+    ({"replay": "x", "publish": ["inproc://frames"]}, "publish endpoint 'inproc://frames' is reachable only from "
+                                                      "inside the edi-live process"),
     ({"replay": "x", "ring_events": 10}, "ring-events"),
     ({"replay": "x", "duration": -2}, "duration must be a positive number (got -2"),
     ({"replay": "x", "frobnicate": 1}, "unknown option(s) frobnicate"),
@@ -74,6 +80,16 @@ def test_invalid_values_name_the_key_and_the_value(options, fragment):
         NodeConfig.from_options(options)
     assert fragment in str(info.value)
     assert info.value.exit_code == 2
+
+
+@pytest.mark.parametrize("flag", ["out", "record", "save_calibration"])
+def test_outputs_never_overwrite_the_curve_secret_key(tmp_path: Path, flag):
+    # '--curve-secret-key keys/server.key_secret --out keys/server.key_secret' replaced the secret key at start
+    key = tmp_path / "server.key_secret"
+    key.write_text("a secret")
+    with pytest.raises(ConfigError, match="would overwrite the curve-secret-key file"):
+        NodeConfig.from_options({"replay": "x.aedat4", "curve_secret_key": str(key), flag: str(key)})
+    assert key.read_text() == "a secret"
 
 
 @pytest.mark.parametrize("flag", ["out", "record", "save_calibration"])
@@ -122,7 +138,7 @@ def test_no_publish_empties_the_endpoints():
 
 
 @pytest.mark.parametrize("endpoint", ["tcp://127.0.0.1:1", "tcp://127.0.0.1:65535", "tcp://*:*", "tcp://[::1]:5555",
-                                      "ipc:///tmp/edi.sock", "inproc://frames"])
+                                      "ipc:///tmp/edi.sock"])
 def test_valid_endpoints_are_accepted(endpoint):
     assert NodeConfig.from_options({"replay": "x", "publish": [endpoint]}).publisher.endpoints == (endpoint,)
 
@@ -326,3 +342,67 @@ def test_two_endpoints_on_one_port_are_refused_before_the_bind_blames_another_pr
         return
     with pytest.raises(ConfigError, match=refused):
         NodeConfig.from_options({"replay": "x.aedat4", **options})
+
+
+def _read_in_thread(path: Path) -> tuple[threading.Thread, list]:
+    outcome: list = []
+
+    def read() -> None:
+        try:
+            outcome.append(read_toml(path))
+        except ConfigError as exc:
+            outcome.append(exc)
+
+    thread = threading.Thread(target=read, daemon=True)
+    thread.start()
+    return thread, outcome
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_a_fifo_nothing_writes_to_is_a_config_error_not_a_wait_for_ever(tmp_path: Path, monkeypatch):
+    # open() of a FIFO without a writer blocked for ever, and Ctrl-C only set the stop flag (the open is retried)
+    monkeypatch.setattr(config_file, "PIPE_WAIT_S", 0.2)
+    fifo = tmp_path / "edi.toml"
+    os.mkfifo(fifo)
+    thread, outcome = _read_in_thread(fifo)
+    thread.join(20)
+    if thread.is_alive():  # release the blocked open() before failing
+        os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+        thread.join(5)
+        pytest.fail("reading a FIFO that nothing writes to did not end")
+    assert isinstance(outcome[0], ConfigError) and str(fifo) in str(outcome[0]) and "pipe" in str(outcome[0])
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_a_fifo_is_read_when_its_writer_comes_after_the_reader(tmp_path: Path):
+    fifo = tmp_path / "edi.toml"
+    os.mkfifo(fifo)
+    thread, outcome = _read_in_thread(fifo)
+    with open(fifo, "wb") as writer:  # blocks until the reader has the FIFO open
+        writer.write(b"every = 500\n")
+        writer.flush()
+        writer.write(b"speed = 0\n")
+    thread.join(20)
+    assert outcome == [{"every": 500, "speed": 0}]
+
+
+def test_a_pipe_whose_writer_is_done_is_read_like_bash_process_substitution(tmp_path: Path):
+    read_end, write_end = os.pipe()
+    try:
+        os.write(write_end, b"every = 250\n")
+        os.close(write_end)
+        assert read_toml(Path(f"/proc/self/fd/{read_end}")) == {"every": 250}
+    finally:
+        os.close(read_end)
+
+
+def test_an_ipc_endpoint_never_replaces_a_file(tmp_path: Path):
+    # libzmq unlinks whatever is at an ipc:// path before it binds: '--publish ipc:///home/me/notes.txt' deleted
+    # the notes and left a socket in their place
+    notes = tmp_path / "notes.txt"
+    notes.write_text("precious")
+    with pytest.raises(ConfigError, match="exists and is not a socket"):
+        NodeConfig.from_options({"replay": "x", "publish": [f"ipc://{notes}"]})
+    assert notes.read_text() == "precious"
+    fresh = f"ipc://{tmp_path / 'edi.sock'}"
+    assert NodeConfig.from_options({"replay": "x", "publish": [fresh]}).publisher.endpoints == (fresh,)

@@ -292,3 +292,21 @@ def test_colour_reconstructions_reach_dv_processing_as_colour_frames():
         assert frame["shape"] == [260, 346, 3] and frame["pixel_sum"] == 6 * 260 * 346
     finally:
         out.close()
+
+
+def test_a_flood_of_connections_is_logged_a_few_lines_then_counted(caplog):
+    # a client connecting and leaving in a loop wrote two log lines per connection (7554 lines in 4 s), burying
+    # the node's status line
+    out = DvOutput("tcp://127.0.0.1:0", "frames", 346, 260)
+    out.start()
+    with caplog.at_level("INFO", logger="edi_live.dv_output"):
+        try:
+            host, port = parse_tcp_endpoint(out.bound_endpoint)
+            for _ in range(60):
+                socket.create_connection((host, port)).close()
+            _wait(lambda: out.connections == 60 and out.client_count() == 0)
+        finally:
+            out.close()
+    lines = [r.getMessage() for r in caplog.records if "DV client" in r.getMessage()]
+    assert 1 <= len(lines) <= 25, len(lines)
+    assert "60 client connection(s)" in caplog.records[-1].getMessage()  # the closing line counts them all

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import zmq
 
-from edi_live.client import Subscriber
+from edi_live.client import ClientHandshakeError, Subscriber
 from edi_live.datatypes import Reconstruction
 from edi_live.errors import BindError, PublishError
 from edi_live.publisher import Publisher, generate_curve_keys, main
@@ -298,7 +298,10 @@ def test_curve_encrypted_subscriber_receives_and_plain_one_does_not(publisher, t
         got = [enc.recv(RECV_S) for _ in range(20)]
         assert all(item is not None for item in got)
         np.testing.assert_array_equal(got[-1][1], make_rec(19).image)
-        assert plain.recv(0.5) is None  # the handshake failed: nothing decrypts for a plain subscriber
+        with pytest.raises(ClientHandshakeError, match="encrypts"):  # nothing decrypts for a plain subscriber
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline:
+                assert plain.recv(0.2) is None
 
 
 def test_curve_key_problems_are_clear(tmp_path):
@@ -368,3 +371,31 @@ def test_frames_nobody_subscribes_to_are_counted_not_sent(publisher):
     wait_until(lambda: pub.submit(make_rec(0, 8, 4)) or pub.stats()["unsubscribed"] > unsubscribed,
                "frames kept being sent after the last subscriber left")
     assert pub.stats()["sent"] < sent + 10_000
+
+
+def test_a_host_name_that_does_not_resolve_is_named_as_such():
+    # libzmq takes an unknown name for a network interface and said only 'No such device'
+    pub = Publisher(["tcp://nohost.invalid:5555"], "cam")
+    with pytest.raises(BindError, match="no such address or network interface"):
+        pub.start()
+    pub.close()
+
+
+def test_gen_curve_keys_never_replaces_a_key_pair(tmp_path, capsys):
+    # a second --gen-curve-keys into the same folder replaced the pair without a word: the old secret key gone,
+    # and every subscriber holding the old public key locked out
+    keys = tmp_path / "k"
+    assert main(["--gen-curve-keys", str(keys)]) == 0
+    before = {p.name: p.read_bytes() for p in keys.iterdir()}
+    assert main(["--gen-curve-keys", str(keys)]) == 1
+    assert {p.name: p.read_bytes() for p in keys.iterdir()} == before
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and "already holds" in err[0] and str(keys) in err[0], err
+
+
+def test_gen_curve_keys_into_an_unwritable_place_is_one_line(tmp_path, capsys):
+    blocker = tmp_path / "file.txt"
+    blocker.write_text("a file where a folder is expected")
+    assert main(["--gen-curve-keys", str(blocker / "keys")]) == 1  # it ended with a FileExistsError traceback
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and "cannot write" in err[0] and str(blocker / "keys") in err[0], err

@@ -37,6 +37,32 @@ def test_plain_status_lines_when_not_a_terminal():
     assert len(lines) == 2 and all(x.startswith("edi-live: ") for x in lines) and "\r" not in stream.getvalue()
 
 
+class ClosedPipe(io.StringIO):
+    """stderr piped into a reader that went away ('edi-live ... 2>&1 | head -1')."""
+
+    def __init__(self, tty: bool) -> None:
+        super().__init__()
+        self.tty, self.writes = tty, 0
+
+    def isatty(self) -> bool:
+        return self.tty
+
+    def write(self, text: str) -> int:
+        self.writes += 1
+        raise BrokenPipeError(32, "Broken pipe")
+
+
+def test_a_status_stream_that_went_away_stops_the_status_not_the_run():
+    # the error left the node's supervisor loop, which stopped the run part-way: --out kept 244 of 314 frames
+    for tty in (False, True):
+        stream = ClosedPipe(tty)
+        line = StatusLine(stream, interval_s=0.0)
+        for _ in range(3):
+            line.maybe_draw(lambda: STATS)
+        line.finish()
+        assert stream.writes == 1  # tried once, then left alone
+
+
 def test_rates_between_calls():
     clock = iter([0.0, 2.0, 3.0])
     rates = Rates(clock=lambda: next(clock))
@@ -71,6 +97,14 @@ def test_summary_says_when_events_came_without_any_aps_frame():
     assert "warning: no APS frame arrived, so none of the 1000 events became a frame" in none
     assert "no APS frame" not in format_summary({**STATS, "aps_frames_in": 2}, 1.0)
     assert "no APS frame" not in format_summary({"events_processed": 0, "aps_frames_in": 0}, 1.0)  # nothing at all
+
+
+def test_summary_says_when_nothing_arrived():
+    # an empty recording (a header and no packet) ran to 'done ... 0 frames out' with exit 0 and no word
+    assert "warning: nothing arrived from the input" in format_summary({"events_processed": 0, "aps_frames_in": 0},
+                                                                       1.0)
+    assert "nothing arrived" not in format_summary({**STATS, "aps_frames_in": 0}, 1.0)
+    assert "nothing arrived" not in format_summary({"events_processed": 0, "aps_frames_in": 1}, 1.0)
 
 
 def test_collect_sums_drops_of_every_stage():

@@ -128,6 +128,15 @@ def test_rates_count_seq_gaps_and_status_line():
     assert "predicts" not in viewer.status_line(rates, 0, {"pred_psnr_db": None})
 
 
+def test_stats_that_stopped_coming_are_not_shown_as_current():
+    # a node killed mid-run kept showing 'node 634.1 fps, 0.62 Mev/s' next to 'recv 0.0 fps' for ever
+    rates = viewer.Rates()
+    stats = {"frames_per_s": 634.1, "events_per_s": 6.2e5, "c": 0.44}
+    assert "634.1 fps" in viewer.status_line(rates, 0, stats, stats_age_s=1.0)
+    stale = viewer.status_line(rates, 0, stats, stats_age_s=7.4)
+    assert "634.1" not in stale and "no stats from the node for 7 s" in stale, stale
+
+
 def test_to_u8_scales_other_depths():
     assert viewer.to_u8(np.array([[0, 65535]], np.uint16)).tolist() == [[0, 255]]
     assert viewer.to_u8(np.array([[-3.0, 300.0, np.nan]], np.float32)).tolist() == [[0, 255, 0]]
@@ -315,6 +324,10 @@ def test_cli_out_of_range_values_exit_2_without_a_traceback(args, fragment):
     (lambda tmp: ["--png", str(tmp / "file.txt" / "frames")], "cannot create the --png folder"),
     (lambda tmp: ["--mp4", str(tmp / "missing" / "x.mp4")], "cannot write --mp4"),
     (lambda tmp: ["--mp4", str(tmp)], "is a directory"),
+    # OpenCV picks the container by the name's ending: .txt failed at the first frame with OpenCV's own
+    # multi-line warning, and .png wrote an image sequence that no player opens, without a word
+    (lambda tmp: ["--mp4", str(tmp / "x.txt")], "x.txt: the name must end in .mp4"),
+    (lambda tmp: ["--mp4", str(tmp / "x.png")], "x.png: the name must end in .mp4"),
 ])
 def test_cli_unwritable_outputs_fail_at_start_with_one_line(tmp_path, make_args, fragment):
     (tmp_path / "file.txt").write_text("a file where a folder is expected")
@@ -401,3 +414,126 @@ def test_colour_stream_in_png_mp4_and_http(tmp_path):
     cap.release()
     assert ok and frame.shape == (H, W, 3)
     assert np.abs(frame.astype(int) - colour_pattern(0).astype(int))[8:, 8:].mean() < 10  # lossy, same colours
+
+
+@pytest.fixture
+def raw_pub():
+    """A bare PUB socket the test writes message parts to (a hostile or foreign publisher), and its endpoint."""
+    import zmq
+
+    ctx = zmq.Context()
+    pub = ctx.socket(zmq.PUB)
+    pub.setsockopt(zmq.LINGER, 0)
+    port = pub.bind_to_random_port("tcp://127.0.0.1")
+    yield pub, f"tcp://127.0.0.1:{port}"
+    ctx.destroy(linger=0)
+
+
+def joined_viewer(pub, argv: list[str]) -> viewer.Viewer:
+    """A Viewer (not running: the test calls its _step) subscribed to `pub`, with nothing queued and no frame
+    counted yet."""
+    from edi_live import wire
+
+    v = viewer.Viewer(viewer.build_parser().parse_args(argv))
+    deadline = time.monotonic() + 10
+    while v.rates.frames == 0:  # the slow joiner: repeat frame 0 until the subscription is in place
+        assert time.monotonic() < deadline, "the viewer received nothing"
+        pub.send_multipart(wire.encode_frame(rec(0), 0, "cam"))
+        v._step()
+    while v.sub.recv(0.2) is not None:  # the repeats still queued
+        pass
+    v.rates.frames = 0
+    return v
+
+
+def step_until(v: viewer.Viewer, frames: int) -> None:
+    deadline = time.monotonic() + 10
+    while v.rates.frames < frames and time.monotonic() < deadline:
+        v._step()
+
+
+def test_a_bad_stats_message_loses_no_frame(raw_pub, tmp_path):
+    """A malformed stats message read in the same step as a good frame threw that frame away: not shown, not
+    counted, not saved (a hostile publisher's garbage stats cost the --mp4/--png most of the stream)."""
+    from edi_live import wire
+
+    pub, endpoint = raw_pub
+    png_dir = tmp_path / "png"
+    v = joined_viewer(pub, ["--endpoint", endpoint, "--no-http", "--quiet", "--all", "--png", str(png_dir)])
+    try:
+        for i in range(1, 6):
+            pub.send_multipart(wire.encode_frame(rec(i), i, "cam"))
+            pub.send_multipart([b"stats", b"\xc1 not msgpack"])
+        step_until(v, 5)
+    finally:
+        v.close()
+    assert v.rates.frames == 5 and v.bad_messages >= 1
+    assert {p.name for p in png_dir.glob("frame_*.png")} >= {f"frame_{i:09d}.png" for i in range(1, 6)}
+
+
+def test_a_status_stream_that_went_away_stops_the_status_not_the_recording(raw_pub, tmp_path, monkeypatch):
+    """'python -m tools.viewer --mp4 x.mp4 2>&1 | head -1': the status line's BrokenPipeError ended the run at
+    its second status line (41 of ~80 frames in the MP4, exit 1, a traceback)."""
+    from edi_live import wire
+
+    class ClosedPipe:
+        def isatty(self) -> bool:
+            return False
+
+        def write(self, text: str) -> int:
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def flush(self) -> None:
+            raise BrokenPipeError(32, "Broken pipe")
+
+    pub, endpoint = raw_pub
+    png_dir = tmp_path / "png"
+    v = joined_viewer(pub, ["--endpoint", endpoint, "--no-http", "--all", "--png", str(png_dir)])
+    monkeypatch.setattr(sys, "stderr", ClosedPipe())
+    try:
+        for i in range(1, 4):
+            v.rates._window_start -= 2.0  # each step draws the status line (due once a second)
+            pub.send_multipart(wire.encode_frame(rec(i), i, "cam"))
+            step_until(v, i)
+    finally:
+        v.close()
+    assert v.rates.frames == 3
+    assert {p.name for p in png_dir.glob("frame_*.png")} >= {f"frame_{i:09d}.png" for i in range(1, 4)}
+
+
+def test_a_stream_of_bad_messages_is_counted_not_logged_line_by_line(raw_pub, caplog):
+    """Each bad message was one warning line: a publisher of another protocol version at 1000 frames/s wrote 1000
+    lines a second over the status line."""
+    import msgpack
+
+    pub, endpoint = raw_pub
+    v = joined_viewer(pub, ["--endpoint", endpoint, "--no-http", "--quiet", "--all"])
+    bad = [b"frame", msgpack.packb({"v": 99}), b""]
+    with caplog.at_level("INFO", logger="edi-live-viewer"):
+        try:
+            for _ in range(50):
+                pub.send_multipart(bad)
+            deadline = time.monotonic() + 10
+            while v.bad_messages < 50 and time.monotonic() < deadline:
+                v._step()
+        finally:
+            v.close()
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert v.bad_messages == 50 and 1 <= len(warnings) <= 11, warnings
+    assert "bad 50" in caplog.records[-1].getMessage()  # the closing summary has them all
+
+
+def test_a_publisher_that_encrypts_is_one_error_line_not_a_silent_wait(tmp_path):
+    # without --curve-server-key the viewer showed 'recv 0.0 fps | no stats yet' for ever
+    from edi_live.publisher import generate_curve_keys
+
+    _, secret = generate_curve_keys(tmp_path / "keys")
+    pub = Publisher(["tcp://127.0.0.1:*"], "cam", curve_secret_key=secret)
+    pub.start()
+    try:
+        proc = run_cli(["--endpoint", pub.bound_endpoints[0], "--no-http", "--quiet", "--duration", "60"])
+        err = _finish(proc, 40)
+    finally:
+        pub.close()
+    lines = [line for line in err.splitlines() if line.startswith("viewer: error:")]
+    assert proc.returncode == 1 and len(lines) == 1 and "encrypts (CURVE" in lines[0], err

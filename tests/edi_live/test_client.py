@@ -4,6 +4,7 @@ ClientError while the subscriber stays usable."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
@@ -321,8 +322,9 @@ def _client_cli(*args: str) -> subprocess.CompletedProcess:
                           timeout=60, cwd=repo, env={**os.environ, "PYTHONPATH": repo})
 
 
-def test_the_client_command_prints_one_line_per_frame(pub):
-    # `edi-live --help` names `python -m edi_live.client` as what prints the frames; it printed nothing, exit 0
+@contextlib.contextmanager
+def _feeding(pub):
+    """A frame every 20 ms from a thread, until the block ends."""
     stop = threading.Event()
 
     def feed():
@@ -334,10 +336,16 @@ def test_the_client_command_prints_one_line_per_frame(pub):
     feeder = threading.Thread(target=feed, daemon=True)
     feeder.start()
     try:
-        proc = _client_cli(pub.bound_endpoints[0], "--count", "2", "--timeout-s", "30")
+        yield
     finally:
         stop.set()
         feeder.join(5)
+
+
+def test_the_client_command_prints_one_line_per_frame(pub):
+    # `edi-live --help` names `python -m edi_live.client` as what prints the frames; it printed nothing, exit 0
+    with _feeding(pub):
+        proc = _client_cli(pub.bound_endpoints[0], "--count", "2", "--timeout-s", "30")
     lines = proc.stdout.splitlines()
     assert proc.returncode == 0 and len(lines) == 2, proc.stderr
     seqs = [int(line.split()[1]) for line in lines]
@@ -389,31 +397,20 @@ def test_the_client_command_into_a_closed_pipe_ends_quietly(pub):
     # 'python -m edi_live.client | head -2' ended with a BrokenPipeError traceback once head had its lines
     from pathlib import Path
 
-    stop = threading.Event()
-
-    def feed():
-        i = 0
-        while not stop.wait(0.02):
-            i += 1
-            pub.submit(make_rec(i))
-
-    feeder = threading.Thread(target=feed, daemon=True)
-    feeder.start()
     repo = str(Path(__file__).resolve().parents[2])
-    proc = subprocess.Popen([sys.executable, "-m", "edi_live.client", pub.bound_endpoints[0], "--timeout-s", "30"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=repo,
-                            env={**os.environ, "PYTHONPATH": repo})
-    try:
-        assert proc.stdout.readline().startswith("seq ")
-        proc.stdout.close()  # the reader goes away, as head does
-        err = proc.stderr.read()
-        proc.wait(30)
-    finally:
-        stop.set()
-        feeder.join(5)
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
+    with _feeding(pub):
+        proc = subprocess.Popen([sys.executable, "-m", "edi_live.client", pub.bound_endpoints[0], "--timeout-s", "30"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=repo,
+                                env={**os.environ, "PYTHONPATH": repo})
+        try:
+            assert proc.stdout.readline().startswith("seq ")
+            proc.stdout.close()  # the reader goes away, as head does
+            err = proc.stderr.read()
+            proc.wait(30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(10)
     assert proc.returncode == 0 and err == "", err
 
 

@@ -45,6 +45,7 @@ DEFAULT_ENDPOINT = "tcp://127.0.0.1:5555"
 DEFAULT_SNDHWM = 16  # frames queued per subscriber inside libzmq before PUB drops for that subscriber
 DEFAULT_INBOX = 64  # reconstructions waiting for the thread; a publisher that keeps up never fills it
 HEARTBEAT_IVL_MS, HEARTBEAT_TIMEOUT_MS = 1000, 3000
+MAX_INBOUND_BYTES = 4096  # what a subscriber sends is subscriptions: a topic prefix each
 LATENCY_SAMPLES = 8192  # bound on latency samples kept per stats interval (the most recent win)
 _START_TIMEOUT_S = 10.0
 _NOBLOCK = int(zmq.NOBLOCK)
@@ -232,6 +233,7 @@ class Publisher:
         # ZMTP heartbeats: a subscriber whose host vanished (half-open TCP) is dropped with its queue
         sock.setsockopt(zmq.HEARTBEAT_IVL, HEARTBEAT_IVL_MS)
         sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, HEARTBEAT_TIMEOUT_MS)
+        sock.setsockopt(zmq.MAXMSGSIZE, MAX_INBOUND_BYTES)  # a peer sending more is disconnected by libzmq
         if self.curve_secret_key is not None:
             if not zmq.has("curve"):
                 raise PublishError("this libzmq was built without CURVE; cannot use --curve-secret-key")

@@ -5,6 +5,10 @@ unsubscribes (libzmq sends the latter itself for a subscriber that disconnects o
 delivered to a subscriber whose prefix starts its topic (`b""` matches every topic). The publisher asks
 `wanted` before it encodes a frame: with nobody listening it skips the header, the copy and the send.
 
+Only prefixes of the frame topic are kept (at most len(topic) + 1 of them): any other subscription cannot want
+frames, and a hostile peer sending millions of distinct prefixes would otherwise grow this table without bound
+and make each message cost a pass over it. The others are only counted (`other_messages`).
+
 No I/O here: the publisher reads the socket and hands every message to `apply()`. Reading the socket's EVENTS
 costs ~1 µs, so `check_due()` says when to: for every frame while nobody listens (the first frame after a
 subscription goes out), at most every `recheck_ns` while someone does (a subscriber that leaves is noticed
@@ -26,8 +30,9 @@ class Subscriptions:
         self.topic = topic
         self.recheck_ns = recheck_ns
         self.wanted = False
-        self._prefixes: collections.Counter[bytes] = collections.Counter()
+        self._prefixes: collections.Counter[bytes] = collections.Counter()  # prefixes of `topic` only
         self._next_check_ns = 0
+        self.other_messages = 0  # subscription messages for other topics (e.g. stats), and anything else
 
     def check_due(self) -> bool:
         """Whether the socket's waiting subscription messages should be read before the next frame."""
@@ -41,7 +46,8 @@ class Subscriptions:
 
     def apply(self, message: bytes) -> None:
         """One message received on the XPUB socket (anything but a subscription message is ignored)."""
-        if not message or message[0] not in (0, 1):
+        if not message or message[0] not in (0, 1) or not self.topic.startswith(message[1:]):
+            self.other_messages += 1
             return
         prefix = message[1:]
         if message[0] == 1:
@@ -53,5 +59,5 @@ class Subscriptions:
         self.wanted = any(self.topic.startswith(p) for p in self._prefixes)
 
     def prefixes(self) -> list[bytes]:
-        """The prefixes subscribed now (for tests and logs)."""
+        """The prefixes of the frame topic subscribed now (for tests and logs)."""
         return sorted(self._prefixes)

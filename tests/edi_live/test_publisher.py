@@ -399,3 +399,41 @@ def test_gen_curve_keys_into_an_unwritable_place_is_one_line(tmp_path, capsys):
     assert main(["--gen-curve-keys", str(blocker / "keys")]) == 1  # it ended with a FileExistsError traceback
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 1 and "cannot write" in err[0] and str(blocker / "keys") in err[0], err
+
+
+def test_a_peer_sending_an_oversized_message_is_disconnected_and_the_others_keep_their_frames(publisher):
+    # a subscriber only ever sends subscriptions (a topic prefix each), but the XPUB took messages of any size: a
+    # peer could stream one long message into the node for as long as its heartbeats allowed (3 s, at loopback
+    # speed). A raw ZMTP 3.0 peer (NULL security, socket type XSUB) declares a 1 MB message: the node hangs up on
+    # reading its header, long before its first heartbeat (1 s) could
+    import select
+    import struct
+
+    pub = publisher(sndhwm=1000)
+    host, port = pub.bound_endpoints[0][len("tcp://"):].rsplit(":", 1)
+    raw = socket.create_connection((host, int(port)), timeout=RECV_S)
+    ready = b"\x05READY" + bytes([11]) + b"Socket-Type" + struct.pack(">I", 4) + b"XSUB"
+    received = b""
+    try:
+        raw.sendall(b"\xff" + bytes(8) + b"\x7f" + bytes([3, 0]) + b"NULL".ljust(20, b"\x00") + bytes(32))
+        raw.sendall(bytes([0x04, len(ready)]) + ready)
+        while b"READY" not in received:  # the node's greeting and READY: the handshake is done
+            part = raw.recv(4096)
+            assert part, f"the node hung up during the handshake ({received!r})"
+            received += part
+        raw.sendall(bytes([0x02]) + struct.pack(">Q", 1 << 20) + b"\x01" + b"x" * 1000)
+        closed = False
+        while not closed and select.select([raw], [], [], RECV_S)[0]:  # the hang-up, or the node's first heartbeat
+            try:
+                part = raw.recv(65536)
+            except ConnectionResetError:
+                part = b""
+            closed = part == b""
+            assert closed or b"PING" not in part, "the node kept reading a 1 MB message from a subscriber"
+    finally:
+        raw.close()
+    assert closed, f"the node neither hung up nor sent a heartbeat within {RECV_S} s"
+    with Subscriber(pub.bound_endpoints[0], newest_only=False) as good:
+        seq0 = sync(pub, good)
+        pub.submit(make_rec(1))
+        assert good.recv(RECV_S)[0]["seq"] == seq0

@@ -79,27 +79,36 @@ def wait_first(sock, sub: Subscriber, parts, also: zmq.Socket | None = None) -> 
     raise AssertionError("nothing arrived")
 
 
-def test_subscribe_yields_header_and_image(pub):
+@contextlib.contextmanager
+def _feeding(send):
+    """send(i) every 20 ms from a thread (i = 1, 2, ...), until the block ends: publishing until a subscriber that
+    connects lazily has joined."""
     stop = threading.Event()
 
-    def feed():  # publish until the subscriber (connected lazily by next()) has joined
+    def feed():
+        i = 0
         while not stop.wait(0.02):
-            pub.submit(make_rec(7))
+            i += 1
+            send(i)
 
     feeder = threading.Thread(target=feed, daemon=True)
     feeder.start()
-    gen = subscribe(pub.bound_endpoints[0], timeout_s=RECV_S)
     try:
+        yield
+    finally:
+        stop.set()
+        feeder.join(5)
+
+
+def test_subscribe_yields_header_and_image(pub):
+    gen = subscribe(pub.bound_endpoints[0], timeout_s=RECV_S)
+    with _feeding(lambda i: pub.submit(make_rec(7))), contextlib.closing(gen):
         header, image = next(gen)
         assert header["n_events"] == 7 and header["v"] == 1
         np.testing.assert_array_equal(image, make_rec(7).image)
         assert not image.flags.writeable  # a view of the received buffer
         header2, _ = next(gen)
         assert header2["seq"] > header["seq"]
-    finally:
-        stop.set()
-        feeder.join(5)
-        gen.close()
 
 
 def test_subscribe_times_out_with_a_clear_error():
@@ -294,23 +303,11 @@ def test_subscribe_yields_colour_frames_as_h_w_3_bgr(pub):
     image[..., 0], image[..., 1], image[..., 2] = 10, 20, 30  # B, G, R
     image[5, 7] = (1, 2, 3)
     rec = Reconstruction(image, 70, "latent", 0, -5, 5, 0.2, 0.2, 7)
-    stop = threading.Event()
-
-    def feed():
-        while not stop.wait(0.02):
-            pub.submit(rec)
-
-    feeder = threading.Thread(target=feed, daemon=True)
-    feeder.start()
     gen = subscribe(pub.bound_endpoints[0], timeout_s=RECV_S)
-    try:
+    with _feeding(lambda i: pub.submit(rec)), contextlib.closing(gen):
         header, got = next(gen)
         assert (header["v"], header["layout"], header["channels"]) == (2, "bgr", 3)
         assert got.shape == (48, 64, 3) and np.array_equal(got, image)
-    finally:
-        stop.set()
-        feeder.join(5)
-        gen.close()
 
 
 def _client_cli(*args: str) -> subprocess.CompletedProcess:
@@ -322,29 +319,9 @@ def _client_cli(*args: str) -> subprocess.CompletedProcess:
                           timeout=60, cwd=repo, env={**os.environ, "PYTHONPATH": repo})
 
 
-@contextlib.contextmanager
-def _feeding(pub):
-    """A frame every 20 ms from a thread, until the block ends."""
-    stop = threading.Event()
-
-    def feed():
-        i = 0
-        while not stop.wait(0.02):
-            i += 1
-            pub.submit(make_rec(i))
-
-    feeder = threading.Thread(target=feed, daemon=True)
-    feeder.start()
-    try:
-        yield
-    finally:
-        stop.set()
-        feeder.join(5)
-
-
 def test_the_client_command_prints_one_line_per_frame(pub):
     # `edi-live --help` names `python -m edi_live.client` as what prints the frames; it printed nothing, exit 0
-    with _feeding(pub):
+    with _feeding(lambda i: pub.submit(make_rec(i))):
         proc = _client_cli(pub.bound_endpoints[0], "--count", "2", "--timeout-s", "30")
     lines = proc.stdout.splitlines()
     assert proc.returncode == 0 and len(lines) == 2, proc.stderr
@@ -398,7 +375,7 @@ def test_the_client_command_into_a_closed_pipe_ends_quietly(pub):
     from pathlib import Path
 
     repo = str(Path(__file__).resolve().parents[2])
-    with _feeding(pub):
+    with _feeding(lambda i: pub.submit(make_rec(i))):
         proc = subprocess.Popen([sys.executable, "-m", "edi_live.client", pub.bound_endpoints[0], "--timeout-s", "30"],
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=repo,
                                 env={**os.environ, "PYTHONPATH": repo})
@@ -430,19 +407,8 @@ def test_the_client_command_prints_no_control_characters_from_the_publisher(raw_
     # a publisher's 'source' went to the terminal as it came: escape sequences (clear screen, window title) included
     sock, endpoint = raw_pub
     parts = [bytes(p) for p in wire.encode_frame(make_rec(1), 1, "cam\x1b[2J\r\x07evil")]
-    stop = threading.Event()
-
-    def feed():
-        while not stop.wait(0.02):
-            sock.send_multipart(parts)
-
-    feeder = threading.Thread(target=feed, daemon=True)
-    feeder.start()
-    try:
+    with _feeding(lambda i: sock.send_multipart(parts)):
         proc = _client_cli(endpoint, "--count", "1", "--timeout-s", "30")
-    finally:
-        stop.set()
-        feeder.join(5)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.count("\n") == 1 and not any(c in proc.stdout for c in "\x1b\r\x07"), repr(proc.stdout)
     assert "from cam\\x1b[2J\\r\\x07evil" in proc.stdout

@@ -214,8 +214,8 @@ import json, sys, time
 from pathlib import Path
 from tools.bench_stream import run_with_subscriber
 if sys.argv[4] == "1":
-    stats, sub, wall_s, pub = run_with_subscriber(Path(sys.argv[1]), {"every": int(sys.argv[2])}, speed=0,
-                                                  passes=int(sys.argv[3]))
+    stats, sub, wall_s, pub = run_with_subscriber(Path(sys.argv[1]), {"every": int(sys.argv[2]),
+                                                  **json.loads(sys.argv[5])}, speed=0, passes=int(sys.argv[3]))
 else:  # publishing, nobody subscribed
     import drivers
     from edi_live.config import NodeConfig
@@ -240,10 +240,12 @@ print(json.dumps({"cpu_s": stats["node_cpu_s"], "events": stats["events_processe
 """
 
 
-def ab(other: Path, paths: list[Path], every: int, repeat: int, passes: int, subscribers: int = 1) -> None:
+def ab(other: Path, paths: list[Path], every: int, repeat: int, passes: int, subscribers: int = 1,
+       options: dict | None = None) -> None:
+    """`options`: node options of the new side only (with a subscriber)."""
     here = Path(__file__).resolve().parent.parent
-    print(f"\n## A/B node CPU: new = {here}, old = {other}; --every {every}, {passes} passes, {repeat} pairs, "
-          f"{subscribers} subscriber(s)")
+    print(f"\n## A/B node CPU: new = {here} {options or ''}, old = {other}; --every {every}, {passes} passes, "
+          f"{repeat} pairs, {subscribers} subscriber(s)")
     for path in paths:
         runs: dict[str, list[dict]] = {"old": [], "new": []}
         for i in range(repeat):
@@ -251,7 +253,8 @@ def ab(other: Path, paths: list[Path], every: int, repeat: int, passes: int, sub
             for which in order:
                 cwd = other if which == "old" else here
                 out = subprocess.run([sys.executable, "-c", _CHILD, str(path), str(every), str(passes),
-                                      str(subscribers)], cwd=cwd,
+                                      str(subscribers), json.dumps(options or {} if which == "new" else {})],
+                                     cwd=cwd,
                                      capture_output=True, text=True)
                 if out.returncode != 0:
                     raise SystemExit(f"{which} run failed:\n{out.stderr[-2000:]}")
@@ -370,7 +373,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--top", type=int, default=25)
     ap.add_argument("--nobody", action="store_true", help="ab: publish with nobody subscribed (node CPU incl. start-up)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="worker: these EdiConfig options against the default, or in both checkouts")
+                    help="worker: these EdiConfig options against the default, or in both checkouts; ab: the new side's")
     args = ap.parse_args(argv)
     if not args.input:
         from tools.bench_stream import default_recording
@@ -378,8 +381,8 @@ def main(argv: list[str] | None = None) -> int:
         args.input = [default_recording()]
     from tools.bench_option import parse_setting
 
-    if args.set and args.mode != "worker":
-        ap.error("--set is for the worker mode")
+    if args.set and (args.mode not in ("worker", "ab") or args.nobody):
+        ap.error("--set is for the worker mode, and for ab with a subscriber")
     if args.mode == "profile":
         for path in args.input:
             profile(path, args.every, {"c": args.c} if args.c else {}, args.top)
@@ -399,7 +402,8 @@ def main(argv: list[str] | None = None) -> int:
     else:
         if args.other is None:
             ap.error("ab needs the other checkout")
-        ab(args.other.resolve(), args.input, args.every, args.repeat, args.passes, 0 if args.nobody else 1)
+        ab(args.other.resolve(), args.input, args.every, args.repeat, args.passes, 0 if args.nobody else 1,
+           dict(parse_setting(text) for text in args.set))
     return 0
 
 

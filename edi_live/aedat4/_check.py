@@ -1,4 +1,5 @@
-"""Validation of decoded event records: sorted by time, on the sensor, polarity 0/1.
+"""Validation of decoded event records: sorted by time, on the sensor, polarity 0/1, and a time within ±2**62 µs
+(the replay keeps 2**62 as "never": a later event would be dropped there without a word).
 
 One pass over the raw 16-byte records in a numba kernel: on DV's small packets (~600 events) a numpy version's
 fixed cost of ~6 µs per packet would cut decode throughput by a third. Returns the index of the first bad event
@@ -10,7 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-OK, UNSORTED, OFF_SENSOR, BAD_POLARITY = 0, 1, 2, 3
+OK, UNSORTED, OFF_SENSOR, BAD_POLARITY, BAD_TIME = 0, 1, 2, 3, 4
+T_LIMIT = 2**62  # |t| must stay below this
 
 
 def check_events_numpy(raw: np.ndarray, width: int, height: int, t_floor: int) -> tuple[int, int]:
@@ -23,6 +25,9 @@ def check_events_numpy(raw: np.ndarray, width: int, height: int, t_floor: int) -
     first, why = n, OK
     if t[0] < t_floor or (n > 1 and bool((t[1:] < t[:-1]).any())):
         first, why = int(np.flatnonzero(np.diff(t, prepend=np.int64(t_floor)) < 0)[0]), UNSORTED
+    if bool(((t >= T_LIMIT) | (t <= -T_LIMIT)).any()):
+        i = int(np.flatnonzero((t >= T_LIMIT) | (t <= -T_LIMIT))[0])
+        first, why = (i, BAD_TIME) if i <= first else (first, why)
     if width and (int(xy[4::8].max()) >= width or int(xy[5::8].max()) >= height):
         i = int(np.flatnonzero((xy[4::8] >= width) | (xy[5::8] >= height))[0])
         first, why = (i, OFF_SENSOR) if i < first else (first, why)
@@ -41,6 +46,8 @@ def check_events(raw, width, height, t_floor):  # pragma: no cover - compiled
     prev = t_floor
     for i in range(n):
         t = t64[2 * i]
+        if t >= 2**62 or t <= -(2**62):
+            return i, 4
         if t < prev:
             return i, 1
         prev = t
@@ -99,6 +106,8 @@ def parse_check_evts(b, width, height):  # pragma: no cover - compiled
     prev = -(2**62)
     for i in range(count):
         t = t64[2 * i]
+        if t >= 2**62 or t <= -(2**62):
+            return start, count, i, 4
         if t < prev:
             return start, count, i, 1
         prev = t

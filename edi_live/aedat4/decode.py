@@ -23,7 +23,8 @@ _EVTS_HEAD = struct.Struct("<II4s")
 _VT3 = struct.Struct("<HHH")
 
 _T_MIN = -(2**62)  # "no floor" (a smaller Python int makes numba dispatch 20x slower)
-_WHY = {1: "goes back in time", 2: "lies outside the {w}x{h} sensor", 3: "has a polarity byte other than 0/1"}
+_WHY = {1: "goes back in time", 2: "lies outside the {w}x{h} sensor", 3: "has a polarity byte other than 0/1",
+        4: "has a timestamp beyond ±2**62 µs (146,000 years)"}
 NO_EVENTS = np.zeros(0, dtype=EVENT_DTYPE)
 NO_EVENTS.flags.writeable = False
 

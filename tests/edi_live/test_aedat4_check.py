@@ -78,3 +78,25 @@ def test_the_general_path_gives_the_same(real_recordings, monkeypatch, tmp_path)
             list(reader)
         messages.append(str(info.value))
     assert messages[0] == messages[1] and "event 3 of 10" in messages[0]
+
+
+def test_a_time_beyond_2_62_us_is_refused_by_both_checks_and_the_reader(monkeypatch, tmp_path):
+    # the replay keeps 2**62 as "never": events at or past it were dropped without a word (311157 of 319512 read
+    # from an emlb copy whose clock was moved there)
+    t = np.array([1, 2, 3, 2**62, 2**62 + 1], np.int64)
+    raw = _records(t, np.zeros(5), np.zeros(5), np.zeros(5))
+    assert _check.check_events_numpy(raw, 8, 8, -(2**62)) == _check.check_events(raw, 8, 8, -(2**62)) == (3, 4)
+    low = _records(np.array([-(2**62), 0]), np.zeros(2), np.zeros(2), np.zeros(2))
+    assert _check.check_events_numpy(low, 8, 8, -(2**62)) == _check.check_events(low, 8, 8, -(2**62)) == (0, 4)
+    from edi_live.aedat4 import Aedat4Writer
+
+    bad = tmp_path / "far.aedat4"
+    ev = np.zeros(5, dtype=EVENT_DTYPE)
+    ev["t"] = t
+    with Aedat4Writer(bad, 8, 8, compression="none") as w:
+        w.write_events(ev)
+    for patched in (False, True):
+        if patched:
+            _general_path(monkeypatch)
+        with pytest.raises(RecordingError, match=r"event 3 of 5 has a timestamp beyond"), Aedat4Reader(bad) as reader:
+            list(reader)

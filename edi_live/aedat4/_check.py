@@ -24,7 +24,8 @@ def check_events_numpy(raw: np.ndarray, width: int, height: int, t_floor: int) -
     xy = raw.view("<u2")
     first, why = n, OK
     if t[0] < t_floor or (n > 1 and bool((t[1:] < t[:-1]).any())):
-        first, why = int(np.flatnonzero(np.diff(t, prepend=np.int64(t_floor)) < 0)[0]), UNSORTED
+        back = np.concatenate(([t[0] < t_floor], t[1:] < t[:-1]))  # comparisons: a difference could overflow
+        first, why = int(np.flatnonzero(back)[0]), UNSORTED
     if bool(((t >= T_LIMIT) | (t <= -T_LIMIT)).any()):
         i = int(np.flatnonzero((t >= T_LIMIT) | (t <= -T_LIMIT))[0])
         first, why = (i, BAD_TIME) if i <= first else (first, why)
@@ -46,16 +47,32 @@ def check_events(raw, width, height, t_floor):  # pragma: no cover - compiled
     prev = t_floor
     for i in range(n):
         t = t64[2 * i]
-        if t >= 2**62 or t <= -(2**62):
-            return i, 4
         if t < prev:
-            return i, 1
+            return _with_time_fault(t64, i, n, 1)
         prev = t
         if width > 0 and (u16[8 * i + 4] >= width or u16[8 * i + 5] >= height):
-            return i, 2
+            return _with_time_fault(t64, i, n, 2)
         if raw[16 * i + 12] > 1:
-            return i, 3
-    return -1, 0
+            return _with_time_fault(t64, i, n, 3)
+    return _with_time_fault(t64, n, n, 0)
+
+
+@njit(inline="always")
+def _with_time_fault(t64, j, n, why):  # pragma: no cover - compiled
+    """(first bad event, why) given the first fault `why` found at event j (j = n, why 0: none), events 0..j-1 in
+    time order: an event time at or beyond ±T_LIMIT at or before j comes first (as check_events_numpy has it).
+    Checked here, not per event: in sorted events only the first and the last before j can be out of range."""
+    if n == 0:
+        return -1, 0
+    if t64[0] >= 2**62 or t64[0] <= -(2**62):
+        return 0, 4
+    if j > 0 and t64[2 * (j - 1)] >= 2**62:
+        for i in range(j):
+            if t64[2 * i] >= 2**62:
+                return i, 4
+    if j < n and (t64[2 * j] >= 2**62 or t64[2 * j] <= -(2**62)):
+        return j, 4
+    return (j, why) if why else (-1, 0)
 
 
 @njit(inline="always")
@@ -106,13 +123,11 @@ def parse_check_evts(b, width, height):  # pragma: no cover - compiled
     prev = -(2**62)
     for i in range(count):
         t = t64[2 * i]
-        if t >= 2**62 or t <= -(2**62):
-            return start, count, i, 4
         if t < prev:
-            return start, count, i, 1
+            return (start, count, *_with_time_fault(t64, i, count, 1))
         prev = t
         if width > 0 and (u16[8 * i + 4] >= width or u16[8 * i + 5] >= height):
-            return start, count, i, 2
+            return (start, count, *_with_time_fault(t64, i, count, 2))
         if recs[16 * i + 12] > 1:
-            return start, count, i, 3
-    return start, count, -1, 0
+            return (start, count, *_with_time_fault(t64, i, count, 3))
+    return (start, count, *_with_time_fault(t64, count, count, 0))

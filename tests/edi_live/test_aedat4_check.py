@@ -22,6 +22,12 @@ def _general_path(monkeypatch) -> None:
     monkeypatch.setattr(decode_mod, "parse_check_evts", lambda b, w, h: (-1, 0, -1, 0))
 
 
+def _evts_payload(raw: np.ndarray) -> bytes:
+    """An EVTS FlatBuffer holding these raw 16-byte records as they are (an empty list: no records)."""
+    spec = S.TableSpec().vector_bytes(0, raw.tobytes(), raw.size // 16, align=8)
+    return S.build_root(b"EVTS", spec)[0]
+
+
 def _records(t, x, y, p) -> np.ndarray:
     ev = np.zeros(len(t), dtype=EVENT_DTYPE)
     ev["t"], ev["x"], ev["y"] = t, x, y
@@ -31,13 +37,15 @@ def _records(t, x, y, p) -> np.ndarray:
 
 
 @settings(max_examples=200, deadline=None)
-@given(st.lists(st.tuples(st.integers(-5, 40), st.integers(0, 70), st.integers(0, 50), st.integers(0, 2)),
-                max_size=40))
+@given(st.lists(st.tuples(st.one_of(st.integers(-5, 40), st.sampled_from([2**62, 2**62 + 5, -(2**62), -(2**62) - 1])),
+                          st.integers(0, 70), st.integers(0, 50), st.integers(0, 2)), max_size=40))
 def test_numba_and_numpy_checks_agree(rows):
     t, x, y, p = (np.array(c, dtype=np.int64) for c in zip(*rows)) if rows else ([], [], [], [])
     raw = _records(t, x, y, p)
     for floor in (-(2**62), 0):
         assert _check.check_events_numpy(raw, 64, 48, floor) == _check.check_events(raw, 64, 48, floor)
+    parsed = _check.parse_check_evts(np.frombuffer(_evts_payload(raw), np.uint8), 64, 48)
+    assert parsed[2:] == _check.check_events_numpy(raw, 64, 48, -(2**62))
 
 
 def test_combined_parse_matches_the_general_parser(real_recordings):

@@ -56,7 +56,7 @@ class Subscriptions:
             self._prefixes[prefix] -= 1
         else:
             self._prefixes.pop(prefix, None)
-        self.wanted = any(self.topic.startswith(p) for p in self._prefixes)
+        self.wanted = bool(self._prefixes)  # every prefix kept is one of the frame topic's
 
     def prefixes(self) -> list[bytes]:
         """The prefixes of the frame topic subscribed now (for tests and logs)."""

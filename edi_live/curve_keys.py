@@ -1,7 +1,8 @@
 """ZeroMQ CURVE certificate files: the keys in the ZPL text that `zmq.auth.create_certificates` writes
 (`public-key = "..."`, `secret-key = "..."`, Z85), for the publisher's --curve-secret-key and the subscribers'
---curve-server-key (generating them needs zmq: edi_live.publisher.generate_curve_keys). Read through config_file.read_limited, so that a key given as a pipe (bash's <(...)) is read
-and a FIFO that nothing writes to ends in an error instead of blocking open() for ever, as zmq.auth's reader did."""
+--curve-server-key (generating them needs zmq: edi_live.publisher.generate_curve_keys). Read through
+config_file.read_limited, so that a key given as a pipe (bash's <(...)) is read and a FIFO that nothing writes to
+ends in an error instead of blocking open() for ever, as zmq.auth's reader did."""
 
 from __future__ import annotations
 

@@ -26,8 +26,9 @@ def check_events_numpy(raw: np.ndarray, width: int, height: int, t_floor: int) -
     if t[0] < t_floor or (n > 1 and bool((t[1:] < t[:-1]).any())):
         back = np.concatenate(([t[0] < t_floor], t[1:] < t[:-1]))  # comparisons: a difference could overflow
         first, why = int(np.flatnonzero(back)[0]), UNSORTED
-    if bool(((t >= T_LIMIT) | (t <= -T_LIMIT)).any()):
-        i = int(np.flatnonzero((t >= T_LIMIT) | (t <= -T_LIMIT))[0])
+    far = (t >= T_LIMIT) | (t <= -T_LIMIT)
+    if bool(far.any()):
+        i = int(np.flatnonzero(far)[0])
         first, why = (i, BAD_TIME) if i <= first else (first, why)
     if width and (int(xy[4::8].max()) >= width or int(xy[5::8].max()) >= height):
         i = int(np.flatnonzero((xy[4::8] >= width) | (xy[5::8] >= height))[0])
@@ -64,15 +65,15 @@ def _with_time_fault(t64, j, n, why):  # pragma: no cover - compiled
     Checked here, not per event: in sorted events only the first and the last before j can be out of range."""
     if n == 0:
         return -1, 0
-    if t64[0] >= 2**62 or t64[0] <= -(2**62):
-        return 0, 4
-    if j > 0 and t64[2 * (j - 1)] >= 2**62:
+    if t64[0] >= T_LIMIT or t64[0] <= -T_LIMIT:
+        return 0, BAD_TIME
+    if j > 0 and t64[2 * (j - 1)] >= T_LIMIT:
         for i in range(j):
-            if t64[2 * i] >= 2**62:
-                return i, 4
-    if j < n and (t64[2 * j] >= 2**62 or t64[2 * j] <= -(2**62)):
-        return j, 4
-    return (j, why) if why else (-1, 0)
+            if t64[2 * i] >= T_LIMIT:
+                return i, BAD_TIME
+    if j < n and (t64[2 * j] >= T_LIMIT or t64[2 * j] <= -T_LIMIT):
+        return j, BAD_TIME
+    return (j, why) if why else (-1, OK)
 
 
 @njit(inline="always")

@@ -81,9 +81,10 @@ def _span_verdicts(display, start_display, width, need, padded, yy, xa, xb, show
 def update_tiles(log_lat, log_start, display, start_display, width, height, need, eps, padded, tiles, tw, shown):
     """Bring `shown` (what lone_changes_u8 gives) up to date in the marked tiles and unmark them: first every marked
     tile's signs, then their verdicts, which read the signs of neighbouring tiles (marked or not: an unmarked tile's
-    pixels and their neighbours did not change since its signs were written). Each tile row is done as one span per pixel row from its first marked tile to its last (spans per run of marked tiles cost
-    more: a short span's call outweighs its pixels). `padded` keeps the signs between calls; its border stays 0.
-    Returns the tiles updated."""
+    pixels and their neighbours did not change since its signs were written). Each tile row is done as one span
+    per pixel row from its first marked tile to its last (spans per run of marked tiles cost more: a short span's
+    call outweighs its pixels). `padded` keeps the signs between calls; its border stays 0. Returns the tiles
+    updated."""
     th = tiles.size // tw
     size = 1 << TILE_SHIFT
     n = 0

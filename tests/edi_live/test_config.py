@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from edi_live import config_file
 from edi_live.config import DEFAULT_ENDPOINT, OPTION_KEYS, NodeConfig, merge_options, read_toml
 from edi_live.errors import ConfigError
+from tests.helpers.pipes import written_pipe
 
 
 def test_defaults_are_safe():
@@ -387,13 +388,8 @@ def test_a_fifo_is_read_when_its_writer_comes_after_the_reader(tmp_path: Path):
 
 
 def test_a_pipe_whose_writer_is_done_is_read_like_bash_process_substitution(tmp_path: Path):
-    read_end, write_end = os.pipe()
-    try:
-        os.write(write_end, b"every = 250\n")
-        os.close(write_end)
-        assert read_toml(Path(f"/proc/self/fd/{read_end}")) == {"every": 250}
-    finally:
-        os.close(read_end)
+    with written_pipe(b"every = 250\n") as path:
+        assert read_toml(Path(path)) == {"every": 250}
 
 
 def test_an_ipc_endpoint_never_replaces_a_file(tmp_path: Path):

@@ -16,6 +16,7 @@ from edi_live.client import Subscriber
 from edi_live.curve_keys import load_certificate
 from edi_live.errors import ClientError, PublishError
 from edi_live.publisher import Publisher, generate_curve_keys
+from tests.helpers.pipes import written_pipe
 
 
 def test_keys_are_those_zmq_wrote(tmp_path: Path):
@@ -26,13 +27,8 @@ def test_keys_are_those_zmq_wrote(tmp_path: Path):
 
 def test_a_key_through_a_pipe_whose_writer_is_done(tmp_path: Path):
     _, secret_file = generate_curve_keys(tmp_path)
-    read_end, write_end = os.pipe()
-    try:
-        os.write(write_end, secret_file.read_bytes())
-        os.close(write_end)
-        assert load_certificate(f"/proc/self/fd/{read_end}") == zmq.auth.load_certificate(secret_file)
-    finally:
-        os.close(read_end)
+    with written_pipe(secret_file.read_bytes()) as path:
+        assert load_certificate(path) == zmq.auth.load_certificate(secret_file)
 
 
 def test_a_file_without_a_public_key_is_refused(tmp_path: Path):

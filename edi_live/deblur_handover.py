@@ -3,8 +3,9 @@ the "edi-deblur" helper thread, the worker streams latent frames from a streamin
 previous reference. The deblurred frame goes to the sinks (`deliver`, from the helper thread) as soon as on_frame has
 it (`ready`: on_frame's callback, before it readies its state for the events after the frame), and the worker counts
 it when it sees it ready (`claim_result`); the helper thread then finishes on_frame,
-runs the reconstructor's settle() (the calibration work the frame did not wait for) and only then
-(`done`) may the worker adopt the original again, replaying into it the calls the copy was given meanwhile.
+runs the reconstructor's settle() (the calibration work the frame did not wait for), replays into the original
+the calls the copy was given meanwhile (its catch-up), and only then (`done`) may the worker adopt the original
+again, replaying the few calls logged since.
 
 The replay repeats those calls one by one (the same pieces, arrival stamps and renders, in order), not their
 events in one batch: the original decides some things per call, before it applies the call's events (a pixel the
@@ -29,6 +30,9 @@ from edi_live.reconstruction import Reconstructor
 from edi_live.ring import FrameEntry
 
 
+_CATCH_UP_ROUNDS = 4  # replaying is faster than streaming (nothing rendered): each round's backlog is shorter
+
+
 class PendingDeblur:
     """One APS frame being deblurred on the "edi-deblur" helper thread by the master reconstructor, while the
     worker streams latent frames from `streamer`, the master's streaming copy as of now (made before the deblur
@@ -40,6 +44,7 @@ class PendingDeblur:
         self.master, self.entry, self.send = master, entry, send
         self._wake, self._deliver = helper.wake, helper.deliver
         self.calls: list[tuple] = []  # (events, arrival_ns, cuts, arrivals) per on_events(_frames); () per render
+        self.replayed = 0  # calls[:replayed] are in the master already (the helper thread's catch-up)
         self.gap = False  # data were lost meanwhile: the streamer logs nothing more, the master is told at adopt
         self.streamer = StreamingCopy(master.streaming_copy(), self)
         self.result: Reconstruction | None = None
@@ -66,18 +71,33 @@ class PendingDeblur:
         leaves without having to render them."""
         if self.error is not None:
             raise self.error
-        master = self.master
-        for call in self.calls:
+        self._replay(len(self.calls))
+        self.calls = []
+        if self.gap:
+            self.master.mark_gap()
+        return self.master
+
+    def _replay(self, end: int) -> None:
+        master, calls = self.master, self.calls
+        while self.replayed < end:
+            call = calls[self.replayed]
             if not call:
                 master.render()
             elif call[2] is None:
                 master.on_events(call[0], call[1])
             else:
                 master.replay_frames(call[0], call[2], call[3])
-        self.calls = []
-        if self.gap:
-            self.master.mark_gap()
-        return self.master
+            self.replayed += 1
+
+    def _catch_up(self) -> None:
+        """Helper thread, before `done`: replay the calls logged so far, and those logged meanwhile, a few rounds,
+        so that adopt() on the worker thread has only the last few left (replaying a 40 ms deblur's calls there
+        held the latent frames behind it for ~4 ms). The worker only appends to `calls` until `done`."""
+        for _ in range(_CATCH_UP_ROUNDS):
+            end = len(self.calls)
+            if self.replayed >= end:
+                return
+            self._replay(end)
 
     def _run(self, events: np.ndarray, arrival_ns: int) -> None:
         t0 = time.perf_counter()
@@ -106,6 +126,7 @@ class PendingDeblur:
                 t1 = time.perf_counter()
                 self.master.settle()
                 self.settle_ms = (time.perf_counter() - t1) * 1e3
+                self._catch_up()
         except BaseException as exc:
             self.error = exc
         finally:

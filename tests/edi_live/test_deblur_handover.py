@@ -84,22 +84,34 @@ def _run(packets: list[Packet], threaded: bool, **knobs) -> tuple[list, EdiWorke
     return out, worker, rec
 
 
+@pytest.mark.parametrize("catch_up", ["helper", "half", "worker"])
 @pytest.mark.parametrize("knobs", [{}, {"denoise_us": 2000}], ids=["batched", "denoised"])
-def test_the_deblur_thread_gives_the_inline_frames_on_a_flickering_scene(flicker_packets, monkeypatch, knobs):
+def test_the_deblur_thread_gives_the_inline_frames_on_a_flickering_scene(flicker_packets, monkeypatch, knobs,
+                                                                         catch_up):
     """Also with the background-activity filter, where the reconstructor renders frame by frame: the replay
-    must then repeat each frame's piece (replay_frames falls back to on_events_frames)."""
+    must then repeat each frame's piece (replay_frames falls back to on_events_frames). The logged calls are
+    replayed into the original by the helper thread after settle() (its catch-up), by the worker at adopt(), or
+    split between the two: the same frames and state each way."""
     replayed: list[int] = []
+    left_for_adopt: list[int] = []
     adopt = deblur_handover.PendingDeblur.adopt
 
     def counting_adopt(self):
         replayed.append(len(self.calls))
+        left_for_adopt.append(len(self.calls) - self.replayed)
         return adopt(self)
 
     monkeypatch.setattr(deblur_handover.PendingDeblur, "adopt", counting_adopt)
+    if catch_up == "worker":
+        monkeypatch.setattr(deblur_handover, "_CATCH_UP_ROUNDS", 0)
+    elif catch_up == "half":
+        monkeypatch.setattr(deblur_handover.PendingDeblur, "_catch_up", lambda self: self._replay(len(self.calls) // 2))
     inline, w_inline, rec_inline = _run(flicker_packets, threaded=False, **knobs)
     assert not replayed
     threaded, w_threaded, rec_threaded = _run(flicker_packets, threaded=True, **knobs)
     assert len(replayed) == 19 and min(replayed) >= 2, "each deblur on the helper thread, the copy fed in pieces"
+    expect_left = {"helper": [0] * 19, "worker": replayed, "half": [n - n // 2 for n in replayed]}[catch_up]
+    assert left_for_adopt == expect_left, "the helper replays every call logged before it settled (the copy is idle)"
     assert w_threaded.rec is rec_threaded, "the original takes over again after each deblur"
     assert rec_inline.flicker_pixels > 20, "the lamp is found: the scene exercises the flicker mask"
 

@@ -67,10 +67,11 @@ def check_endpoint(endpoint: Any) -> None:
         check(not os.path.lexists(address) or stat.S_ISSOCK(os.lstat(address).st_mode),
               f"publish endpoint {endpoint!r}: {address} exists and is not a socket, and binding would delete it; "
               "choose another path")
-    if scheme != "tcp":
+    parts = _tcp_parts(endpoint)
+    if parts is None:
         return
-    host, sep, port = address.rpartition(":")
-    ok = bool(sep and host) and (port == "*" or (port.isdigit() and 1 <= int(port) <= 65535))
+    host, port = parts
+    ok = bool(host) and (port == "*" or (port.isdigit() and 1 <= int(port) <= 65535))
     check(ok, f"publish endpoint {endpoint!r}: a tcp endpoint needs HOST:PORT with a port in 1-65535, or * for any "
               f"free port (e.g. tcp://127.0.0.1:5555)")
 

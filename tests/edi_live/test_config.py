@@ -41,6 +41,7 @@ def test_defaults_are_safe():
     ({"replay": "x", "publish": ["tcp://127.0.0.1:0"]}, "port in 1-65535"),
     ({"replay": "x", "publish": ["tcp://127.0.0.1"]}, "HOST:PORT"),
     ({"replay": "x", "publish": ["tcp://:5555"]}, "HOST:PORT"),
+    ({"replay": "x", "publish": ["tcp://[]:5555"]}, "HOST:PORT"),  # empty IPv6 brackets: no host either
     ({"replay": "x", "publish": ["tcp://127.0.0.1:55a"]}, "port in 1-65535"),
     ({"replay": "x", "c": 10**400}, "c: int too large"),
     ({"replay": "x", "speed": -1}, "speed must be >= 0"),

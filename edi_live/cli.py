@@ -25,7 +25,7 @@ from edi_live.config import NodeConfig, merge_options, read_toml
 from edi_live.file_roles import check_apart
 from edi_live.datatypes import SourceInfo
 from edi_live.errors import ConfigError, EdiLiveError, RecordingError, SourceError
-from edi_live.stop_signals import StopSignals
+from edi_live.stop_signals import StopRequested, StopSignals
 
 log = logging.getLogger("edi_live")
 
@@ -270,7 +270,8 @@ def _main(argv: Sequence[str] | None, signals: StopSignals) -> int:
         if flags.pop("list_devices", False):
             return list_devices_command(flags)
         dark_frames = flags.pop("calibrate_dark", None)
-        config = build_config(flags, config_path)
+        with signals.raising():  # reading a config FIFO may wait: a stop signal ends it (nothing has started)
+            config = build_config(flags, config_path)
         level = config.log_level
         _setup_logging(level)
         _warn_if_exposed(config)
@@ -301,6 +302,8 @@ def _main(argv: Sequence[str] | None, signals: StopSignals) -> int:
         return 0
     except SystemExit as exc:  # --help / --version
         return int(exc.code or 0)
+    except StopRequested:  # already logged by the handler
+        return 0
     except KeyboardInterrupt:
         _say(f"{PROG}: interrupted")
         return 130

@@ -6,14 +6,20 @@ away) stops like SIGTERM, unless it was already ignored when we started (`nohup 
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import signal
 import threading
-from typing import Any
+from typing import Any, Iterator
 
 log = logging.getLogger("edi_live")
 # SIGHUP's default action kills the process on the spot: --out left without its table, queued frames lost
 STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
+
+
+class StopRequested(Exception):
+    """A stop signal came while edi-live was still reading its options (StopSignals.raising): nothing has started,
+    so the program simply ends, as cleanly as a stopped node does."""
 
 
 class StopSignals:
@@ -27,6 +33,7 @@ class StopSignals:
         self._node: Any = None
         self._repeated = False
         self._previous: dict[int, Any] = {}
+        self._raise = False
 
     def install(self) -> None:
         if threading.current_thread() is not threading.main_thread():
@@ -62,3 +69,19 @@ class StopSignals:
         log.info("%s: stopping", name)
         if self._node is not None:
             self._node.stop()
+        if self._raise:
+            self._raise = False
+            raise StopRequested(name)
+
+    @contextlib.contextmanager
+    def raising(self) -> Iterator[None]:
+        """Within: a stop signal (or one received before) raises StopRequested at once, for the start-up steps
+        that may wait with nothing yet to stop cleanly: a --config FIFO that nothing writes kept Ctrl-C waiting
+        for its 5 s and then ended as a usage error."""
+        if self.received is not None:
+            raise StopRequested(self.received)
+        self._raise = True
+        try:
+            yield
+        finally:
+            self._raise = False

@@ -463,6 +463,37 @@ def test_sigterm_during_start_up_is_a_clean_stop(real_recordings, tmp_path):
     assert not out.exists(), "stopped before the node started: nothing is created"
 
 
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_signal_ends_the_wait_for_a_config_fifo_that_is_never_written(tmp_path, sig):
+    """Ctrl-C while --config waited for a FIFO's writer to write and close it was held until the wait's limit, and
+    the run then ended as a usage error (exit 2, "nothing wrote to and closed"). The writer here opens the FIFO and
+    never writes or closes it: the signal alone must end the run, cleanly (exit 0, no error line)."""
+    fifo = tmp_path / "edi.toml"
+    os.mkfifo(fifo)
+    proc = subprocess.Popen([sys.executable, "-m", "edi_live", "--config", str(fifo), "--no-publish"],
+                            cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+    writer = None
+    try:
+        deadline = time.monotonic() + 30
+        while writer is None:  # opening a FIFO's write end without blocking succeeds once the reader has it open
+            assert time.monotonic() < deadline and proc.poll() is None, "the CLI never opened its config"
+            try:
+                writer = os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
+            except OSError:  # ENXIO: no reader yet
+                threading.Event().wait(0.01)
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if writer is not None:
+            os.close(writer)
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=10)
+    assert proc.returncode == 0, f"rc {proc.returncode}: {err}"
+    assert f"{signal.Signals(sig).name}: stopping" in err and not error_lines(err) and "Traceback" not in err, err
+
+
 def test_the_emulator_processes_a_truncated_recording_up_to_the_cut_like_replay(real_recordings, tmp_path,
                                                                                 needs_reconstructor):
     """Issue 15.4: through the emulated camera a truncated file gave 0 events (the held-back data before the

@@ -431,6 +431,18 @@ def test_stderr_into_a_reader_that_went_away_loses_no_frame(real_recordings, tmp
     assert _out_frames(cut) == _out_frames(full) > 0
 
 
+def _fifo_writer_once_read(fifo: Path, proc: subprocess.Popen) -> int:
+    """The FIFO's write end, opened once the CLI has its read end open (a non-blocking open of the write end
+    succeeds only then): the CLI is in its config read."""
+    deadline = time.monotonic() + 30
+    while True:
+        assert time.monotonic() < deadline and proc.poll() is None, "the CLI never opened its config"
+        try:
+            return os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
+        except OSError:  # ENXIO: no reader yet
+            threading.Event().wait(0.01)
+
+
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
 def test_sigterm_during_start_up_is_a_clean_stop(real_recordings, tmp_path):
     """Issue 15.3: SIGTERM in the first moments (here: while the config file is being read, through a FIFO that
@@ -442,14 +454,7 @@ def test_sigterm_during_start_up_is_a_clean_stop(real_recordings, tmp_path):
                              str(real_recordings[DEMO]), "--no-publish", "--out", str(out)],
                             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
     try:
-        deadline = time.monotonic() + 30
-        writer = None
-        while writer is None:  # opening a FIFO's write end without blocking succeeds once the reader has it open
-            assert time.monotonic() < deadline and proc.poll() is None, "the CLI never opened its config"
-            try:
-                writer = os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
-            except OSError:  # ENXIO: no reader yet
-                threading.Event().wait(0.01)
+        writer = _fifo_writer_once_read(fifo, proc)
         proc.send_signal(signal.SIGTERM)
         os.write(writer, b"every = 1000\n")
         os.close(writer)
@@ -475,13 +480,7 @@ def test_a_stop_signal_ends_the_wait_for_a_config_fifo_that_is_never_written(tmp
                             cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
     writer = None
     try:
-        deadline = time.monotonic() + 30
-        while writer is None:  # opening a FIFO's write end without blocking succeeds once the reader has it open
-            assert time.monotonic() < deadline and proc.poll() is None, "the CLI never opened its config"
-            try:
-                writer = os.open(fifo, os.O_WRONLY | os.O_NONBLOCK)
-            except OSError:  # ENXIO: no reader yet
-                threading.Event().wait(0.01)
+        writer = _fifo_writer_once_read(fifo, proc)
         proc.send_signal(sig)
         _, err = proc.communicate(timeout=60)
     finally:

@@ -93,6 +93,8 @@ def load(path: Path | str) -> Calibration:
         raise ConfigError(f"cannot read calibration {path} ({exc.strerror or exc})") from None
     except (ValueError, UnicodeDecodeError) as exc:
         raise ConfigError(f"calibration {path} is not a JSON file ({exc})") from None
+    except RecursionError:
+        raise ConfigError(f"calibration {path} is not a calibration (arrays or objects nested too deep)") from None
     if not isinstance(data, dict) or data.get("format") != FORMAT or data.get("version") != VERSION:
         raise ConfigError(f"calibration {path} is not an {FORMAT} file of version {VERSION}")
     try:
@@ -101,7 +103,7 @@ def load(path: Path | str) -> Calibration:
         numbers = (cal.c_on, cal.c_off, cal.black_level, cal.clock_offset_us, cal.aps_gamma)
         ok = (isinstance(cal.camera, str) and isinstance(cal.width, int) and isinstance(cal.height, int)
               and cal.width > 0 and cal.height > 0
-              and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in numbers)
+              and all(_finite_number(v) for v in numbers)
               and 0.01 <= cal.c_on <= 2.0 and 0.01 <= cal.c_off <= 2.0 and 0 <= cal.black_level < 128
               and isinstance(cal.clock_offset_us, int) and abs(cal.clock_offset_us) <= 100_000
               and 0.2 <= cal.aps_gamma <= 5 and isinstance(cal.black_level_measured, bool))
@@ -112,6 +114,16 @@ def load(path: Path | str) -> Calibration:
     if data.get("noise") is not None:
         cal = dataclasses.replace(cal, noise=_decode_noise(data["noise"], (cal.height, cal.width), path))
     return cal
+
+
+def _finite_number(value: Any) -> bool:
+    """A JSON number that is a finite float (a hand-typed integer beyond a float's range is not)."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
 
 
 _NOISE_ARRAYS = ("on_hz", "off_hz", "seconds")  # NoiseRates fields, saved under the same keys

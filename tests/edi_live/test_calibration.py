@@ -51,6 +51,26 @@ def test_a_damaged_calibration_is_one_config_error(tmp_path, content):
         calibration.load(tmp_path / "missing.json")
 
 
+def _hand_edited(**changes: object) -> str:
+    good = {"format": "edi-live calibration", "version": 1, "camera": CAM.label, "width": 346, "height": 260,
+            "c_on": 0.3, "c_off": 0.3}
+    return json.dumps({**good, **changes})
+
+
+# A hand-edited number too large for a float, and arrays nested deeper than the JSON parser recurses, ended the
+# node with "the main thread failed: OverflowError" / "RecursionError" instead of naming the file.
+@pytest.mark.parametrize("content", [_hand_edited(clock_offset_us=10**400), _hand_edited(black_level=-10**400),
+                                     _hand_edited(c_on=10**400), "[" * 100_000 + "]" * 100_000,
+                                     '{"noise": ' + "[" * 100_000 + "]" * 100_000 + "}"],
+                         ids=["offset-1e400", "black-level--1e400", "c-on-1e400", "nested-list", "nested-noise"])
+def test_a_hand_edited_calibration_beyond_what_json_numbers_or_nesting_allow_is_one_config_error(tmp_path, content):
+    path = tmp_path / "edited.json"
+    path.write_text(content)
+    with pytest.raises(ConfigError, match="calibration") as info:
+        calibration.load(path)
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
 def _node(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "edi_live", *args], cwd=REPO, capture_output=True, text=True,
                           timeout=90, env={**os.environ, "PYTHONPATH": str(REPO), **(env or {})})

@@ -11,7 +11,7 @@ emlb's 0.5 s). float16 keeps three significant digits, far below the estimate's 
 `--calibration FILE` loads one, `--save-calibration FILE` writes the values in use at the end of a run. A live
 camera (USB) picks up its own without flags: it is loaded from, and saved to, `calibration_dir()/LABEL.json`
 (LABEL is the camera name and serial, e.g. DAVIS346_00000391). A calibration of another camera or sensor size is
-refused with one line. Loaded values are starting points: c, the black level and the clock offset are in use from
+refused with one line (a live camera's own file of another size, or damaged, is skipped with a warning: no flag named it). Loaded values are starting points: c, the black level and the clock offset are in use from
 the first frame and still estimated from the stream, so that a value a short or unsuitable first run got wrong is
 corrected (and saved corrected) rather than kept for ever; a black level or offset given on the command line wins
 over the file's. A black level measured on dark frames (`--calibrate-dark`, edi_live.dark_calibration) is used
@@ -204,7 +204,15 @@ def prepare(edi: EdiConfig, info: SourceInfo, given: Path | None, save_to: Path 
     live = info.kind in ("usb", "emulator")
     path = given if given is not None else (default_path(info) if live and default_path(info).is_file() else None)
     if path is not None:
-        cal = load(path)
+        try:
+            cal = load(path)
+        except ConfigError as exc:
+            if given is not None:
+                raise
+            # the camera's own file, damaged (a hand edit): no flag named it, so it must not stop the camera; it is
+            # kept as it is, for the user to mend, rather than saved over
+            log.warning("%s; not using it, nor saving this run's calibration over it (mend or delete the file)", exc)
+            return edi, save_to
         try:
             cal.check_for(info, path)
         except ConfigError as exc:

@@ -115,6 +115,21 @@ def test_a_live_cameras_own_file_of_another_sensor_set_up_is_ignored_with_a_warn
     assert calibration.load(own).width == cal.width, "the run saved its own calibration over the stale one"
 
 
+# A live camera's own file, damaged by a hand edit, refused the camera with a usage error (exit 2) although no
+# flag named the file: the camera could not be used until the user found and deleted it.
+def test_a_live_cameras_own_damaged_file_is_ignored_with_a_warning_and_kept(tmp_path):
+    env = {"XDG_CONFIG_HOME": str(tmp_path)}
+    args = ("--device", "davis240", "--usb-backend", "drivers.emulator:backend", "--duration", "1.0", "--no-publish")
+    first = _node(*args, env=env)
+    own, = (tmp_path / "edi-live" / "calibration").glob("*.json")
+    damaged = own.read_text().replace('"c_on"', '"c_on": 0.3,, "was"', 1)  # a typo: not JSON any more
+    own.write_text(damaged)
+    second = _node(*args, env=env)
+    assert first.returncode == 0 and second.returncode == 0, second.stderr
+    assert "not using it" in second.stderr and str(own) in second.stderr and "edi-live: error" not in second.stderr
+    assert own.read_text() == damaged, "the run saved over the user's file"
+
+
 def test_a_failed_save_leaves_no_temporary_file(tmp_path):
     target = tmp_path / "cam.json"
     target.mkdir()  # a folder where the file should go: the rename fails

@@ -117,3 +117,30 @@ def test_cli_impossible_sizes_are_refused_at_once_naming_the_option(tmp_path, ar
     assert proc.returncode == 2, proc.stderr
     assert fragment in proc.stderr and "Traceback" not in proc.stderr and len(proc.stderr.splitlines()) == 1
     assert not out.exists()
+
+
+# The ground truth is written after the recording: an OUT.npz that was a folder, or a full disk, ended the run
+# with an IsADirectoryError/OSError traceback after the whole simulation (and a recording named .npz was
+# overwritten by its own ground truth).
+def test_cli_a_ground_truth_that_cannot_be_written_is_one_line(tmp_path, capsys):
+    (tmp_path / "folder.npz").mkdir()
+    assert sim_mod.main([str(tmp_path / "folder.aedat4"), "--duration-s", "0.05"]) == 2
+    assert sim_mod.main([str(tmp_path / "same.npz"), "--duration-s", "0.05"]) == 2
+    err = capsys.readouterr().err
+    assert "it is a directory" in err and "would replace the recording" in err and "Traceback" not in err
+    assert not (tmp_path / "folder.aedat4").exists() and not (tmp_path / "same.npz").exists()
+
+
+def test_cli_a_full_disk_for_the_ground_truth_keeps_the_recording(tmp_path, capsys):
+    import os
+
+    if not os.path.exists("/dev/full"):
+        pytest.skip("needs /dev/full (a device that is always full)")
+    (tmp_path / "full.npz").symlink_to("/dev/full")
+    assert sim_mod.main([str(tmp_path / "full.aedat4"), "--duration-s", "0.1"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "cannot write the ground truth" in err and "No space left" in err
+    import dv_processing as dv
+
+    reader = dv.io.MonoCameraRecording(str(tmp_path / "full.aedat4"))
+    assert reader.getNextEventBatch() is not None  # the recording itself is complete and readable

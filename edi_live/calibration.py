@@ -144,13 +144,17 @@ def _decode_noise(data: Any, shape: tuple[int, int], path: Path | str) -> NoiseR
         raise ConfigError(f"calibration {path}: its per-pixel noise rates are not {_NOISE_ENCODING} arrays of "
                           f"{shape[1]}x{shape[0]}")
     arrays = []
+    want = 2 * shape[0] * shape[1]  # float16 bytes
     for key in _NOISE_ARRAYS:
         try:
-            raw = zlib.decompress(base64.b64decode(str(data[key]), validate=True))
+            # at most one byte past the size expected: a few MB of zeros compressed 1000:1 (a "zip bomb", by
+            # hand or by accident) was inflated whole, 8.7 GB of memory for a 5.5 MB file
+            inflate = zlib.decompressobj()
+            raw = inflate.decompress(base64.b64decode(str(data[key]), validate=True), want + 1)
         except (KeyError, binascii.Error, zlib.error, ValueError) as exc:
             raise ConfigError(f"calibration {path}: per-pixel noise rates {key!r} cannot be read ({exc})") from None
-        a = np.frombuffer(raw, "<f2")
-        if a.size != shape[0] * shape[1] or not np.all(np.isfinite(a)) or np.any(a < 0):
+        a = np.frombuffer(raw, "<f2") if len(raw) == want else None  # (an odd length is no float16 array)
+        if a is None or not np.all(np.isfinite(a)) or np.any(a < 0):
             raise ConfigError(f"calibration {path}: per-pixel noise rates {key!r} are not {shape[1]}x{shape[0]} "
                               f"finite non-negative values")
         arrays.append(a.astype(np.float32).reshape(shape))

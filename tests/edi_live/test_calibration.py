@@ -71,6 +71,28 @@ def test_a_hand_edited_calibration_beyond_what_json_numbers_or_nesting_allow_is_
     assert str(path) in str(info.value) and "\n" not in str(info.value)
 
 
+def test_noise_rates_that_inflate_far_beyond_their_size_are_refused_without_inflating_them(tmp_path):
+    # 2 GiB of zeros compress to 2 MB: such a file used to be inflated whole (a 4 GiB one took 8.7 GB of memory and 21 s;
+    # a 64 MB file would have been killed by the kernel) before its size was found wrong
+    import base64
+    import resource
+    import zlib
+
+    deflate = zlib.compressobj(9)
+    block = bytes(1 << 24)
+    blob = b"".join([deflate.compress(block) for _ in range(128)] + [deflate.flush()])
+    on_hz = base64.b64encode(blob).decode("ascii")
+    rates = {"encoding": "zlib+base64 float16 little-endian, row-major (height, width)", "shape": [260, 346],
+             "on_hz": on_hz, "off_hz": on_hz, "seconds": on_hz}
+    path = tmp_path / "bomb.json"
+    path.write_text(_hand_edited(noise=rates))
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(ConfigError, match="per-pixel noise rates 'on_hz'"):
+        calibration.load(path)
+    grown_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before
+    assert grown_kb < 1 << 19, f"loading grew the process by {grown_kb} kB"
+
+
 def _node(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "edi_live", *args], cwd=REPO, capture_output=True, text=True,
                           timeout=90, env={**os.environ, "PYTHONPATH": str(REPO), **(env or {})})

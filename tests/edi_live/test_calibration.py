@@ -72,8 +72,8 @@ def test_a_hand_edited_calibration_beyond_what_json_numbers_or_nesting_allow_is_
 
 
 def test_noise_rates_that_inflate_far_beyond_their_size_are_refused_without_inflating_them(tmp_path):
-    # 2 GiB of zeros compress to 2 MB: such a file used to be inflated whole (a 4 GiB one took 8.7 GB of memory and 21 s;
-    # a 64 MB file would have been killed by the kernel) before its size was found wrong
+    # 2 GiB of zeros compress to 2 MB: such a file used to be inflated whole (a 4 GiB one took 8.7 GB of memory
+    # and 21 s; a 64 MB file would have been killed by the kernel) before its size was found wrong
     import base64
     import resource
     import zlib

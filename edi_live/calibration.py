@@ -11,8 +11,8 @@ emlb's 0.5 s). float16 keeps three significant digits, far below the estimate's 
 `--calibration FILE` loads one, `--save-calibration FILE` writes the values in use at the end of a run. A live
 camera (USB) picks up its own without flags: it is loaded from, and saved to, `calibration_dir()/LABEL.json`
 (LABEL is the camera name and serial, e.g. DAVIS346_00000391). A calibration of another camera or sensor size is
-refused with one line. Loaded values are starting points: c, the black level and the clock offset are in use from
-the first frame and still estimated from the stream, so that a value a short or unsuitable first run got wrong is
+refused with one line (a live camera's own file of another size, or damaged, is skipped with a warning: no flag
+named it). Loaded values are starting points: c, the black level and the clock offset are in use from the first frame and still estimated from the stream, so that a value a short or unsuitable first run got wrong is
 corrected (and saved corrected) rather than kept for ever; a black level or offset given on the command line wins
 over the file's. A black level measured on dark frames (`--calibrate-dark`, edi_live.dark_calibration) is used
 as given, not estimated again. The APS response cannot be estimated, so a saved one is used as it is; a black level
@@ -93,6 +93,8 @@ def load(path: Path | str) -> Calibration:
         raise ConfigError(f"cannot read calibration {path} ({exc.strerror or exc})") from None
     except (ValueError, UnicodeDecodeError) as exc:
         raise ConfigError(f"calibration {path} is not a JSON file ({exc})") from None
+    except RecursionError:
+        raise ConfigError(f"calibration {path} is not a calibration (arrays or objects nested too deep)") from None
     if not isinstance(data, dict) or data.get("format") != FORMAT or data.get("version") != VERSION:
         raise ConfigError(f"calibration {path} is not an {FORMAT} file of version {VERSION}")
     try:
@@ -101,7 +103,7 @@ def load(path: Path | str) -> Calibration:
         numbers = (cal.c_on, cal.c_off, cal.black_level, cal.clock_offset_us, cal.aps_gamma)
         ok = (isinstance(cal.camera, str) and isinstance(cal.width, int) and isinstance(cal.height, int)
               and cal.width > 0 and cal.height > 0
-              and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in numbers)
+              and all(_finite_number(v) for v in numbers)
               and 0.01 <= cal.c_on <= 2.0 and 0.01 <= cal.c_off <= 2.0 and 0 <= cal.black_level < 128
               and isinstance(cal.clock_offset_us, int) and abs(cal.clock_offset_us) <= 100_000
               and 0.2 <= cal.aps_gamma <= 5 and isinstance(cal.black_level_measured, bool))
@@ -112,6 +114,16 @@ def load(path: Path | str) -> Calibration:
     if data.get("noise") is not None:
         cal = dataclasses.replace(cal, noise=_decode_noise(data["noise"], (cal.height, cal.width), path))
     return cal
+
+
+def _finite_number(value: Any) -> bool:
+    """A JSON number that is a finite float (a hand-typed integer beyond a float's range is not)."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
 
 
 _NOISE_ARRAYS = ("on_hz", "off_hz", "seconds")  # NoiseRates fields, saved under the same keys
@@ -132,13 +144,17 @@ def _decode_noise(data: Any, shape: tuple[int, int], path: Path | str) -> NoiseR
         raise ConfigError(f"calibration {path}: its per-pixel noise rates are not {_NOISE_ENCODING} arrays of "
                           f"{shape[1]}x{shape[0]}")
     arrays = []
+    want = 2 * shape[0] * shape[1]  # float16 bytes
     for key in _NOISE_ARRAYS:
         try:
-            raw = zlib.decompress(base64.b64decode(str(data[key]), validate=True))
+            # at most one byte past the size expected: a few MB of zeros compressed 1000:1 (a "zip bomb", by
+            # hand or by accident) was inflated whole, 8.7 GB of memory for a 5.5 MB file
+            inflate = zlib.decompressobj()
+            raw = inflate.decompress(base64.b64decode(str(data[key]), validate=True), want + 1)
         except (KeyError, binascii.Error, zlib.error, ValueError) as exc:
             raise ConfigError(f"calibration {path}: per-pixel noise rates {key!r} cannot be read ({exc})") from None
-        a = np.frombuffer(raw, "<f2")
-        if a.size != shape[0] * shape[1] or not np.all(np.isfinite(a)) or np.any(a < 0):
+        a = np.frombuffer(raw, "<f2") if len(raw) == want else None  # (an odd length is no float16 array)
+        if a is None or not np.all(np.isfinite(a)) or np.any(a < 0):
             raise ConfigError(f"calibration {path}: per-pixel noise rates {key!r} are not {shape[1]}x{shape[0]} "
                               f"finite non-negative values")
         arrays.append(a.astype(np.float32).reshape(shape))
@@ -192,7 +208,15 @@ def prepare(edi: EdiConfig, info: SourceInfo, given: Path | None, save_to: Path 
     live = info.kind in ("usb", "emulator")
     path = given if given is not None else (default_path(info) if live and default_path(info).is_file() else None)
     if path is not None:
-        cal = load(path)
+        try:
+            cal = load(path)
+        except ConfigError as exc:
+            if given is not None:
+                raise
+            # the camera's own file, damaged (a hand edit): no flag named it, so it must not stop the camera; it is
+            # kept as it is, for the user to mend, rather than saved over
+            log.warning("%s; not using it, nor saving this run's calibration over it (mend or delete the file)", exc)
+            return edi, save_to
         try:
             cal.check_for(info, path)
         except ConfigError as exc:

@@ -61,6 +61,9 @@ def load_usb_backend(spec: str, **kwargs: Any) -> Any:
         module = importlib.import_module(module_name)
     except ImportError as exc:
         raise ConfigError(f"--usb-backend {spec}: cannot import module {module_name!r} ({exc})") from exc
+    except Exception as exc:  # the module's own fault (a typo, an error at import): not edi-live's bug
+        raise ConfigError(f"--usb-backend {spec}: importing module {module_name!r} failed "
+                          f"({type(exc).__name__}: {exc})") from exc
     factory = getattr(module, attr, None)
     if not callable(factory):
         raise ConfigError(f"--usb-backend {spec}: module {module_name!r} has no callable {attr!r}")

@@ -102,6 +102,7 @@ class Node:
         self.ring: EventRing | None = None
         self.worker: EdiWorker | None = None
         self.publisher: Any = None
+        self._entering = False  # the source is being opened (__enter__)
         self._calibration_to: Path | None = None  # where the calibration in use is saved at the end
         self._calibration_start = None  # the calibration the run started from (its measured black level stays so)
         self.out_writer: OutWriter | None = None
@@ -125,6 +126,8 @@ class Node:
     def stop(self) -> None:
         """Ask the node to stop (Ctrl-C, SIGTERM, --duration). Safe from signal handlers and other threads."""
         self._stop.set()
+        if self._entering:
+            self.source.stop()
 
     def fail(self, exc: BaseException, thread: str = "main", input_fault: bool = False) -> None:
         """Record a thread's failure (the first one wins). A fault of the input lets received data drain;
@@ -192,8 +195,11 @@ class Node:
             self.t_start += self.warm_up_s
             if self._stop.is_set():  # stopped during start-up (SIGTERM, Ctrl-C): open nothing, create no file
                 return self.final_stats
+            self._entering = True  # stop() reaches a source that waits while opening (a camera, --reconnect)
             self.source.__enter__()
-            entered = True
+            entered, self._entering = True, False
+            if self._stop.is_set():  # stopped while the source opened: nothing was received
+                return self.final_stats
             self._build_and_start()
             self._started.set()
             self._supervise()

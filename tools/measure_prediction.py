@@ -210,6 +210,12 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"{_fmt(s['pred_active_db'])} {_fmt(s['still_active_db'])} {_fmt(gain_a, '+6.2f')} "
               f"{s['beats']:3d}/{s['scored']:<2d} {_fmt(s['frames_per_window'], '6.1f')} "
               f"{_fmt(None if s['active_frac'] is None else 100 * s['active_frac'], '5.1f')}")
+        if not s["scored"]:  # a row of dashes alone reads like a broken tool
+            why = ("it holds no APS frames: the figure compares the node's output with each APS frame"
+                   if not s["aps_frames"] else
+                   f"none of its {s['aps_frames']} APS frame(s) could be predicted (each needs an earlier one "
+                   f"and the events between them)")
+            print(f"measure_prediction: {path}: nothing scored, {why}", file=sys.stderr)
         if args.per_frame:
             for r in results:
                 print(f"    seq {r.seq:4d} t {r.t_us} exp {r.exposure_end_us - r.exposure_start_us:6d} us "

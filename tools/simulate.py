@@ -128,6 +128,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"simulate.py: error: cannot write {out}: "
               f"{'it is a directory' if out.is_dir() else 'its folder does not exist'}", file=sys.stderr)
         return 2
+    truth = out.with_suffix(".npz")
+    if not args.no_ground_truth and (truth.is_dir() or truth == out):
+        print(f"simulate.py: error: cannot write the ground truth {truth}: "
+              f"{'it is a directory' if truth.is_dir() else 'it would replace the recording (name it .aedat4)'}",
+              file=sys.stderr)
+        return 2
     try:
         cfg = preset(args.preset, effects=tuple(args.effect), **over)
         sim = simulate(cfg)
@@ -140,7 +146,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"simulate.py: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 1
     if not args.no_ground_truth:
-        save_ground_truth(sim, out.with_suffix(".npz"))
+        try:
+            save_ground_truth(sim, truth)
+        except OSError as exc:  # e.g. the disk filled up: the recording is written, the ground truth is not
+            print(f"simulate.py: error: cannot write the ground truth {truth} ({exc.strerror or exc}); the "
+                  f"recording {out} is complete", file=sys.stderr)
+            return 1
     print(f"{out}: {cfg.width}x{cfg.height}, {cfg.duration_s:g} s, {sim.events.size} events "
           f"({int(sim.is_noise.sum())} noise), {len(sim.frames)} APS frames "
           f"(exposure {cfg.exposure_us} µs every {cfg.frame_interval_us} µs), c_on={cfg.c_on:g} c_off={cfg.c_off:g}, "

@@ -119,6 +119,15 @@ class DavisSource:
     def __enter__(self) -> "DavisSource":
         try:
             self._open()
+        except DeviceDisconnectedError as err:  # gone while being started: with --reconnect, wait for it as later
+            self._close()
+            if not self.reconnect:
+                raise
+            try:
+                self._reopen(err)  # False: stop() ended the wait, and the iteration ends at once
+            except BaseException:
+                self._close()
+                raise
         except BaseException:
             self._close()
             raise

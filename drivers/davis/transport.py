@@ -54,6 +54,9 @@ def find_davis(backend: Any = None) -> list[Any]:
         raise translate(exc, "the USB bus") from exc
     except usb.core.NoBackendError as exc:
         raise translate(exc, "the USB bus") from exc
+    except Exception as exc:  # a backend (--usb-backend MODULE:CALLABLE) failing in its own way
+        raise SourceError(f"listing the cameras on the USB bus failed in the USB backend "
+                          f"({type(exc).__name__}: {exc})") from exc
 
 
 def describe(dev: Any) -> str:

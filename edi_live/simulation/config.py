@@ -6,6 +6,7 @@ and simulates exactly as before the effects existed. `camera.py` owns the effect
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 RESOLUTIONS = {"240x180": (240, 180), "346x260": (346, 260)}
@@ -97,10 +98,19 @@ def validate(cfg: SceneConfig) -> None:
     """ValueError with one line naming the bad setting."""
     if cfg.exposure_us <= 0 or cfg.frame_interval_us <= 0 or cfg.exposure_us > cfg.frame_interval_us:
         raise ValueError("need 0 < exposure_us <= frame_interval_us")
-    if min(cfg.c_on, cfg.c_off) <= 0:
-        raise ValueError("contrast thresholds must be positive")
+    if not (cfg.c_on > 0 and cfg.c_off > 0 and math.isfinite(cfg.c_on) and math.isfinite(cfg.c_off)):
+        raise ValueError(f"contrast thresholds must be positive numbers (got c_on={cfg.c_on}, c_off={cfg.c_off})")
     if not cfg.duration_s > 0:
         raise ValueError(f"duration_s must be > 0 (got {cfg.duration_s})")
+    for name in ("duration_s", "rotation_deg_s", "zoom_per_s", "oscillation_period_s", "c_sigma", "aps_noise_dn",
+                 "aps_offset_dn", "aps_gamma", "flicker_hz", "flicker_depth", "noise_rate_hz", "hot_rate_hz",
+                 "shot_noise_hz"):
+        if not math.isfinite(getattr(cfg, name)):  # inf reached int() deep inside: an OverflowError traceback
+            raise ValueError(f"{name} must be a finite number (got {getattr(cfg, name)})")
+    if not all(math.isfinite(v) for v in cfg.velocity_px_s):
+        raise ValueError(f"velocity_px_s must be finite numbers (got {cfg.velocity_px_s})")
+    if cfg.latent_per_interval < 0:
+        raise ValueError(f"latent_per_interval must be >= 0 (got {cfg.latent_per_interval})")
     for name in ("noise_rate_hz", "hot_rate_hz", "hot_pixels", "c_sigma", "refractory_us", "aps_noise_dn",
                  "shot_noise_hz", "flicker_hz", "ref_jitter", "aps_offset_dn"):
         if not getattr(cfg, name) >= 0:  # also catches NaN
@@ -120,3 +130,15 @@ def validate(cfg: SceneConfig) -> None:
             raise ValueError(f"flicker_depth must be in [0, 1) (got {cfg.flicker_depth})")
         if not 0 < cfg.flicker_level * (1 + cfg.flicker_depth) <= 1:
             raise ValueError("the lamp must stay within the APS range: 0 < flicker_level*(1+flicker_depth) <= 1")
+
+
+def check_memory(cfg: SceneConfig, n_frames: int, n_gt: int, channels: int, available: int) -> None:
+    """ValueError, before anything is rendered, when the APS accumulators and ground-truth images (float32, held
+    in memory until the end) would not fit in `available` bytes: such a run was killed by the kernel, or ground
+    for hours, after the user had waited."""
+    pixels = cfg.width * cfg.height
+    need = 4 * pixels * (n_frames + n_gt * channels)
+    if need > available:
+        raise ValueError(f"{n_frames} APS frames and {n_gt} ground-truth images of {cfg.width}x{cfg.height} would "
+                         f"need {need / 2**30:.1f} GiB of memory, {available / 2**30:.1f} GiB are free: give a "
+                         f"shorter duration_s, fewer latent_per_interval, or no ground truth")

@@ -103,8 +103,9 @@ class Renderer:
     def max_speed_px_s(self) -> float:
         cfg = self.cfg
         r = math.hypot(cfg.width, cfg.height) / 2
-        return math.hypot(*cfg.velocity_px_s) + abs(math.radians(cfg.rotation_deg_s)) * r \
-            + abs(cfg.zoom_per_s) * r * math.exp(abs(cfg.zoom_per_s) * cfg.duration_s)
+        growth = abs(cfg.zoom_per_s) * cfg.duration_s
+        zoom = abs(cfg.zoom_per_s) * r * math.exp(growth) if growth < 700 else math.inf  # exp() overflows past ~709
+        return math.hypot(*cfg.velocity_px_s) + abs(math.radians(cfg.rotation_deg_s)) * r + zoom
 
 
 def choose_step_us(cfg: SceneConfig, speed_px_s: float) -> int:
@@ -116,8 +117,15 @@ def choose_step_us(cfg: SceneConfig, speed_px_s: float) -> int:
             raise ValueError(f"step_us={cfg.step_us} must divide exposure, frame interval and first exposure ({g} µs)")
         return cfg.step_us
     want = 1000.0 if speed_px_s <= 0 else min(1000.0, cfg.max_step_px / speed_px_s * 1e6)
+    if want < 1:  # a 1 µs grid would still move more than max_step_px per step; and millions of steps per second
+        raise ValueError(f"the scene moves up to {speed_px_s:.3g} px/s, faster than the simulator renders "
+                         f"({cfg.max_step_px * 1e6:.3g} px/s: {cfg.max_step_px} px per µs step); lower the velocity, "
+                         f"rotation or zoom (or the duration, a zoom grows with it)")
     if cfg.flicker_hz > 0:
         want = min(want, 1e6 / (cfg.flicker_hz * FLICKER_STEPS_PER_PERIOD))
+        if want < 1:
+            raise ValueError(f"flicker_hz {cfg.flicker_hz:g} is faster than the simulator's 1 µs render grid "
+                             f"samples ({FLICKER_STEPS_PER_PERIOD} steps per period)")
     best = 1
     for d in range(1, int(math.isqrt(g)) + 1):
         if g % d == 0:

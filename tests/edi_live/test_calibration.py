@@ -51,6 +51,48 @@ def test_a_damaged_calibration_is_one_config_error(tmp_path, content):
         calibration.load(tmp_path / "missing.json")
 
 
+def _hand_edited(**changes: object) -> str:
+    good = {"format": "edi-live calibration", "version": 1, "camera": CAM.label, "width": 346, "height": 260,
+            "c_on": 0.3, "c_off": 0.3}
+    return json.dumps({**good, **changes})
+
+
+# A hand-edited number too large for a float, and arrays nested deeper than the JSON parser recurses, ended the
+# node with "the main thread failed: OverflowError" / "RecursionError" instead of naming the file.
+@pytest.mark.parametrize("content", [_hand_edited(clock_offset_us=10**400), _hand_edited(black_level=-10**400),
+                                     _hand_edited(c_on=10**400), "[" * 100_000 + "]" * 100_000,
+                                     '{"noise": ' + "[" * 100_000 + "]" * 100_000 + "}"],
+                         ids=["offset-1e400", "black-level--1e400", "c-on-1e400", "nested-list", "nested-noise"])
+def test_a_hand_edited_calibration_beyond_what_json_numbers_or_nesting_allow_is_one_config_error(tmp_path, content):
+    path = tmp_path / "edited.json"
+    path.write_text(content)
+    with pytest.raises(ConfigError, match="calibration") as info:
+        calibration.load(path)
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+def test_noise_rates_that_inflate_far_beyond_their_size_are_refused_without_inflating_them(tmp_path):
+    # 2 GiB of zeros compress to 2 MB: such a file used to be inflated whole (a 4 GiB one took 8.7 GB of memory
+    # and 21 s; a 64 MB file would have been killed by the kernel) before its size was found wrong
+    import base64
+    import resource
+    import zlib
+
+    deflate = zlib.compressobj(9)
+    block = bytes(1 << 24)
+    blob = b"".join([deflate.compress(block) for _ in range(128)] + [deflate.flush()])
+    on_hz = base64.b64encode(blob).decode("ascii")
+    rates = {"encoding": "zlib+base64 float16 little-endian, row-major (height, width)", "shape": [260, 346],
+             "on_hz": on_hz, "off_hz": on_hz, "seconds": on_hz}
+    path = tmp_path / "bomb.json"
+    path.write_text(_hand_edited(noise=rates))
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(ConfigError, match="per-pixel noise rates 'on_hz'"):
+        calibration.load(path)
+    grown_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before
+    assert grown_kb < 1 << 19, f"loading grew the process by {grown_kb} kB"
+
+
 def _node(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "edi_live", *args], cwd=REPO, capture_output=True, text=True,
                           timeout=90, env={**os.environ, "PYTHONPATH": str(REPO), **(env or {})})
@@ -93,6 +135,21 @@ def test_a_live_cameras_own_file_of_another_sensor_set_up_is_ignored_with_a_warn
     assert first.returncode == 0 and second.returncode == 0, second.stderr
     assert "not using it" in second.stderr and "starting from the calibration" not in second.stderr
     assert calibration.load(own).width == cal.width, "the run saved its own calibration over the stale one"
+
+
+# A live camera's own file, damaged by a hand edit, refused the camera with a usage error (exit 2) although no
+# flag named the file: the camera could not be used until the user found and deleted it.
+def test_a_live_cameras_own_damaged_file_is_ignored_with_a_warning_and_kept(tmp_path):
+    env = {"XDG_CONFIG_HOME": str(tmp_path)}
+    args = ("--device", "davis240", "--usb-backend", "drivers.emulator:backend", "--duration", "1.0", "--no-publish")
+    first = _node(*args, env=env)
+    own, = (tmp_path / "edi-live" / "calibration").glob("*.json")
+    damaged = own.read_text().replace('"c_on"', '"c_on": 0.3,, "was"', 1)  # a typo: not JSON any more
+    own.write_text(damaged)
+    second = _node(*args, env=env)
+    assert first.returncode == 0 and second.returncode == 0, second.stderr
+    assert "not using it" in second.stderr and str(own) in second.stderr and "edi-live: error" not in second.stderr
+    assert own.read_text() == damaged, "the run saved over the user's file"
 
 
 def test_a_failed_save_leaves_no_temporary_file(tmp_path):

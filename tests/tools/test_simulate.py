@@ -89,3 +89,58 @@ def test_cli_switches_effects_on_alone_or_all_and_the_help_lists_them(tmp_path, 
     assert all(f"  {name}: " in help_text for name in EFFECTS) and "Source:" in help_text
     assert preset("realistic").effects == tuple(EFFECTS)
     assert simulate(preset("realistic", width=32, height=24, duration_s=0.06)).events.size > 0
+
+
+# Each of these ended in a traceback (inf: OverflowError), wrote a recording with c=nan (only noise events, no
+# scene), or ran for hours with no output before the first byte (a 1e12 px/s scene: a million 1 µs render steps
+# per second; 1e8 latent frames: a Python loop over 3e9 ground-truth times; a 1e7 s recording: terabytes of
+# APS accumulators). Run as a subprocess, so that a run that does not stop fails the test by its timeout.
+@pytest.mark.parametrize("args,fragment", [
+    (["--duration-s", "inf"], "duration_s must be a finite number"),
+    (["--c", "nan"], "contrast thresholds must be positive numbers"),
+    (["--c-off", "inf"], "contrast thresholds must be positive numbers"),
+    (["--rotation-deg-s", "inf"], "rotation_deg_s must be a finite number"),
+    (["--velocity", "1e12,0"], "faster than the simulator renders"),
+    (["--zoom-per-s", "0.8", "--duration-s", "1000", "--no-ground-truth"], "faster than the simulator renders"),
+    (["--latent-per-interval", "100000000"], "ground-truth images"),
+    (["--duration-s", "1e7", "--velocity", "0,0", "--rotation-deg-s", "0", "--no-ground-truth"], "GiB of memory"),
+    (["--latent-per-interval", "-1"], "latent_per_interval must be >= 0"),
+])
+def test_cli_impossible_sizes_are_refused_at_once_naming_the_option(tmp_path, args, fragment):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    out = tmp_path / "x.aedat4"
+    proc = subprocess.run([sys.executable, "-m", "tools.simulate", str(out), *args], capture_output=True, text=True,
+                          timeout=60, cwd=Path(__file__).resolve().parents[2])
+    assert proc.returncode == 2, proc.stderr
+    assert fragment in proc.stderr and "Traceback" not in proc.stderr and len(proc.stderr.splitlines()) == 1
+    assert not out.exists()
+
+
+# The ground truth is written after the recording: an OUT.npz that was a folder, or a full disk, ended the run
+# with an IsADirectoryError/OSError traceback after the whole simulation (and a recording named .npz was
+# overwritten by its own ground truth).
+def test_cli_a_ground_truth_that_cannot_be_written_is_one_line(tmp_path, capsys):
+    (tmp_path / "folder.npz").mkdir()
+    assert sim_mod.main([str(tmp_path / "folder.aedat4"), "--duration-s", "0.05"]) == 2
+    assert sim_mod.main([str(tmp_path / "same.npz"), "--duration-s", "0.05"]) == 2
+    err = capsys.readouterr().err
+    assert "it is a directory" in err and "would replace the recording" in err and "Traceback" not in err
+    assert not (tmp_path / "folder.aedat4").exists() and not (tmp_path / "same.npz").exists()
+
+
+def test_cli_a_full_disk_for_the_ground_truth_keeps_the_recording(tmp_path, capsys):
+    import os
+
+    if not os.path.exists("/dev/full"):
+        pytest.skip("needs /dev/full (a device that is always full)")
+    (tmp_path / "full.npz").symlink_to("/dev/full")
+    assert sim_mod.main([str(tmp_path / "full.aedat4"), "--duration-s", "0.1"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "cannot write the ground truth" in err and "No space left" in err
+    import dv_processing as dv
+
+    reader = dv.io.MonoCameraRecording(str(tmp_path / "full.aedat4"))
+    assert reader.getNextEventBatch() is not None  # the recording itself is complete and readable

@@ -105,8 +105,10 @@ class _Stop:
     def stop(self) -> None:
         self.event.set()
         stop_source = getattr(self.source, "stop", None)  # (a Source has one; a plain iterable of packets not)
-        if stop_source is not None:
-            stop_source()  # also ends a wait inside the source (a camera gone while starting, --reconnect)
+        if stop_source is not None:  # also ends a wait inside the source (a camera gone while starting, --reconnect);
+            # from another thread, as this runs in a signal handler on the reading thread, which may hold a lock
+            # that stop() takes
+            threading.Thread(target=stop_source, name="source-stop", daemon=True).start()
 
 
 def calibrate_dark(source: Any, n_frames: int, target: Path | None, signals: Any = None) -> tuple[DarkFrames, Path]:

@@ -98,11 +98,17 @@ def _correlation(a: np.ndarray, b: np.ndarray) -> float:
 class _Stop:
     """What the command line's signal handler stops (StopSignals.attach)."""
 
-    def __init__(self) -> None:
+    def __init__(self, source: Any) -> None:
         self.event = threading.Event()
+        self.source = source
 
     def stop(self) -> None:
         self.event.set()
+        stop_source = getattr(self.source, "stop", None)  # (a Source has one; a plain iterable of packets not)
+        if stop_source is not None:  # also ends a wait inside the source (a camera gone while starting, --reconnect);
+            # from another thread, as this runs in a signal handler on the reading thread, which may hold a lock
+            # that stop() takes
+            threading.Thread(target=stop_source, name="source-stop", daemon=True).start()
 
 
 def calibrate_dark(source: Any, n_frames: int, target: Path | None, signals: Any = None) -> tuple[DarkFrames, Path]:
@@ -112,7 +118,7 @@ def calibrate_dark(source: Any, n_frames: int, target: Path | None, signals: Any
     measured black level is never re-estimated. Returns (the measurement, the file written)."""
     if n_frames < 1:
         raise ConfigError(f"--calibrate-dark needs a number of APS frames of at least 1 (got {n_frames})")
-    stop = _Stop()
+    stop = _Stop(source)
     if signals is not None:
         signals.attach(stop)
     images: list[np.ndarray] = []

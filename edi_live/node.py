@@ -126,8 +126,9 @@ class Node:
     def stop(self) -> None:
         """Ask the node to stop (Ctrl-C, SIGTERM, --duration). Safe from signal handlers and other threads."""
         self._stop.set()
-        if self._entering:
-            self.source.stop()
+        if self._entering:  # a source waiting while it opens; stopped from another thread, since a signal handler
+            # runs on the opening thread, which may hold a lock that the source's stop() takes
+            threading.Thread(target=self.source.stop, name="source-stop", daemon=True).start()
 
     def fail(self, exc: BaseException, thread: str = "main", input_fault: bool = False) -> None:
         """Record a thread's failure (the first one wins). A fault of the input lets received data drain;

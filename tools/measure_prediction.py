@@ -174,6 +174,28 @@ def _fmt(v: float | None, spec: str = "6.2f") -> str:
     return format(v, spec) if v is not None else " " * (int(spec.split(".")[0]) - 1) + "-"
 
 
+def _split_node_options(argv: list[str]) -> tuple[list[str], list[str]]:
+    """(this tool's arguments, the node options), the value of a node option kept with it: parse_known_args alone
+    took the value of '--c 0.3 FILE' for a file name, and ran FILE with a bare '--c'."""
+    from edi_live.cli_parser import build_parser
+
+    takes_value = {name: action.nargs != 0 for action in build_parser()._actions for name in action.option_strings}
+    own, node = [], []
+    i = 0
+    while i < len(argv):
+        arg = argv[i]
+        name = arg.split("=", 1)[0]
+        if name in takes_value and name not in ("-h", "--help"):
+            node.append(arg)
+            if takes_value[name] and "=" not in arg and i + 1 < len(argv):
+                node.append(argv[i + 1])
+                i += 1
+        else:
+            own.append(arg)
+        i += 1
+    return own, node
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m tools.measure_prediction", description=__doc__.split("\n")[0],
                                      allow_abbrev=False,  # --c is a node option, not short for --cost
@@ -182,7 +204,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--cost", action="store_true",
                         help="measure the score's own cost at 240x180 and 346x260 (no recording needed)")
     parser.add_argument("--per-frame", action="store_true", help="also print every APS frame's result")
-    args, node_args = parser.parse_known_args(argv)
+    own, node_args = _split_node_options(sys.argv[1:] if argv is None else list(argv))
+    args = parser.parse_args(own)
     if args.cost:
         for w, h in ((240, 180), (346, 260)):
             c = measure_cost(w, h)

@@ -120,9 +120,43 @@ def test_a_stop_signal_ends_the_wait_for_a_camera_gone_while_starting(tmp_path, 
         else:
             raise AssertionError("".join(seen))
         proc.send_signal(signal.SIGINT)
+        code = proc.wait(timeout=30)  # (before reading: a node that never ends must fail here, not hang the read)
         rest = proc.stderr.read()
-        assert proc.wait(timeout=30) == 0, "".join(seen) + rest
+        assert code == 0, "".join(seen) + rest
         assert not _error_lines(rest)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_a_stop_signal_ends_calibrate_dark_waiting_for_a_camera_gone_while_starting(tmp_path, real_recordings):
+    # --calibrate-dark stops through its own handle on the signal: it must reach the source's wait as the node's does
+    import signal
+
+    (tmp_path / "edi_test_gone_while_starting.py").write_text(_GONE_WHILE_STARTING)
+    path = os.pathsep.join([str(REPO), str(tmp_path)])
+    target = tmp_path / "dark.json"
+    proc = subprocess.Popen([sys.executable, "-m", "edi_live", "--device", "davis346", "--usb-backend",
+                             "edi_test_gone_while_starting:stays_away", "--emulate-from",
+                             str(real_recordings["evlib_sample_davis346.aedat4"]), "--reconnect",
+                             "--calibrate-dark", "5", "--save-calibration", str(target)],
+                            cwd=REPO, stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": path})
+    try:
+        seen = []
+        for line in proc.stderr:
+            seen.append(line)
+            if "waiting for it to come back" in line:
+                break
+        else:
+            raise AssertionError("".join(seen))
+        proc.send_signal(signal.SIGINT)
+        code = proc.wait(timeout=30)
+        rest = proc.stderr.read()
+        assert code == 1, "".join(seen) + rest
+        lines = _error_lines(rest)
+        assert len(lines) == 1 and "stopped after 0 of 5 APS frames; nothing written" in lines[0]
+        assert not target.exists()
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -34,3 +34,17 @@ def test_a_recording_with_nothing_to_score_is_said_by_name(tmp_path, capsys, n_f
     assert f"frames{n_frames}.aedat4" in out  # its row is still printed
     notes = [line for line in err.splitlines() if str(path) in line]
     assert len(notes) == 1 and "nothing scored" in notes[0] and why in notes[0], err
+
+
+# A node option before the files took its value for a file name: '--c 0.3 FILE' replayed '0.3' with a bare '--c'
+# and ended in "argument --c: expected one argument", while 'FILE --c 0.3' worked.
+@pytest.mark.parametrize("order", ["options first", "files first"])
+def test_node_options_keep_their_values_before_or_after_the_files(real_recordings, capsys, order):
+    path = str(real_recordings["evlib_sample_davis346.aedat4"])
+    options = ["--c", "0.3", "--every=500"]
+    argv = options + [path] if order == "options first" else [path] + options
+    assert measure_prediction.main(argv) == 0, capsys.readouterr().err
+    out = capsys.readouterr().out
+    assert "node options: --c 0.3 --every=500" in out
+    row = next(line for line in out.splitlines() if line.startswith("evlib_sample_davis346.aedat4"))
+    assert row.split()[1:3] == ["0.300", "0.300"]  # the thresholds given, not the estimate

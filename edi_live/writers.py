@@ -1,14 +1,12 @@
 """The `--out` and `--record` sink threads: AEDAT4 files written beside the live pipeline.
 
 - `OutWriter` ("out-writer"): every reconstruction the worker emits, as an 8-bit gray (or, from a colour camera,
-  BGR: DV's colour frame format) AEDAT4 frame whose
-  timestamp and exposure start/end all equal the latent time t, frame source "reconstruction". AEDAT4 streams
-  must be in time order, but in causal mode a deblurred frame (t = mid-exposure f) is emitted after latent
-  frames that are newer than f; with the deblur thread, and more so in an unpaced run, those can reach far
-  beyond f (more than 100 ms of sensor time was seen). A reorder buffer restores time order: a frame is
-  written once it is `reorder_us` behind the newest frame AND not newer than the newest reference time seen
-  (`ref_t_us`): references only move forward, so no later deblurred frame can be older than that. A frame
-  older than one already written (possible only past the bound on held frames) is counted (`out_late`).
+  BGR: DV's colour frame format) AEDAT4 frame whose timestamp and exposure start/end all equal the latent time t,
+  frame source "reconstruction". AEDAT4 streams must be in time order, but in causal mode a deblurred frame
+  (t = mid-exposure f) is emitted after latent frames that are newer than f: edi_live.frame_order puts them back
+  in order (a frame is written once it is `reorder_us` behind the newest frame and not newer than the newest
+  reference time seen); a frame older than one already written (possible only past the bound on held frames) is
+  counted (`out_late`).
 - `RecordWriter` ("record-writer"): the raw input packets as received (events, APS frames, IMU, triggers),
   for later `--replay`; a colour camera's raw mosaics keep their Bayer pattern (frame-stream metadata).
   Items that would go back in time in their stream are skipped and counted.
@@ -20,7 +18,6 @@ finalised (FileDataTable written) by `close()`, on stop and after faults alike, 
 
 from __future__ import annotations
 
-import heapq
 import logging
 import queue
 import threading
@@ -30,6 +27,7 @@ from typing import Any, Callable
 
 from edi_live.datatypes import ColorFilter, Frame, Packet, Reconstruction
 from edi_live.errors import NodeError
+from edi_live.frame_order import FrameOrder
 from edi_live.ring import as_events
 
 log = logging.getLogger(__name__)
@@ -134,46 +132,34 @@ class OutWriter(_SinkThread):
                                 frame_source="reconstruction")
 
         super().__init__("out-writer", open_writer, queue_items, on_error)
-        self.reorder_us = reorder_us
-        self._held: list[tuple[int, int, Reconstruction]] = []  # heap by (t, arrival order)
-        self._order = 0
-        self._newest_t = -(2**63)
-        self._newest_ref_t = -(2**63)  # later deblurred frames (t = their f) are newer than this
-        self._written_t = -(2**63)
+        self._order = FrameOrder(reorder_us, max_held=_MAX_HELD_FRAMES)  # a file waits as long as it must
+        self._late_said = False
         self.frames = 0
-        self.late = 0
+
+    @property
+    def late(self) -> int:
+        return self._order.late
 
     def submit(self, rec: Reconstruction) -> None:
         """Called by the worker (or its deblur thread: one at a time); waits if the queue is full (lossless)."""
         self._put(rec)
 
     def _write(self, rec: Reconstruction) -> None:
-        if rec.t_us < self._newest_t:  # out of order: widen the window to what was seen
-            self.reorder_us = max(self.reorder_us, 2 * (self._newest_t - rec.t_us))
-        self._newest_t = max(self._newest_t, rec.t_us)
-        self._newest_ref_t = max(self._newest_ref_t, rec.t_us if rec.kind == "deblurred" else rec.ref_t_us)
-        heapq.heappush(self._held, (rec.t_us, self._order, rec))
-        self._order += 1
-        while self._held and ((self._held[0][0] < self._newest_t - self.reorder_us
-                               and self._held[0][0] <= self._newest_ref_t)
-                              or len(self._held) > _MAX_HELD_FRAMES):
-            self._write_frame(heapq.heappop(self._held)[2])
+        self._order.add(rec)
+        self._write_frames(self._order.ready())
 
     def _finish(self) -> None:
-        while self._held:
-            self._write_frame(heapq.heappop(self._held)[2])
+        self._write_frames(self._order.rest())
 
-    def _write_frame(self, rec: Reconstruction) -> None:
-        if rec.t_us < self._written_t:
-            self.late += 1
-            if self.late == 1:
-                log.warning("--out: a frame at %d µs came after %d µs was written; skipped (counted as out_late)",
-                            rec.t_us, self._written_t)
-            return
-        t = int(rec.t_us)
-        self._writer.write_frame(Frame(rec.image, exposure_start_us=t, exposure_end_us=t, start_us=t, end_us=t))
-        self._written_t = t
-        self.frames += 1
+    def _write_frames(self, recs: list[Reconstruction]) -> None:
+        if self._order.late and not self._late_said:
+            self._late_said = True
+            log.warning("--out: a frame came older than one already written (at %d µs); skipped (counted as "
+                        "out_late)", self._order.released_t)
+        for rec in recs:
+            t = int(rec.t_us)
+            self._writer.write_frame(Frame(rec.image, exposure_start_us=t, exposure_end_us=t, start_us=t, end_us=t))
+            self.frames += 1
 
     def stats(self) -> dict[str, Any]:
         return {"out_frames": self.frames, "out_late": self.late, "out_wait_s": round(self.wait_s, 3)}

@@ -65,7 +65,7 @@ STAGES = (
                 "edi_live.reconstructor_settings", "edi_live.black_level_policy",
                 "edi_live.clock_offset_policy", "edi_live.flicker_pixels", "edi_live.pixel_noise",
                 "edi_live.reconstructor_stats", "edi_live.calibration_schedule")),
-    ("publisher", ("edi_live.publisher", "edi_live.writers")),
+    ("publisher", ("edi_live.publisher", "edi_live.writers", "edi_live.frame_order", "edi_live.dv_output")),
 )
 NODE = ("edi_live.node", "edi_live.cli", "edi_live.__main__")
 

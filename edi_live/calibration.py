@@ -12,7 +12,8 @@ emlb's 0.5 s). float16 keeps three significant digits, far below the estimate's 
 camera (USB) picks up its own without flags: it is loaded from, and saved to, `calibration_dir()/LABEL.json`
 (LABEL is the camera name and serial, e.g. DAVIS346_00000391). A calibration of another camera or sensor size is
 refused with one line (a live camera's own file of another size, or damaged, is skipped with a warning: no flag
-named it). Loaded values are starting points: c, the black level and the clock offset are in use from the first frame and still estimated from the stream, so that a value a short or unsuitable first run got wrong is
+named it). Loaded values are starting points: c, the black level and the clock offset are in use from the first
+frame and still estimated from the stream, so that a value a short or unsuitable first run got wrong is
 corrected (and saved corrected) rather than kept for ever; a black level or offset given on the command line wins
 over the file's. A black level measured on dark frames (`--calibrate-dark`, edi_live.dark_calibration) is used
 as given, not estimated again. The APS response cannot be estimated, so a saved one is used as it is; a black level

@@ -99,12 +99,13 @@ def cycles_to_us(cycles: int, clock_mhz: float) -> int:
 
 def check_exposure(exposure_us: int | None, frame_interval_us: int | None) -> None:
     """The APS timing registers' ranges; a value outside is a usage error (ConfigError, exit 2 in the CLI)."""
-    if exposure_us is not None and not 0 <= exposure_us <= EXPOSURE_MAX_US:
-        raise ConfigError(f"exposure-us must be 0..{EXPOSURE_MAX_US} µs, the APS exposure register's range "
-                          f"(got {exposure_us})")
-    if frame_interval_us is not None and not 0 <= frame_interval_us <= FRAME_INTERVAL_MAX_US:
-        raise ConfigError(f"frame-interval-us must be 0..{FRAME_INTERVAL_MAX_US} µs, the APS frame interval "
-                          f"register's range (got {frame_interval_us})")
+    for flag, value, top, register in (("exposure-us", exposure_us, EXPOSURE_MAX_US, "APS exposure"),
+                                       ("frame-interval-us", frame_interval_us, FRAME_INTERVAL_MAX_US,
+                                        "APS frame interval")):
+        if value is not None and not 0 <= value <= top:
+            # "at most": the CLI asks for a positive value before this check, so a bound of 0 would contradict it
+            bound = f"at most {top} µs" if value > top else f"0..{top} µs"
+            raise ConfigError(f"{flag} must be {bound}, the {register} register's range (got {value})")
 
 
 def dvs_filter_defaults(features: dict[int, int], columns: int, rows: int) -> list[Write]:

@@ -88,9 +88,11 @@ def test_help_teaches_groups_units_defaults_and_examples():
      "tests: is a directory, not a recording"),
     (("--device", "davis240", "--usb-backend", "os:getcwd"), 2, "returned a str, not a pyusb backend"),
     (("--device", "davis240", "--usb-backend", "drivers.emulator:backend", "--exposure-us", "999999999"), 2,
-     "exposure-us must be 0..4194303"),
+     "exposure-us must be at most 4194303 µs"),
+    (("--device", "davis240", "--usb-backend", "drivers.emulator:backend", "--exposure-us", "0"), 2,
+     "exposure-us must be a positive integer"),  # and not, in a second message, "0..4194303"
     (("--device", "davis240", "--usb-backend", "drivers.emulator:backend", "--frame-interval-us", "999999999"), 2,
-     "frame-interval-us must be 0..8388607"),
+     "frame-interval-us must be at most 8388607 µs"),
     (("--device", "davis240", "--usb-backend", "no_such_module:backend"), 2, "cannot import module"),
     (("--config", "no-such.toml"), 2, "config file no-such.toml not found"),
 ])

@@ -10,9 +10,11 @@ time and releases the oldest once no frame still to come can be older than it:
   at its own f, is newer) and at least `window_us` of sensor time behind the newest frame (with `widen`, the window
   widens to twice any disorder seen: a file's margin for the held frames of the nearest and fused modes);
 - with `predict` (a live stream), or it is well before the next reference time expected from the spacing of the
-  last two (a quarter of that spacing ahead of it: exposures that change by up to half the frame interval keep
+  references (a quarter of that spacing ahead of it: exposures that change by up to half the frame interval keep
   their order), so that latent frames flow as they come and only those near the next keyframe wait for it; a
-  keyframe that comes earlier than predicted after newer frames went out is late;
+  keyframe that comes earlier than predicted after newer frames went out is late. The spacing is the smallest of
+  the last few: a lost APS frame or a skipped deblur puts two references two periods apart, and predicting from
+  that let the frames past the next keyframe out before it (too small a spacing only holds frames longer);
 - or it has waited `hold_s` of wall time (a live stream's bound on the delay; None for a file, which waits as long
   as it must), or more than `max_held` frames wait (bounded memory).
 
@@ -28,6 +30,7 @@ import heapq
 from edi_live.datatypes import Reconstruction
 
 _NEVER = -(2**63)
+_STEPS = 8  # reference spacings the prediction looks back on
 
 
 class FrameOrder:
@@ -37,7 +40,7 @@ class FrameOrder:
                  max_held: int = 2048) -> None:
         self.window_us, self.widen, self.hold_s, self.max_held = int(window_us), widen, hold_s, int(max_held)
         self.predict = predict
-        self._ref_step = 0  # spacing of the last two reference times (0: not known yet)
+        self._ref_steps: collections.deque[int] = collections.deque(maxlen=_STEPS)  # spacings of the last references
         self._held: list[tuple[int, int, Reconstruction]] = []  # heap by (t, order of arrival)
         self._came: collections.deque[tuple[float, int]] = collections.deque()  # (wall time, order), as they came
         self._order = 0
@@ -54,7 +57,8 @@ class FrameOrder:
         self._newest_t = max(self._newest_t, rec.t_us)
         ref = rec.t_us if rec.kind == "deblurred" else rec.ref_t_us
         if ref > self._newest_ref_t:
-            self._ref_step = ref - self._newest_ref_t if self._newest_ref_t != _NEVER else 0
+            if self._newest_ref_t != _NEVER:
+                self._ref_steps.append(ref - self._newest_ref_t)
             self._newest_ref_t = ref
         heapq.heappush(self._held, (rec.t_us, self._order, rec))
         if self.hold_s is not None:
@@ -84,7 +88,7 @@ class FrameOrder:
     def _safe(self, t: int) -> bool:
         if t < self._newest_t - self.window_us and t <= self._newest_ref_t:
             return True
-        step = self._ref_step
+        step = min(self._ref_steps, default=0)
         return self.predict and step > 0 and t < self._newest_ref_t + step - step // 4
 
     def _waited_out(self, now_s: float) -> bool:

@@ -18,9 +18,10 @@ def _rec(t: int, kind: str, ref: int) -> Reconstruction:
     return Reconstruction(_IMAGE, t, kind, ref, ref - 10, ref + 10, 0.2, 0.2, 1)
 
 
-def causal_stream(rng: np.random.Generator, frames: int = 30) -> list[Reconstruction]:
+def causal_stream(rng: np.random.Generator, frames: int = 30, lost: frozenset[int] = frozenset()) -> list[Reconstruction]:
     """APS frames every period; latent frames every few hundred µs from the newest reference the worker holds;
-    each deblurred frame (t = f) emitted once its deblur ends, a random stretch of sensor time after f."""
+    each deblurred frame (t = f) emitted once its deblur ends, a random stretch of sensor time after f. The APS
+    frames numbered in `lost` never become references (dropped on the way, or a static scene's skipped deblur)."""
     period = int(rng.integers(5_000, 40_000))
     out: list[Reconstruction] = []
     ref, t = 0, 0
@@ -33,6 +34,8 @@ def causal_stream(rng: np.random.Generator, frames: int = 30) -> list[Reconstruc
             if t >= ready_at:
                 break
             out.append(_rec(t, "latent", ref))  # from the previous reference, also after f
+        if k in lost:
+            continue
         out.append(_rec(f, "deblurred", f))
         ref = f
     return out
@@ -57,6 +60,16 @@ def test_every_frame_comes_out_once_and_in_time_order(seed, rule):
     expected = sorted(stream, key=lambda r: r.t_us)
     assert [r.t_us for r in out] == [r.t_us for r in expected] and order.late == 0
     assert sorted(map(id, out)) == sorted(map(id, stream))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_a_lost_aps_frame_does_not_cost_the_live_rule_the_keyframe_after_the_next(seed):
+    """Around a lost APS frame two references lie two periods apart: a prediction from that spacing alone let the
+    latent frames past the next keyframe out before it, and that keyframe was late (dropped)."""
+    stream = causal_stream(np.random.default_rng(seed), frames=30, lost=frozenset({6, 7, 15}))
+    order = FrameOrder(0, widen=False, predict=True)
+    out = _drain(order, stream)
+    assert [r.t_us for r in out] == sorted(r.t_us for r in stream) and order.late == 0
 
 
 def test_the_live_rule_lets_latent_frames_flow_and_holds_only_those_near_the_next_keyframe():

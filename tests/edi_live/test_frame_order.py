@@ -18,7 +18,8 @@ def _rec(t: int, kind: str, ref: int) -> Reconstruction:
     return Reconstruction(_IMAGE, t, kind, ref, ref - 10, ref + 10, 0.2, 0.2, 1)
 
 
-def causal_stream(rng: np.random.Generator, frames: int = 30, lost: frozenset[int] = frozenset()) -> list[Reconstruction]:
+def causal_stream(rng: np.random.Generator, frames: int = 30,
+                  lost: frozenset[int] = frozenset()) -> list[Reconstruction]:
     """APS frames every period; latent frames every few hundred µs from the newest reference the worker holds;
     each deblurred frame (t = f) emitted once its deblur ends, a random stretch of sensor time after f. The APS
     frames numbered in `lost` never become references (dropped on the way, or a static scene's skipped deblur)."""

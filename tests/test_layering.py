@@ -49,7 +49,8 @@ PURE_MATH_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.errors", "edi_live.edi"
 DRIVERS_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.source", "edi_live.errors", "edi_live.aedat4",
                        "edi_live.simulation")  # the emulator's generated scene
 # the simulator is the ground truth: it must not use the EDI code it is there to judge
-SIMULATION_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.errors", "edi_live.aedat4", "edi_live.simulation")
+SIMULATION_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.errors", "edi_live.aedat4", "edi_live.simulation",
+                          "edi_live.checks")  # (plain argument and resource checks, no EDI)
 
 # The data flows driver -> ring -> worker -> publisher (and the other sinks): a stage imports no later stage and
 # no module of the node. A module belongs to a stage if its name is one listed or lies below one listed.

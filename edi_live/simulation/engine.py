@@ -15,12 +15,12 @@ config without them gives the same output as before they existed.
 
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from edi_live.checks import available_memory_bytes
 from edi_live.datatypes import IMU_DTYPE, Frame
 from edi_live.simulation import camera, colour_scene, events
 from edi_live.simulation.config import SceneConfig, check_memory, validate
@@ -62,21 +62,6 @@ class Simulation:
     def camera(self) -> dict:
         """The true camera parameters (see camera.true_camera)."""
         return camera.true_camera(self.config, self.c_on_map, self.c_off_map, self.hot_pixel_xy)
-
-
-def _free_memory() -> int:
-    """Bytes of memory available to a new allocation (MemAvailable), or physical memory where that is unknown."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return 1 << 62
 
 
 def _gt_schedule(cfg: SceneConfig, mids: np.ndarray, duration_us: int):
@@ -126,7 +111,7 @@ def simulate(cfg: SceneConfig) -> Simulation:
     starts = np.arange(cfg.first_exposure_us, duration_us - cfg.exposure_us + 1, cfg.frame_interval_us, dtype=np.int64)
     ends = starts + cfg.exposure_us
     n_gt = (starts.size * (cfg.latent_per_interval + 1) + len(cfg.gt_extra_us)) if cfg.ground_truth else 0
-    check_memory(cfg, starts.size, n_gt, 1 if renderer.channels is None else 3, _free_memory())
+    check_memory(cfg, starts.size, n_gt, 1 if renderer.channels is None else 3, available_memory_bytes())
     gt_t, gt_kind, gt_frame = _gt_schedule(cfg, (starts + ends) // 2, duration_us)
     gt_images = np.zeros((gt_t.size, h, w) + (() if renderer.channels is None else (3,)), np.float32)
     aps_linear = np.zeros((starts.size, h, w), np.float32)

@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from edi_live.config import EdiConfig
+from edi_live.checks import finite_number
 from edi_live.config_file import read_limited
 from edi_live.datatypes import SourceInfo
 from edi_live.errors import ConfigError
@@ -104,7 +105,7 @@ def load(path: Path | str) -> Calibration:
         numbers = (cal.c_on, cal.c_off, cal.black_level, cal.clock_offset_us, cal.aps_gamma)
         ok = (isinstance(cal.camera, str) and isinstance(cal.width, int) and isinstance(cal.height, int)
               and cal.width > 0 and cal.height > 0
-              and all(_finite_number(v) for v in numbers)
+              and all(finite_number(v) for v in numbers)
               and 0.01 <= cal.c_on <= 2.0 and 0.01 <= cal.c_off <= 2.0 and 0 <= cal.black_level < 128
               and isinstance(cal.clock_offset_us, int) and abs(cal.clock_offset_us) <= 100_000
               and 0.2 <= cal.aps_gamma <= 5 and isinstance(cal.black_level_measured, bool))
@@ -115,16 +116,6 @@ def load(path: Path | str) -> Calibration:
     if data.get("noise") is not None:
         cal = dataclasses.replace(cal, noise=_decode_noise(data["noise"], (cal.height, cal.width), path))
     return cal
-
-
-def _finite_number(value: Any) -> bool:
-    """A JSON number that is a finite float (a hand-typed integer beyond a float's range is not)."""
-    if not isinstance(value, (int, float)) or isinstance(value, bool):
-        return False
-    try:
-        return math.isfinite(value)
-    except OverflowError:
-        return False
 
 
 _NOISE_ARRAYS = ("on_hz", "off_hz", "seconds")  # NoiseRates fields, saved under the same keys

@@ -25,10 +25,19 @@ def int_in(name: str, value: Any, lo: int, hi: int, what: str) -> None:
           f"{name} must be an integer in [{lo}, {hi_text}] ({what}) (got {value!r})")
 
 
+def finite_number(value: Any) -> bool:
+    """An int or float (not a bool) with a finite float value (an integer beyond a float's range is not)."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
 def positive_or_none(name: str, value: float | None) -> None:
     if value is not None:
-        check(isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-              and value > 0, f"{name} must be a positive number (got {value!r})")
+        check(finite_number(value) and value > 0, f"{name} must be a positive number (got {value!r})")
 
 
 def available_memory_bytes() -> int | None:
@@ -67,7 +76,7 @@ def check_endpoint(endpoint: Any) -> None:
         check(not os.path.lexists(address) or stat.S_ISSOCK(os.lstat(address).st_mode),
               f"publish endpoint {endpoint!r}: {address} exists and is not a socket, and binding would delete it; "
               "choose another path")
-    parts = _tcp_parts(endpoint)
+    parts = tcp_parts(endpoint)
     if parts is None:
         return
     host, port = parts
@@ -76,7 +85,7 @@ def check_endpoint(endpoint: Any) -> None:
               f"free port (e.g. tcp://127.0.0.1:5555)")
 
 
-def _tcp_parts(endpoint: str) -> tuple[str, str] | None:
+def tcp_parts(endpoint: str) -> tuple[str, str] | None:
     """'tcp://HOST:PORT' -> (HOST without IPv6 brackets, PORT as written); None for another scheme."""
     scheme, sep, rest = endpoint.partition("://")
     if scheme != "tcp" or not sep:
@@ -87,7 +96,7 @@ def _tcp_parts(endpoint: str) -> tuple[str, str] | None:
 
 def parse_tcp_endpoint(endpoint: str, flag: str = "--dv-output") -> tuple[str, int]:
     """'tcp://HOST:PORT' -> (host, port); ConfigError otherwise. Port 0 picks a free port."""
-    host, port = _tcp_parts(endpoint) or ("", "")
+    host, port = tcp_parts(endpoint) or ("", "")
     if not host or not port.isdigit() or int(port) > 65535:
         raise ConfigError(f"{flag} must look like tcp://HOST:PORT, e.g. tcp://127.0.0.1:7777 (got {endpoint!r})")
     return host, int(port)
@@ -101,7 +110,7 @@ def check_ports_apart(endpoints: list[tuple[str, str]]) -> None:
     which the bind would only report as the port being taken, as if by another program. ConfigError naming both."""
     seen: dict[int, list[tuple[str, str, str]]] = {}
     for flag, endpoint in endpoints:
-        host, port = _tcp_parts(endpoint) or ("", "")
+        host, port = tcp_parts(endpoint) or ("", "")
         if not port.isdigit() or int(port) == 0:
             continue  # not TCP, or a port picked at bind time
         for other_flag, other_endpoint, other_host in seen.get(int(port), []):

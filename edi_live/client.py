@@ -26,6 +26,7 @@ when the engine reads, which it does not while the queue is full.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import time
 from collections.abc import Callable, Iterator
@@ -37,6 +38,7 @@ import zmq
 from zmq.utils.monitor import parse_monitor_message
 
 from edi_live import wire
+from edi_live.checks import tcp_parts
 from edi_live.curve_keys import check_z85, load_certificate
 from edi_live.errors import ClientError
 
@@ -82,9 +84,8 @@ def _server_public_key(key: str | bytes | os.PathLike) -> bytes:
 
 def _check_port(endpoint: str) -> None:
     """libzmq takes a tcp port over 65535 modulo 65536 without a word (99999 connects to 34463)."""
-    scheme, _, address = endpoint.partition("://")
-    port = address.rpartition(":")[2]
-    if scheme == "tcp" and not (port.isdigit() and 1 <= int(port) <= 65535):
+    parts = tcp_parts(endpoint)
+    if parts is not None and not (parts[1].isdigit() and 1 <= int(parts[1]) <= 65535):
         raise ClientError(f"cannot connect to {endpoint}: the port must be 1-65535 (tcp://HOST:PORT)")
 
 
@@ -311,16 +312,18 @@ def _printable(text: str) -> str:
     return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
-def _at_least(kind: type, low: float) -> Callable[[str], Any]:
-    """An argparse type: a `kind` number >= low (NaN refused)."""
+def number_arg(kind: type, low: float, high: float | None = None, *, finite: bool = False) -> Callable[[str], Any]:
+    """An argparse type: a `kind` number in [low, high] (high None: no upper bound); NaN is refused, and so is
+    infinity with `finite`. Also the viewer's (tools/viewer.py)."""
 
     def parse(text: str) -> Any:
         try:
             value = kind(text)
         except ValueError:
             value = None
-        if value is None or not value >= low:
-            raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'} >= {low} "
+        if value is None or not low <= value <= (math.inf if high is None else high) or (finite and value == math.inf):
+            bound = f"from {low} to {high}" if high is not None else f">= {low}"
+            raise argparse.ArgumentTypeError(f"expected {'an integer' if kind is int else 'a number'} {bound} "
                                              f"(got {text!r})")
         return value
 
@@ -336,9 +339,9 @@ def main(argv: list[str] | None = None) -> int:
                                      "publisher sends, one line each")
     parser.add_argument("endpoint", nargs="?", default=DEFAULT_ENDPOINT, help=f"default: {DEFAULT_ENDPOINT}")
     parser.add_argument("--curve-server-key", metavar="FILE", help="the publisher's public key (CURVE)")
-    parser.add_argument("--count", type=_at_least(int, 0), default=0, metavar="N",
+    parser.add_argument("--count", type=number_arg(int, 0), default=0, metavar="N",
                         help="stop after N frames (default 0: never)")
-    parser.add_argument("--timeout-s", type=_at_least(float, 0), default=None, metavar="S",
+    parser.add_argument("--timeout-s", type=number_arg(float, 0), default=None, metavar="S",
                         help="give up when no frame arrives for S seconds (default: wait)")
     args = parser.parse_args(argv)
     n = 0

@@ -17,9 +17,8 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any
 
-from edi_live.client import DEFAULT_ENDPOINT, ClientHandshakeError, Subscriber
+from edi_live.client import DEFAULT_ENDPOINT, ClientHandshakeError, Subscriber, number_arg
 from edi_live.errors import ClientError, EdiLiveError
 from tools.viewer_http import BOUNDARY, FrameHub, MjpegServer, json_safe  # noqa: F401 - BOUNDARY, json_safe: API
 from tools.viewer_output import MP4_SUFFIXES, Recorder, to_u8  # noqa: F401 - the module's API, as before
@@ -105,24 +104,6 @@ def parse_host_port(text: str) -> tuple[str, int]:
     return host, int(port)
 
 
-def _number(kind: type, low: float, high: float | None = None) -> Any:
-    """An argparse type: a number of `kind` in [low, high] (high None: no upper bound)."""
-
-    def parse(text: str) -> Any:
-        try:
-            value = kind(text)
-        except ValueError:
-            value = None
-        if value is None or value != value or value < low or (high is not None and value > high) \
-                or value == float("inf"):
-            bound = f"from {low} to {high}" if high is not None else f">= {low}"
-            what = "an integer" if kind is int else "a number"
-            raise argparse.ArgumentTypeError(f"expected {what} {bound} (got {text!r})")
-        return value
-
-    return parse
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m tools.viewer", description=__doc__.split("\n\n")[0],
@@ -139,15 +120,15 @@ def build_parser() -> argparse.ArgumentParser:
                      help="serve the live MJPEG page here (default 127.0.0.1:8080; port 0 = any free port)")
     out.add_argument("--no-http", action="store_true", help="do not serve the live page")
     out.add_argument("--mp4", type=Path, metavar="FILE", help="also write an MP4 (mp4v codec)")
-    out.add_argument("--mp4-fps", type=_number(float, 0.1), default=30.0, metavar="FPS",
+    out.add_argument("--mp4-fps", type=number_arg(float, 0.1, finite=True), default=30.0, metavar="FPS",
                      help="frame rate stored in the MP4 (default 30)")
     out.add_argument("--png", type=Path, metavar="DIR", help="also write every shown frame as DIR/frame_SEQ.png")
-    out.add_argument("--jpeg-quality", type=_number(int, 1, 100), default=85, metavar="Q",
+    out.add_argument("--jpeg-quality", type=number_arg(int, 1, 100, finite=True), default=85, metavar="Q",
                      help="MJPEG quality 1-100 (default 85)")
     run = parser.add_argument_group("run")
-    run.add_argument("--duration", type=_number(float, 0.001), metavar="SECONDS",
+    run.add_argument("--duration", type=number_arg(float, 0.001, finite=True), metavar="SECONDS",
                      help="stop after this long (default: Ctrl-C)")
-    run.add_argument("--max-frames", type=_number(int, 1), metavar="N", help="stop after N frames")
+    run.add_argument("--max-frames", type=number_arg(int, 1, finite=True), metavar="N", help="stop after N frames")
     run.add_argument("--quiet", action="store_true", help="no status line")
     return parser
 

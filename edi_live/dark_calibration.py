@@ -31,6 +31,7 @@ from edi_live.black_level_policy import MAX_BLACK_DN
 from edi_live.datatypes import SourceInfo
 from edi_live.edi import blurry_to_float
 from edi_live.errors import ConfigError, EdiLiveError
+from edi_live.source import stop_from_another_thread
 
 log = logging.getLogger(__name__)
 
@@ -105,10 +106,8 @@ class _Stop:
     def stop(self) -> None:
         self.event.set()
         stop_source = getattr(self.source, "stop", None)  # (a Source has one; a plain iterable of packets not)
-        if stop_source is not None:  # also ends a wait inside the source (a camera gone while starting, --reconnect);
-            # from another thread, as this runs in a signal handler on the reading thread, which may hold a lock
-            # that stop() takes
-            threading.Thread(target=stop_source, name="source-stop", daemon=True).start()
+        if stop_source is not None:  # also ends a wait inside the source (a camera gone while starting, --reconnect)
+            stop_from_another_thread(stop_source)
 
 
 def calibrate_dark(source: Any, n_frames: int, target: Path | None, signals: Any = None) -> tuple[DarkFrames, Path]:

@@ -35,7 +35,7 @@ from edi_live.config import EdiConfig, NodeConfig
 from edi_live.errors import ConfigError, EdiLiveError, NodeError, SourceError
 from edi_live.reconstruction import Reconstructor
 from edi_live.ring import EventRing, as_events
-from edi_live.source import Source
+from edi_live.source import Source, stop_from_another_thread
 from edi_live.stats import Rates, StatusLine, collect, with_rates
 from edi_live.warm_up import warm_up
 from edi_live.worker import EdiWorker
@@ -126,9 +126,8 @@ class Node:
     def stop(self) -> None:
         """Ask the node to stop (Ctrl-C, SIGTERM, --duration). Safe from signal handlers and other threads."""
         self._stop.set()
-        if self._entering:  # a source waiting while it opens; stopped from another thread, since a signal handler
-            # runs on the opening thread, which may hold a lock that the source's stop() takes
-            threading.Thread(target=self.source.stop, name="source-stop", daemon=True).start()
+        if self._entering:  # a source waiting while it opens
+            stop_from_another_thread(self.source.stop)
 
     def fail(self, exc: BaseException, thread: str = "main", input_fault: bool = False) -> None:
         """Record a thread's failure (the first one wins). A fault of the input lets received data drain;

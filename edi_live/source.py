@@ -6,7 +6,8 @@ to end the iteration early.
 
 from __future__ import annotations
 
-from typing import Iterator, Protocol, runtime_checkable
+import threading
+from typing import Callable, Iterator, Protocol, runtime_checkable
 
 from edi_live.datatypes import Packet, SourceInfo, SourceStatus
 
@@ -36,3 +37,9 @@ class Source(Protocol):
     def status(self) -> SourceStatus:
         """Counters (packets, events, drops, backlog) so far."""
         ...
+
+
+def stop_from_another_thread(stop: Callable[[], None]) -> None:
+    """Call a source's stop() on a short-lived thread of its own. For a signal handler: it runs on the thread that
+    may be inside the source (opening it, waiting for a camera), holding a lock that stop() takes."""
+    threading.Thread(target=stop, name="source-stop", daemon=True).start()

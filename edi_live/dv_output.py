@@ -97,7 +97,8 @@ class DvOutput:
         self._thread: threading.Thread | None = None
         self._last_t = -(2**63)  # events: the newest time sent
         # a frame goes out once no older one can come (edi_live.frame_order), or after hold_s at the latest
-        self._order = FrameOrder(0, widen=False, predict=True, hold_s=hold_s, max_held=inbox) if stream == "frames" else None
+        self._order = (FrameOrder(0, widen=False, predict=True, hold_s=hold_s, max_held=inbox) if stream == "frames"
+                       else None)
         self.sent = self.dropped = self.connections = 0
         self._client_lines = 0
 

@@ -99,7 +99,10 @@ class DvOutput:
         # a frame goes out once no older one can come (edi_live.frame_order), or after hold_s at the latest
         self._order = (FrameOrder(0, widen=False, predict=True, hold_s=hold_s, max_held=inbox) if stream == "frames"
                        else None)
-        self.sent = self.dropped = self.connections = 0
+        self.sent = self.connections = 0
+        # two counters, each written by one thread only (a shared `+=` from both could lose counts)
+        self._inbox_dropped = 0  # the caller's: the server thread fell behind (under _lock)
+        self._client_dropped = 0  # the server thread's: packets a slow client did not take
         self._client_lines = 0
 
     # ---------------------------------------------------------------- any thread
@@ -129,12 +132,17 @@ class DvOutput:
         self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
         self._thread.start()
 
+    @property
+    def dropped(self) -> int:
+        """Items lost: frames or packets dropped from a full inbox, and packets a slow client did not take."""
+        return self._inbox_dropped + self._client_dropped
+
     def submit(self, item: Reconstruction | Packet) -> None:
         """Queue one reconstruction ("frames") or packet ("events") for every client; never waits."""
         with self._lock:
             if len(self._inbox) >= self.inbox_size:
                 self._inbox.popleft()
-                self.dropped += 1
+                self._inbox_dropped += 1
             self._inbox.append(item)
         self._wake()
 
@@ -165,8 +173,9 @@ class DvOutput:
         for sock in (self._wake_r, self._wake_w):
             sock.close()
         late = f", {self.late} skipped as older than a frame already sent" if self.late else ""
-        log.info("%s: %d packets sent to %d client connection(s), %d dropped for slow clients%s", self.name,
-                 self.sent, self.connections, self.dropped, late)
+        behind = f", {self._inbox_dropped} dropped before encoding (the server fell behind)" if self._inbox_dropped else ""
+        log.info("%s: %d packets sent to %d client connection(s), %d dropped for slow clients%s%s", self.name,
+                 self.sent, self.connections, self._client_dropped, behind, late)
 
     def _wake(self) -> None:
         try:
@@ -301,7 +310,7 @@ class DvOutput:
                 for client in list(self._clients.values()):
                     if len(client.queue) >= self.client_queue:
                         client.queue.popleft()  # whole packets only: the one being sent is finished first
-                        self.dropped += 1
+                        self._client_dropped += 1
                     client.queue.append(data)
         for client in list(self._clients.values()):
             if client.queue or client.current:

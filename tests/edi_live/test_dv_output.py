@@ -272,6 +272,20 @@ def test_a_client_that_never_reads_costs_drops_not_stalls():
         out.close()
 
 
+def test_frames_the_server_had_no_time_to_take_are_counted_and_the_newest_kept(caplog):
+    out = DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, inbox=8, hold_s=0)  # not started: nothing is taken
+    try:
+        for k in range(20):
+            out.submit(_rec(T0 + k, k))
+        assert out.stats()["dv_frames_dropped"] == 12 and out.pending() == 8
+        caplog.set_level("INFO", logger="edi_live.dv_output")
+        out.close()
+        assert "12 dropped before encoding (the server fell behind)" in caplog.text
+        assert "0 dropped for slow clients" in caplog.text
+    finally:
+        out.close()
+
+
 def test_bind_errors_are_one_line_and_endpoints_are_checked():
     holder = socket.socket()
     holder.bind(("127.0.0.1", 0))

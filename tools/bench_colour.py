@@ -23,6 +23,13 @@ run: median, min and max over the repeats (CPU time of this thread; the machine 
         # events per frame, with the compiled demosaic, then with OpenCV's (5 repeats unless --repeats; colour
         # and grey alternate within each repeat)
     python -m tools.bench_colour --node 1000    # the whole node's CPU, colour against grey (below)
+    python -m tools.bench_colour --floor 1000   # the latent-frame ratio with the demosaic replaced by stand-ins
+        # that do no arithmetic (below)
+
+`--floor EVERY`: what the latent-frame ratio would be with a free demosaic. The demosaic is replaced by (a) a
+function that returns one preallocated (h, w, 3) array (no output written at all: a lower bound no real demosaic
+reaches) and (b) a copy of that array into a new one (the 270 kB output written, no arithmetic): the cost of the
+colour frame's size alone, against grey frames of a third of the bytes.
 
 `--node EVERY`: the node as a user runs it (replay at --speed 0, one subscriber receiving every frame, each run in a
 fresh process) on one simulated 346x260 recording whose raw mosaic is stored without its pattern, read once as
@@ -234,6 +241,29 @@ print(json.dumps({"cpu_s": stats["node_cpu_s"], "frames": sub.get("frames", 0)})
 """
 
 
+def floor_table(every: int, repeats: int) -> None:
+    """The latent-frame ratio with the demosaic replaced by stand-ins without arithmetic (see the docstring)."""
+    import edi_live.colour_edi as colour_edi
+
+    sim = simulate(scenes(False)["blocks, ideal camera"])
+    h, w = sim.config.height, sim.config.width
+    kept = np.zeros((h, w, 3), np.uint8)
+    stand_ins = {"the demosaic as it is": colour_edi.demosaic,
+                 "returns a preallocated array (writes nothing)": lambda mosaic_u8, pattern, method: kept,
+                 "copies a 270 kB array (writes the output, no arithmetic)":
+                     lambda mosaic_u8, pattern, method: kept.copy()}
+    print(f"| demosaic replaced by ({every} events per latent frame) | latent colour / grey |")
+    print("|---|---|")
+    real = colour_edi.demosaic
+    try:
+        for name, fn in stand_ins.items():
+            colour_edi.demosaic = fn
+            med, lo, hi = speed(sim, repeats, every)["latent"]
+            print(f"| {name} | {med:.2f} [{lo:.2f}, {hi:.2f}] |", flush=True)
+    finally:
+        colour_edi.demosaic = real
+
+
 def node_table(every: int, repeats: int, duration_s: float = 1.0) -> None:
     """Node CPU, colour against grey on the same recording, alternating fresh processes (see the docstring)."""
     import json
@@ -269,7 +299,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--speed", type=int, nargs="+", metavar="EVERY",
                     help="only the cost ratios, at these events per latent frame: compiled demosaic and OpenCV's")
     ap.add_argument("--node", type=int, metavar="EVERY", help="only the whole node's CPU, colour against grey")
+    ap.add_argument("--floor", type=int, metavar="EVERY",
+                    help="only the latent-frame ratio with the demosaic replaced by stand-ins without arithmetic")
     args = ap.parse_args(argv)
+    if args.floor is not None:
+        if args.floor < 1:
+            ap.error("--floor needs events per frame >= 1")
+        floor_table(args.floor, args.repeats or 5)
+        return
     if args.node is not None:
         if args.node < 1:
             ap.error("--node needs events per frame >= 1")

@@ -111,13 +111,15 @@ def build_parser() -> argparse.ArgumentParser:
                      help="also re-estimate c every K APS frames (default: 0 = only when it stops fitting)")
     edi.add_argument("--black-level", type=float, metavar="DN",
                      help="APS black level in 8-bit DN, taken off every APS frame so that the output is linear in "
-                          "intensity (default: 0, right for DV's frames)")
+                          "intensity (default: estimated from the stream while c is estimated and --aps-gamma is 1, "
+                          "else a loaded calibration's or 0)")
     edi.add_argument("--aps-gamma", type=float, metavar="G",
                      help="APS response exponent: value = black level + 255 (I/255)^(1/G); undone before the "
-                          "deblur so that the output is linear (default: 1)")
+                          "deblur so that the output is linear (default: 1, or a loaded calibration's)")
     edi.add_argument("--clock-offset-us", type=int, metavar="US",
                      help="events arrive this much later than the APS exposure they belong to (pixel latency; the "
-                          "EDI authors set it by hand); the exposure window moves into the event clock (default: 0)")
+                          "EDI authors set it by hand); the exposure window moves into the event clock (default: "
+                          "estimated from the stream while c is estimated, else a loaded calibration's or 0)")
     edi.add_argument("--noise-stats", action=argparse.BooleanOptionalAction,
                      help="estimate each pixel's background-activity rate (ON and OFF) where the scene is still, "
                           "shown in the stats and saved with the calibration (default: on while c is estimated)")
@@ -156,7 +158,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "server output and dv-processing's NetworkWriter; loopback unless you choose otherwise)")
     out.add_argument("--dv-output-events", metavar="tcp://HOST:PORT",
                      help="also serve the input events, passed through, as a second DV network stream")
-    out.add_argument("--out", metavar="FILE.aedat4", help="also write every emitted frame (8-bit gray, lossless)")
+    out.add_argument("--out", metavar="FILE.aedat4",
+                     help="also write every emitted frame (8-bit gray, or BGR from a colour camera; lossless)")
     out.add_argument("--record", metavar="FILE.aedat4", help="record the raw input as received, for --replay")
     adv = p.add_argument_group("advanced")
     adv.add_argument("--ring-events", type=int, metavar="N",

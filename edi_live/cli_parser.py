@@ -32,7 +32,8 @@ seeing the frames:
   --out FILE.aedat4              opens in DV (file input), dv-processing, or --replay; one 8-bit frame each
 
 Ctrl-C or SIGTERM stops cleanly (files finalised, exit 0; a second Ctrl-C is ignored while it stops). Exit codes: 0 ok, 1 runtime error, 2 usage error.
-Every flag can also be set in --config FILE.toml with the same name (e.g. `every = 1000`, `c-on = 0.2`).
+Every flag but --list-devices, --calibrate-dark and --version can also be set in --config FILE.toml with the
+same name (e.g. `every = 1000`, `c-on = 0.2`).
 """
 
 

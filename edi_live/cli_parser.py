@@ -82,7 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="causal (default): latent frames from the latest deblurred APS frame, lowest latency; "
                           "nearest: wait for the next APS frame when it is nearer (adds latency, reported); "
                           "fused: every latent frame from both APS frames around it, best quality (waits for "
-                          "the next APS frame: up to one frame interval, reported)")
+                          "the next APS frame: up to one frame interval plus half an exposure, reported)")
     edi.add_argument("--max-fps", type=float, metavar="FPS", help="cap on latent frames per second (default: none)")
     edi.add_argument("--heartbeat-s", type=float, metavar="S",
                      help="keyframe interval on a static scene, seconds (default: 1.0)")
@@ -107,7 +107,8 @@ def build_parser() -> argparse.ArgumentParser:
     edi.add_argument("--latent-denoise", action=argparse.BooleanOptionalAction,
                      help="grey sensors, causal mode: in latent frames, a pixel whose change since the exposure's end "
                           "fewer than 2 of its 8 neighbours share shows its value at the exposure's end, so that one "
-                          "pixel's extra or missing event is no dot (one pass over each frame; default: off)")
+                          "pixel's extra or missing event is no dot (redone per frame in the 8x8 tiles near its "
+                          "events; 1.3-1.5x the worker's CPU; default: off)")
     edi.add_argument("--reestimate-every", type=int, metavar="K",
                      help="also re-estimate c every K APS frames (default: 0 = only when it stops fitting)")
     edi.add_argument("--black-level", type=float, metavar="DN",
@@ -167,7 +168,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="ring capacity in events, half kept as exposure history (default: 4194304 = 64 MiB)")
     adv.add_argument("--ring-frames", type=int, metavar="N", help="APS frames the ring holds (default: 16)")
     adv.add_argument("--ring-policy", choices=("drop_oldest", "wait"),
-                     help="overflow policy (default: wait for replay/emulation, drop_oldest for a live camera)")
+                     help="overflow policy (default: wait for replay/emulation, drop_oldest for a live camera or "
+                          "--dv-input)")
     other = p.add_argument_group("other")
     other.add_argument("--config", metavar="FILE.toml", help="read options from a TOML file; flags override it")
     other.add_argument("--log-level", choices=LOG_LEVELS, help="log verbosity on stderr (default: info; debug "

@@ -32,7 +32,8 @@ seeing the frames:
   --out FILE.aedat4              opens in DV (file input), dv-processing, or --replay; one 8-bit frame each
 
 Ctrl-C or SIGTERM stops cleanly (files finalised, exit 0; a second Ctrl-C is ignored while it stops). Exit codes: 0 ok, 1 runtime error, 2 usage error.
-Every flag can also be set in --config FILE.toml with the same name (e.g. `every = 1000`, `c-on = 0.2`).
+Every flag but --list-devices, --calibrate-dark and --version can also be set in --config FILE.toml with the
+same name (e.g. `every = 1000`, `c-on = 0.2`).
 """
 
 
@@ -81,7 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="causal (default): latent frames from the latest deblurred APS frame, lowest latency; "
                           "nearest: wait for the next APS frame when it is nearer (adds latency, reported); "
                           "fused: every latent frame from both APS frames around it, best quality (waits for "
-                          "the next APS frame: up to one frame interval, reported)")
+                          "the next APS frame: up to one frame interval plus half an exposure, reported)")
     edi.add_argument("--max-fps", type=float, metavar="FPS", help="cap on latent frames per second (default: none)")
     edi.add_argument("--heartbeat-s", type=float, metavar="S",
                      help="keyframe interval on a static scene, seconds (default: 1.0)")
@@ -106,18 +107,21 @@ def build_parser() -> argparse.ArgumentParser:
     edi.add_argument("--latent-denoise", action=argparse.BooleanOptionalAction,
                      help="grey sensors, causal mode: in latent frames, a pixel whose change since the exposure's end "
                           "fewer than 2 of its 8 neighbours share shows its value at the exposure's end, so that one "
-                          "pixel's extra or missing event is no dot (one pass over each frame; default: off)")
+                          "pixel's extra or missing event is no dot (redone per frame in the 8x8 tiles near its "
+                          "events; 1.3-1.5x the worker's CPU; default: off)")
     edi.add_argument("--reestimate-every", type=int, metavar="K",
                      help="also re-estimate c every K APS frames (default: 0 = only when it stops fitting)")
     edi.add_argument("--black-level", type=float, metavar="DN",
                      help="APS black level in 8-bit DN, taken off every APS frame so that the output is linear in "
-                          "intensity (default: 0, right for DV's frames)")
+                          "intensity (default: estimated from the stream while c is estimated and --aps-gamma is 1, "
+                          "else a loaded calibration's or 0)")
     edi.add_argument("--aps-gamma", type=float, metavar="G",
                      help="APS response exponent: value = black level + 255 (I/255)^(1/G); undone before the "
-                          "deblur so that the output is linear (default: 1)")
+                          "deblur so that the output is linear (default: 1, or a loaded calibration's)")
     edi.add_argument("--clock-offset-us", type=int, metavar="US",
                      help="events arrive this much later than the APS exposure they belong to (pixel latency; the "
-                          "EDI authors set it by hand); the exposure window moves into the event clock (default: 0)")
+                          "EDI authors set it by hand); the exposure window moves into the event clock (default: "
+                          "estimated from the stream while c is estimated, else a loaded calibration's or 0)")
     edi.add_argument("--noise-stats", action=argparse.BooleanOptionalAction,
                      help="estimate each pixel's background-activity rate (ON and OFF) where the scene is still, "
                           "shown in the stats and saved with the calibration (default: on while c is estimated)")
@@ -156,14 +160,16 @@ def build_parser() -> argparse.ArgumentParser:
                           "server output and dv-processing's NetworkWriter; loopback unless you choose otherwise)")
     out.add_argument("--dv-output-events", metavar="tcp://HOST:PORT",
                      help="also serve the input events, passed through, as a second DV network stream")
-    out.add_argument("--out", metavar="FILE.aedat4", help="also write every emitted frame (8-bit gray, lossless)")
+    out.add_argument("--out", metavar="FILE.aedat4",
+                     help="also write every emitted frame (8-bit gray, or BGR from a colour camera; lossless)")
     out.add_argument("--record", metavar="FILE.aedat4", help="record the raw input as received, for --replay")
     adv = p.add_argument_group("advanced")
     adv.add_argument("--ring-events", type=int, metavar="N",
                      help="ring capacity in events, half kept as exposure history (default: 4194304 = 64 MiB)")
     adv.add_argument("--ring-frames", type=int, metavar="N", help="APS frames the ring holds (default: 16)")
     adv.add_argument("--ring-policy", choices=("drop_oldest", "wait"),
-                     help="overflow policy (default: wait for replay/emulation, drop_oldest for a live camera)")
+                     help="overflow policy (default: wait for replay/emulation, drop_oldest for a live camera or "
+                          "--dv-input)")
     other = p.add_argument_group("other")
     other.add_argument("--config", metavar="FILE.toml", help="read options from a TOML file; flags override it")
     other.add_argument("--log-level", choices=LOG_LEVELS, help="log verbosity on stderr (default: info; debug "

@@ -159,7 +159,7 @@ class Node:
         keep = ("warm_up_s", "events_per_s", "frames_per_s", "c", "c_on", "c_off", "reestimations", "hot_pixels", "drops",
                 "ring_occupancy", "ring_dropped_events", "ring_dropped_frames", "events_in", "events_processed",
                 "aps_frames_in", "frames_deblurred", "frames_latent", "heartbeats", "skipped_max_fps",
-                "source_dropped_events", "source_gaps", "nearest_added_latency_ms_p50",
+                "source_dropped_events", "source_dropped_bytes", "source_gaps", "nearest_added_latency_ms_p50",
                 "fused_added_latency_ms_p50", "out_wait_s",
                 "unreliable_pixels", "flicker_pixels", "black_level_dn", "clock_offset_us", "aps_gamma", "clock_offset_estimated",
                 "clock_offset_physical_us",

@@ -177,6 +177,10 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         f"skipped: static {s.get('skipped_static', 0)} (APS frames not deblurred: "
         f"{s.get('skipped_static_deblur', 0)}), max-fps {s.get('skipped_max_fps', 0)}",
     ]
+    if s.get("source_dropped_bytes"):
+        lines.append(f"  warning: the camera's USB reader dropped {s['source_dropped_bytes']} bytes of raw data that the "
+                     f"host did not take in time ({s.get('source_gaps', 0)} gap(s) in the stream): the events and APS "
+                     f"frames in them are lost (the reader's thread was starved of CPU: other load on the machine)")
     if events and not s.get("aps_frames_in"):
         lines.append(f"  warning: no APS frame arrived, so none of the {events} events became a frame: EDI needs the "
                      f"camera's APS frames (an events-only recording, or a camera without them, has none)")

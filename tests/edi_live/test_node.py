@@ -6,6 +6,7 @@ frame message, kinds), dv-processing reopening the --out file. Every wait has a 
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 import threading
@@ -115,6 +116,41 @@ def test_truncated_recording_delivers_frames_before_the_fault_and_finalises_out(
     while (frame := rec.getNextFrame()) is not None:
         times.append(frame.timestamp)
     assert len(times) == written and times == sorted(times)
+
+
+class LossySource:
+    """A replay whose status reports raw USB bytes lost, as a live DavisSource does when its reader falls behind."""
+
+    def __init__(self, inner) -> None:
+        self.inner, self.info = inner, inner.info
+
+    def __enter__(self):
+        self.inner.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        self.inner.__exit__(*exc)
+
+    def stop(self):
+        self.inner.stop()
+
+    def status(self):
+        return dataclasses.replace(self.inner.status(), dropped_bytes=4096, gaps=1)
+
+    def __iter__(self):
+        return iter(self.inner)
+
+
+def test_raw_data_a_source_lost_reaches_subscribers_and_the_summary(real_recordings):
+    from edi_live.stats import format_summary
+
+    path = real_recordings[DEMO]
+    cfg = NodeConfig.from_options({"replay": str(path), "speed": 0, "no_publish": True})
+    node = Node(cfg, LossySource(replay(path, speed=0)), reconstructor_factory=lambda w, h, e: StandIn())
+    node.run()
+    published = node.stats_map()
+    assert published["source_dropped_bytes"] == 4096 and published["source_gaps"] == 1
+    assert "dropped 4096 bytes of raw data" in format_summary(node.final_stats, 1.0)
 
 
 def test_duration_and_stop_end_a_looping_replay(real_recordings):

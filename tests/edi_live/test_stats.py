@@ -148,3 +148,9 @@ def test_summary_accounts_for_aps_frames_a_still_scene_did_not_deblur():
     # "4 APS frames in" with 3 deblurred must say where the fourth went
     summary = format_summary({**STATS, "aps_frames_in": 4, "frames_deblurred": 3, "skipped_static_deblur": 1}, 1.0)
     assert "APS frames not deblurred: 1" in summary
+
+
+def test_raw_usb_data_lost_is_said_in_the_summary_in_bytes():
+    text = format_summary({**STATS, "source_dropped_bytes": 65536, "source_gaps": 2}, 1.0)
+    assert "dropped 65536 bytes of raw data" in text and "2 gap(s)" in text
+    assert "raw data" not in format_summary(STATS, 1.0)

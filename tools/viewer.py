@@ -80,7 +80,10 @@ def status_line(rates: Rates, skipped: int, stats: dict | None, stats_age_s: flo
     if stats and stats_age_s > STATS_STALE_S:
         parts.append(f"no stats from the node for {stats_age_s:.0f} s (stopped, or unreachable?)")
     elif stats:
-        c = _num(stats, "c") if "c" in stats else f"{_num(stats, 'c_on')}/{_num(stats, 'c_off')}"
+        on, off = stats.get("c_on"), stats.get("c_off")
+        # unequal thresholds are shown as such (the stats' `c` is then only their mean)
+        split = "c_on" in stats and "c_off" in stats and on != off
+        c = f"{_num(stats, 'c_on')}/{_num(stats, 'c_off')}" if split or "c" not in stats else _num(stats, "c")
         parts.append(f"node {_num(stats, 'frames_per_s', fmt='{:.1f}')} fps, "
                      f"{_num(stats, 'events_per_s', 1e-6)} Mev/s, c {c}")
         parts.append(f"latency p50 {_num(stats, 'latency_p50_us', 1e-3)} ms p99 "

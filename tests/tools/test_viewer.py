@@ -123,6 +123,9 @@ def test_rates_count_seq_gaps_and_status_line():
     assert "node drops 9 " in viewer.status_line(rates, 0, {"drops": 9, "publish_dropped": 4}) + " "
     assert "no stats yet" in viewer.status_line(rates, 0, None)
     assert "c 0.25/0.30" in viewer.status_line(rates, 0, {"c_on": 0.25, "c_off": 0.3, "latency_p50_us": None})
+    # the node's stats always carry c (the mean) beside c_on and c_off: unequal thresholds must still show
+    assert "c 0.25/0.30" in viewer.status_line(rates, 0, {"c": 0.275, "c_on": 0.25, "c_off": 0.3})
+    assert "c 0.20 " in viewer.status_line(rates, 0, {"c": 0.2, "c_on": 0.2, "c_off": 0.2}) + " "
     quality = viewer.status_line(rates, 0, {"pred_psnr_db": 33.26, "still_psnr_db": 29.61})
     assert "predicts next APS frame 33.3 dB (nothing moved: 29.6 dB)" in quality
     assert "predicts" not in viewer.status_line(rates, 0, {"pred_psnr_db": None})

@@ -10,6 +10,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from edi_live import kernel_cache
 from edi_live.datatypes import EVENT_DTYPE, Frame
 
 log = logging.getLogger("edi_live.node")
@@ -23,6 +24,8 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
     APS frames from stalling the worker while the ring fills (a live camera would drop data). A failure here is
     not fatal: the real run reports it where it happens.
     """
+    if kernel_cache.notice():  # the kernels are cached where the next start may not find them: say so once
+        log.warning(kernel_cache.notice())
     width, height = 16, 12
     rng = np.random.default_rng(0)
     image = np.full((height, width), 100, np.uint8)

@@ -5,6 +5,7 @@ the Docker image could not start the emulated camera; the editable install the t
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -42,3 +43,47 @@ def test_a_wheel_built_from_the_tree_holds_every_module_and_the_udev_rule(tmp_pa
     assert "edi_live/simulation/engine.py" in sources and "drivers/99-edi-live-davis.rules" in sources
     missing = [name for name in sources if name not in held]
     assert not missing, f"the wheel lacks {missing}"
+
+
+_FIRST_KERNEL = r"""
+import os, sys
+import numpy as np
+import edi_live
+from edi_live.aedat4._check import check_events  # a numba kernel with an on-disk cache, defined at import
+from edi_live.datatypes import EVENT_DTYPE
+ev = np.zeros(3, EVENT_DTYPE)
+ev["t"] = [1, 2, 3]
+check_events(ev.view(np.uint8), 4, 4, 0)  # compiled now, so its cache files are written
+print(edi_live.__file__)
+print(os.environ.get("NUMBA_CACHE_DIR", ""))
+"""
+
+
+def _unwritable_install(tmp_path: Path) -> tuple[Path, dict[str, str]]:
+    """A copy of edi_live whose __pycache__ folders cannot be made (a plain file holds each name, which stops root
+    too), run with a home folder that cannot hold ~/.cache: as for a system-wide install used by an account
+    without a writable home (a service account, a container's --user)."""
+    tree = tmp_path / "site"
+    shutil.copytree(REPO / "edi_live", tree / "edi_live", ignore=shutil.ignore_patterns("__pycache__"))
+    for package in (tree / "edi_live").rglob("__init__.py"):
+        (package.parent / "__pycache__").write_text("not a folder\n")
+    blocker = tmp_path / "blocker"
+    blocker.write_text("a file, so no folder can be made under it\n")
+    (tmp_path / "tmp").mkdir()
+    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "XDG_CACHE_HOME", "PYTHONPATH")}
+    env.update(HOME=str(blocker / "home"), TMPDIR=str(tmp_path / "tmp"), PYTHONPATH=str(tree))
+    return tree, env
+
+
+def test_the_package_imports_and_caches_its_kernels_where_neither_the_package_nor_the_home_is_writable(tmp_path):
+    """numba's cache=True kernels look for a writable folder when they are defined: beside the module, then
+    ~/.cache/numba. Where neither can be written, numba raised at import ("cannot cache function ... no locator
+    available"), so the node could not even start; edi_live now picks a private folder in the temp directory."""
+    tree, env = _unwritable_install(tmp_path)
+    proc = subprocess.run([sys.executable, "-c", _FIRST_KERNEL], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    module, cache_dir = proc.stdout.split("\n")[:2]
+    assert Path(module).is_relative_to(tree)
+    assert Path(cache_dir).is_relative_to(tmp_path / "tmp")
+    assert list(Path(cache_dir).rglob("*.nbi")), "no kernel was cached"

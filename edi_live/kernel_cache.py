@@ -50,7 +50,7 @@ def _private_temp_folder() -> Path:
         try:
             os.makedirs(folder, mode=0o700, exist_ok=True)
             st = os.lstat(folder)
-            if stat.S_ISDIR(st.st_mode) and st.st_uid == uid and not st.st_mode & 0o077 and _writable(folder):
+            if stat.S_ISDIR(st.st_mode) and st.st_uid == uid and not st.st_mode & 0o022 and _writable(folder):
                 return folder
         except OSError:
             pass
@@ -72,11 +72,26 @@ def choose(environ: MutableMapping[str, str] = os.environ, package_dir: Path = _
     except OSError as exc:  # no usable temp directory either: numba will say what it cannot do
         return f"numba kernel cache: no folder can be written ({exc}); set NUMBA_CACHE_DIR to one"
     environ["NUMBA_CACHE_DIR"] = str(folder)
+    seeded = given and _seed(folder, Path(given))
     tried = ([f"NUMBA_CACHE_DIR={given}"] if given else []) + [str(package_dir / "__pycache__"),
                                                               str(_user_cache(environ))]
-    return (f"numba kernel cache: none of {', '.join(tried)} can be written, so compiled kernels go to {folder}, "
-            f"which the system may clear (the next start then compiles again); set NUMBA_CACHE_DIR to a lasting "
-            f"folder this user can write")
+    return (f"numba kernel cache: none of {', '.join(tried)} can be written, so compiled kernels go to {folder}"
+            f"{' (started from a copy of the first)' if seeded else ''}, which the system may clear (the next start "
+            f"then compiles again); set NUMBA_CACHE_DIR to a lasting folder this user can write")
+
+
+def _seed(folder: Path, given: Path) -> bool:
+    """Copy the kernels compiled into the NUMBA_CACHE_DIR this account cannot write (a container image's, run with
+    `--user`) into the empty private folder, so they load instead of compiling again; numba only uses a cache folder
+    it can write to. Returns whether anything was copied."""
+    try:
+        if not given.is_dir() or any(folder.iterdir()):
+            return False
+        shutil.copytree(given, folder, dirs_exist_ok=True)
+        os.chmod(folder, 0o700)  # (copytree gave it the mode of the folder copied)
+    except OSError:
+        return False
+    return any(folder.iterdir())
 
 
 def notice() -> str:

@@ -83,3 +83,24 @@ def test_a_temp_folder_of_that_name_that_others_could_write_is_not_used(tmp_path
     folder = Path(environ["NUMBA_CACHE_DIR"])
     assert folder.parent == temp_dir and folder != name
     assert stat.S_IMODE(folder.stat().st_mode) == 0o700 and not folder.is_symlink()
+
+
+def test_kernels_in_a_given_folder_this_account_cannot_write_are_copied_to_its_own_folder(tmp_path, temp_dir,
+                                                                                         monkeypatch):
+    """A container image compiles its kernels into NUMBA_CACHE_DIR as one account; run with `--user`, another
+    account can read that folder but not write it, and numba uses no folder it cannot write. The private folder
+    starts from a copy, so the image's kernels still load. (Root can write anywhere: the check is told instead.)"""
+    image_cache = tmp_path / "image-cache"
+    (image_cache / "edi_abc").mkdir(parents=True)
+    (image_cache / "edi_abc" / "k.py311.nbi").write_bytes(b"index")
+    (image_cache / "edi_abc" / "k.py311.1.nbc").write_bytes(b"code")
+    writable = kernel_cache._writable
+    monkeypatch.setattr(kernel_cache, "_writable", lambda folder: folder != image_cache and writable(folder))
+    environ = {"XDG_CACHE_HOME": str(_blocked(tmp_path, "blocked") / "cache"), "NUMBA_CACHE_DIR": str(image_cache)}
+    notice = kernel_cache.choose(environ, _package(tmp_path, writable=False))
+    folder = Path(environ["NUMBA_CACHE_DIR"])
+    assert folder.parent == temp_dir
+    assert (folder / "edi_abc" / "k.py311.nbi").read_bytes() == b"index"
+    assert (folder / "edi_abc" / "k.py311.1.nbc").read_bytes() == b"code"
+    assert stat.S_IMODE(folder.stat().st_mode) == 0o700
+    assert "copy" in notice and str(image_cache) in notice

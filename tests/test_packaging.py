@@ -5,7 +5,9 @@ the Docker image could not start the emulated camera; the editable install the t
 
 from __future__ import annotations
 
+import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -87,3 +89,41 @@ def test_the_package_imports_and_caches_its_kernels_where_neither_the_package_no
     assert Path(module).is_relative_to(tree)
     assert Path(cache_dir).is_relative_to(tmp_path / "tmp")
     assert list(Path(cache_dir).rglob("*.nbi")), "no kernel was cached"
+
+
+def _installed_copy(tmp_path: Path) -> tuple[Path, dict[str, str]]:
+    """What an installed user has: edi_live and drivers, and no tools/ (run from another folder)."""
+    site = tmp_path / "site"
+    for package in PACKAGES:
+        shutil.copytree(REPO / package, site / package, ignore=shutil.ignore_patterns("__pycache__"))
+    return site, {**os.environ, "PYTHONPATH": str(site)}
+
+
+def test_every_python_m_command_the_installed_helps_name_runs_without_the_repository_or_says_it_needs_it(tmp_path):
+    """`edi-live --help` told an installed user to see the frames with `python -m tools.viewer`, which is not
+    installed (the tools run from a repository checkout): No module named 'tools'."""
+    site, env = _installed_copy(tmp_path)
+    helps = [("edi_live", "--help"), ("edi_live.publisher", "--help"), ("edi_live.client", "--help"),
+             ("drivers.udev", "--help")]
+    named = {}
+    for module, flag in helps:
+        proc = subprocess.run([sys.executable, "-m", module, flag], cwd=tmp_path, env=env, capture_output=True,
+                              text=True, timeout=60)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        for line in proc.stdout.splitlines():
+            for name in re.findall(r"python -m ([\w.]+)", line):
+                if "checkout" not in line:  # a line may name a tool of the repository if it says so
+                    named.setdefault(name, []).append(f"{module} {flag}: {line.strip()}")
+    assert "edi_live.client" in named
+    probe = ("import importlib.util, json, sys\n"
+             "def found(name):\n"
+             "    try:\n"
+             "        return importlib.util.find_spec(name) is not None\n"
+             "    except ModuleNotFoundError:  # its parent package is missing\n"
+             "        return False\n"
+             "print(json.dumps([name for name in sys.argv[1:] if not found(name)]))")
+    proc = subprocess.run([sys.executable, "-c", probe, *named], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    missing = json.loads(proc.stdout)
+    assert not missing, [named[name] for name in missing]

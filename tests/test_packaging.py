@@ -35,9 +35,13 @@ def test_a_wheel_built_from_the_tree_holds_every_module_and_the_udev_rule(tmp_pa
         shutil.copy(REPO / name, tree / name)
     for package in PACKAGES:
         shutil.copytree(REPO / package, tree / package, ignore=shutil.ignore_patterns("__pycache__"))
-    proc = subprocess.run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", ".", "-w", "out"],
+    proc = subprocess.run([sys.executable, "-m", "pip", "wheel", "--verbose", "--no-deps", ".", "-w", "out"],
                           cwd=tree, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
+    # setuptools announces a date after which a deprecated pyproject.toml no longer builds (the license table did:
+    # "By 2027-Feb-18 ... your builds will no longer be supported"); a user's `pip install .` gets the newest one
+    announced = [line.strip() for line in (proc.stdout + proc.stderr).splitlines() if "DeprecationWarning" in line]
+    assert not announced, announced
     wheels = list((tree / "out").glob("edi_live-*.whl"))
     assert len(wheels) == 1, wheels
     held = set(zipfile.ZipFile(wheels[0]).namelist())

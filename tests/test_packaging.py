@@ -14,6 +14,8 @@ import sys
 import zipfile
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("edi_live", "drivers")
 
@@ -81,12 +83,16 @@ def _unwritable_install(tmp_path: Path) -> tuple[Path, dict[str, str]]:
     return tree, env
 
 
-def test_the_package_imports_and_caches_its_kernels_where_neither_the_package_nor_the_home_is_writable(tmp_path):
+@pytest.mark.parametrize("numba_first", [False, True], ids=["edi_live-first", "numba-imported-first"])
+def test_the_package_imports_and_caches_its_kernels_where_neither_the_package_nor_the_home_is_writable(tmp_path,
+                                                                                                       numba_first):
     """numba's cache=True kernels look for a writable folder when they are defined: beside the module, then
     ~/.cache/numba. Where neither can be written, numba raised at import ("cannot cache function ... no locator
-    available"), so the node could not even start; edi_live now picks a private folder in the temp directory."""
+    available"), so the node could not even start; edi_live now picks a private folder in the temp directory
+    (also when a program imported numba before edi_live, so numba had already read its settings)."""
     tree, env = _unwritable_install(tmp_path)
-    proc = subprocess.run([sys.executable, "-c", _FIRST_KERNEL], cwd=tmp_path, env=env, capture_output=True,
+    script = ("import numba\n" if numba_first else "") + _FIRST_KERNEL
+    proc = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, env=env, capture_output=True,
                           text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-3000:]
     module, cache_dir = proc.stdout.split("\n")[:2]

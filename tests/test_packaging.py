@@ -47,6 +47,8 @@ def test_a_wheel_built_from_the_tree_holds_every_module_and_the_udev_rule(tmp_pa
     wheels = list((tree / "out").glob("edi_live-*.whl"))
     assert len(wheels) == 1, wheels
     held = set(zipfile.ZipFile(wheels[0]).namelist())
+    version = re.search(r'^__version__ = "(.+)"$', (REPO / "edi_live" / "__init__.py").read_text(), re.M).group(1)
+    assert wheels[0].name.startswith(f"edi_live-{version}-"), (wheels[0].name, version)  # what --version prints
     sources = _sources()
     assert "edi_live/simulation/engine.py" in sources and "drivers/99-edi-live-davis.rules" in sources
     missing = [name for name in sources if name not in held]

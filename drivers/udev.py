@@ -5,14 +5,22 @@ tiny CLI: `python -m drivers.udev` prints the rule, `sudo python -m drivers.udev
 from __future__ import annotations
 
 import argparse
+import shlex
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 RULES_FILE = Path(__file__).resolve().parent / "99-edi-live-davis.rules"
 RULE_TEXT = ('SUBSYSTEM=="usb", ATTR{idVendor}=="152a", ATTR{idProduct}=="84[0-1]?", MODE="0660", '
              'GROUP="plugdev", TAG+="uaccess"')
 INSTALL_DIR = Path("/etc/udev/rules.d")
+
+
+def install_command() -> str:
+    """The command that installs the rule, with this Python: in a virtual environment `sudo python` would run the
+    system's Python, which has no edi-live (No module named 'drivers')."""
+    return f"sudo {shlex.quote(sys.executable)} -m drivers.udev --install"
 
 
 def install(dest_dir: Path = INSTALL_DIR, *, reload: bool = True) -> Path:
@@ -38,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         print(f"installed {install()}; unplug and replug the camera")
     except PermissionError:
-        print(f"permission denied writing {INSTALL_DIR}: run with sudo")
+        print(f"permission denied writing {INSTALL_DIR}: run {install_command()}", file=sys.stderr)
         return 1
     return 0
 

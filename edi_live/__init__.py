@@ -4,6 +4,8 @@ Data flows one way: driver (drivers/) -> ring buffer -> EDI worker -> ZeroMQ pub
 Importing this package loads only numpy: no zmq, usb or cv2 at import time.
 """
 
+# first: where numba may keep compiled kernels must be settled before any kernel module is imported
+from edi_live import kernel_cache as _kernel_cache  # noqa: F401
 from edi_live.datatypes import (
     EVENT_DTYPE,
     IMU_DTYPE,

@@ -26,8 +26,8 @@ examples:
   edi-live --dv-input tcp://127.0.0.1:7777 --dv-input tcp://127.0.0.1:7778 --dv-output tcp://127.0.0.1:7779
 
 seeing the frames:
-  python -m tools.viewer        then open http://127.0.0.1:8080 in a browser (live frames and counters)
   python -m edi_live.client      prints what arrives (any program can subscribe: see edi_live/client.py)
+  python -m tools.viewer         from a checkout of the repository: live frames and counters at http://127.0.0.1:8080
   --dv-output tcp://HOST:PORT    DV's GUI (network input module) or dv-processing's NetworkReader shows them
   --out FILE.aedat4              opens in DV (file input), dv-processing, or --replay; one 8-bit frame each
 

@@ -99,7 +99,7 @@ def read_toml(path: str | Path, known: Iterable[str]) -> dict[str, Any]:
     unknown = sorted(set(normalized) - set(known))
     _check(not unknown, f"config file {path}: unknown key(s) {', '.join(unknown)}")
     base = path.parent
-    for key in ("replay", "out", "record", "emulate_from", "curve_secret_key"):
+    for key in ("replay", "out", "record", "emulate_from", "curve_secret_key", "calibration", "save_calibration"):
         # relative paths in a config file are relative to the file, not to the working directory
         if isinstance(normalized.get(key), str) and not Path(normalized[key]).is_absolute():
             normalized[key] = str(base / normalized[key])

@@ -382,7 +382,7 @@ def main(argv: list[str] | None = None) -> int:
         description="Publisher utilities. Generate a CURVE key pair for `edi-live --curve-secret-key`.",
         epilog="example: python -m edi_live.publisher --gen-curve-keys ~/.config/edi-live/curve\n"
                "  then: edi-live --replay rec.aedat4 --curve-secret-key ~/.config/edi-live/curve/server.key_secret\n"
-               "  and:  python -m tools.viewer --curve-server-key ~/.config/edi-live/curve/server.key",
+               "  and:  python -m edi_live.client --curve-server-key ~/.config/edi-live/curve/server.key",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--gen-curve-keys", metavar="DIR", required=True,
                         help="write server.key (public, give to subscribers) and server.key_secret (keep private)")

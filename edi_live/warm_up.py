@@ -6,23 +6,42 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 from typing import Any, Callable
 
 import numpy as np
 
+from edi_live import kernel_cache
 from edi_live.datatypes import EVENT_DTYPE, Frame
 
 log = logging.getLogger("edi_live.node")
 
 
-def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
+SLOW_NOTICE = ("compiling the EDI kernels (numba) before the input opens: 15-30 s on the first run after installing "
+               "or upgrading; later runs load them from the cache in under a second")
+
+
+def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any, slow_after_s: float = 2.0) -> None:
     """Run a throwaway reconstructor over a tiny synthetic scene before the source starts.
 
-    The EDI kernels are numba functions: compiled on first use (seconds, with a cold cache) or loaded from the
-    on-disk cache (~0.4 s). Paying that here, before a camera streams or the replay clock starts, keeps the first
+    The EDI kernels are numba functions: compiled on first use (15-30 s in all, with a cold cache) or loaded from
+    the on-disk cache (~0.4 s). Paying that here, before a camera streams or the replay clock starts, keeps the first
     APS frames from stalling the worker while the ring fills (a live camera would drop data). A failure here is
-    not fatal: the real run reports it where it happens.
+    not fatal: the real run reports it where it happens. Past `slow_after_s` one line says why the start waits
+    (a first run printed nothing at all for that long).
     """
+    if kernel_cache.notice():  # the kernels are cached where the next start may not find them: say so once
+        log.warning(kernel_cache.notice())
+    timer = threading.Timer(slow_after_s, log.info, args=(SLOW_NOTICE,))
+    timer.daemon = True
+    timer.start()
+    try:
+        _exercise(make_reconstructor, edi_config)
+    finally:
+        timer.cancel()
+
+
+def _exercise(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
     width, height = 16, 12
     rng = np.random.default_rng(0)
     image = np.full((height, width), 100, np.uint8)

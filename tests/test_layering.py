@@ -47,6 +47,7 @@ PURE_MATH_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.errors", "edi_live.edi"
                          "edi_live.hold_average", "edi_live._kernels_demosaic", "edi_live.calibration_schedule",
                          "edi_live.psnr")
 DRIVERS_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.source", "edi_live.errors", "edi_live.aedat4",
+                       "edi_live.kernel_cache",  # numba's cache folder, settled before a kernel is defined
                        "edi_live.simulation")  # the emulator's generated scene
 # the simulator is the ground truth: it must not use the EDI code it is there to judge
 SIMULATION_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.errors", "edi_live.aedat4", "edi_live.simulation",

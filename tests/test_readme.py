@@ -46,13 +46,26 @@ def test_readme_has_two_setup_commands_and_ci_runs_the_test_one():
     assert ci[-1] == test, f".ci/run must end with the README's test command {test!r}"
 
 
+def test_the_first_readme_command_installs_into_a_virtual_environment():
+    """Debian 12 and Ubuntu 23.04+ mark their Python as externally managed: a bare `pip install -e .` there stops
+    with "error: externally-managed-environment" before anything is installed. The command makes and activates a
+    venv first (`.` keeps it active for command 2 in the same shell)."""
+    install_and_run, _ = _readme_commands()
+    steps = [s.strip() for s in install_and_run.split("&&")]
+    pip = next(i for i, s in enumerate(steps) if s.startswith("pip install"))
+    assert re.fullmatch(r"python3? -m venv (\S+)", steps[0]), steps
+    venv = steps[0].split()[-1]
+    assert f". {venv}/bin/activate" in steps[1:pip], steps
+
+
 def test_first_readme_command_deblurs_the_simulated_recording(tmp_path):
     from edi_live.aedat4.reader import Aedat4Reader
     from tools.simulate import load_ground_truth
 
     install_and_run, _ = _readme_commands()
-    # skip the install step (the suite already runs installed), keep the rest verbatim, shorten the recording
-    steps = [s.strip() for s in install_and_run.split("&&") if not s.strip().startswith("pip ")]
+    # skip the venv and install steps (the suite already runs installed), keep the rest verbatim, shorten the recording
+    steps = [s.strip() for s in install_and_run.split("&&")
+             if not s.strip().startswith(("pip ", "python3 -m venv ", ". "))]
     assert re.match(r"python -m tools\.simulate demo\.aedat4$", steps[0]) and steps[1].startswith("edi-live ")
     sim = subprocess.run([sys.executable, *steps[0].split()[1:], "--duration-s", "0.5"],
                          cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=120)

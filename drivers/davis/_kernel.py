@@ -16,6 +16,9 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+# (importing edi_live settles numba's cache folder, edi_live.kernel_cache, before the kernel below is defined)
+from edi_live import kernel_cache  # noqa: F401
+
 WRAP_STEP = 0x8000
 S_WRAP, S_CURRENT, S_LAST_Y, S_OFFSET, S_STARTED, S_BAD, S_LAST_OUT, S_BACKWARDS = range(8)
 

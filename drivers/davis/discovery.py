@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from drivers import udev
 from drivers.davis import models, protocol as P, transport
 from edi_live.datatypes import ColorFilter
 from edi_live.errors import DeviceNotFoundError, DevicePermissionError, SourceError
@@ -49,7 +50,7 @@ def _describe(dev: Any) -> DeviceDescription:
     try:
         serial = transport.read_serial(dev)
     except DevicePermissionError:
-        error = "permission denied: install the udev rule with python -m drivers.udev --install"
+        error = f"permission denied: install the udev rule with {udev.install_command()}"
     except SourceError as exc:
         error = str(exc)
     sensor, pattern = _read_sensor(dev) if error is None else (None, None)

@@ -12,7 +12,7 @@ import usb.core
 import usb.util
 
 from drivers.davis import models, protocol as P
-from drivers.udev import RULE_TEXT
+from drivers.udev import RULE_TEXT, RULES_FILE, install_command
 from edi_live.errors import (DeviceBusyError, DeviceDisconnectedError, DevicePermissionError,
                              SourceError)
 
@@ -23,8 +23,8 @@ NO_LIBUSB_HINT = ("libusb 1.0 was not found: install it (Debian/Ubuntu: sudo apt
 
 
 def permission_message(where: str) -> str:
-    return (f"permission denied opening {where}: install the udev rule (python -m drivers.udev --install, or copy "
-            f"drivers/99-edi-live-davis.rules to /etc/udev/rules.d/), then replug the camera. Rule: {RULE_TEXT}")
+    return (f"permission denied opening {where}: install the udev rule ({install_command()}, or copy "
+            f"{RULES_FILE} to /etc/udev/rules.d/), then replug the camera. Rule: {RULE_TEXT}")
 
 
 def translate(exc: BaseException, where: str) -> SourceError:

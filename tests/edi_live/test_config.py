@@ -403,3 +403,24 @@ def test_an_ipc_endpoint_never_replaces_a_file(tmp_path: Path):
     assert notes.read_text() == "precious"
     fresh = f"ipc://{tmp_path / 'edi.sock'}"
     assert NodeConfig.from_options({"replay": "x", "publish": [fresh]}).publisher.endpoints == (fresh,)
+
+
+def test_every_file_option_in_a_config_file_is_relative_to_the_file(tmp_path: Path, monkeypatch):
+    """docs/node.md: "Relative paths in the file are relative to the file". The options that name a file are those
+    whose flag takes a FILE; --calibration and --save-calibration were read against the working directory, so a
+    config run from elsewhere loaded or wrote the calibration in the wrong place."""
+    from edi_live.cli_parser import build_parser
+
+    file_options = sorted(config_file.norm_key(action.option_strings[0]) for action in build_parser()._actions
+                          if str(action.metavar or "").startswith("FILE") and action.dest != "config")
+    assert {"replay", "calibration", "save_calibration", "out"} <= set(file_options)
+    folder = tmp_path / "configs"
+    folder.mkdir()
+    path = folder / "edi.toml"
+    path.write_text("".join(f'{key} = "{key}.file"\n' for key in file_options))
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    options = read_toml(path)
+    wrong = {key: value for key, value in options.items() if Path(value) != folder / f"{key}.file"}
+    assert not wrong, wrong

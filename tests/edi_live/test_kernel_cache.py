@@ -1,0 +1,106 @@
+"""Where numba keeps the compiled kernels when neither the package nor the home folder can hold them
+(edi_live.kernel_cache). Folders are made unwritable by a plain file standing where the folder must be, which
+stops root too; the temp directory is the test's own."""
+
+from __future__ import annotations
+
+import os
+import stat
+import sys
+import tempfile
+from pathlib import Path
+
+import pytest
+
+from edi_live import kernel_cache
+
+pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="numba's user cache folder is set up for Linux here")
+
+
+@pytest.fixture
+def temp_dir(tmp_path, monkeypatch) -> Path:
+    folder = tmp_path / "tmp"
+    folder.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(folder))
+    return folder
+
+
+def _blocked(tmp_path: Path, name: str) -> Path:
+    """A folder path that cannot be created: a plain file holds its place."""
+    (tmp_path / name).write_text("a file, not a folder\n")
+    return tmp_path / name
+
+
+def _package(tmp_path: Path, writable: bool) -> Path:
+    package = tmp_path / "site" / "edi_live"
+    package.mkdir(parents=True)
+    if not writable:
+        (package / "__pycache__").write_text("a file, not a folder\n")
+    return package
+
+
+def test_nothing_changes_where_the_package_or_the_home_or_the_given_folder_can_be_written(tmp_path, temp_dir):
+    blocked = _blocked(tmp_path, "blocked")
+    cases = [
+        ({"XDG_CACHE_HOME": str(blocked / "cache")}, _package(tmp_path / "a", writable=True)),
+        ({"XDG_CACHE_HOME": str(tmp_path / "cache")}, _package(tmp_path / "b", writable=False)),
+        ({"XDG_CACHE_HOME": str(blocked / "cache"), "NUMBA_CACHE_DIR": str(tmp_path / "mine")},
+         _package(tmp_path / "c", writable=False)),
+    ]
+    for environ, package in cases:
+        before = dict(environ)
+        assert kernel_cache.choose(environ, package) == ""
+        assert environ == before
+    assert not any(temp_dir.iterdir())
+
+
+def test_with_no_writable_folder_the_kernels_go_to_a_private_folder_of_this_user_and_the_notice_says_where(
+        tmp_path, temp_dir):
+    environ = {"XDG_CACHE_HOME": str(_blocked(tmp_path, "blocked") / "cache")}
+    package = _package(tmp_path, writable=False)
+    notice = kernel_cache.choose(environ, package)
+    folder = Path(environ["NUMBA_CACHE_DIR"])
+    assert folder == temp_dir / f"edi-live-numba-{os.getuid()}"
+    assert stat.S_IMODE(folder.stat().st_mode) == 0o700
+    assert str(folder) in notice and str(package / "__pycache__") in notice and "NUMBA_CACHE_DIR" in notice
+    again = {"XDG_CACHE_HOME": environ["XDG_CACHE_HOME"], "NUMBA_CACHE_DIR": str(_blocked(tmp_path, "x") / "y")}
+    assert str(folder) in kernel_cache.choose(again, package)  # an unwritable NUMBA_CACHE_DIR: the same way out
+    assert Path(again["NUMBA_CACHE_DIR"]) == folder
+
+
+@pytest.mark.parametrize("spoiled", ["group-writable", "a link"])
+def test_a_temp_folder_of_that_name_that_others_could_write_is_not_used(tmp_path, temp_dir, spoiled):
+    """numba loads pickles from its cache: a folder another account made or can write to would run its code."""
+    name = temp_dir / f"edi-live-numba-{os.getuid()}"
+    if spoiled == "a link":
+        (tmp_path / "elsewhere").mkdir()
+        name.symlink_to(tmp_path / "elsewhere")
+    else:
+        name.mkdir()
+        name.chmod(0o770)
+    environ = {"XDG_CACHE_HOME": str(_blocked(tmp_path, "blocked") / "cache")}
+    kernel_cache.choose(environ, _package(tmp_path, writable=False))
+    folder = Path(environ["NUMBA_CACHE_DIR"])
+    assert folder.parent == temp_dir and folder != name
+    assert stat.S_IMODE(folder.stat().st_mode) == 0o700 and not folder.is_symlink()
+
+
+def test_kernels_in_a_given_folder_this_account_cannot_write_are_copied_to_its_own_folder(tmp_path, temp_dir,
+                                                                                         monkeypatch):
+    """A container image compiles its kernels into NUMBA_CACHE_DIR as one account; run with `--user`, another
+    account can read that folder but not write it, and numba uses no folder it cannot write. The private folder
+    starts from a copy, so the image's kernels still load. (Root can write anywhere: the check is told instead.)"""
+    image_cache = tmp_path / "image-cache"
+    (image_cache / "edi_abc").mkdir(parents=True)
+    (image_cache / "edi_abc" / "k.py311.nbi").write_bytes(b"index")
+    (image_cache / "edi_abc" / "k.py311.1.nbc").write_bytes(b"code")
+    writable = kernel_cache._writable
+    monkeypatch.setattr(kernel_cache, "_writable", lambda folder: folder != image_cache and writable(folder))
+    environ = {"XDG_CACHE_HOME": str(_blocked(tmp_path, "blocked") / "cache"), "NUMBA_CACHE_DIR": str(image_cache)}
+    notice = kernel_cache.choose(environ, _package(tmp_path, writable=False))
+    folder = Path(environ["NUMBA_CACHE_DIR"])
+    assert folder.parent == temp_dir
+    assert (folder / "edi_abc" / "k.py311.nbi").read_bytes() == b"index"
+    assert (folder / "edi_abc" / "k.py311.1.nbc").read_bytes() == b"code"
+    assert stat.S_IMODE(folder.stat().st_mode) == 0o700
+    assert "copy" in notice and str(image_cache) in notice

@@ -118,27 +118,12 @@ def test_truncated_recording_delivers_frames_before_the_fault_and_finalises_out(
     assert len(times) == written and times == sorted(times)
 
 
-class LossySource:
-    """A replay whose status reports raw USB bytes lost, as a live DavisSource does when its reader falls behind."""
-
-    def __init__(self, inner) -> None:
-        self.inner, self.info = inner, inner.info
-
-    def __enter__(self):
-        self.inner.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        self.inner.__exit__(*exc)
-
-    def stop(self):
-        self.inner.stop()
+class LossySource(GatedSource):
+    """A replay (its gate open) whose status reports raw USB bytes lost, as a live DavisSource does when its reader
+    falls behind."""
 
     def status(self):
-        return dataclasses.replace(self.inner.status(), dropped_bytes=4096, gaps=1)
-
-    def __iter__(self):
-        return iter(self.inner)
+        return dataclasses.replace(super().status(), dropped_bytes=4096, gaps=1)
 
 
 def test_raw_data_a_source_lost_reaches_subscribers_and_the_summary(real_recordings):
@@ -146,7 +131,9 @@ def test_raw_data_a_source_lost_reaches_subscribers_and_the_summary(real_recordi
 
     path = real_recordings[DEMO]
     cfg = NodeConfig.from_options({"replay": str(path), "speed": 0, "no_publish": True})
-    node = Node(cfg, LossySource(replay(path, speed=0)), reconstructor_factory=lambda w, h, e: StandIn())
+    opened = threading.Event()
+    opened.set()
+    node = Node(cfg, LossySource(replay(path, speed=0), opened), reconstructor_factory=lambda w, h, e: StandIn())
     node.run()
     published = node.stats_map()
     assert published["source_dropped_bytes"] == 4096 and published["source_gaps"] == 1

@@ -7,7 +7,8 @@ through `drivers.replay.merged_packets`, or any iterable of `Packet`s) or, with 
 scene. Pacing maps device time to host time (`speed`, 0 = as fast as read). Faults are injected by keyword:
 no_device, permission_denied, busy, logic_version/logic_patch/firmware, unplug_after_bytes (+ replug_after_s),
 garbage_words (random words inserted), drop_words (words removed: truncated columns, lost rows), reset_at_us
-(timestamp reset mid-stream). Options: serial, width/height, color_filter (a colour DAVIS346: the APS
+(timestamp reset mid-stream). Options: serial (default: one per recording file and per colour or mono sensor,
+`default_serial`), width/height, color_filter (a colour DAVIS346: the APS
 colour-filter register answers libcaer's code of this Bayer pattern and APS frames are sent as its mosaic;
 default: the recording's pattern, or mono), dvs_orientation,
 aps_orientation, imu_orientation, chip_id, seed, holdback_us (how far events are held back so that a frame,
@@ -22,8 +23,10 @@ for a colour DAVIS346); `--emulate-from FILE` makes the CLI call `backend(record
 from __future__ import annotations
 
 import errno
+import os
 import threading
 import time
+import zlib
 from array import array
 from typing import Any
 
@@ -99,7 +102,7 @@ class EmulatorBackend(usb.backend.IBackend):
                                   faults.get("reset_at_us"))
         self.regs = self._register_file(mdl, w, h, dvs_o, aps_o, imu_o)
         self.writes: list[tuple[int, int, int]] = []
-        self.serial = str(faults.get("serial", "EMU00001"))[:8]
+        self.serial = str(faults.get("serial", default_serial(recording, self.color_filter)))[:8]
         self._lock = threading.Lock()
         self._pending: list[tuple[bytes, int]] = []  # (data, device time it reaches)
         self._sent_bytes = 0
@@ -348,6 +351,23 @@ class EmulatorBackend(usb.backend.IBackend):
         self.regs[(P.MUX, P.MUX_RUN)] = 0
         self._pending.clear()
         raise _usb_error("No such device (it may have been disconnected)", errno.ENODEV, -4)
+
+
+def default_serial(recording: Any, color_filter: ColorFilter | None) -> str:
+    """The emulated camera's serial when none is given: one per recording file (its name and size) and per colour
+    or mono sensor, so that a calibration saved for one emulated camera (kept by model and serial, as for a real
+    one) is not picked up by another; "EMU00001" for the generated mono scene, as before."""
+    if is_path(recording):
+        path = os.fsdecode(recording)
+        try:
+            size = os.path.getsize(path)
+        except OSError:
+            size = -1
+        key = f"{os.path.basename(path)}:{size}:{color_filter or 'mono'}"
+        return f"EMF{zlib.crc32(key.encode()) % 16**5:05X}"
+    if recording is None:
+        return "EMU00001" if color_filter is None else f"EMUC{color_filter}"
+    return "EMU00001" if color_filter is None else "EMUC0001"  # packets handed in: no name to tell them apart
 
 
 def backend(recording: Any = None, *, model: str | None = None, speed: float = 1.0, loop: bool = False,

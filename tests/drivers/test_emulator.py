@@ -61,6 +61,30 @@ def test_listing_reports_unreadable_serial_instead_of_failing():
     assert d.serial is None and "permission denied" in d.error and d.model == "davis240"
 
 
+def test_each_emulated_camera_has_its_own_serial_so_calibrations_stay_apart(real_recordings, tmp_path):
+    # a calibration is kept per model and serial: two recordings (two real cameras) or a colour and a mono sensor
+    # emulated under one serial shared the calibration one of them saved
+    from drivers.emulator import colour_backend
+
+    first = tmp_path / "first.aedat4"
+    second = tmp_path / "second.aedat4"
+    data = real_recordings["evlib_sample_davis346.aedat4"].read_bytes()
+    first.write_bytes(data)
+    second.write_bytes(data)
+
+    def serial(b):
+        (d,) = list_devices(b)
+        assert d.error is None, d.error
+        return d.serial
+
+    by_file = {serial(backend(str(path), speed=0)) for path in (first, second)}
+    assert len(by_file) == 2
+    assert serial(backend(str(first), speed=0)) == serial(backend(str(first), speed=0))  # stable across runs
+    assert serial(backend(str(first), speed=0)) != serial(colour_backend(str(first), speed=0))
+    assert serial(backend(speed=0)) != serial(colour_backend(speed=0))
+    assert serial(backend(speed=0, serial="ABC123")) == "ABC123"
+
+
 def test_udev_rule_printed_and_installable(tmp_path, capsys):
     assert udev.main([]) == 0
     assert udev.RULE_TEXT in capsys.readouterr().out

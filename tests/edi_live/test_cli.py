@@ -561,7 +561,7 @@ def test_a_colour_camera_says_colour_in_the_listing_and_the_summary():
     proc = run_cli("--device", "davis346", "--usb-backend", "drivers.emulator:colour_backend", "--no-publish",
                    "--duration", "1", timeout_s=90)
     assert proc.returncode == 0, proc.stderr
-    assert "done in" in proc.stderr and "camera: DAVIS346_EMU00001 346x260, colour (RGGB Bayer mosaic)" in proc.stderr
+    assert "done in" in proc.stderr and "camera: DAVIS346_EMUCRGGB 346x260, colour (RGGB Bayer mosaic)" in proc.stderr
     assert "INFO: DAVIS davis346 at USB 1:7 is a colour DAVIS346: RGGB Bayer mosaic" in proc.stderr  # at start-up
 
 

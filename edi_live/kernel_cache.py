@@ -87,8 +87,13 @@ def _seed(folder: Path, given: Path) -> bool:
     try:
         if not given.is_dir() or any(folder.iterdir()):
             return False
-        shutil.copytree(given, folder, dirs_exist_ok=True)
-        os.chmod(folder, 0o700)  # (copytree gave it the mode of the folder copied)
+        # contents only, never modes (copytree copies them): a folder open to others, even for a moment, would let
+        # them drop a pickle or keep a handle to drop one later
+        for root, _, files in os.walk(given):
+            target = folder / Path(root).relative_to(given)
+            target.mkdir(mode=0o700, exist_ok=True)
+            for name in files:
+                shutil.copyfile(Path(root) / name, target / name)
     except OSError:
         return False
     return any(folder.iterdir())

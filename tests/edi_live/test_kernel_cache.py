@@ -104,3 +104,21 @@ def test_kernels_in_a_given_folder_this_account_cannot_write_are_copied_to_its_o
     assert (folder / "edi_abc" / "k.py311.1.nbc").read_bytes() == b"code"
     assert stat.S_IMODE(folder.stat().st_mode) == 0o700
     assert "copy" in notice and str(image_cache) in notice
+
+
+def test_the_copied_kernels_take_no_folder_modes_from_the_given_folder(tmp_path, temp_dir, monkeypatch):
+    """The given folder may be open to everyone (a read-only image folder left mode 777): its modes copied onto the
+    private folder's subfolders would let another account drop a pickle there, which numba then loads."""
+    image_cache = tmp_path / "image-cache"
+    (image_cache / "edi_abc").mkdir(parents=True)
+    (image_cache / "edi_abc" / "k.py311.nbi").write_bytes(b"index")
+    (image_cache / "edi_abc").chmod(0o777)
+    image_cache.chmod(0o777)
+    writable = kernel_cache._writable
+    monkeypatch.setattr(kernel_cache, "_writable", lambda folder: folder != image_cache and writable(folder))
+    environ = {"XDG_CACHE_HOME": str(_blocked(tmp_path, "blocked") / "cache"), "NUMBA_CACHE_DIR": str(image_cache)}
+    kernel_cache.choose(environ, _package(tmp_path, writable=False))
+    folder = Path(environ["NUMBA_CACHE_DIR"])
+    assert (folder / "edi_abc" / "k.py311.nbi").read_bytes() == b"index"
+    for sub in [folder, *[p for p in folder.rglob("*") if p.is_dir()]]:
+        assert not stat.S_IMODE(sub.stat().st_mode) & 0o077, (sub, oct(sub.stat().st_mode))

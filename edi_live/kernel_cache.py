@@ -37,8 +37,9 @@ def _user_cache(environ: Mapping[str, str]) -> Path:
     if sys.platform == "darwin":
         return Path(os.path.expanduser("~/Library/Caches")) / "numba"
     if sys.platform == "win32":
-        return Path(environ.get("LOCALAPPDATA", os.path.expanduser("~"))) / "numba"
-    return Path(environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache")) / "numba"
+        return Path(environ.get("LOCALAPPDATA", os.path.expanduser("~"))) / "numba" / "Cache"
+    # as numba reads it: an empty XDG_CACHE_HOME is kept (a folder "numba" in the working directory)
+    return Path(environ.get("XDG_CACHE_HOME", os.path.expanduser("~/.cache"))) / "numba"
 
 
 def _private_temp_folder() -> Path:

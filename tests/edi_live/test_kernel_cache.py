@@ -122,3 +122,13 @@ def test_the_copied_kernels_take_no_folder_modes_from_the_given_folder(tmp_path,
     assert (folder / "edi_abc" / "k.py311.nbi").read_bytes() == b"index"
     for sub in [folder, *[p for p in folder.rglob("*") if p.is_dir()]]:
         assert not stat.S_IMODE(sub.stat().st_mode) & 0o077, (sub, oct(sub.stat().st_mode))
+
+
+def test_the_user_cache_folder_is_the_one_numba_picks(tmp_path, monkeypatch):
+    """The check must test the folder numba will use, or numba still finds none writable and raises at import."""
+    from numba.misc.appdirs import AppDirs
+
+    for value in ("", str(tmp_path / "xdg")):  # an empty XDG_CACHE_HOME is taken as it is by numba (the cwd)
+        monkeypatch.setenv("XDG_CACHE_HOME", value)
+        numba_choice = Path(AppDirs(appname="numba", appauthor=False).user_cache_dir)
+        assert kernel_cache._user_cache(dict(os.environ)) == numba_choice

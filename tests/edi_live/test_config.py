@@ -424,3 +424,16 @@ def test_every_file_option_in_a_config_file_is_relative_to_the_file(tmp_path: Pa
     options = read_toml(path)
     wrong = {key: value for key, value in options.items() if Path(value) != folder / f"{key}.file"}
     assert not wrong, wrong
+
+
+def test_a_home_relative_path_in_a_config_file_is_in_the_home_folder(tmp_path: Path, monkeypatch):
+    """A shell expands ~ in a flag; nothing did in a config file, so `calibration = "~/.config/edi-live/..."` (the
+    folder a camera's calibration is kept in) was read as a folder named ~ beside the file."""
+    home = tmp_path / "home"
+    monkeypatch.setenv("HOME", str(home))
+    path = tmp_path / "configs" / "edi.toml"
+    path.parent.mkdir()
+    path.write_text('calibration = "~/cal.json"\nreplay = "rec.aedat4"\n')
+    options = read_toml(path)
+    assert Path(options["calibration"]) == home / "cal.json"
+    assert Path(options["replay"]) == path.parent / "rec.aedat4"

@@ -90,14 +90,27 @@ def _seed(folder: Path, given: Path) -> bool:
             return False
         # contents only, never modes (copytree copies them): a folder open to others, even for a moment, would let
         # them drop a pickle or keep a handle to drop one later
-        for root, _, files in os.walk(given):
+        for root, subfolders, files in os.walk(given):
+            if not _only_trusted_write(os.stat(root)):
+                subfolders.clear()
+                continue
             target = folder / Path(root).relative_to(given)
             target.mkdir(mode=0o700, exist_ok=True)
             for name in files:
-                shutil.copyfile(Path(root) / name, target / name)
+                st = os.lstat(Path(root) / name)
+                if stat.S_ISREG(st.st_mode) and _only_trusted_write(st):
+                    shutil.copyfile(Path(root) / name, target / name)
     except OSError:
         return False
     return any(folder.iterdir())
+
+
+def _only_trusted_write(st: os.stat_result) -> bool:
+    """Whether only root or this account can have written it: numba would load what another account put there
+    (numba itself never loads from a folder it cannot write, so nothing of another account's ran before)."""
+    if not hasattr(os, "getuid"):
+        return True
+    return st.st_uid in (0, os.getuid()) and not st.st_mode & 0o022
 
 
 def notice() -> str:

@@ -31,6 +31,12 @@ def _blocked(tmp_path: Path, name: str) -> Path:
     return tmp_path / name
 
 
+def _only_owner_writes(top: Path) -> None:
+    """Folders 0755 and files 0644 whatever the umask: kernels only their owner could have written."""
+    for path in [top, *top.rglob("*")]:
+        path.chmod(0o755 if path.is_dir() else 0o644)
+
+
 def _package(tmp_path: Path, writable: bool) -> Path:
     package = tmp_path / "site" / "edi_live"
     package.mkdir(parents=True)
@@ -94,6 +100,7 @@ def test_kernels_in_a_given_folder_this_account_cannot_write_are_copied_to_its_o
     (image_cache / "edi_abc").mkdir(parents=True)
     (image_cache / "edi_abc" / "k.py311.nbi").write_bytes(b"index")
     (image_cache / "edi_abc" / "k.py311.1.nbc").write_bytes(b"code")
+    _only_owner_writes(image_cache)
     writable = kernel_cache._writable
     monkeypatch.setattr(kernel_cache, "_writable", lambda folder: folder != image_cache and writable(folder))
     environ = {"XDG_CACHE_HOME": str(_blocked(tmp_path, "blocked") / "cache"), "NUMBA_CACHE_DIR": str(image_cache)}
@@ -107,13 +114,12 @@ def test_kernels_in_a_given_folder_this_account_cannot_write_are_copied_to_its_o
 
 
 def test_the_copied_kernels_take_no_folder_modes_from_the_given_folder(tmp_path, temp_dir, monkeypatch):
-    """The given folder may be open to everyone (a read-only image folder left mode 777): its modes copied onto the
-    private folder's subfolders would let another account drop a pickle there, which numba then loads."""
+    """The private folder and all below it are this account's alone (0700), whatever the modes of the given folder:
+    copied modes (copytree's) opened it to others while it was filled, and left its subfolders as open as those."""
     image_cache = tmp_path / "image-cache"
     (image_cache / "edi_abc").mkdir(parents=True)
     (image_cache / "edi_abc" / "k.py311.nbi").write_bytes(b"index")
-    (image_cache / "edi_abc").chmod(0o777)
-    image_cache.chmod(0o777)
+    _only_owner_writes(image_cache)
     writable = kernel_cache._writable
     monkeypatch.setattr(kernel_cache, "_writable", lambda folder: folder != image_cache and writable(folder))
     environ = {"XDG_CACHE_HOME": str(_blocked(tmp_path, "blocked") / "cache"), "NUMBA_CACHE_DIR": str(image_cache)}
@@ -122,6 +128,30 @@ def test_the_copied_kernels_take_no_folder_modes_from_the_given_folder(tmp_path,
     assert (folder / "edi_abc" / "k.py311.nbi").read_bytes() == b"index"
     for sub in [folder, *[p for p in folder.rglob("*") if p.is_dir()]]:
         assert not stat.S_IMODE(sub.stat().st_mode) & 0o077, (sub, oct(sub.stat().st_mode))
+
+
+def test_only_kernels_no_other_account_could_have_written_are_copied(tmp_path, temp_dir, monkeypatch):
+    """numba never loads from a cache folder it cannot write, so before the copy nothing in the given folder ran;
+    copied into the private folder it would. A file or folder another account owns or can write is left out."""
+    image_cache = tmp_path / "image-cache"
+    for sub in ("kept", "open"):
+        (image_cache / sub).mkdir(parents=True)
+        (image_cache / sub / "a.nbi").write_bytes(b"index")
+    (image_cache / "kept" / "b.nbi").write_bytes(b"index")
+    _only_owner_writes(image_cache)
+    (image_cache / "open").chmod(0o777)
+    (image_cache / "kept" / "b.nbi").chmod(0o666)
+    if os.geteuid() == 0:  # only root can give a file away
+        (image_cache / "kept" / "c.nbi").write_bytes(b"index")
+        (image_cache / "kept" / "c.nbi").chmod(0o644)
+        os.chown(image_cache / "kept" / "c.nbi", 54321, 54321)
+    writable = kernel_cache._writable
+    monkeypatch.setattr(kernel_cache, "_writable", lambda folder: folder != image_cache and writable(folder))
+    environ = {"XDG_CACHE_HOME": str(_blocked(tmp_path, "blocked") / "cache"), "NUMBA_CACHE_DIR": str(image_cache)}
+    kernel_cache.choose(environ, _package(tmp_path, writable=False))
+    folder = Path(environ["NUMBA_CACHE_DIR"])
+    copied = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file())
+    assert copied == ["kept/a.nbi"]
 
 
 def test_the_user_cache_folder_is_the_one_numba_picks(tmp_path, monkeypatch):

@@ -99,10 +99,22 @@ def _seed(folder: Path, given: Path) -> bool:
             for name in files:
                 st = os.lstat(Path(root) / name)
                 if stat.S_ISREG(st.st_mode) and _only_trusted_write(st):
-                    shutil.copyfile(Path(root) / name, target / name)
+                    _copy_whole(Path(root) / name, target / name)
     except OSError:
         return False
     return any(folder.iterdir())
+
+
+def _copy_whole(source: Path, dest: Path) -> None:
+    """Copy under a temporary name, then rename: numba fails on a truncated kernel file (a full disk, or another
+    process starting at the same moment reading it half-copied), and would find it again at every start."""
+    part = dest.with_name(f".{dest.name}.{os.getpid()}.part")
+    try:
+        shutil.copyfile(source, part)
+        os.replace(part, dest)
+    except OSError:
+        part.unlink(missing_ok=True)
+        raise
 
 
 def _only_trusted_write(st: os.stat_result) -> bool:

@@ -162,3 +162,31 @@ def test_the_user_cache_folder_is_the_one_numba_picks(tmp_path, monkeypatch):
         monkeypatch.setenv("XDG_CACHE_HOME", value)
         numba_choice = Path(AppDirs(appname="numba", appauthor=False).user_cache_dir)
         assert kernel_cache._user_cache(dict(os.environ)) == numba_choice
+
+
+def test_a_copy_that_fails_midway_leaves_no_truncated_kernel_under_its_name(tmp_path, temp_dir, monkeypatch):
+    """A full temp disk: numba would fail on the half file at every start (the private folder is kept)."""
+    import errno
+
+    image_cache = tmp_path / "image-cache"
+    (image_cache / "edi_abc").mkdir(parents=True)
+    for name in ("k.py311.nbi", "k.py311.1.nbc"):
+        (image_cache / "edi_abc" / name).write_bytes(b"0123456789")
+    _only_owner_writes(image_cache)
+    copied = []
+
+    def disk_full_at_the_second(source, dest):
+        if copied:
+            Path(dest).write_bytes(Path(source).read_bytes()[:4])
+            raise OSError(errno.ENOSPC, "No space left on device")
+        Path(dest).write_bytes(Path(source).read_bytes())
+        copied.append(dest)
+
+    monkeypatch.setattr(kernel_cache.shutil, "copyfile", disk_full_at_the_second)
+    writable = kernel_cache._writable
+    monkeypatch.setattr(kernel_cache, "_writable", lambda folder: folder != image_cache and writable(folder))
+    environ = {"XDG_CACHE_HOME": str(_blocked(tmp_path, "blocked") / "cache"), "NUMBA_CACHE_DIR": str(image_cache)}
+    kernel_cache.choose(environ, _package(tmp_path, writable=False))
+    left = {p.name: p.read_bytes() for p in Path(environ["NUMBA_CACHE_DIR"]).rglob("*") if p.is_file()}
+    assert len(copied) == 1 and all(data == b"0123456789" for data in left.values()), left
+    assert set(left) <= {"k.py311.nbi", "k.py311.1.nbc"}, left

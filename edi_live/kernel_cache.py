@@ -84,7 +84,8 @@ def choose(environ: MutableMapping[str, str] = os.environ, package_dir: Path = _
 def _seed(folder: Path, given: Path) -> bool:
     """Copy the kernels compiled into the NUMBA_CACHE_DIR this account cannot write (a container image's, run with
     `--user`) into the empty private folder, so they load instead of compiling again; numba only uses a cache folder
-    it can write to. Returns whether anything was copied."""
+    it can write to. Returns whether any kernel file was copied."""
+    copied = 0
     try:
         if not given.is_dir() or any(folder.iterdir()):
             return False
@@ -100,9 +101,10 @@ def _seed(folder: Path, given: Path) -> bool:
                 st = os.lstat(Path(root) / name)
                 if stat.S_ISREG(st.st_mode) and _only_trusted_write(st):
                     _copy_whole(Path(root) / name, target / name)
+                    copied += 1
     except OSError:
         return False
-    return any(folder.iterdir())
+    return copied > 0
 
 
 def _copy_whole(source: Path, dest: Path) -> None:

@@ -152,6 +152,12 @@ def test_only_kernels_no_other_account_could_have_written_are_copied(tmp_path, t
     folder = Path(environ["NUMBA_CACHE_DIR"])
     copied = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file())
     assert copied == ["kept/a.nbi"]
+    # with nothing it may copy, the notice does not claim a copy (the folders alone are no kernels)
+    (image_cache / "kept" / "a.nbi").chmod(0o666)
+    for made in sorted(folder.rglob("*"), reverse=True):
+        made.unlink() if made.is_file() else made.rmdir()
+    environ["NUMBA_CACHE_DIR"] = str(image_cache)
+    assert "copy" not in kernel_cache.choose(environ, _package(tmp_path / "again", writable=False))
 
 
 def test_the_user_cache_folder_is_the_one_numba_picks(tmp_path, monkeypatch):

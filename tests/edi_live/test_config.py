@@ -1,5 +1,5 @@
-"""NodeConfig: validation with "(got ...)" messages, the flags' keys, precedence flags > file > defaults (reading the TOML
-file itself: test_config_file.py)."""
+"""NodeConfig: validation with "(got ...)" messages, the flags' keys, precedence flags > file > defaults (reading
+the TOML file itself: test_config_file.py)."""
 
 from __future__ import annotations
 

@@ -48,6 +48,9 @@ def main(argv: list[str] | None = None) -> int:
     except PermissionError:
         print(f"permission denied writing {INSTALL_DIR}: run {install_command()}", file=sys.stderr)
         return 1
+    except OSError as exc:  # no such folder (not Linux, or a container without udev), a read-only /etc, ...
+        print(f"cannot write the rule to {INSTALL_DIR}: {exc.strerror or exc}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -100,9 +100,11 @@ def read_toml(path: str | Path, known: Iterable[str]) -> dict[str, Any]:
     _check(not unknown, f"config file {path}: unknown key(s) {', '.join(unknown)}")
     base = path.parent
     for key in ("replay", "out", "record", "emulate_from", "curve_secret_key", "calibration", "save_calibration"):
-        # relative paths in a config file are relative to the file, not to the working directory
-        if isinstance(normalized.get(key), str) and not Path(normalized[key]).is_absolute():
-            normalized[key] = str(base / normalized[key])
+        # relative paths in a config file are relative to the file, not to the working directory; ~ is the home
+        # folder, as a shell would read it in a flag
+        if isinstance(normalized.get(key), str):
+            given = Path(os.path.expanduser(normalized[key]))  # (Path.expanduser raises on an unknown ~user)
+            normalized[key] = str(given if given.is_absolute() else base / given)
     return normalized
 
 

@@ -37,8 +37,9 @@ def _user_cache(environ: Mapping[str, str]) -> Path:
     if sys.platform == "darwin":
         return Path(os.path.expanduser("~/Library/Caches")) / "numba"
     if sys.platform == "win32":
-        return Path(environ.get("LOCALAPPDATA", os.path.expanduser("~"))) / "numba"
-    return Path(environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache")) / "numba"
+        return Path(environ.get("LOCALAPPDATA", os.path.expanduser("~"))) / "numba" / "Cache"
+    # as numba reads it: an empty XDG_CACHE_HOME is kept (a folder "numba" in the working directory)
+    return Path(environ.get("XDG_CACHE_HOME", os.path.expanduser("~/.cache"))) / "numba"
 
 
 def _private_temp_folder() -> Path:
@@ -83,15 +84,47 @@ def choose(environ: MutableMapping[str, str] = os.environ, package_dir: Path = _
 def _seed(folder: Path, given: Path) -> bool:
     """Copy the kernels compiled into the NUMBA_CACHE_DIR this account cannot write (a container image's, run with
     `--user`) into the empty private folder, so they load instead of compiling again; numba only uses a cache folder
-    it can write to. Returns whether anything was copied."""
+    it can write to. Returns whether any kernel file was copied."""
+    copied = 0
     try:
         if not given.is_dir() or any(folder.iterdir()):
             return False
-        shutil.copytree(given, folder, dirs_exist_ok=True)
-        os.chmod(folder, 0o700)  # (copytree gave it the mode of the folder copied)
+        # contents only, never modes (copytree copies them): a folder open to others, even for a moment, would let
+        # them drop a pickle or keep a handle to drop one later
+        for root, subfolders, files in os.walk(given):
+            if not _only_trusted_write(os.stat(root)):
+                subfolders.clear()
+                continue
+            target = folder / Path(root).relative_to(given)
+            target.mkdir(mode=0o700, exist_ok=True)
+            for name in files:
+                st = os.lstat(Path(root) / name)
+                if stat.S_ISREG(st.st_mode) and _only_trusted_write(st):
+                    _copy_whole(Path(root) / name, target / name)
+                    copied += 1
     except OSError:
         return False
-    return any(folder.iterdir())
+    return copied > 0
+
+
+def _copy_whole(source: Path, dest: Path) -> None:
+    """Copy under a temporary name, then rename: numba fails on a truncated kernel file (a full disk, or another
+    process starting at the same moment reading it half-copied), and would find it again at every start."""
+    part = dest.with_name(f".{dest.name}.{os.getpid()}.part")
+    try:
+        shutil.copyfile(source, part)
+        os.replace(part, dest)
+    except OSError:
+        part.unlink(missing_ok=True)
+        raise
+
+
+def _only_trusted_write(st: os.stat_result) -> bool:
+    """Whether only root or this account can have written it: numba would load what another account put there
+    (numba itself never loads from a folder it cannot write, so nothing of another account's ran before)."""
+    if not hasattr(os, "getuid"):
+        return True
+    return st.st_uid in (0, os.getuid()) and not st.st_mode & 0o022
 
 
 def notice() -> str:

@@ -29,3 +29,14 @@ def test_the_permission_error_names_the_command_with_this_python_and_the_install
     msg = transport.permission_message("DAVIS240 at usb 1:7")
     assert _command_in(msg) == ["sudo", sys.executable, "-m", "drivers.udev", "--install"]
     assert str(udev.RULES_FILE) in msg and udev.RULES_FILE.is_absolute()
+
+
+def test_a_missing_rules_folder_is_one_line_not_a_traceback(monkeypatch, capsys):
+    """No /etc/udev/rules.d (macOS, a minimal container): the copy raised FileNotFoundError out of main."""
+    def missing(*args, **kwargs):
+        raise FileNotFoundError(2, "No such file or directory", str(udev.INSTALL_DIR / udev.RULES_FILE.name))
+
+    monkeypatch.setattr(udev, "install", missing)
+    assert udev.main(["--install"]) == 1
+    said = capsys.readouterr().err.strip()
+    assert len(said.splitlines()) == 1 and str(udev.INSTALL_DIR) in said and "No such file or directory" in said

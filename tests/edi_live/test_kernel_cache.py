@@ -31,6 +31,12 @@ def _blocked(tmp_path: Path, name: str) -> Path:
     return tmp_path / name
 
 
+def _only_owner_writes(top: Path) -> None:
+    """Folders 0755 and files 0644 whatever the umask: kernels only their owner could have written."""
+    for path in [top, *top.rglob("*")]:
+        path.chmod(0o755 if path.is_dir() else 0o644)
+
+
 def _package(tmp_path: Path, writable: bool) -> Path:
     package = tmp_path / "site" / "edi_live"
     package.mkdir(parents=True)
@@ -94,6 +100,7 @@ def test_kernels_in_a_given_folder_this_account_cannot_write_are_copied_to_its_o
     (image_cache / "edi_abc").mkdir(parents=True)
     (image_cache / "edi_abc" / "k.py311.nbi").write_bytes(b"index")
     (image_cache / "edi_abc" / "k.py311.1.nbc").write_bytes(b"code")
+    _only_owner_writes(image_cache)
     writable = kernel_cache._writable
     monkeypatch.setattr(kernel_cache, "_writable", lambda folder: folder != image_cache and writable(folder))
     environ = {"XDG_CACHE_HOME": str(_blocked(tmp_path, "blocked") / "cache"), "NUMBA_CACHE_DIR": str(image_cache)}
@@ -104,3 +111,88 @@ def test_kernels_in_a_given_folder_this_account_cannot_write_are_copied_to_its_o
     assert (folder / "edi_abc" / "k.py311.1.nbc").read_bytes() == b"code"
     assert stat.S_IMODE(folder.stat().st_mode) == 0o700
     assert "copy" in notice and str(image_cache) in notice
+
+
+def test_the_copied_kernels_take_no_folder_modes_from_the_given_folder(tmp_path, temp_dir, monkeypatch):
+    """The private folder and all below it are this account's alone (0700), whatever the modes of the given folder:
+    copied modes (copytree's) opened it to others while it was filled, and left its subfolders as open as those."""
+    image_cache = tmp_path / "image-cache"
+    (image_cache / "edi_abc").mkdir(parents=True)
+    (image_cache / "edi_abc" / "k.py311.nbi").write_bytes(b"index")
+    _only_owner_writes(image_cache)
+    writable = kernel_cache._writable
+    monkeypatch.setattr(kernel_cache, "_writable", lambda folder: folder != image_cache and writable(folder))
+    environ = {"XDG_CACHE_HOME": str(_blocked(tmp_path, "blocked") / "cache"), "NUMBA_CACHE_DIR": str(image_cache)}
+    kernel_cache.choose(environ, _package(tmp_path, writable=False))
+    folder = Path(environ["NUMBA_CACHE_DIR"])
+    assert (folder / "edi_abc" / "k.py311.nbi").read_bytes() == b"index"
+    for sub in [folder, *[p for p in folder.rglob("*") if p.is_dir()]]:
+        assert not stat.S_IMODE(sub.stat().st_mode) & 0o077, (sub, oct(sub.stat().st_mode))
+
+
+def test_only_kernels_no_other_account_could_have_written_are_copied(tmp_path, temp_dir, monkeypatch):
+    """numba never loads from a cache folder it cannot write, so before the copy nothing in the given folder ran;
+    copied into the private folder it would. A file or folder another account owns or can write is left out."""
+    image_cache = tmp_path / "image-cache"
+    for sub in ("kept", "open"):
+        (image_cache / sub).mkdir(parents=True)
+        (image_cache / sub / "a.nbi").write_bytes(b"index")
+    (image_cache / "kept" / "b.nbi").write_bytes(b"index")
+    _only_owner_writes(image_cache)
+    (image_cache / "open").chmod(0o777)
+    (image_cache / "kept" / "b.nbi").chmod(0o666)
+    if os.geteuid() == 0:  # only root can give a file away
+        (image_cache / "kept" / "c.nbi").write_bytes(b"index")
+        (image_cache / "kept" / "c.nbi").chmod(0o644)
+        os.chown(image_cache / "kept" / "c.nbi", 54321, 54321)
+    writable = kernel_cache._writable
+    monkeypatch.setattr(kernel_cache, "_writable", lambda folder: folder != image_cache and writable(folder))
+    environ = {"XDG_CACHE_HOME": str(_blocked(tmp_path, "blocked") / "cache"), "NUMBA_CACHE_DIR": str(image_cache)}
+    kernel_cache.choose(environ, _package(tmp_path, writable=False))
+    folder = Path(environ["NUMBA_CACHE_DIR"])
+    copied = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file())
+    assert copied == ["kept/a.nbi"]
+    # with nothing it may copy, the notice does not claim a copy (the folders alone are no kernels)
+    (image_cache / "kept" / "a.nbi").chmod(0o666)
+    for made in sorted(folder.rglob("*"), reverse=True):
+        made.unlink() if made.is_file() else made.rmdir()
+    environ["NUMBA_CACHE_DIR"] = str(image_cache)
+    assert "copy" not in kernel_cache.choose(environ, _package(tmp_path / "again", writable=False))
+
+
+def test_the_user_cache_folder_is_the_one_numba_picks(tmp_path, monkeypatch):
+    """The check must test the folder numba will use, or numba still finds none writable and raises at import."""
+    from numba.misc.appdirs import AppDirs
+
+    for value in ("", str(tmp_path / "xdg")):  # an empty XDG_CACHE_HOME is taken as it is by numba (the cwd)
+        monkeypatch.setenv("XDG_CACHE_HOME", value)
+        numba_choice = Path(AppDirs(appname="numba", appauthor=False).user_cache_dir)
+        assert kernel_cache._user_cache(dict(os.environ)) == numba_choice
+
+
+def test_a_copy_that_fails_midway_leaves_no_truncated_kernel_under_its_name(tmp_path, temp_dir, monkeypatch):
+    """A full temp disk: numba would fail on the half file at every start (the private folder is kept)."""
+    import errno
+
+    image_cache = tmp_path / "image-cache"
+    (image_cache / "edi_abc").mkdir(parents=True)
+    for name in ("k.py311.nbi", "k.py311.1.nbc"):
+        (image_cache / "edi_abc" / name).write_bytes(b"0123456789")
+    _only_owner_writes(image_cache)
+    copied = []
+
+    def disk_full_at_the_second(source, dest):
+        if copied:
+            Path(dest).write_bytes(Path(source).read_bytes()[:4])
+            raise OSError(errno.ENOSPC, "No space left on device")
+        Path(dest).write_bytes(Path(source).read_bytes())
+        copied.append(dest)
+
+    monkeypatch.setattr(kernel_cache.shutil, "copyfile", disk_full_at_the_second)
+    writable = kernel_cache._writable
+    monkeypatch.setattr(kernel_cache, "_writable", lambda folder: folder != image_cache and writable(folder))
+    environ = {"XDG_CACHE_HOME": str(_blocked(tmp_path, "blocked") / "cache"), "NUMBA_CACHE_DIR": str(image_cache)}
+    kernel_cache.choose(environ, _package(tmp_path, writable=False))
+    left = {p.name: p.read_bytes() for p in Path(environ["NUMBA_CACHE_DIR"]).rglob("*") if p.is_file()}
+    assert len(copied) == 1 and all(data == b"0123456789" for data in left.values()), left
+    assert set(left) <= {"k.py311.nbi", "k.py311.1.nbc"}, left

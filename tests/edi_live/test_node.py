@@ -354,8 +354,12 @@ def test_a_first_run_reports_the_kernel_compile_apart_from_its_rate(real_recordi
     run_s, events, warm_s = float(run.group(1)), int(run.group(2)), float(start.group(1))
     rate = float(run.group(3)) * {"": 1, "k": 1e3, "M": 1e6, "G": 1e9}[run.group(4)]
     assert run_s + warm_s <= wall_s
-    # and while it compiled, the terminal said why nothing happened yet (a cold compile takes 15 s and more here)
-    assert "compiling the EDI kernels" in done.stderr.split("done in")[0], done.stderr
+    # and while it compiled, the terminal said why nothing happened yet (a cold compile takes 15 s and more here).
+    # The notice is due 2 s into the warm-up: a machine that compiles faster than that rightly prints none, and the
+    # 2 s after it leave the notice's thread time to run while the compile holds the GIL
+    said = "compiling the EDI kernels" in done.stderr.split("done in")[0]
+    if warm_s < 2.0 or warm_s > 4.0:
+        assert said == (warm_s > 4.0), (warm_s, done.stderr)
     assert rate == pytest.approx(events / run_s, rel=0.05)  # "done in" is rounded to 10 ms
 
 

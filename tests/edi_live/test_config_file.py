@@ -1,0 +1,102 @@
+"""Reading a --config TOML file (edi_live.config_file via edi_live.config.read_toml): what a broken, binary, huge or
+missing file gives (one ConfigError naming the file), and where the paths in it point."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from edi_live import config_file
+from edi_live.config import read_toml
+from edi_live.errors import ConfigError
+
+
+@pytest.mark.parametrize("text,fragment", [
+    ("every = [", "not valid TOML"),
+    ("[edi]\nevery = 3\n", "keys go at the top level"),
+    ("evry = 3\n", "unknown key(s) evry"),
+])
+def test_bad_toml_files_are_config_errors_naming_the_file(tmp_path: Path, text, fragment):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        read_toml(path)
+    assert fragment in str(info.value) and str(path) in str(info.value)
+
+
+def test_a_binary_config_file_is_a_usage_error(tmp_path: Path):
+    """Issue 15.7: a binary --config gave "internal error ... report it" (exit 1)."""
+    path = tmp_path / "photo.toml"
+    path.write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(ConfigError, match="not a TOML text file") as info:
+        read_toml(path)
+    assert info.value.exit_code == 2 and str(path) in str(info.value)
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.one_of(st.binary(max_size=200),
+                 st.lists(st.sampled_from(["every = 3\n", "c = 0.2\n", "[t]\n", "a = [\n", "x = \"\\u00\"\n",
+                                           "replay = 'r'\n", "\x00", "\xff", "= 1\n", "loop = true\n"]),
+                          max_size=6).map(lambda parts: "".join(parts).encode("utf-8", "surrogatepass"))))
+def test_fuzzed_toml_files_give_a_mapping_or_a_config_error(tmp_path: Path, data):
+    path = tmp_path / "fuzz.toml"
+    path.write_bytes(data)
+    try:
+        options = read_toml(path)
+    except ConfigError as exc:
+        assert str(path) in str(exc)
+        return
+    assert isinstance(options, dict)
+
+
+def test_missing_toml_file(tmp_path: Path):
+    with pytest.raises(ConfigError, match="not found"):
+        read_toml(tmp_path / "nope.toml")
+
+
+def test_a_huge_config_file_is_refused_without_reading_it_all(tmp_path: Path):
+    # --config /dev/zero ended in "internal error: MemoryError" (or a hang): the file was read whole
+    from edi_live.config_file import MAX_CONFIG_BYTES
+
+    big = tmp_path / "big.toml"
+    with big.open("wb") as fh:
+        fh.truncate(MAX_CONFIG_BYTES + 1)
+    with pytest.raises(ConfigError, match="larger than 1 MiB"):
+        read_toml(big)
+
+
+def test_every_file_option_in_a_config_file_is_relative_to_the_file(tmp_path: Path, monkeypatch):
+    """docs/node.md: "Relative paths in the file are relative to the file". The options that name a file are those
+    whose flag takes a FILE; --calibration and --save-calibration were read against the working directory, so a
+    config run from elsewhere loaded or wrote the calibration in the wrong place."""
+    from edi_live.cli_parser import build_parser
+
+    file_options = sorted(config_file.norm_key(action.option_strings[0]) for action in build_parser()._actions
+                          if str(action.metavar or "").startswith("FILE") and action.dest != "config")
+    assert {"replay", "calibration", "save_calibration", "out"} <= set(file_options)
+    folder = tmp_path / "configs"
+    folder.mkdir()
+    path = folder / "edi.toml"
+    path.write_text("".join(f'{key} = "{key}.file"\n' for key in file_options))
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    options = read_toml(path)
+    wrong = {key: value for key, value in options.items() if Path(value) != folder / f"{key}.file"}
+    assert not wrong, wrong
+
+
+def test_a_home_relative_path_in_a_config_file_is_in_the_home_folder(tmp_path: Path, monkeypatch):
+    """A shell expands ~ in a flag; nothing did in a config file, so `calibration = "~/.config/edi-live/..."` (the
+    folder a camera's calibration is kept in) was read as a folder named ~ beside the file."""
+    home = tmp_path / "home"
+    monkeypatch.setenv("HOME", str(home))
+    path = tmp_path / "configs" / "edi.toml"
+    path.parent.mkdir()
+    path.write_text('calibration = "~/cal.json"\nreplay = "rec.aedat4"\n')
+    options = read_toml(path)
+    assert Path(options["calibration"]) == home / "cal.json"
+    assert Path(options["replay"]) == path.parent / "rec.aedat4"

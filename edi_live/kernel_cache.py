@@ -91,15 +91,16 @@ def _seed(folder: Path, given: Path) -> bool:
             return False
         # contents only, never modes (copytree copies them): a folder open to others, even for a moment, would let
         # them drop a pickle or keep a handle to drop one later
+        owners = _trusted_owners(os.stat(given))
         for root, subfolders, files in os.walk(given):
-            if not _only_trusted_write(os.stat(root)):
+            if not _only_trusted_write(os.stat(root), owners):
                 subfolders.clear()
                 continue
             target = folder / Path(root).relative_to(given)
             target.mkdir(mode=0o700, exist_ok=True)
             for name in files:
                 st = os.lstat(Path(root) / name)
-                if stat.S_ISREG(st.st_mode) and _only_trusted_write(st):
+                if stat.S_ISREG(st.st_mode) and _only_trusted_write(st, owners):
                     _copy_whole(Path(root) / name, target / name)
                     copied += 1
     except OSError:
@@ -119,12 +120,22 @@ def _copy_whole(source: Path, dest: Path) -> None:
         raise
 
 
-def _only_trusted_write(st: os.stat_result) -> bool:
-    """Whether only root or this account can have written it: numba would load what another account put there
+def _trusted_owners(given: os.stat_result) -> tuple[int, ...]:
+    """Who may have written the kernels copied: root, this account, and the owner of the folder NUMBA_CACHE_DIR names.
+    That folder was chosen by whoever set up this process's environment, as PYTHONPATH is (a container image
+    compiles its kernels into it as its own account, e.g. `edi` in docker/Dockerfile, and a `--user` run reads them);
+    an account that merely owns a file inside it, or anyone who can write there, is not trusted."""
+    if not hasattr(os, "getuid"):
+        return ()
+    return (0, os.getuid(), given.st_uid)
+
+
+def _only_trusted_write(st: os.stat_result, owners: tuple[int, ...]) -> bool:
+    """Whether only a trusted account can have written it: numba would load what another account put there
     (numba itself never loads from a folder it cannot write, so nothing of another account's ran before)."""
     if not hasattr(os, "getuid"):
         return True
-    return st.st_uid in (0, os.getuid()) and not st.st_mode & 0o022
+    return st.st_uid in owners and not st.st_mode & 0o022
 
 
 def notice() -> str:

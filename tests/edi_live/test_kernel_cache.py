@@ -160,6 +160,29 @@ def test_only_kernels_no_other_account_could_have_written_are_copied(tmp_path, t
     assert "copy" not in kernel_cache.choose(environ, _package(tmp_path / "again", writable=False))
 
 
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() != 0, reason="giving files to another account needs root")
+def test_a_container_images_kernels_owned_by_its_own_account_are_copied_for_a_user_run(tmp_path, temp_dir,
+                                                                                       monkeypatch):
+    """docker/Dockerfile compiles the kernels as root, then gives the cache to its account `edi` so that `edi` can
+    write it; run with `--user` another uid reads them. The owner of the folder NUMBA_CACHE_DIR names is trusted
+    (whoever set the environment chose it); another owner inside it is not."""
+    image_cache = tmp_path / "image-cache"
+    (image_cache / "edi_abc").mkdir(parents=True)
+    (image_cache / "edi_abc" / "k.py311.nbi").write_bytes(b"index")
+    (image_cache / "edi_abc" / "other.nbi").write_bytes(b"index")
+    _only_owner_writes(image_cache)
+    for path in [image_cache, *image_cache.rglob("*")]:
+        os.chown(path, 1000, 1000)
+    os.chown(image_cache / "edi_abc" / "other.nbi", 54321, 54321)
+    writable = kernel_cache._writable
+    monkeypatch.setattr(kernel_cache, "_writable", lambda folder: folder != image_cache and writable(folder))
+    environ = {"XDG_CACHE_HOME": str(_blocked(tmp_path, "blocked") / "cache"), "NUMBA_CACHE_DIR": str(image_cache)}
+    notice = kernel_cache.choose(environ, _package(tmp_path, writable=False))
+    folder = Path(environ["NUMBA_CACHE_DIR"])
+    copied = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file())
+    assert copied == ["edi_abc/k.py311.nbi"] and "copy" in notice
+
+
 def test_the_user_cache_folder_is_the_one_numba_picks(tmp_path, monkeypatch):
     """The check must test the folder numba will use, or numba still finds none writable and raises at import."""
     from numba.misc.appdirs import AppDirs

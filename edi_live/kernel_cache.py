@@ -64,9 +64,8 @@ def choose(environ: MutableMapping[str, str] = os.environ, package_dir: Path = _
     """Set NUMBA_CACHE_DIR in `environ` when numba would find no writable cache folder for `package_dir`'s
     kernels; returns the notice for the person at the terminal ("" when nothing was changed)."""
     given = environ.get("NUMBA_CACHE_DIR", "")
-    if given and _writable(Path(given)):
-        return ""
-    if _writable(package_dir / "__pycache__") or _writable(_user_cache(environ)):
+    candidates = ([Path(given)] if given else []) + [package_dir / "__pycache__", _user_cache(environ)]
+    if any(_writable(folder) for folder in candidates):  # in numba's order
         return ""
     try:
         folder = _private_temp_folder()
@@ -74,9 +73,8 @@ def choose(environ: MutableMapping[str, str] = os.environ, package_dir: Path = _
         return f"numba kernel cache: no folder can be written ({exc}); set NUMBA_CACHE_DIR to one"
     environ["NUMBA_CACHE_DIR"] = str(folder)
     seeded = given and _seed(folder, Path(given))
-    tried = ([f"NUMBA_CACHE_DIR={given}"] if given else []) + [str(package_dir / "__pycache__"),
-                                                              str(_user_cache(environ))]
-    return (f"numba kernel cache: none of {', '.join(tried)} can be written, so compiled kernels go to {folder}"
+    tried = ", ".join(f"NUMBA_CACHE_DIR={c}" if given and k == 0 else str(c) for k, c in enumerate(candidates))
+    return (f"numba kernel cache: none of {tried} can be written, so compiled kernels go to {folder}"
             f"{' (started from a copy of the first)' if seeded else ''}, which the system may clear (the next start "
             f"then compiles again); set NUMBA_CACHE_DIR to a lasting folder this user can write")
 

@@ -30,8 +30,9 @@ def warm_up(make_reconstructor: Callable[..., Any], edi_config: Any, slow_after_
     not fatal: the real run reports it where it happens. Past `slow_after_s` one line says why the start waits
     (a first run printed nothing at all for that long).
     """
-    if kernel_cache.notice():  # the kernels are cached where the next start may not find them: say so once
-        log.warning(kernel_cache.notice())
+    cache_notice = kernel_cache.notice()
+    if cache_notice:  # the kernels are cached where the next start may not find them: say so once
+        log.warning(cache_notice)
     timer = threading.Timer(slow_after_s, log.info, args=(SLOW_NOTICE,))
     timer.daemon = True
     timer.start()

@@ -11,14 +11,15 @@ Clocks: every stream of one camera carries its timestamps (Unix µs) on the came
 time base and only their arrival differs. The merge keeps the `Packet` ordering contract at the lowest latency:
 events, IMU and triggers go out as they arrive; a frame is held until the events have reached its exposure end
 (or for `frame_wait_s` at most, when events stall). A frame stream more than `max_clock_skew_us` away from the
-event stream (two cameras, or DV replaying an old file on one output only) is refused with an error.
+event stream (two cameras, or DV replaying an old file on one output only) is refused with an error. A server that
+starts again with an older clock (a recording served again) continues after the earlier times (drivers.dv_clock).
 
 Care as in the USB driver: one reader thread per connection feeds one bounded queue; when the consumer falls
 behind, the oldest queued event packets are dropped, counted, and the next packet is marked as a gap. Faults
 (connection refused, an unexpected stream type, a sensor-size change, a dropped connection, a corrupt packet) are
 one-line `SourceError`s raised after everything received before them has been yielded (when one stream ends, the
-others are read until they end too or stay silent for `end_grace_s`: DV closes its outputs one by one). With `reconnect=True` a
-dropped connection is retried every `retry_s` until stop(); the stream must come back with the same type and size.
+others are read until they end too or stay silent for `end_grace_s`: DV closes its outputs one by one). With
+`reconnect=True` a dropped connection is retried every `retry_s` until stop(); the same type and size must return.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import threading
 import time
 from typing import Iterator, Sequence
 
+from drivers.dv_clock import DvClock
 from edi_live.aedat4 import Aedat4Reader, StreamInfo
 from edi_live.aedat4.compression import decompressor
 from edi_live.aedat4.reader import split_camera_label
@@ -259,6 +261,7 @@ class DvNetworkSource:
         held: list[tuple[float, Frame]] = []  # frames waiting for their events: (wall-clock arrival, frame)
         events_to = -(2**62)  # newest event time yielded
         frame_clock_checked = False
+        clock = DvClock(self._mark_gap)  # a server that starts again: its times continue after the earlier ones
         ended: SourceError | None = None  # a stream ended while others still deliver: raised once they are done
         last_item = time.monotonic()
         st = self._status
@@ -278,8 +281,8 @@ class DvNetworkSource:
                 else:
                     fault = ended or item[1]
             elif item[0] == "EVTS":
-                events = item[1]
-                if len(events) and int(events["t"][0]) < events_to:  # a server that restarted its clock
+                events = clock.events(item[1])
+                if len(events) and int(events["t"][0]) < events_to:  # disorder (a restart is dv_clock's)
                     keep = events["t"] >= events_to
                     st.dropped_events += int(len(events) - keep.sum())
                     events = events[keep]
@@ -288,7 +291,7 @@ class DvNetworkSource:
                     events_to = int(events["t"][-1])
                     packet.events, packet.arrival_ns = events, item[2]
             elif item[0] == "FRME":
-                frame: Frame = item[1]
+                frame: Frame = clock.frame(item[1])
                 if frame.image.shape[:2] != (self.info.height, self.info.width):
                     fault = ProtocolError(f"a DV frame of {frame.width}x{frame.height} arrived on a "
                                           f"{self.info.width}x{self.info.height} sensor (sensor size changed?)")
@@ -303,10 +306,7 @@ class DvNetworkSource:
                         held.append((time.monotonic(), frame))
                         packet.arrival_ns = item[2]
             else:
-                if item[0] == "IMUS":
-                    packet.imu = item[1]
-                else:
-                    packet.triggers = item[1]
+                setattr(packet, "imu" if item[0] == "IMUS" else "triggers", clock.stamped(item[1], item[0]))
             now = time.monotonic()
             due = [f.exposure_end_us <= events_to or now - arrived >= self.frame_wait_s or fault is not None
                    for arrived, f in held]

@@ -7,6 +7,7 @@ import json
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -157,6 +158,80 @@ def test_reconnect_resumes_with_a_gap_and_a_sensor_size_change_is_refused(real_r
             for _ in it:
                 pass
     other.proc.kill()
+
+
+def test_a_server_that_serves_its_recording_again_continues_after_the_earlier_times(real_recordings):
+    """The same recording served again after a reconnect goes back in time: its events are handed on, shifted to
+    continue after the first serving's, not dropped as too old (which lost all of them)."""
+    path = real_recordings["evlib_sample_davis346.aedat4"]
+    first = Peer("events", path)
+    source = DvNetworkSource([first.endpoint], reconnect=True, retry_s=0.05)
+    again = None
+    with source:
+        it = iter(source)
+        packets: list = []
+        while sum(len(p.events) for p in packets) < 6_676:
+            packet = next(it)
+            if packet is not None:
+                packets.append(packet)
+        first.finish()
+        again = Peer("events", path, "--port", str(first.port))
+        resumed: list = []
+        deadline = time.monotonic() + 30
+        while sum(len(p.events) for p in resumed) < 6_676 and time.monotonic() < deadline:
+            packet = next(it)
+            if packet is not None:
+                resumed.append(packet)
+        again.finish()
+    t1 = np.concatenate([p.events["t"] for p in packets])
+    t2 = np.concatenate([p.events["t"] for p in resumed])
+    assert len(t2) == 6_676 and source.status().dropped_events == 0, (len(t2), source.status())
+    assert t2[0] > t1[-1] and np.all(np.diff(t2) >= 0)
+    assert np.array_equal(t2 - t2[0], t1 - t1[0])  # the same recording, its spacing kept
+    assert resumed[0].gap
+
+
+def test_events_and_frames_served_again_keep_their_common_clock(real_recordings):
+    """Both streams of the camera served again: whichever shows the restart first, the frames keep their place
+    among the events (one offset for both), and every event from the first frame's exposure on is handed on."""
+    path = real_recordings["evlib_sample_davis346.aedat4"]
+    expected = _file_frames(path)
+    with Aedat4Reader(path) as reader:
+        file_t = np.concatenate([d["t"] for s, d in reader if s.type == "EVTS"])
+    peers = [Peer("events", path), Peer("frames", path)]
+    source = DvNetworkSource([peers[0].endpoint, f"frames={peers[1].endpoint}"], reconnect=True, retry_s=0.05)
+    with source:
+        it = iter(source)
+
+        def take() -> list:
+            """Packets until all frames and the shifted last event of the recording are in."""
+            got, deadline = [], time.monotonic() + 30
+            while time.monotonic() < deadline:
+                frames = [f for p in got for f in p.frames]
+                if len(frames) == len(expected):
+                    offset = frames[0].exposure_start_us - expected[0].exposure_start_us
+                    if any(len(p.events) and p.events["t"][-1] >= file_t[-1] + offset for p in got):
+                        break
+                packet = next(it)
+                if packet is not None:
+                    got.append(packet)
+            return got
+
+        take()
+        for peer in peers:
+            peer.finish()
+        peers = [Peer("events", path, "--port", str(peers[0].port)), Peer("frames", path, "--port", str(peers[1].port))]
+        second = take()
+        for peer in peers:
+            peer.finish()
+    frames = [f for p in second for f in p.frames]
+    assert len(frames) == len(expected)
+    offset = frames[0].exposure_start_us - expected[0].exposure_start_us
+    assert [(f.exposure_start_us, f.exposure_end_us) for f in frames] == \
+        [(f.exposure_start_us + offset, f.exposure_end_us + offset) for f in expected]
+    events = np.concatenate([p.events["t"] for p in second])
+    from_first_frame = file_t[file_t >= expected[0].exposure_start_us] + offset
+    assert np.array_equal(events[events >= frames[0].exposure_start_us][:len(from_first_frame)], from_first_frame)
 
 
 def test_a_consumer_that_falls_behind_costs_counted_drops_and_a_gap(real_recordings):

@@ -6,8 +6,10 @@ clock is older. The merge used to drop every event older than the newest one han
 until the new clock passed the old one, and with a file served again that never happened. Here a stream whose
 times go back by more than `restart_us` has restarted, and its times from there on continue right after
 everything handed on: one offset per restart, shared by the camera's streams, which run on one clock (the first
-stream that shows a restart sets the offset, the others take the same one when they show it too). Smaller steps
-back are disorder and stay the merge's to drop, as before.
+stream that shows a restart sets the offset, the others take the same one when they show it too). When a frame
+shows it first, the new clock's events from before that frame's exposure come out older than it and are dropped,
+counted: after the gap EDI starts again at that frame, so they would serve no frame. Smaller steps back are
+disorder and stay the merge's to drop, as before. A stream first seen after a restart runs on the newest clock.
 
 Owns the offsets only: no sockets, no threads (drivers.dv_network's merge loop calls it on its own thread).
 """

@@ -169,12 +169,18 @@ def test_lossless_mode_keeps_every_frame(raw_pub):
     ([b"frame", msgpack.packb({"v": 1}), b"xx"], "'seq'"),
     ([b"frame", b"only two"], "3 parts"),
     ("mismatch", "pixel part has"),
+    ({"layout": "bgr", "channels": 3.0}, "3.0 channels"),  # a TypeError from the reshape before
+    ({"layout": ["gray"]}, "layout ['gray']"),  # unhashable: a TypeError from `in`
+    ({"dtype": {"u1": 1}}, "dtype {'u1': 1}"),
 ])
 def test_malformed_messages_raise_client_error_and_the_subscriber_recovers(raw_pub, bad, message):
     sock, endpoint = raw_pub
     if bad == "mismatch":
         bad = good(3)
         bad[2] = bad[2][:-10]
+    elif isinstance(bad, dict):  # header values of a wrong type, pixels of the size they claim
+        header = {**msgpack.unpackb(good(3)[1]), **bad}
+        bad = [b"frame", msgpack.packb(header), bytes(64 * 48 * (3 if header["layout"] == "bgr" else 1))]
     with Subscriber(endpoint, newest_only=False) as sub:
         kind, what = wait_first(sock, sub, bad)
         assert kind == "error" and message in str(what)

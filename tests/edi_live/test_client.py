@@ -304,6 +304,30 @@ def test_bad_endpoint_and_key_are_client_errors(tmp_path):
         Subscriber("tcp://127.0.0.1:9", curve_server_key=tmp_path / "missing.key")
 
 
+@pytest.mark.parametrize("args, kwargs, message", [
+    ((None,), {}, "endpoint must be a string"),  # AttributeError from the port check before
+    ((5555,), {}, "endpoint must be a string"),
+    (("tcp://127.0.0.1:9",), {"rcvhwm": 1.5}, "rcvhwm must be an integer"),  # TypeError from libzmq before
+    (("tcp://127.0.0.1:9",), {"rcvhwm": "16"}, "rcvhwm must be an integer"),
+    (("tcp://127.0.0.1:9",), {"max_bytes": True}, "positive integers"),  # taken as a 1-byte limit before
+])
+def test_wrong_argument_types_are_client_errors(args, kwargs, message):
+    with pytest.raises(ClientError, match=message):
+        Subscriber(*args, **kwargs)
+
+
+@pytest.mark.parametrize("timeout_s", ["1", [1], True])
+def test_a_timeout_that_is_no_number_is_a_client_error(timeout_s):
+    with Subscriber("tcp://127.0.0.1:9") as sub, pytest.raises(ClientError, match="timeout_s must be a number"):
+        sub.recv(timeout_s)  # a TypeError from the comparison before ("1", [1]); True waited 1 s
+
+
+def test_numpy_integers_are_sizes_like_ints():
+    with Subscriber("tcp://127.0.0.1:9", rcvhwm=np.int64(5), max_bytes=np.int64(1 << 20)) as sub:
+        assert (sub.rcvhwm, sub.max_bytes) == (5, 1 << 20)
+        assert sub.recv(np.float32(0.0)) is None
+
+
 def test_subscribe_yields_colour_frames_as_h_w_3_bgr(pub):
     image = np.zeros((48, 64, 3), np.uint8)
     image[..., 0], image[..., 1], image[..., 2] = 10, 20, 30  # B, G, R

@@ -237,6 +237,9 @@ class Node:
             from edi_live.colour import one_opencv_thread  # OpenCV: loaded for colour sources only
 
             one_opencv_thread()
+            if edi_cfg.latent_denoise and edi_cfg.mode == "causal":  # (the reconstructor leaves it out in silence)
+                log.warning("ignored with a colour camera: --latent-denoise (it compares a pixel with its 8 "
+                            "neighbours, which see other colours on a Bayer mosaic)")
         reconstructor = self._make_reconstructor(info.width, info.height, edi_cfg)
         sinks = []
         if cfg.publisher.enabled:

@@ -559,10 +559,24 @@ def test_a_colour_camera_says_colour_in_the_listing_and_the_summary():
     assert listed.returncode == 0, listed.stderr
     assert "davis346" in listed.stdout and "colour (RGGB Bayer)" in listed.stdout
     proc = run_cli("--device", "davis346", "--usb-backend", "drivers.emulator:colour_backend", "--no-publish",
-                   "--duration", "1", timeout_s=90)
+                   "--duration", "1", "--latent-denoise", timeout_s=90)
     assert proc.returncode == 0, proc.stderr
+    assert "WARNING: ignored with a colour camera: --latent-denoise" in proc.stderr  # it did nothing, silently
     assert "done in" in proc.stderr and "camera: DAVIS346_EMUCRGGB 346x260, colour (RGGB Bayer mosaic)" in proc.stderr
     assert "INFO: DAVIS davis346 at USB 1:7 is a colour DAVIS346: RGGB Bayer mosaic" in proc.stderr  # at start-up
+
+
+@pytest.mark.parametrize("flags, warned", [
+    (["--bayer-pattern", "GBRG"], True),  # a mosaic stored as grey: colour from the first frame
+    (["--bayer-pattern", "GBRG", "--gray"], True),  # grey output, still EDI on the mosaic
+    ([], False),  # a grey camera: the filter does its work
+    (["--bayer-pattern", "GBRG", "--mode", "nearest"], False),  # said once, by the --mode warning
+])
+def test_latent_denoise_on_a_mosaic_is_said_to_do_nothing(real_recordings, needs_reconstructor, flags, warned):
+    proc = run_cli("--replay", str(real_recordings[DEMO]), "--speed", "0", "--no-publish", "--duration", "0.05",
+                   "--latent-denoise", *flags, timeout_s=90)
+    assert proc.returncode == 0, proc.stderr
+    assert ("ignored with a colour camera: --latent-denoise" in proc.stderr) == warned, proc.stderr
 
 
 def test_the_duration_reached_is_said_as_given(real_recordings, needs_reconstructor):

@@ -131,6 +131,16 @@ def test_rates_count_seq_gaps_and_status_line():
     assert "predicts" not in viewer.status_line(rates, 0, {"pred_psnr_db": None})
 
 
+def test_stats_values_that_are_no_finite_number_show_as_a_dash():
+    # a publisher's NaN, inf or true went onto the line as 'nan Mev/s', 'c inf', 'predicts ... 1.0 dB'
+    stats = {"frames_per_s": float("inf"), "events_per_s": float("nan"), "c": True, "latency_p50_us": "fast",
+             "drops": float("-inf"), "pred_psnr_db": float("nan"), "still_psnr_db": 20.0}
+    line = viewer.status_line(viewer.Rates(), 0, stats)
+    assert "node - fps, - Mev/s, c - | latency p50 - ms p99 - ms | node drops - |" in line, line
+    assert "nan" not in line.lower() and "inf" not in line and "predicts" not in line
+    assert "predicts next APS frame 1.0 dB" not in viewer.status_line(viewer.Rates(), 0, {"pred_psnr_db": True})
+
+
 def test_stats_that_stopped_coming_are_not_shown_as_current():
     # a node killed mid-run kept showing 'node 634.1 fps, 0.62 Mev/s' next to 'recv 0.0 fps' for ever
     rates = viewer.Rates()

@@ -309,6 +309,9 @@ def _main(argv: Sequence[str] | None, signals: StopSignals) -> int:
                 line = colour_line(source.info, config.edi.color_filter, node.final_stats.get("bayer_pattern"))
                 if line is not None:
                     _say(line)
+                if line is not None and not (source.info.is_color or config.edi.color_filter) \
+                        and config.edi.latent_denoise and config.edi.mode == "causal":  # (no start-up warning)
+                    _say("  --latent-denoise was ignored: the source's frames were colour (BGR)")
         return 0
     except SystemExit as exc:  # --help / --version
         return int(exc.code or 0)

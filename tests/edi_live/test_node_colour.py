@@ -43,9 +43,9 @@ def test_a_colour_source_gives_colour_frames_unless_gray(gray, mode):
     assert np.asarray(rec.render().image).dtype == np.uint8
 
 
-def test_bayer_pattern_option_reads_a_grey_stored_mosaic_as_colour():
+def test_bayer_pattern_option_reads_a_grey_stored_mosaic_as_colour(caplog):
     """A raw mosaic stored as grey frames (a recording that lost its pattern) becomes colour with --bayer-pattern;
-    the user's pattern wins over the source's."""
+    the user's pattern wins over the source's, said aloud when they differ (a typo gave wrong colours unsaid)."""
     sim = simulate(SceneConfig(width=32, height=24, duration_s=0.2, color_filter="GRBG", velocity_px_s=(100.0, 20.0)))
     sim.frames[:] = [type(f)(f.image, f.exposure_start_us, f.exposure_end_us) for f in sim.frames]
     made = []
@@ -54,13 +54,18 @@ def test_bayer_pattern_option_reads_a_grey_stored_mosaic_as_colour():
         made.append(default_reconstructor(w, h, edi))
         return made[-1]
 
-    for source_pattern in (None, "BGGR"):
+    for source_pattern in (None, "BGGR", "GRBG"):
         source = BurstSource(_packets(sim), width=32, height=24)
         source.info = SourceInfo(32, 24, "raw burst", kind="usb", color_filter=source_pattern)
         options = {"device": "auto", "no_publish": True, "every": 200, "bayer_pattern": "grbg"}
-        Node(NodeConfig.from_options(options), source, reconstructor_factory=factory).run()
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="edi_live"):
+            Node(NodeConfig.from_options(options), source, reconstructor_factory=factory).run()
         assert made[-1].settings.color_filter == "GRBG"
         assert made[-1].render().image.shape == (24, 32, 3)
+        said = [r.getMessage() for r in caplog.records if "--bayer-pattern" in r.getMessage()]
+        assert said == (["--bayer-pattern GRBG replaces the BGGR pattern raw burst names: its colours will be wrong "
+                         "unless the source is mistaken"] if source_pattern == "BGGR" else []), said
 
 
 def test_an_unknown_bayer_pattern_is_a_usage_error():

@@ -236,6 +236,10 @@ class Subscriber:
                 parts = self._recv_message(sock, zmq.NOBLOCK)
             except zmq.Again:
                 break
+            except ClientError:  # the messages drained so far and the one in hand are dropped with it: count them
+                if sock is self._frames:
+                    self.skipped += skipped + 1
+                raise
             skipped += 1
         return parts, skipped
 

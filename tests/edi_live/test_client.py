@@ -514,6 +514,30 @@ def test_a_server_that_is_not_zeromq_is_named():
     assert "ZeroMQ" in str(error) and endpoint in str(error), str(error)
 
 
+def test_frames_drained_before_a_message_of_too_many_parts_count_as_skipped(monkeypatch):
+    # newest_only drains to the newest message; one of 5 parts met there raised at once, and the frames already
+    # drained were neither handed over nor counted in `skipped`, so a viewer counted them as lost on the wire.
+    # The socket's messages are scripted (a real publisher cannot say when all of them are queued here).
+    queued = [good(1), good(2), good(3), ClientError("a message of 5 parts arrived")]
+
+    def recv_message(sock, flags):
+        if not queued:
+            raise zmq.Again()
+        item = queued.pop(0)
+        if isinstance(item, Exception):
+            raise item
+        return item
+
+    with Subscriber("tcp://127.0.0.1:9", newest_only=True) as sub:
+        monkeypatch.setattr(sub, "_recv_message", recv_message)
+        with pytest.raises(ClientError, match="a message of 5 parts"):
+            sub.recv(0)
+        assert sub.skipped == 3 and sub.received == 0  # frames 1, 2 and 3: drained, never shown
+        queued[:] = [good(4), good(5)]
+        header, _ = sub.recv(0)
+        assert header["seq"] == 5 and sub.skipped == 4 and sub.received == 1
+
+
 def test_a_message_of_a_million_parts_is_refused_without_holding_them(raw_pub):
     # libzmq bounds a part's size, not the number of parts: 2 million empty parts (4 MB on the wire) became
     # 2 million Python objects (RSS +1.1 GB) before the part count was checked

@@ -159,6 +159,7 @@ class Viewer:
         self.sub = Subscriber(args.endpoint, newest_only=not args.all, curve_server_key=args.curve_server_key)
         self._tty = sys.stderr.isatty()
         self._stats_at = time.monotonic()  # when the newest stats message came
+        self._skipped_shown = 0  # self.sub.skipped when the latest frame was shown
 
     @property
     def url(self) -> str | None:
@@ -179,7 +180,6 @@ class Viewer:
             self._step()
 
     def _step(self) -> None:
-        skipped_before = self.sub.skipped
         try:
             item = self.sub.recv(0.1)
         except ClientHandshakeError:
@@ -196,7 +196,9 @@ class Viewer:
             self._bad(exc)
         if item is not None:
             header, image = item
-            self.rates.add(header["seq"], self.sub.skipped - skipped_before)
+            # every skip since the last frame shown, also those of a step that ended in a bad message
+            self.rates.add(header["seq"], self.sub.skipped - self._skipped_shown)
+            self._skipped_shown = self.sub.skipped
             self.hub.put(image)
             self.recorder.write(header, image)
         if self.rates.tick():

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from edi_live.datatypes import Reconstruction
+from edi_live.errors import ClientError
 from edi_live.publisher import Publisher
 from tools import viewer
 
@@ -463,6 +464,28 @@ def step_until(v: viewer.Viewer, frames: int) -> None:
     deadline = time.monotonic() + 10
     while v.rates.frames < frames and time.monotonic() < deadline:
         v._step()
+
+
+def test_frames_skipped_in_a_step_that_ended_in_a_bad_message_are_not_counted_lost(monkeypatch):
+    # the Subscriber counts the frames it drained before a bad message as skipped; the viewer subtracted from a
+    # seq gap only the skips of the step that showed a frame, so those frames were reported lost
+    v = viewer.Viewer(viewer.build_parser().parse_args(["--endpoint", "tcp://127.0.0.1:9", "--no-http", "--quiet"]))
+    script = [1, ClientError("a message of 5 parts arrived"), 5]
+
+    def recv(timeout_s):
+        item = script.pop(0)
+        if isinstance(item, ClientError):
+            v.sub.skipped += 3  # frames 2, 3 and 4: drained, then dropped with the bad message
+            raise item
+        return {"seq": item}, pattern(item)
+
+    monkeypatch.setattr(v.sub, "recv", recv)
+    try:
+        for _ in range(3):
+            v._step()
+    finally:
+        v.close()
+    assert (v.rates.frames, v.bad_messages, v.rates.lost) == (2, 1, 0)
 
 
 def test_a_bad_stats_message_loses_no_frame(raw_pub, tmp_path):

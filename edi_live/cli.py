@@ -137,10 +137,16 @@ def make_source(config: NodeConfig, explicit: set[str] | frozenset = frozenset()
                                policy=config.ring_policy)
 
 
-def colour_line(info: SourceInfo, pattern: str | None = None) -> str:
-    """The summary's line for a colour camera (mono cameras need none); `pattern`: --bayer-pattern's, if given."""
-    given = " given by --bayer-pattern" if pattern else ""
-    return f"  camera: {info.label} {info.width}x{info.height}, colour ({pattern or info.color_filter} Bayer mosaic{given})"
+def colour_line(info: SourceInfo, pattern: str | None = None, seen: str | None = None) -> str | None:
+    """The summary's line for a colour camera (None for a mono one); `pattern`: --bayer-pattern's, if given;
+    `seen`: the pattern the reconstructor ran on (final stats' bayer_pattern), for a source that named none but
+    sent BGR frames (DV's demosaiced recordings)."""
+    used = pattern or info.color_filter or seen
+    if used is None:
+        return None
+    how = (" given by --bayer-pattern" if pattern else "" if info.color_filter
+           else ", the source's BGR frames re-mosaiced")
+    return f"  camera: {info.label} {info.width}x{info.height}, colour ({used} Bayer mosaic{how})"
 
 
 def list_devices_command(flags: dict[str, Any]) -> int:
@@ -300,8 +306,12 @@ def _main(argv: Sequence[str] | None, signals: StopSignals) -> int:
                 from edi_live.stats import format_summary
 
                 _say(format_summary(node.final_stats, node.elapsed_s))
-                if source.info.is_color or config.edi.color_filter:
-                    _say(colour_line(source.info, config.edi.color_filter))
+                line = colour_line(source.info, config.edi.color_filter, node.final_stats.get("bayer_pattern"))
+                if line is not None:
+                    _say(line)
+                if line is not None and not (source.info.is_color or config.edi.color_filter) \
+                        and config.edi.latent_denoise and config.edi.mode == "causal":  # (no start-up warning)
+                    _say("  --latent-denoise was ignored: the source's frames were colour (BGR)")
         return 0
     except SystemExit as exc:  # --help / --version
         return int(exc.code or 0)

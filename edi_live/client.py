@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import numbers
 import os
 import time
 from collections.abc import Callable, Iterator
@@ -82,6 +83,10 @@ def _server_public_key(key: str | bytes | os.PathLike) -> bytes:
     return public
 
 
+def _is_int(value: object) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)  # True is an int, not a size
+
+
 def _check_port(endpoint: str) -> None:
     """libzmq takes a tcp port over 65535 modulo 65536 without a word (99999 connects to 34463)."""
     parts = tcp_parts(endpoint)
@@ -90,7 +95,8 @@ def _check_port(endpoint: str) -> None:
 
 
 def _check_timeout(timeout_s: float | None) -> None:
-    if timeout_s is not None and not timeout_s >= 0:  # NaN never ends a wait
+    if timeout_s is not None and not (isinstance(timeout_s, numbers.Real) and not isinstance(timeout_s, bool)
+                                      and timeout_s >= 0):  # NaN never ends a wait
         raise ClientError(f"timeout_s must be a number of seconds >= 0, or None to wait (got {timeout_s!r})")
 
 
@@ -105,14 +111,17 @@ class Subscriber:
         """rcvhwm: messages queued in libzmq (default 16, or 1000 without newest_only; 0 = as many as
         max_queued_bytes allows), always capped at max_queued_bytes // max_bytes: a subscriber that wants
         every frame of small images lowers max_bytes to get a deeper queue (max_bytes=1 << 20: 1024)."""
-        if not (isinstance(max_bytes, int) and max_bytes > 0 and isinstance(max_queued_bytes, int)
-                and max_queued_bytes > 0):
+        if not (_is_int(max_bytes) and max_bytes > 0 and _is_int(max_queued_bytes) and max_queued_bytes > 0):
             raise ClientError(f"max_bytes and max_queued_bytes must be positive integers "
                               f"(got {max_bytes!r}, {max_queued_bytes!r})")
+        if rcvhwm is not None and not _is_int(rcvhwm):
+            raise ClientError(f"rcvhwm must be an integer, or None for the default (got {rcvhwm!r})")
+        if not isinstance(endpoint, str):
+            raise ClientError(f"the endpoint must be a string such as {DEFAULT_ENDPOINT} (got {endpoint!r})")
         _check_port(endpoint)
         self.endpoint = endpoint
         self.newest_only = newest_only
-        self.max_bytes = max_bytes
+        self.max_bytes = max_bytes = int(max_bytes)
         self.received = 0  # frames handed to the caller
         self.skipped = 0  # frames drained and discarded by newest_only
         self.reconnects = 0  # connections re-established after libzmq dropped them (e.g. an oversized part)
@@ -120,8 +129,8 @@ class Subscriber:
         self._handshaking: set[zmq.Socket] = set()  # connected, handshake not yet done
         self.last_stats: dict | None = None
         self._server_key = _server_public_key(curve_server_key) if curve_server_key is not None else None
-        wanted = rcvhwm if rcvhwm is not None else (16 if newest_only else 1000)
-        cap = max(1, max_queued_bytes // max_bytes)
+        wanted = int(rcvhwm) if rcvhwm is not None else (16 if newest_only else 1000)
+        cap = max(1, int(max_queued_bytes) // max_bytes)
         self.rcvhwm = cap if wanted <= 0 else min(wanted, cap)
         self._ctx = zmq.Context(io_threads=1)
         self._monitors: dict[zmq.Socket, zmq.Socket] = {}
@@ -227,6 +236,10 @@ class Subscriber:
                 parts = self._recv_message(sock, zmq.NOBLOCK)
             except zmq.Again:
                 break
+            except ClientError:  # the messages drained so far and the one in hand are dropped with it: count them
+                if sock is self._frames:
+                    self.skipped += skipped + 1
+                raise
             skipped += 1
         return parts, skipped
 

@@ -232,11 +232,17 @@ class Node:
             calibration.check_can_save(cfg.save_calibration)  # before the run, not after it has measured everything
         self._calibration_start = edi_cfg.start
         # colour: EDI on the Bayer mosaic, with the user's pattern over the source's
+        if edi_cfg.color_filter and info.color_filter and edi_cfg.color_filter != info.color_filter:
+            log.warning("--bayer-pattern %s replaces the %s pattern %s names: its colours will be wrong unless the "
+                        "source is mistaken", edi_cfg.color_filter, info.color_filter, info.label)
         edi_cfg = dataclasses.replace(edi_cfg, color_filter=edi_cfg.color_filter or info.color_filter)
         if edi_cfg.color_filter is not None:
             from edi_live.colour import one_opencv_thread  # OpenCV: loaded for colour sources only
 
             one_opencv_thread()
+            if edi_cfg.latent_denoise and edi_cfg.mode == "causal":  # (the reconstructor leaves it out in silence)
+                log.warning("ignored with a colour camera: --latent-denoise (it compares a pixel with its 8 "
+                            "neighbours, which see other colours on a Bayer mosaic)")
         reconstructor = self._make_reconstructor(info.width, info.height, edi_cfg)
         sinks = []
         if cfg.publisher.enabled:

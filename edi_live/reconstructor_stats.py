@@ -9,7 +9,8 @@ from typing import Any
 # keys of the reconstructor's own stats() that the stats map passes on unchanged
 PASSED_ON = ("clock_offset_estimated", "clock_offset_physical_us", "black_level_estimated", "deblurs_ahead",
              "black_level_from_calibration", "clock_offset_from_calibration",
-             "flicker_pixels", "noise_hz_p50", "noise_hz_p99", "noise_on_hz_p50", "noise_off_hz_p50", "noisy_pixels")
+             "flicker_pixels", "noise_hz_p50", "noise_hz_p99", "noise_on_hz_p50", "noise_off_hz_p50", "noisy_pixels",
+             "bayer_pattern")  # colour only; the node's summary reads it, the wire's stats map leaves it out
 
 
 def reconstructor_stats(rec: Any) -> dict[str, Any]:

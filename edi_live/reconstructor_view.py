@@ -145,4 +145,7 @@ class ReconstructorView:
             "events_applied": self.events_applied, "has_reference": self.has_reference,
             "last_deblur_ms": round(self.last_deblur_ms, 3), "last_estimate_ms": round(self.last_estimate_ms, 3),
             "last_settle_ms": round(self._calib.last_settle_ms, 3) if self._calib is not None else 0.0,
+            # colour only (a grey reconstructor's map is unchanged): the pattern EDI runs on, also when the source
+            # named none and its BGR frames started colour at the first frame
+            **({"bayer_pattern": self._colour.pattern} if self._colour is not None else {}),
         }

@@ -219,7 +219,10 @@ def _check_header(header: dict) -> None:
     version = header.get("v")
     if type(version) is not int:  # `type() is int` also refuses bool, which msgpack keeps apart
         raise ClientError(f"frame header has no integer protocol version 'v' (got {version!r})")
-    if not GRAY_VERSION <= version <= PROTOCOL_VERSION:
+    if version < GRAY_VERSION:  # "upgrade" would be wrong advice: no edi-live ever sent it
+        raise ClientError(f"frame header's protocol version v{version} is not one edi-live sends (v{GRAY_VERSION}"
+                          f"-v{PROTOCOL_VERSION}): not an edi-live publisher?")
+    if version > PROTOCOL_VERSION:
         raise ClientError(f"frame uses wire protocol v{version}; this client speaks v{PROTOCOL_VERSION}: "
                           "upgrade edi-live on the subscriber side")
     bad = [key for key in _INT_KEYS if type(header.get(key)) is not int]
@@ -230,10 +233,13 @@ def _check_header(header: dict) -> None:
                           f"(got {header['seq']}, {header['n_events']})")
     if header["w"] <= 0 or header["h"] <= 0:
         raise ClientError(f"frame size must be positive (got w={header['w']}, h={header['h']})")
-    if header.get("dtype") not in DTYPES:
+    # `type() is str` before `in`: a list or map from the peer is unhashable (TypeError from dict membership)
+    if type(header.get("dtype")) is not str or header["dtype"] not in DTYPES:
         raise ClientError(f"frame dtype {header.get('dtype')!r} is unknown (known: {sorted(DTYPES)})")
     layout = header.setdefault("layout", "gray")  # a v1 sender's frames are gray
-    if layout not in LAYOUTS or header.setdefault("channels", LAYOUTS.get(layout)) != LAYOUTS.get(layout):
+    known = LAYOUTS.get(layout) if type(layout) is str else None
+    # channels must be the int itself: 3.0 == 3 and True == 1, but a float fails the reshape
+    if known is None or type(header.setdefault("channels", known)) is not int or header["channels"] != known:
         raise ClientError(f"frame layout {layout!r} with {header.get('channels')!r} channels is unknown "
                           f"(known: {', '.join(f'{k} ({n})' for k, n in LAYOUTS.items())})")
     if header.get("kind") not in KINDS:

@@ -233,6 +233,8 @@ class EdiWorker:
                 cuts = cuts[:0]  # the events below still move the latent image
             pos = 0
             for g in range(0, len(cuts), _BATCH_FRAMES):
+                if self._abort.is_set():  # one read at --every 1 is 64k frames: abort between batches
+                    return
                 group = cuts[g:g + _BATCH_FRAMES]
                 end = group[-1]
                 recs = self.rec.on_events_frames(events[pos:end], [c - pos for c in group],
@@ -245,7 +247,7 @@ class EdiWorker:
             self._since = tail
             return
         pos = 0
-        while pos < n:
+        while pos < n and not self._abort.is_set():
             take = min(n - pos, max(1, every - self._since))
             part = events[pos:pos + take]
             pos += take

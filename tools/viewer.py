@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import signal
 import sys
 import threading
@@ -67,9 +68,14 @@ class Rates:
         return True
 
 
+def _shown(value: object) -> bool:
+    """A stats value the status line can print: a finite number (a publisher may send NaN, inf or true)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
 def _num(stats: dict, key: str, scale: float = 1.0, fmt: str = "{:.2f}") -> str:
     value = stats.get(key)
-    return fmt.format(value * scale) if isinstance(value, (int, float)) else "-"
+    return fmt.format(value * scale) if _shown(value) else "-"
 
 
 STATS_STALE_S = 3.0  # the node sends stats once a second: older ones describe a node that stopped or went away
@@ -91,7 +97,7 @@ def status_line(rates: Rates, skipped: int, stats: dict | None, stats_age_s: flo
         # all of the node's drops (source, ring, publisher), not only the publisher's
         drops_key = "drops" if "drops" in stats else "publish_dropped"
         parts.append(f"node drops {_num(stats, drops_key, fmt='{:.0f}')}")
-        if isinstance(stats.get("pred_psnr_db"), (int, float)):  # the live quality figure (docs/quality.md)
+        if _shown(stats.get("pred_psnr_db")):  # the live quality figure (docs/quality.md)
             parts.append(f"predicts next APS frame {_num(stats, 'pred_psnr_db', fmt='{:.1f}')} dB "
                          f"(nothing moved: {_num(stats, 'still_psnr_db', fmt='{:.1f}')} dB)")
     else:
@@ -153,6 +159,7 @@ class Viewer:
         self.sub = Subscriber(args.endpoint, newest_only=not args.all, curve_server_key=args.curve_server_key)
         self._tty = sys.stderr.isatty()
         self._stats_at = time.monotonic()  # when the newest stats message came
+        self._skipped_shown = 0  # self.sub.skipped when the latest frame was shown
 
     @property
     def url(self) -> str | None:
@@ -173,7 +180,6 @@ class Viewer:
             self._step()
 
     def _step(self) -> None:
-        skipped_before = self.sub.skipped
         try:
             item = self.sub.recv(0.1)
         except ClientHandshakeError:
@@ -190,7 +196,9 @@ class Viewer:
             self._bad(exc)
         if item is not None:
             header, image = item
-            self.rates.add(header["seq"], self.sub.skipped - skipped_before)
+            # every skip since the last frame shown, also those of a step that ended in a bad message
+            self.rates.add(header["seq"], self.sub.skipped - self._skipped_shown)
+            self._skipped_shown = self.sub.skipped
             self.hub.put(image)
             self.recorder.write(header, image)
         if self.rates.tick():

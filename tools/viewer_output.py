@@ -64,7 +64,9 @@ class Recorder:
             if self._writer is None:
                 self._writer = cv2.VideoWriter(str(self.mp4), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, size)
                 if not self._writer.isOpened():
-                    raise EdiLiveError(f"cannot open {self.mp4} for MP4 (mp4v) writing")
+                    # the folder was checked at start: what is left is the size (a side of 1 pixel, a huge one)
+                    raise EdiLiveError(f"cannot open {self.mp4} for MP4 (mp4v) writing of {size[0]}x{size[1]} frames "
+                                       f"(the size of frame {header['seq']}, the first: OpenCV's encoder refused it)")
                 self._size = size
             if size != self._size:
                 if not self.skipped_size:

@@ -559,10 +559,58 @@ def test_a_colour_camera_says_colour_in_the_listing_and_the_summary():
     assert listed.returncode == 0, listed.stderr
     assert "davis346" in listed.stdout and "colour (RGGB Bayer)" in listed.stdout
     proc = run_cli("--device", "davis346", "--usb-backend", "drivers.emulator:colour_backend", "--no-publish",
-                   "--duration", "1", timeout_s=90)
+                   "--duration", "1", "--latent-denoise", timeout_s=90)
     assert proc.returncode == 0, proc.stderr
+    assert "WARNING: ignored with a colour camera: --latent-denoise" in proc.stderr  # it did nothing, silently
     assert "done in" in proc.stderr and "camera: DAVIS346_EMUCRGGB 346x260, colour (RGGB Bayer mosaic)" in proc.stderr
     assert "INFO: DAVIS davis346 at USB 1:7 is a colour DAVIS346: RGGB Bayer mosaic" in proc.stderr  # at start-up
+
+
+@pytest.mark.parametrize("flags, warned", [
+    (["--bayer-pattern", "GBRG"], True),  # a mosaic stored as grey: colour from the first frame
+    (["--bayer-pattern", "GBRG", "--gray"], True),  # grey output, still EDI on the mosaic
+    ([], False),  # a grey camera: the filter does its work
+    (["--bayer-pattern", "GBRG", "--mode", "nearest"], False),  # said once, by the --mode warning
+])
+def test_latent_denoise_on_a_mosaic_is_said_to_do_nothing(real_recordings, needs_reconstructor, flags, warned):
+    proc = run_cli("--replay", str(real_recordings[DEMO]), "--speed", "0", "--no-publish", "--duration", "0.05",
+                   "--latent-denoise", *flags, timeout_s=90)
+    assert proc.returncode == 0, proc.stderr
+    assert ("ignored with a colour camera: --latent-denoise" in proc.stderr) == warned, proc.stderr
+
+
+def _bgr_recording(path: Path) -> None:
+    """A small colour scene written the way DV records a colour camera: demosaiced BGR frames, no pattern named."""
+    from edi_live.aedat4 import Aedat4Writer
+    from edi_live.colour import demosaic
+    from edi_live.datatypes import Frame
+    from edi_live.simulation import SceneConfig, simulate
+
+    sim = simulate(SceneConfig(width=48, height=32, duration_s=0.3, color_filter="RGGB",
+                               velocity_px_s=(100.0, 20.0)))
+    with Aedat4Writer(path, 48, 32, events=True, frames=True, camera_name="dv-colour") as writer:
+        lo = -1
+        for f in sim.frames:
+            writer.write_events(sim.events[(sim.events["t"] > lo) & (sim.events["t"] <= f.exposure_end_us)])
+            writer.write_frame(Frame(demosaic(f.image, "RGGB"), f.exposure_start_us, f.exposure_end_us))
+            lo = f.exposure_end_us
+
+
+@pytest.mark.parametrize("flags, said", [
+    ([], None),
+    (["--latent-denoise"], "  --latent-denoise was ignored: the source's frames were colour (BGR)"),
+    (["--latent-denoise", "--bayer-pattern", "GBRG"], None),  # warned at start-up instead
+])
+def test_a_bgr_recording_is_summarised_as_colour(tmp_path, needs_reconstructor, flags, said):
+    # its summary had no camera line (the file does not say colour) and --latent-denoise was dropped unsaid
+    path = tmp_path / "bgr.aedat4"
+    _bgr_recording(path)
+    proc = run_cli("--replay", str(path), "--speed", "0", "--no-publish", *flags, timeout_s=90)
+    assert proc.returncode == 0, proc.stderr
+    pattern = "GBRG Bayer mosaic given by --bayer-pattern" if "--bayer-pattern" in flags else \
+        "RGGB Bayer mosaic, the source's BGR frames re-mosaiced"
+    assert f"  camera: dv-colour 48x32, colour ({pattern})" in proc.stderr.splitlines(), proc.stderr
+    assert [line for line in proc.stderr.splitlines() if "was ignored" in line] == ([said] if said else [])
 
 
 def test_the_duration_reached_is_said_as_given(real_recordings, needs_reconstructor):

@@ -169,12 +169,18 @@ def test_lossless_mode_keeps_every_frame(raw_pub):
     ([b"frame", msgpack.packb({"v": 1}), b"xx"], "'seq'"),
     ([b"frame", b"only two"], "3 parts"),
     ("mismatch", "pixel part has"),
+    ({"layout": "bgr", "channels": 3.0}, "3.0 channels"),  # a TypeError from the reshape before
+    ({"layout": ["gray"]}, "layout ['gray']"),  # unhashable: a TypeError from `in`
+    ({"dtype": {"u1": 1}}, "dtype {'u1': 1}"),
 ])
 def test_malformed_messages_raise_client_error_and_the_subscriber_recovers(raw_pub, bad, message):
     sock, endpoint = raw_pub
     if bad == "mismatch":
         bad = good(3)
         bad[2] = bad[2][:-10]
+    elif isinstance(bad, dict):  # header values of a wrong type, pixels of the size they claim
+        header = {**msgpack.unpackb(good(3)[1]), **bad}
+        bad = [b"frame", msgpack.packb(header), bytes(64 * 48 * (3 if header["layout"] == "bgr" else 1))]
     with Subscriber(endpoint, newest_only=False) as sub:
         kind, what = wait_first(sock, sub, bad)
         assert kind == "error" and message in str(what)
@@ -296,6 +302,30 @@ def test_bad_endpoint_and_key_are_client_errors(tmp_path):
         Subscriber("nonsense://x")
     with pytest.raises(ClientError, match="CURVE server public key"):
         Subscriber("tcp://127.0.0.1:9", curve_server_key=tmp_path / "missing.key")
+
+
+@pytest.mark.parametrize("args, kwargs, message", [
+    ((None,), {}, "endpoint must be a string"),  # AttributeError from the port check before
+    ((5555,), {}, "endpoint must be a string"),
+    (("tcp://127.0.0.1:9",), {"rcvhwm": 1.5}, "rcvhwm must be an integer"),  # TypeError from libzmq before
+    (("tcp://127.0.0.1:9",), {"rcvhwm": "16"}, "rcvhwm must be an integer"),
+    (("tcp://127.0.0.1:9",), {"max_bytes": True}, "positive integers"),  # taken as a 1-byte limit before
+])
+def test_wrong_argument_types_are_client_errors(args, kwargs, message):
+    with pytest.raises(ClientError, match=message):
+        Subscriber(*args, **kwargs)
+
+
+@pytest.mark.parametrize("timeout_s", ["1", [1], True])
+def test_a_timeout_that_is_no_number_is_a_client_error(timeout_s):
+    with Subscriber("tcp://127.0.0.1:9") as sub, pytest.raises(ClientError, match="timeout_s must be a number"):
+        sub.recv(timeout_s)  # a TypeError from the comparison before ("1", [1]); True waited 1 s
+
+
+def test_numpy_integers_are_sizes_like_ints():
+    with Subscriber("tcp://127.0.0.1:9", rcvhwm=np.int64(5), max_bytes=np.int64(1 << 20)) as sub:
+        assert (sub.rcvhwm, sub.max_bytes) == (5, 1 << 20)
+        assert sub.recv(np.float32(0.0)) is None
 
 
 def test_subscribe_yields_colour_frames_as_h_w_3_bgr(pub):
@@ -482,6 +512,30 @@ def test_a_server_that_is_not_zeromq_is_named():
             stop.set()
             thread.join(5)
     assert "ZeroMQ" in str(error) and endpoint in str(error), str(error)
+
+
+def test_frames_drained_before_a_message_of_too_many_parts_count_as_skipped(monkeypatch):
+    # newest_only drains to the newest message; one of 5 parts met there raised at once, and the frames already
+    # drained were neither handed over nor counted in `skipped`, so a viewer counted them as lost on the wire.
+    # The socket's messages are scripted (a real publisher cannot say when all of them are queued here).
+    queued = [good(1), good(2), good(3), ClientError("a message of 5 parts arrived")]
+
+    def recv_message(sock, flags):
+        if not queued:
+            raise zmq.Again()
+        item = queued.pop(0)
+        if isinstance(item, Exception):
+            raise item
+        return item
+
+    with Subscriber("tcp://127.0.0.1:9", newest_only=True) as sub:
+        monkeypatch.setattr(sub, "_recv_message", recv_message)
+        with pytest.raises(ClientError, match="a message of 5 parts"):
+            sub.recv(0)
+        assert sub.skipped == 3 and sub.received == 0  # frames 1, 2 and 3: drained, never shown
+        queued[:] = [good(4), good(5)]
+        header, _ = sub.recv(0)
+        assert header["seq"] == 5 and sub.skipped == 4 and sub.received == 1
 
 
 def test_a_message_of_a_million_parts_is_refused_without_holding_them(raw_pub):

@@ -329,6 +329,29 @@ def test_bad_layouts_are_rejected(rng, changes, message):
         wire.decode_frame(good_parts(rng, **changes))
 
 
+@pytest.mark.parametrize("changes, message", [
+    ({"layout": ["bgr"]}, r"layout \['bgr'\]"),  # unhashable values: a TypeError from `in` before
+    ({"layout": {"bgr": 3}}, "layout {'bgr': 3}"),
+    ({"dtype": ["u1"]}, r"dtype \['u1'\]"),
+    ({"dtype": {}}, "dtype {}"),
+    ({"channels": 1.0}, "1.0 channels"),  # 1.0 == 1: it reached the reshape, a TypeError for 3.0
+    ({"channels": True}, "True channels"),
+    ({"v": 0}, "v0 is not one edi-live sends"),  # not "upgrade edi-live": no version would read it
+    ({"v": -1}, "v-1 is not one edi-live sends"),
+])
+def test_header_values_of_the_wrong_type_are_client_errors(rng, changes, message):
+    with pytest.raises(ClientError, match=message):
+        wire.decode_frame(good_parts(rng, **changes))
+
+
+def test_a_colour_frame_whose_channels_is_a_float_is_a_client_error(rng):
+    parts = as_bytes(wire.encode_frame(make_colour_rec(rng), 1, "cam"))
+    header = msgpack.unpackb(parts[1], raw=False)
+    header["channels"] = 3.0
+    with pytest.raises(ClientError, match="'bgr' with 3.0 channels"):
+        wire.decode_frame([parts[0], msgpack.packb(header), parts[2]])
+
+
 def test_the_cached_header_encoder_gives_exactly_the_reference_bytes(rng):
     """FrameEncoder packs from per-layout templates; every message must equal encode_frame's, whatever mix of
     layouts, kinds, thresholds and number types goes through one encoder."""

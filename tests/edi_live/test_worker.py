@@ -537,6 +537,30 @@ def test_abort_stops_without_draining():
     assert worker.join(timeout_s=2)
 
 
+@pytest.mark.parametrize("config", [EdiConfig(every=1, deblur_thread=False),  # the batched causal path
+                                    EdiConfig(every=1, max_fps=1e9, deblur_thread=False)])  # frame by frame
+def test_abort_stops_within_a_chunk_of_many_frames(config):
+    # --every 1: one 64k-event read is 64k latent frames (~40 s of colour frames); abort was looked at only
+    # between reads, so a --duration or Ctrl-C run ended in "edi-worker did not stop within their timeout"
+    # (exit 1) with the frames made meanwhile counted as sent but never written to --out
+    ev = events_at(np.arange(0, 80_000, 4))  # 20000 events, all read at once
+    ring = EventRing(capacity_events=1 << 16, capacity_frames=8, policy="wait")
+    assert ring.push(Packet(events=ev[:500], frames=[aps(100, 1000)]), timeout_s=5)
+    assert ring.push(Packet(events=ev[500:]), timeout_s=5)
+    ring.close()
+    out: list = []
+
+    def sink(rec: Reconstruction) -> None:
+        out.append(rec)
+        if len(out) == 40:
+            worker.abort()
+
+    worker = EdiWorker(ring, StandIn(), config, [sink])
+    worker.start()
+    assert worker.join(timeout_s=60) and worker.error is None
+    assert 40 <= len(out) <= 40 + edi_live.worker._BATCH_FRAMES, len(out)  # the batch under way, no more
+
+
 @pytest.mark.parametrize("mode", ["causal", "nearest"])
 def test_stats_map_has_the_published_keys(mode):
     worker, rec, out, errors = run_worker([], EdiConfig(mode=mode))

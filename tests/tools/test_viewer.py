@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from edi_live.datatypes import Reconstruction
+from edi_live.errors import ClientError
 from edi_live.publisher import Publisher
 from tools import viewer
 
@@ -129,6 +130,16 @@ def test_rates_count_seq_gaps_and_status_line():
     quality = viewer.status_line(rates, 0, {"pred_psnr_db": 33.26, "still_psnr_db": 29.61})
     assert "predicts next APS frame 33.3 dB (nothing moved: 29.6 dB)" in quality
     assert "predicts" not in viewer.status_line(rates, 0, {"pred_psnr_db": None})
+
+
+def test_stats_values_that_are_no_finite_number_show_as_a_dash():
+    # a publisher's NaN, inf or true went onto the line as 'nan Mev/s', 'c inf', 'predicts ... 1.0 dB'
+    stats = {"frames_per_s": float("inf"), "events_per_s": float("nan"), "c": True, "latency_p50_us": "fast",
+             "drops": float("-inf"), "pred_psnr_db": float("nan"), "still_psnr_db": 20.0}
+    line = viewer.status_line(viewer.Rates(), 0, stats)
+    assert "node - fps, - Mev/s, c - | latency p50 - ms p99 - ms | node drops - |" in line, line
+    assert "nan" not in line.lower() and "inf" not in line and "predicts" not in line
+    assert "predicts next APS frame 1.0 dB" not in viewer.status_line(viewer.Rates(), 0, {"pred_psnr_db": True})
 
 
 def test_stats_that_stopped_coming_are_not_shown_as_current():
@@ -453,6 +464,28 @@ def step_until(v: viewer.Viewer, frames: int) -> None:
     deadline = time.monotonic() + 10
     while v.rates.frames < frames and time.monotonic() < deadline:
         v._step()
+
+
+def test_frames_skipped_in_a_step_that_ended_in_a_bad_message_are_not_counted_lost(monkeypatch):
+    # the Subscriber counts the frames it drained before a bad message as skipped; the viewer subtracted from a
+    # seq gap only the skips of the step that showed a frame, so those frames were reported lost
+    v = viewer.Viewer(viewer.build_parser().parse_args(["--endpoint", "tcp://127.0.0.1:9", "--no-http", "--quiet"]))
+    script = [1, ClientError("a message of 5 parts arrived"), 5]
+
+    def recv(timeout_s):
+        item = script.pop(0)
+        if isinstance(item, ClientError):
+            v.sub.skipped += 3  # frames 2, 3 and 4: drained, then dropped with the bad message
+            raise item
+        return {"seq": item}, pattern(item)
+
+    monkeypatch.setattr(v.sub, "recv", recv)
+    try:
+        for _ in range(3):
+            v._step()
+    finally:
+        v.close()
+    assert (v.rates.frames, v.bad_messages, v.rates.lost) == (2, 1, 0)
 
 
 def test_a_bad_stats_message_loses_no_frame(raw_pub, tmp_path):

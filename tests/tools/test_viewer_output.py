@@ -28,6 +28,16 @@ def test_frames_left_out_of_the_mp4_for_their_size_are_reported(tmp_path, caplog
     cap.release()
 
 
+@pytest.mark.parametrize("shape", [(1, 100), (2, 1, 3)])
+def test_a_first_frame_the_encoder_refuses_is_named_with_its_size(tmp_path, shape):
+    # 'cannot open x.mp4 for MP4 (mp4v) writing' sent the user to look at a file and folder that were fine
+    recorder = viewer.Recorder(tmp_path / "x.mp4", None, 30.0)
+    size = f"{shape[1]}x{shape[0]}"
+    with pytest.raises(viewer.EdiLiveError, match=f"writing of {size} frames \\(the size of frame 7, the first"):
+        recorder.write({"seq": 7}, np.zeros(shape, np.uint8))
+    recorder.close()
+
+
 def test_png_never_overwrites_a_frame_already_saved(tmp_path, caplog):
     """A second recording into the same --png folder (or a node restarted mid-recording: its seq starts at 0
     again) overwrote the frames saved under the same numbers, without a word."""

@@ -22,6 +22,7 @@ from typing import Any, Sequence
 
 from edi_live.cli_parser import PROG, build_parser
 from edi_live.config import NodeConfig, merge_options, read_toml
+from edi_live.console import escape_what_cannot_be_encoded, print_lines
 from edi_live.file_roles import check_apart
 from edi_live.datatypes import SourceInfo
 from edi_live.errors import ConfigError, EdiLiveError, RecordingError, SourceError
@@ -148,10 +149,8 @@ def list_devices_command(flags: dict[str, Any]) -> int:
 
     backend = load_usb_backend(flags["usb_backend"]) if flags.get("usb_backend") else None
     devices = drivers.list_devices(backend)
-    if not devices:
-        print("no DAVIS camera found (is it plugged in? on Linux, is the udev rule installed?)")
-    for d in devices:
-        print(d)
+    print_lines([str(d) for d in devices] or
+                ["no DAVIS camera found (is it plugged in? on Linux, is the udev rule installed?)"])
     return 0
 
 
@@ -255,6 +254,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     (e.g. while the replay's decoding child is reaped), where a late Ctrl-C would kill it (rc -2)."""
     signals = StopSignals()
     signals.install()
+    escape_what_cannot_be_encoded()
     try:
         return _main(argv, signals)
     finally:

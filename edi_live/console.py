@@ -1,0 +1,57 @@
+"""The program's standard output and error when they are not a UTF-8 terminal: a service's journal, a pipe, a
+C locale with PYTHONIOENCODING=ascii.
+
+Owns two things: text a stream cannot encode ("µs" on an ASCII stream) is written escaped (`\\xb5s`) instead of
+raising UnicodeEncodeError, which turned `--help` into an internal error; and a reader of stdout that went away
+(`edi-live --list-devices | head -0`) ends the output quietly instead of a BrokenPipeError.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Iterable
+from typing import Any
+
+
+def escape_what_cannot_be_encoded() -> None:
+    """stdout/stderr whose encoding cannot hold our messages' non-ASCII text escape it from now on.
+
+    Only the error handler changes (not the encoding), and only on such streams: a UTF-8 one is left alone."""
+    for stream in (sys.stdout, sys.stderr):
+        if not _can_encode(stream, "µ–×"):
+            try:
+                stream.reconfigure(errors="backslashreplace")
+            except (AttributeError, ValueError, OSError):  # not a TextIOWrapper, or closed: nothing to do
+                pass
+
+
+def _can_encode(stream: Any, text: str) -> bool:
+    encoding = getattr(stream, "encoding", None)
+    if stream is None or not encoding:
+        return True
+    try:
+        text.encode(encoding, getattr(stream, "errors", None) or "strict")
+    except (UnicodeError, LookupError):
+        return False
+    return True
+
+
+def print_lines(lines: Iterable[str]) -> None:
+    """The lines on stdout; a reader that closed the pipe early ends them without an error (it has what it
+    wanted), and stdout goes to /dev/null so that the interpreter's last flush is quiet too."""
+    try:
+        for line in lines:
+            print(line)
+        sys.stdout.flush()
+    except BrokenPipeError:
+        _stdout_to_devnull()
+
+
+def _stdout_to_devnull() -> None:
+    try:
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, sys.stdout.fileno())
+        os.close(null)
+    except (OSError, ValueError, AttributeError):  # no file descriptor behind stdout: nothing to silence
+        pass

@@ -1,0 +1,45 @@
+"""`python -m edi_live` with standard streams a service gives it: stdout into a reader that went away, an ASCII-only
+encoding (PYTHONIOENCODING=ascii, as under some init systems), and the unit behaviour of edi_live.console."""
+
+from __future__ import annotations
+
+import io
+import os
+import subprocess
+import sys
+
+from edi_live import console
+from tests.edi_live.test_cli import REPO, _env
+
+
+def test_list_devices_into_a_closed_pipe_is_not_an_error():
+    read_end, write_end = os.pipe()
+    os.close(read_end)  # the reader is gone before anything is written: every write meets EPIPE
+    try:
+        proc = subprocess.run([sys.executable, "-m", "edi_live", "--list-devices", "--usb-backend",
+                               "drivers.emulator:backend"], cwd=REPO, stdout=write_end, stderr=subprocess.PIPE,
+                              text=True, timeout=60, env=_env())
+    finally:
+        os.close(write_end)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr == ""  # no "internal error: BrokenPipeError", no "Exception ignored" at exit
+
+
+def test_help_on_an_ascii_stdout_is_printed_with_the_micro_sign_escaped():
+    proc = subprocess.run([sys.executable, "-m", "edi_live", "--help"], cwd=REPO, capture_output=True, timeout=60,
+                          env={**_env(), "PYTHONIOENCODING": "ascii", "LANG": "C", "LC_ALL": "C"})
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr == b""
+    assert b"APS exposure in \\xb5s" in proc.stdout  # the help text, whole, with "µs" escaped
+
+
+def test_only_streams_that_cannot_encode_our_text_are_changed(monkeypatch):
+    ascii_out = io.TextIOWrapper(io.BytesIO(), encoding="ascii")
+    utf8_err = io.TextIOWrapper(io.BytesIO(), encoding="utf-8")
+    monkeypatch.setattr(sys, "stdout", ascii_out)
+    monkeypatch.setattr(sys, "stderr", utf8_err)
+    console.escape_what_cannot_be_encoded()
+    assert (ascii_out.errors, utf8_err.errors) == ("backslashreplace", "strict")
+    ascii_out.write("1 µs")
+    ascii_out.flush()
+    assert ascii_out.buffer.getvalue() == b"1 \\xb5s"

@@ -200,8 +200,21 @@ class Aedat4Writer:
             self._file.seek(self._dtp_pos)
             self._write(struct.pack("<q", dtp))
             self._file.flush()
+            self._check_still_there()
         finally:
             self._file.close()
+
+    def _check_still_there(self) -> None:
+        """Writes into a file whose name or folder was removed mid-run all succeed (the data go to a nameless
+        file that vanishes at close): without this a run reported every frame written to a file that is gone."""
+        try:
+            here, ours = os.stat(self.path), os.fstat(self._file.fileno())
+            same = (here.st_dev, here.st_ino) == (ours.st_dev, ours.st_ino)
+        except OSError:
+            same = False
+        if not same:
+            raise RecordingError("the file is no longer there: it or its folder was deleted or moved while it was "
+                                 "being written, so nothing written to it is at this path", self.path)
 
     def __enter__(self) -> "Aedat4Writer":
         return self

@@ -131,3 +131,31 @@ def test_out_writes_colour_reconstructions_as_colour_frames(tmp_path):
     assert frame.image.shape == (6, 8, 3) and np.array_equal(frame.image, bgr)  # dv-processing: BGR
     (packet,) = list(aedat.Decoder(str(path)))
     assert packet["frame"]["format"] == "RGB" and np.array_equal(packet["frame"]["pixels"], bgr[..., ::-1])
+
+
+def test_a_folder_removed_during_the_run_is_an_error_naming_the_file_not_a_silent_loss(tmp_path):
+    import shutil
+
+    from edi_live.errors import RecordingError
+
+    folder = tmp_path / "run"
+    folder.mkdir()
+    errors = []
+    w = OutWriter(folder / "sharp.aedat4", 8, 6, on_error=errors.append)
+    w.start()
+    w.submit(recon(1000, 10))
+    shutil.rmtree(folder)  # as a clean-up job or a user might while the node runs
+    w.submit(recon(2000, 20))  # writes into the open (now nameless) file still succeed
+    w.close(timeout_s=10)
+    assert not (folder / "sharp.aedat4").exists()
+    assert len(errors) == 1 and isinstance(errors[0], RecordingError)
+    assert str(folder / "sharp.aedat4") in str(errors[0]) and "no longer there" in str(errors[0])
+
+
+def test_a_file_still_at_its_path_closes_without_an_error(tmp_path):
+    errors = []
+    w = OutWriter(tmp_path / "sharp.aedat4", 8, 6, on_error=errors.append)
+    w.start()
+    w.submit(recon(1000, 10))
+    w.close(timeout_s=10)
+    assert errors == [] and len(read_frames(tmp_path / "sharp.aedat4")[1]) == 1

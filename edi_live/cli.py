@@ -24,6 +24,7 @@ from edi_live.cli_parser import PROG, build_parser
 from edi_live.config import NodeConfig, merge_options, read_toml
 from edi_live.console import escape_what_cannot_be_encoded, print_lines
 from edi_live.file_roles import check_apart
+from edi_live.resource_limits import out_of_memory
 from edi_live.datatypes import SourceInfo
 from edi_live.errors import ConfigError, EdiLiveError, RecordingError, SourceError
 from edi_live.stop_signals import StopRequested, StopSignals
@@ -313,11 +314,15 @@ def _main(argv: Sequence[str] | None, signals: StopSignals) -> int:
     except EdiLiveError as exc:
         if level == "debug":
             traceback.print_exc()
+        exc = out_of_memory(exc) or exc
         _say(_error_line(exc))
         return exc.exit_code
     except Exception as exc:  # a bug: still one line, the traceback at --log-level debug
         if level == "debug":
             traceback.print_exc()
+        if (short := out_of_memory(exc)) is not None:
+            _say(_error_line(short))
+            return short.exit_code
         _say(_error_line(f"internal error: {type(exc).__name__}: {exc} (rerun with --log-level debug for the "
                          f"traceback and report it)"))
         return 1

@@ -78,3 +78,7 @@ class ClientError(EdiLiveError):
 
 class NodeError(EdiLiveError):
     """A node thread failed; the message names the thread."""
+
+
+class ResourceError(EdiLiveError):
+    """The process ran out of something the machine or its limits give it (memory, address space)."""

@@ -160,8 +160,8 @@ def calibrate_dark_command(config: NodeConfig, source: Any, n_frames: int, signa
     from edi_live.dark_calibration import calibrate_dark
 
     result, target = calibrate_dark(source, n_frames, config.save_calibration, signals)
-    print(f"{PROG}: black level {result.black_level:g} DN (noise {result.noise_dn:g} DN, {result.frames} dark "
-          f"frames of {source.info.label}) written to {target}", file=sys.stderr)
+    _say(f"{PROG}: black level {result.black_level:g} DN (noise {result.noise_dn:g} DN, {result.frames} dark "
+         f"frames of {source.info.label}) written to {target}")
     return 0
 
 

@@ -43,7 +43,7 @@ from edi_live.config import EdiConfig
 from edi_live.checks import finite_number
 from edi_live.config_file import read_limited
 from edi_live.datatypes import SourceInfo
-from edi_live.errors import ConfigError
+from edi_live.errors import ConfigError, OutputError
 from edi_live.pixel_noise import NoiseRates
 
 log = logging.getLogger(__name__)
@@ -190,7 +190,8 @@ def save(cal: Calibration, path: Path | str) -> None:
     except OSError as exc:
         with contextlib.suppress(OSError):  # no half-written file left next to the target
             tmp.unlink(missing_ok=True)
-        raise ConfigError(f"cannot write calibration {path} ({exc.strerror or exc})") from None
+        # a runtime failure (a full disk), not a usage error: where to write was checked before the run
+        raise OutputError(f"cannot write calibration {path} ({exc.strerror or exc})") from None
 
 
 def prepare(edi: EdiConfig, info: SourceInfo, given: Path | None, save_to: Path | None) -> tuple[EdiConfig, Path | None]:

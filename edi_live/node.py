@@ -32,7 +32,7 @@ from typing import Any, Callable, TextIO
 
 from edi_live import calibration, fused_mode
 from edi_live.config import EdiConfig, NodeConfig
-from edi_live.errors import ConfigError, EdiLiveError, NodeError, SourceError
+from edi_live.errors import ConfigError, EdiLiveError, NodeError, OutputError, SourceError
 from edi_live.reconstruction import Reconstructor
 from edi_live.ring import EventRing, as_events
 from edi_live.source import Source, stop_from_another_thread
@@ -280,7 +280,7 @@ class Node:
         try:
             calibration.save(cal, target)
             log.info("calibration saved to %s", target)
-        except ConfigError as exc:
+        except (ConfigError, OutputError) as exc:
             if self.config.save_calibration is not None:
                 self.fail(exc, "calibration", input_fault=True)
             else:

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import subprocess
@@ -204,3 +205,20 @@ def test_a_measured_black_level_stays_measured_through_the_stats_rounding():
     assert cal.black_level_measured and cal.black_level == 10.125
     replaced = calibration.from_stats(info, {"c_on": 0.2, "c_off": 0.2, "black_level_dn": 5.0}, start=start)
     assert not replaced.black_level_measured and replaced.black_level == 5.0
+
+
+def test_a_full_disk_at_the_save_is_a_runtime_error_not_a_usage_error(tmp_path, monkeypatch):
+    # ENOSPC from a full tmpfs was a ConfigError (exit 2, 'usage error'): where to write was checked before the run
+    from pathlib import Path
+
+    from edi_live.errors import OutputError
+
+    def full(self, *args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", full)
+    target = tmp_path / "cam.json"
+    with pytest.raises(OutputError, match=f"cannot write calibration {target} .No space left") as info:
+        calibration.save(calibration.Calibration("edi-live-sim", 48, 36, 0.2, 0.2), target)
+    assert info.value.exit_code == 1
+    assert list(tmp_path.iterdir()) == []

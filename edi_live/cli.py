@@ -295,7 +295,7 @@ def _main(argv: Sequence[str] | None, signals: StopSignals) -> int:
         node = Node(config, source, status_stream=sys.stderr)
         signals.attach(node)
         try:
-            node.run()
+            node.run(warming_up=signals.raising)  # a stop signal ends a cold kernel compile at once
         finally:
             if node.final_stats and node.started.is_set():  # no summary when it never got going
                 from edi_live.stats import format_summary

@@ -22,12 +22,13 @@ stop is named in a NodeError.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, TextIO
+from typing import Any, Callable, ContextManager, TextIO
 
 
 from edi_live import calibration, fused_mode
@@ -182,13 +183,15 @@ class Node:
 
     # ---------------------------------------------------------------- main thread
 
-    def run(self) -> dict[str, Any]:
+    def run(self, warming_up: Callable[[], ContextManager[Any]] = contextlib.nullcontext) -> dict[str, Any]:
         """Run to the end; returns the final stats. Raises the first failure (EdiLiveError subclasses as they
-        are, anything else wrapped in NodeError naming the thread)."""
+        are, anything else wrapped in NodeError naming the thread). `warming_up`: the context the kernel warm-up
+        runs in, before anything is opened (the command line's StopSignals.raising: a stop signal ends it at once)."""
         self.t_start = time.monotonic()
         entered = False
-        try:
+        with warming_up():
             warm_up(self._make_reconstructor, self.config.edi)
+        try:
             # the run's clock starts after the warm-up: a cold numba cache compiles for seconds once, which must
             # not be folded into the rates of the summary (it is reported on its own line)
             self.warm_up_s = time.monotonic() - self.t_start

@@ -222,3 +222,21 @@ def test_a_full_disk_at_the_save_is_a_runtime_error_not_a_usage_error(tmp_path, 
         calibration.save(calibration.Calibration("edi-live-sim", 48, 36, 0.2, 0.2), target)
     assert info.value.exit_code == 1
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_service_account_without_a_home_folder_gets_a_warning_and_no_folder_is_made(tmp_path, real_recordings):
+    # HOME=/nonexistent (a daemon account) made the end-of-run save create /nonexistent/.config/... as root
+    # (and an empty HOME, /.config); it must not make a home that is not there
+    home = tmp_path / "nonexistent"
+    env = {k: v for k, v in os.environ.items() if k != "XDG_CONFIG_HOME"}
+    proc = subprocess.run([sys.executable, "-m", "edi_live", "--device", "davis346", "--usb-backend",
+                           "drivers.emulator:backend", "--emulate-from",
+                           str(real_recordings["evlib_sample_davis346.aedat4"]), "--speed", "0", "--no-publish"],
+                          cwd=REPO, capture_output=True, text=True, timeout=90,
+                          env={**env, "PYTHONPATH": str(REPO), "HOME": str(home)})
+    assert proc.returncode == 0, proc.stderr
+    assert f"the home folder '{home}' does not exist" in proc.stderr and "edi-live: error" not in proc.stderr
+    assert not home.exists()
+    dark = _node("--device", "davis346", "--usb-backend", "drivers.emulator:backend", "--calibrate-dark", "2",
+                 env={"HOME": str(home), "XDG_CONFIG_HOME": ""})
+    assert dark.returncode == 2 and "--calibrate-dark: the home folder" in dark.stderr and not home.exists()

@@ -221,7 +221,8 @@ def prepare(edi: EdiConfig, info: SourceInfo, given: Path | None, save_to: Path 
     save the calibration at the end. A live camera without --calibration loads its own file if there is one, and
     saves to it."""
     live = info.kind in ("usb", "emulator")
-    path = given if given is not None else (default_path(info) if live and default_path(info).is_file() else None)
+    own = live and missing_home() is None and default_path(info).is_file()
+    path = given if given is not None else (default_path(info) if own else None)
     if path is not None:
         try:
             cal = load(path)

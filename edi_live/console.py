@@ -40,6 +40,8 @@ def _can_encode(stream: Any, text: str) -> bool:
 def print_lines(lines: Iterable[str]) -> None:
     """The lines on stdout; a reader that closed the pipe early ends them without an error (it has what it
     wanted), and stdout goes to /dev/null so that the interpreter's last flush is quiet too."""
+    if sys.stdout is None:  # started with stdout closed (`>&-`): there is no one to tell
+        return
     try:
         for line in lines:
             print(line)

@@ -43,3 +43,12 @@ def test_only_streams_that_cannot_encode_our_text_are_changed(monkeypatch):
     ascii_out.write("1 µs")
     ascii_out.flush()
     assert ascii_out.buffer.getvalue() == b"1 \\xb5s"
+
+
+def test_list_devices_with_stdout_closed_is_not_an_error():
+    proc = subprocess.run([sys.executable, "-m", "edi_live", "--list-devices", "--usb-backend",
+                           "drivers.emulator:backend"], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                          text=True, timeout=60, env=_env(), close_fds=True,
+                          preexec_fn=lambda: os.close(1))  # `>&-`: Python starts with sys.stdout None
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr == ""

@@ -241,7 +241,10 @@ def _error_line(exc: BaseException) -> str:
 
 
 def _say(text: str) -> None:
-    """One message on stderr; a stderr that went away ('2>&1 | head') does not turn a finished run into an error."""
+    """One message on stderr; a stderr that went away ('2>&1 | head') does not turn a finished run into an error,
+    and a closed one ('2>&-': sys.stderr is None, where print() would fall back to stdout) takes nothing."""
+    if sys.stderr is None:
+        return
     try:
         print(text, file=sys.stderr, flush=True)
     except (OSError, ValueError):

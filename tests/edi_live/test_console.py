@@ -52,3 +52,16 @@ def test_list_devices_with_stdout_closed_is_not_an_error():
                           preexec_fn=lambda: os.close(1))  # `>&-`: Python starts with sys.stdout None
     assert proc.returncode == 0, proc.stderr
     assert proc.stderr == ""
+
+
+def test_with_stderr_closed_the_summary_does_not_land_on_stdout(real_recordings, tmp_path):
+    # `2>&-`: sys.stderr is None and print(file=None) writes to stdout, so the summary and error lines went into
+    # whatever read stdout; the run itself is unchanged
+    out = tmp_path / "sharp.aedat4"
+    proc = subprocess.run([sys.executable, "-m", "edi_live", "--replay",
+                           str(real_recordings["evlib_sample_davis346.aedat4"]), "--speed", "0", "--no-publish",
+                           "--out", str(out)], cwd=REPO, stdout=subprocess.PIPE, text=True, timeout=60, env=_env(),
+                          preexec_fn=lambda: os.close(2))
+    assert proc.returncode == 0
+    assert proc.stdout == ""
+    assert out.stat().st_size > 0

@@ -22,7 +22,7 @@ from typing import Any, Sequence
 
 from edi_live.cli_parser import PROG, build_parser
 from edi_live.config import NodeConfig, merge_options, read_toml
-from edi_live.console import escape_what_cannot_be_encoded, print_lines
+from edi_live.console import escape_what_cannot_be_encoded, occupy_closed_standard_fds, print_lines
 from edi_live.file_roles import check_apart
 from edi_live.resource_limits import out_of_memory
 from edi_live.datatypes import SourceInfo
@@ -256,6 +256,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     in-process call restores the previous handlers on return. The program, once stopped by a signal, ignores
     further ones until it has exited: Python resets its own handlers to the default action while it finalises
     (e.g. while the replay's decoding child is reaped), where a late Ctrl-C would kill it (rc -2)."""
+    occupy_closed_standard_fds()  # first: before any file of ours could take a closed stdin/stdout/stderr's number
     signals = StopSignals()
     signals.install()
     escape_what_cannot_be_encoded()

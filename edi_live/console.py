@@ -1,7 +1,8 @@
 """The program's standard output and error when they are not a UTF-8 terminal: a service's journal, a pipe, a
 C locale with PYTHONIOENCODING=ascii.
 
-Owns two things: text a stream cannot encode ("µs" on an ASCII stream) is written escaped (`\\xb5s`) instead of
+Owns three things: file descriptors 0-2 that were closed are filled with /dev/null (so that no file of ours
+takes their number); text a stream cannot encode ("µs" on an ASCII stream) is written escaped (`\\xb5s`) instead of
 raising UnicodeEncodeError, which turned `--help` into an internal error; and a reader of stdout that went away
 (`edi-live --list-devices | head -0`) ends the output quietly instead of a BrokenPipeError.
 """
@@ -12,6 +13,24 @@ import os
 import sys
 from collections.abc import Iterable
 from typing import Any
+
+
+def occupy_closed_standard_fds() -> None:
+    """Open /dev/null on file descriptors 0-2 where they were closed (`2>&-`, a bare service environment).
+
+    Otherwise the next file opened takes the number: with `2>&-` the --out recording became fd 2, and whatever a
+    library writes to "stderr" at C level (libzmq, libusb, OpenCV messages) went into the middle of it."""
+    for fd in (0, 1, 2):
+        try:
+            os.fstat(fd)
+        except OSError:
+            try:
+                null = os.open(os.devnull, os.O_RDWR)
+            except OSError:
+                return
+            if null != fd:  # (a lower one was free too: it is filled on its own turn of the loop)
+                os.dup2(null, fd)
+                os.close(null)
 
 
 def escape_what_cannot_be_encoded() -> None:

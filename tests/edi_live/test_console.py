@@ -65,3 +65,35 @@ def test_with_stderr_closed_the_summary_does_not_land_on_stdout(real_recordings,
     assert proc.returncode == 0
     assert proc.stdout == ""
     assert out.stat().st_size > 0
+
+
+_STRAY = b"a library's own message on stderr\n"
+_WRAPPER = f"""
+import os, sys
+import edi_live.writers as writers
+from edi_live.cli import main
+
+write_frames = writers.OutWriter._write_frames
+
+def with_a_stray_message(self, recs):
+    os.write(2, {_STRAY!r})  # what a C library (libzmq, libusb, OpenCV) does with its messages
+    return write_frames(self, recs)
+
+writers.OutWriter._write_frames = with_a_stray_message
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_with_stderr_closed_no_recording_takes_its_file_descriptor(real_recordings, tmp_path):
+    # `2>&-` left fd 2 free, so the --out file became fd 2 and C-level stderr writes landed inside the recording
+    from edi_live.aedat4 import Aedat4Reader
+
+    out = tmp_path / "sharp.aedat4"
+    proc = subprocess.run([sys.executable, "-c", _WRAPPER, "--replay",
+                           str(real_recordings["evlib_sample_davis346.aedat4"]), "--speed", "0", "--no-publish",
+                           "--out", str(out)], cwd=REPO, stdout=subprocess.DEVNULL, timeout=60, env=_env(),
+                          preexec_fn=lambda: os.close(2))
+    assert proc.returncode == 0
+    assert _STRAY not in out.read_bytes()
+    with Aedat4Reader(out) as reader:
+        assert reader.data_table() is not None and sum(1 for _ in reader) > 0

@@ -137,6 +137,8 @@ class Node:
             if self._failure is None:
                 self._failure = (exc, thread)
                 log.debug("%s failed", thread, exc_info=exc)
+            elif isinstance(exc, EdiLiveError):  # e.g. --record lost too: only the first is the run's error line
+                log.warning("%s", exc)
             else:
                 log.debug("%s also failed: %s", thread, exc)
         if not input_fault:

@@ -24,7 +24,7 @@ from edi_live.cli_parser import PROG, build_parser
 from edi_live.config import NodeConfig, merge_options, read_toml
 from edi_live.console import escape_what_cannot_be_encoded, occupy_closed_standard_fds, print_lines
 from edi_live.file_roles import check_apart
-from edi_live.resource_limits import out_of_memory
+from edi_live.resource_limits import check_open_files, out_of_memory
 from edi_live.datatypes import SourceInfo
 from edi_live.errors import ConfigError, EdiLiveError, RecordingError, SourceError
 from edi_live.stop_signals import StopRequested, StopSignals
@@ -283,6 +283,8 @@ def _main(argv: Sequence[str] | None, signals: StopSignals) -> int:
         level = config.log_level
         _setup_logging(level)
         _warn_if_exposed(config)
+        if config.publisher.enabled or config.output.dv_output or config.output.dv_output_events:
+            check_open_files()
         _warn_ignored(config, set(flags))
         outputs = [f"--{name.replace('_', '-')}" for name in ("out", "record", "dv_output", "dv_output_events")
                    if getattr(config.output, name) is not None]

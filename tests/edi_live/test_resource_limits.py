@@ -46,3 +46,20 @@ def test_causes_are_found_through_the_chain_and_other_errors_are_left_alone():
     assert isinstance(out_of_memory(MemoryError()), ResourceError)
     assert out_of_memory(NodeError("the edi-worker thread failed: ValueError: x")) is None
     assert out_of_memory(FileNotFoundError(2, "No such file or directory")) is None
+
+
+def _few_files() -> None:
+    resource.setrlimit(resource.RLIMIT_NOFILE, (64, 64))
+
+
+def test_a_low_open_files_limit_is_said_at_start_when_publishing(real_recordings):
+    # under `ulimit -n 64` 48 of 100 subscribers were served and the node said nothing about the rest
+    args = ["--replay", str(real_recordings["evlib_sample_davis346.aedat4"]), "--speed", "0", "--publish",
+            "tcp://127.0.0.1:*"]
+    proc = subprocess.run([sys.executable, "-m", "edi_live", *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=120, env=_env(), preexec_fn=_few_files)
+    assert proc.returncode == 0, proc.stderr
+    assert "only 64 open files are allowed (ulimit -n)" in proc.stderr
+    quiet = subprocess.run([sys.executable, "-m", "edi_live", *args[:4], "--no-publish"], cwd=REPO,
+                           capture_output=True, text=True, timeout=120, env=_env(), preexec_fn=_few_files)
+    assert quiet.returncode == 0 and "open files" not in quiet.stderr  # nothing to subscribe to: nothing to say

@@ -283,7 +283,8 @@ def _main(argv: Sequence[str] | None, signals: StopSignals) -> int:
         level = config.log_level
         _setup_logging(level)
         _warn_if_exposed(config)
-        if config.publisher.enabled or config.output.dv_output or config.output.dv_output_events:
+        serves = config.publisher.enabled or config.output.dv_output or config.output.dv_output_events
+        if serves and dark_frames is None:  # (--calibrate-dark only measures)
             check_open_files()
         _warn_ignored(config, set(flags))
         outputs = [f"--{name.replace('_', '-')}" for name in ("out", "record", "dv_output", "dv_output_events")

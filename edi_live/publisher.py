@@ -32,6 +32,7 @@ import zmq
 import zmq.auth
 
 from edi_live import wire
+from edi_live.console import print_lines
 from edi_live.curve_keys import load_secret_key
 from edi_live.datatypes import Reconstruction
 from edi_live.errors import PublishError
@@ -375,7 +376,7 @@ def main(argv: list[str] | None = None) -> int:
     except PublishError as exc:
         print(f"{parser.prog}: error: {exc}", file=sys.stderr)
         return 1
-    print(f"public key (for subscribers): {public}\nsecret key (for edi-live --curve-secret-key): {secret}")
+    print_lines([f"public key (for subscribers): {public}", f"secret key (for edi-live --curve-secret-key): {secret}"])
     return 0
 
 

@@ -97,3 +97,23 @@ def test_with_stderr_closed_no_recording_takes_its_file_descriptor(real_recordin
     assert _STRAY not in out.read_bytes()
     with Aedat4Reader(out) as reader:
         assert reader.data_table() is not None and sum(1 for _ in reader) > 0
+
+
+def _into_a_closed_pipe(*args: str) -> subprocess.CompletedProcess:
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    try:
+        return subprocess.run([sys.executable, "-m", *args], cwd=REPO, stdout=write_end, stderr=subprocess.PIPE,
+                              text=True, timeout=60, env=_env())
+    finally:
+        os.close(write_end)
+
+
+def test_the_setup_tools_into_a_closed_pipe_end_without_a_traceback(tmp_path):
+    # 'python -m drivers.udev | sudo tee RULES' whose tee failed, or a key generation piped into a pager closed
+    # early: a BrokenPipeError traceback and exit 1 (the keys had been written)
+    keys = _into_a_closed_pipe("edi_live.publisher", "--gen-curve-keys", str(tmp_path / "curve"))
+    assert keys.returncode == 0 and keys.stderr == "", keys.stderr
+    assert (tmp_path / "curve" / "server.key_secret").is_file()
+    rule = _into_a_closed_pipe("drivers.udev")
+    assert rule.returncode == 0 and rule.stderr == "", rule.stderr

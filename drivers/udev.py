@@ -11,6 +11,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from edi_live.console import print_lines
+
 RULES_FILE = Path(__file__).resolve().parent / "99-edi-live-davis.rules"
 RULE_TEXT = ('SUBSYSTEM=="usb", ATTR{idVendor}=="152a", ATTR{idProduct}=="84[0-1]?", MODE="0660", '
              'GROUP="plugdev", TAG+="uaccess"')
@@ -41,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--install", action="store_true", help=f"copy the rule to {INSTALL_DIR} and reload udev")
     args = ap.parse_args(argv)
     if not args.install:
-        print(RULES_FILE.read_text(), end="")
+        print_lines(RULES_FILE.read_text().splitlines())  # ('| sudo tee FILE' that fails: no traceback)
         return 0
     try:
         print(f"installed {install()}; unplug and replug the camera")

@@ -43,7 +43,7 @@ from edi_live.config import EdiConfig
 from edi_live.checks import finite_number
 from edi_live.config_file import read_limited
 from edi_live.datatypes import SourceInfo
-from edi_live.errors import ConfigError
+from edi_live.errors import ConfigError, OutputError
 from edi_live.pixel_noise import NoiseRates
 
 log = logging.getLogger(__name__)
@@ -82,6 +82,28 @@ def calibration_dir() -> Path:
 
 def default_path(info: SourceInfo) -> Path:
     return calibration_dir() / f"{info.label}.json"
+
+
+def missing_home() -> str | None:
+    """Why a live camera's own file cannot be kept (None: it can): the home folder it would go under does not
+    exist. A service account's HOME=/nonexistent (Debian's convention for daemons) or an empty HOME ('/') made
+    the save at the end create /nonexistent/.config or /.config when run as root, and fail otherwise."""
+    if os.environ.get("XDG_CONFIG_HOME"):
+        return None
+    home = os.path.expanduser("~")
+    if home != "/" and os.path.isabs(home) and os.path.isdir(home):
+        return None
+    which = "HOME is empty or '/'" if home == "/" else f"the home folder {home!r} does not exist"
+    return (f"{which}, so this camera's own calibration is not kept between runs (set XDG_CONFIG_HOME or HOME, or "
+            f"give --save-calibration FILE)")
+
+
+def _own_target(info: SourceInfo) -> Path | None:
+    problem = missing_home()
+    if problem is not None:
+        log.warning("%s", problem)
+        return None
+    return default_path(info)
 
 
 MAX_FILE_BYTES = 64 << 20  # a DAVIS346's file is ~0.5 MB, most of it the noise rates
@@ -190,7 +212,8 @@ def save(cal: Calibration, path: Path | str) -> None:
     except OSError as exc:
         with contextlib.suppress(OSError):  # no half-written file left next to the target
             tmp.unlink(missing_ok=True)
-        raise ConfigError(f"cannot write calibration {path} ({exc.strerror or exc})") from None
+        # a runtime failure (a full disk), not a usage error: where to write was checked before the run
+        raise OutputError(f"cannot write calibration {path} ({exc.strerror or exc})") from None
 
 
 def prepare(edi: EdiConfig, info: SourceInfo, given: Path | None, save_to: Path | None) -> tuple[EdiConfig, Path | None]:
@@ -198,7 +221,8 @@ def prepare(edi: EdiConfig, info: SourceInfo, given: Path | None, save_to: Path 
     save the calibration at the end. A live camera without --calibration loads its own file if there is one, and
     saves to it."""
     live = info.kind in ("usb", "emulator")
-    path = given if given is not None else (default_path(info) if live and default_path(info).is_file() else None)
+    own = live and missing_home() is None and default_path(info).is_file()
+    path = given if given is not None else (default_path(info) if own else None)
     if path is not None:
         try:
             cal = load(path)
@@ -215,7 +239,7 @@ def prepare(edi: EdiConfig, info: SourceInfo, given: Path | None, save_to: Path 
             if given is not None:
                 raise
             log.warning("%s; not using it", exc)  # the camera's own file, but of another sensor set-up
-            return edi, save_to if save_to is not None else default_path(info)
+            return edi, save_to if save_to is not None else _own_target(info)
         log.info("starting from the calibration %s (c_on=%.3f c_off=%.3f, black level %g DN%s, clock offset %d µs%s)",
                  path, cal.c_on, cal.c_off, cal.black_level,
                  " measured on dark frames" if cal.black_level_measured else "", cal.clock_offset_us,
@@ -223,7 +247,7 @@ def prepare(edi: EdiConfig, info: SourceInfo, given: Path | None, save_to: Path 
         edi = dataclasses.replace(edi, start=cal, aps_gamma=cal.aps_gamma if edi.aps_gamma is None else edi.aps_gamma)
         if cal.black_level_measured and edi.black_level is None:  # measured on dark frames: not a starting value
             edi = dataclasses.replace(edi, black_level=cal.black_level)
-    return edi, save_to if save_to is not None else (default_path(info) if live else None)
+    return edi, save_to if save_to is not None else (_own_target(info) if live else None)
 
 
 def from_stats(info: SourceInfo, stats: dict, noise: NoiseRates | None = None,

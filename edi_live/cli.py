@@ -22,7 +22,9 @@ from typing import Any, Sequence
 
 from edi_live.cli_parser import PROG, build_parser
 from edi_live.config import NodeConfig, merge_options, read_toml
+from edi_live.console import escape_what_cannot_be_encoded, occupy_closed_standard_fds, print_lines
 from edi_live.file_roles import check_apart
+from edi_live.resource_limits import check_open_files, out_of_memory
 from edi_live.datatypes import SourceInfo
 from edi_live.errors import ConfigError, EdiLiveError, RecordingError, SourceError
 from edi_live.stop_signals import StopRequested, StopSignals
@@ -154,10 +156,8 @@ def list_devices_command(flags: dict[str, Any]) -> int:
 
     backend = load_usb_backend(flags["usb_backend"]) if flags.get("usb_backend") else None
     devices = drivers.list_devices(backend)
-    if not devices:
-        print("no DAVIS camera found (is it plugged in? on Linux, is the udev rule installed?)")
-    for d in devices:
-        print(d)
+    print_lines([str(d) for d in devices] or
+                ["no DAVIS camera found (is it plugged in? on Linux, is the udev rule installed?)"])
     return 0
 
 
@@ -166,8 +166,8 @@ def calibrate_dark_command(config: NodeConfig, source: Any, n_frames: int, signa
     from edi_live.dark_calibration import calibrate_dark
 
     result, target = calibrate_dark(source, n_frames, config.save_calibration, signals)
-    print(f"{PROG}: black level {result.black_level:g} DN (noise {result.noise_dn:g} DN, {result.frames} dark "
-          f"frames of {source.info.label}) written to {target}", file=sys.stderr)
+    _say(f"{PROG}: black level {result.black_level:g} DN (noise {result.noise_dn:g} DN, {result.frames} dark "
+         f"frames of {source.info.label}) written to {target}")
     return 0
 
 
@@ -247,7 +247,10 @@ def _error_line(exc: BaseException) -> str:
 
 
 def _say(text: str) -> None:
-    """One message on stderr; a stderr that went away ('2>&1 | head') does not turn a finished run into an error."""
+    """One message on stderr; a stderr that went away ('2>&1 | head') does not turn a finished run into an error,
+    and a closed one ('2>&-': sys.stderr is None, where print() would fall back to stdout) takes nothing."""
+    if sys.stderr is None:
+        return
     try:
         print(text, file=sys.stderr, flush=True)
     except (OSError, ValueError):
@@ -259,8 +262,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     in-process call restores the previous handlers on return. The program, once stopped by a signal, ignores
     further ones until it has exited: Python resets its own handlers to the default action while it finalises
     (e.g. while the replay's decoding child is reaped), where a late Ctrl-C would kill it (rc -2)."""
+    occupy_closed_standard_fds()  # first: before any file of ours could take a closed stdin/stdout/stderr's number
     signals = StopSignals()
     signals.install()
+    escape_what_cannot_be_encoded()
     try:
         return _main(argv, signals)
     finally:
@@ -284,6 +289,9 @@ def _main(argv: Sequence[str] | None, signals: StopSignals) -> int:
         level = config.log_level
         _setup_logging(level)
         _warn_if_exposed(config)
+        serves = config.publisher.enabled or config.output.dv_output or config.output.dv_output_events
+        if serves and dark_frames is None:  # (--calibrate-dark only measures)
+            check_open_files()
         _warn_ignored(config, set(flags))
         outputs = [f"--{name.replace('_', '-')}" for name in ("out", "record", "dv_output", "dv_output_events")
                    if getattr(config.output, name) is not None]
@@ -300,7 +308,7 @@ def _main(argv: Sequence[str] | None, signals: StopSignals) -> int:
         node = Node(config, source, status_stream=sys.stderr)
         signals.attach(node)
         try:
-            node.run()
+            node.run(warming_up=signals.raising)  # a stop signal ends a cold kernel compile at once
         finally:
             if node.final_stats and node.started.is_set():  # no summary when it never got going
                 from edi_live.stats import format_summary
@@ -323,11 +331,15 @@ def _main(argv: Sequence[str] | None, signals: StopSignals) -> int:
     except EdiLiveError as exc:
         if level == "debug":
             traceback.print_exc()
+        exc = out_of_memory(exc) or exc
         _say(_error_line(exc))
         return exc.exit_code
     except Exception as exc:  # a bug: still one line, the traceback at --log-level debug
         if level == "debug":
             traceback.print_exc()
+        if (short := out_of_memory(exc)) is not None:
+            _say(_error_line(short))
+            return short.exit_code
         _say(_error_line(f"internal error: {type(exc).__name__}: {exc} (rerun with --log-level debug for the "
                          f"traceback and report it)"))
         return 1

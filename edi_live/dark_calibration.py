@@ -129,9 +129,11 @@ def calibrate_dark(source: Any, n_frames: int, target: Path | None, signals: Any
             if info.kind not in ("usb", "emulator"):
                 raise ConfigError("--calibrate-dark needs --save-calibration FILE to write to (a live camera writes "
                                   "its own calibration file)")
+            if (problem := calibration.missing_home()) is not None:
+                raise ConfigError(f"--calibrate-dark: {problem}")
             target = calibration.default_path(info)
-        existing_calibration(info, Path(target))  # a file that cannot take the value: said before the frames
-        calibration.check_can_save(target)  # and a place it cannot be written to
+        calibration.check_can_save(target)  # a place it cannot be written to (a device: not read as a file)
+        existing_calibration(info, Path(target))  # and a file that cannot take the value: said before the frames
         for packet in source:
             if stop.event.is_set() or read >= n_frames:
                 break

@@ -78,3 +78,11 @@ class ClientError(EdiLiveError):
 
 class NodeError(EdiLiveError):
     """A node thread failed; the message names the thread."""
+
+
+class OutputError(EdiLiveError):
+    """A file edi-live writes at the end (a calibration) could not be written: a full disk, an I/O error."""
+
+
+class ResourceError(EdiLiveError):
+    """The process ran out of something the machine or its limits give it (memory, address space)."""

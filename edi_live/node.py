@@ -22,17 +22,18 @@ stop is named in a NodeError.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, TextIO
+from typing import Any, Callable, ContextManager, TextIO
 
 
 from edi_live import calibration, fused_mode
 from edi_live.config import EdiConfig, NodeConfig
-from edi_live.errors import ConfigError, EdiLiveError, NodeError, SourceError
+from edi_live.errors import ConfigError, EdiLiveError, NodeError, OutputError, SourceError
 from edi_live.reconstruction import Reconstructor
 from edi_live.ring import EventRing, as_events
 from edi_live.source import Source, stop_from_another_thread
@@ -136,6 +137,8 @@ class Node:
             if self._failure is None:
                 self._failure = (exc, thread)
                 log.debug("%s failed", thread, exc_info=exc)
+            elif isinstance(exc, EdiLiveError):  # e.g. --record lost too: only the first is the run's error line
+                log.warning("%s", exc)
             else:
                 log.debug("%s also failed: %s", thread, exc)
         if not input_fault:
@@ -182,13 +185,15 @@ class Node:
 
     # ---------------------------------------------------------------- main thread
 
-    def run(self) -> dict[str, Any]:
+    def run(self, warming_up: Callable[[], ContextManager[Any]] = contextlib.nullcontext) -> dict[str, Any]:
         """Run to the end; returns the final stats. Raises the first failure (EdiLiveError subclasses as they
-        are, anything else wrapped in NodeError naming the thread)."""
+        are, anything else wrapped in NodeError naming the thread). `warming_up`: the context the kernel warm-up
+        runs in, before anything is opened (the command line's StopSignals.raising: a stop signal ends it at once)."""
         self.t_start = time.monotonic()
         entered = False
-        try:
+        with warming_up():
             warm_up(self._make_reconstructor, self.config.edi)
+        try:
             # the run's clock starts after the warm-up: a cold numba cache compiles for seconds once, which must
             # not be folded into the rates of the summary (it is reported on its own line)
             self.warm_up_s = time.monotonic() - self.t_start
@@ -286,7 +291,7 @@ class Node:
         try:
             calibration.save(cal, target)
             log.info("calibration saved to %s", target)
-        except ConfigError as exc:
+        except (ConfigError, OutputError) as exc:
             if self.config.save_calibration is not None:
                 self.fail(exc, "calibration", input_fault=True)
             else:

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import errno
 import logging
 import os
 import sys
@@ -33,11 +32,13 @@ import zmq
 import zmq.auth
 
 from edi_live import wire
+from edi_live.console import print_lines
 from edi_live.curve_keys import load_secret_key
 from edi_live.datatypes import Reconstruction
-from edi_live.errors import BindError, PublishError
+from edi_live.errors import PublishError
 from edi_live.stats import LatencySamples
 from edi_live.subscriptions import Subscriptions
+from edi_live.zmq_bind import bind
 
 log = logging.getLogger(__name__)
 
@@ -52,19 +53,6 @@ _NOBLOCK = int(zmq.NOBLOCK)
 _MORE = int(zmq.NOBLOCK | zmq.SNDMORE)
 _POLLIN, _EVENTS = int(zmq.POLLIN), int(zmq.EVENTS)
 _send = zmq.backend.Socket.send  # the sugar layer's send adds ~0.2 µs a part of checks a frame does not need
-
-
-def _bind_message(endpoint: str, exc: zmq.ZMQError) -> str:
-    if exc.errno == zmq.EADDRINUSE:
-        return (f"cannot publish on {endpoint}: address already in use (another edi-live or program holds "
-                "that port); choose another with --publish tcp://127.0.0.1:PORT")
-    if exc.errno in (zmq.EADDRNOTAVAIL, errno.ENODEV):  # ENODEV: a host name that does not resolve (an interface?)
-        return (f"cannot publish on {endpoint}: this machine has no such address or network interface; use "
-                "127.0.0.1 or 0.0.0.0")
-    if exc.errno in (zmq.EINVAL, zmq.EPROTONOSUPPORT):
-        return (f"cannot publish on {endpoint}: not a valid ZeroMQ endpoint ({exc.strerror}); expected "
-                "tcp://HOST:PORT or ipc:///PATH")
-    return f"cannot publish on {endpoint}: {exc.strerror}"
 
 
 def generate_curve_keys(directory: str | os.PathLike) -> tuple[Path, Path]:
@@ -243,11 +231,7 @@ class Publisher:
             sock.curve_server = True
             self.curve_public_key = public
         for endpoint in self.endpoints:
-            try:
-                sock.bind(endpoint)
-            except zmq.ZMQError as exc:
-                raise BindError(_bind_message(endpoint, exc)) from exc
-            self.bound_endpoints.append(sock.getsockopt_string(zmq.LAST_ENDPOINT))
+            self.bound_endpoints.append(bind(sock, endpoint))
 
     def _run(self) -> None:
         ctx = zmq.Context(io_threads=1)
@@ -392,7 +376,7 @@ def main(argv: list[str] | None = None) -> int:
     except PublishError as exc:
         print(f"{parser.prog}: error: {exc}", file=sys.stderr)
         return 1
-    print(f"public key (for subscribers): {public}\nsecret key (for edi-live --curve-secret-key): {secret}")
+    print_lines([f"public key (for subscribers): {public}", f"secret key (for edi-live --curve-secret-key): {secret}"])
     return 0
 
 

@@ -17,9 +17,10 @@ log = logging.getLogger("edi_live")
 STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
 
 
-class StopRequested(Exception):
-    """A stop signal came while edi-live was still reading its options (StopSignals.raising): nothing has started,
-    so the program simply ends, as cleanly as a stopped node does."""
+class StopRequested(BaseException):
+    """A stop signal came while edi-live was still reading its options or compiling its kernels
+    (StopSignals.raising): nothing has been opened, so the program simply ends, as cleanly as a stopped node does.
+    A BaseException, like KeyboardInterrupt: the warm-up's "any failure here is not fatal" must not swallow it."""
 
 
 class StopSignals:
@@ -77,7 +78,8 @@ class StopSignals:
     def raising(self) -> Iterator[None]:
         """Within: a stop signal (or one received before) raises StopRequested at once, for the start-up steps
         that may wait with nothing yet to stop cleanly: a --config FIFO that nothing writes kept Ctrl-C waiting
-        for its 5 s and then ended as a usage error."""
+        for its 5 s and then ended as a usage error; a cold kernel compile kept SIGTERM waiting 14 s (15-30 s
+        and more on a small computer, past a service manager's stop timeout)."""
         if self.received is not None:
             raise StopRequested(self.received)
         self._raise = True

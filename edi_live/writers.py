@@ -93,7 +93,7 @@ class _SinkThread:
         finally:
             try:
                 self._writer.close()  # finalise whatever was written, after faults too
-            except BaseException as exc:  # pragma: no cover - a second fault while finalising
+            except BaseException as exc:  # a fault while finalising (a full disk, the file gone from its path)
                 if self.error is None:
                     self.error = exc
                     if self._on_error is not None:

@@ -3,11 +3,14 @@
 Owns: the IOHeader (dataTablePosition stored explicitly so it can be patched in place), the infoNode XML, one
 compressed packet per write call (LZ4 by default, zstd or none), per-stream monotonic-time checks (DV tools reject
 anything else), and the FileDataTable written at close() with `dataTablePosition` patched, so DV tools can seek.
-close() runs from `__exit__` even when the block raised, so the file is always finalised.
+close() runs from `__exit__` even when the block raised, so the file is always finalised; a packet whose write
+failed (a full disk) is cut off whole, which usually leaves room for the table, so what came before it is kept in a
+finalised file.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import stat
 import struct
@@ -79,7 +82,9 @@ class Aedat4Writer:
             raise RecordingError("cannot write a recording to a pipe or terminal: an AEDAT4 file is finalised by "
                                  "seeking back into it; give a file name", self.path)
         try:
-            self._file = open(self.path, "wb")
+            # unbuffered: each packet is one write of our own, so a failed one (a full disk) can be cut off whole,
+            # with no part of it left in a buffer to be written later
+            self._file = open(self.path, "wb", buffering=0)
         except OSError as exc:
             raise RecordingError(f"cannot create the recording ({exc.strerror or exc})", self.path) from exc
         if not self._file.seekable():  # a pipe or terminal: the table's offsets and the header patch need seeking
@@ -103,11 +108,25 @@ class Aedat4Writer:
 
     # ------------------------------------------------------------------------------------------ writing
     def _write(self, data: bytes) -> None:
+        view = memoryview(data)
         try:
-            self._file.write(data)
+            while view:
+                view = view[self._file.write(view):]  # a raw write may take part of it (the disk filling up)
         except OSError as exc:
             raise RecordingError(f"cannot write the recording ({exc.strerror or exc})", self.path,
                                  self._file.tell()) from exc
+
+    def _write_whole(self, data: bytes) -> None:
+        """Write `data`, or on failure leave the file as it was before (so that close() can still finalise what
+        was written before a full disk: the cut-off part frees room for the table)."""
+        start = self._file.tell()
+        try:
+            self._write(data)
+        except RecordingError:
+            with contextlib.suppress(OSError):
+                self._file.truncate(start)
+                self._file.seek(start)
+            raise
 
     def _check(self, name: str, t_first: int, t_last: int) -> None:
         if self._closed:
@@ -135,7 +154,7 @@ class Aedat4Writer:
     def _packet(self, name: str, payload: bytes, n: int, t0: int, t1: int) -> None:
         body = self._compress(payload)
         offset = self._file.tell()
-        self._write(struct.pack("<ii", self._ids[name], len(body)) + body)
+        self._write_whole(struct.pack("<ii", self._ids[name], len(body)) + body)
         self._table.append((offset + 8, self._ids[name], len(body), n, t0, t1))
         self._last_t[name] = t1
 
@@ -177,7 +196,8 @@ class Aedat4Writer:
 
     # ------------------------------------------------------------------------------------------- close
     def flush(self) -> None:
-        """Push written packets to the OS, so the file up to here survives a crash of this process."""
+        """Push written packets to the OS, so the file up to here survives a crash of this process (the file is
+        unbuffered: each packet already went to the OS as it was written)."""
         if not self._closed:
             try:
                 self._file.flush()
@@ -196,12 +216,24 @@ class Aedat4Writer:
                 cols = np.array(self._table, dtype=np.int64)
                 for i, name in enumerate(("off", "sid", "size", "n", "t0", "t1")):
                     rec[name] = cols[:, i]
-            self._write(self._compress(S.build_table_vector_root(b"FTAB", rec, _FTAB_SLOTS)))
+            self._write_whole(self._compress(S.build_table_vector_root(b"FTAB", rec, _FTAB_SLOTS)))
             self._file.seek(self._dtp_pos)
             self._write(struct.pack("<q", dtp))
-            self._file.flush()
+            self._check_still_there()
         finally:
             self._file.close()
+
+    def _check_still_there(self) -> None:
+        """Writes into a file whose name or folder was removed mid-run all succeed (the data go to a nameless
+        file that vanishes at close): without this a run reported every frame written to a file that is gone."""
+        try:
+            here, ours = os.stat(self.path), os.fstat(self._file.fileno())
+            same = (here.st_dev, here.st_ino) == (ours.st_dev, ours.st_ino)
+        except OSError:
+            same = False
+        if not same:
+            raise RecordingError("the file is no longer there: it or its folder was deleted or moved while it was "
+                                 "being written, so nothing written to it is at this path", self.path)
 
     def __enter__(self) -> "Aedat4Writer":
         return self

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import subprocess
@@ -204,3 +205,38 @@ def test_a_measured_black_level_stays_measured_through_the_stats_rounding():
     assert cal.black_level_measured and cal.black_level == 10.125
     replaced = calibration.from_stats(info, {"c_on": 0.2, "c_off": 0.2, "black_level_dn": 5.0}, start=start)
     assert not replaced.black_level_measured and replaced.black_level == 5.0
+
+
+def test_a_full_disk_at_the_save_is_a_runtime_error_not_a_usage_error(tmp_path, monkeypatch):
+    # ENOSPC from a full tmpfs was a ConfigError (exit 2, 'usage error'): where to write was checked before the run
+    from pathlib import Path
+
+    from edi_live.errors import OutputError
+
+    def full(self, *args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", full)
+    target = tmp_path / "cam.json"
+    with pytest.raises(OutputError, match=f"cannot write calibration {target} .No space left") as info:
+        calibration.save(calibration.Calibration("edi-live-sim", 48, 36, 0.2, 0.2), target)
+    assert info.value.exit_code == 1
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_service_account_without_a_home_folder_gets_a_warning_and_no_folder_is_made(tmp_path, real_recordings):
+    # HOME=/nonexistent (a daemon account) made the end-of-run save create /nonexistent/.config/... as root
+    # (and an empty HOME, /.config); it must not make a home that is not there
+    home = tmp_path / "nonexistent"
+    env = {k: v for k, v in os.environ.items() if k != "XDG_CONFIG_HOME"}
+    proc = subprocess.run([sys.executable, "-m", "edi_live", "--device", "davis346", "--usb-backend",
+                           "drivers.emulator:backend", "--emulate-from",
+                           str(real_recordings["evlib_sample_davis346.aedat4"]), "--speed", "0", "--no-publish"],
+                          cwd=REPO, capture_output=True, text=True, timeout=90,
+                          env={**env, "PYTHONPATH": str(REPO), "HOME": str(home)})
+    assert proc.returncode == 0, proc.stderr
+    assert f"the home folder '{home}' does not exist" in proc.stderr and "edi-live: error" not in proc.stderr
+    assert not home.exists()
+    dark = _node("--device", "davis346", "--usb-backend", "drivers.emulator:backend", "--calibrate-dark", "2",
+                 env={"HOME": str(home), "XDG_CONFIG_HOME": ""})
+    assert dark.returncode == 2 and "--calibrate-dark: the home folder" in dark.stderr and not home.exists()

@@ -292,3 +292,36 @@ def test_outputs_that_calibrate_dark_does_not_write_are_said_to_be_ignored(tmp_p
     assert done.returncode == 0, done.stderr
     assert "ignored with --calibrate-dark: --out, --record" in done.stderr, done.stderr
     assert not (tmp_path / "sharp.aedat4").exists() and not (tmp_path / "raw.aedat4").exists()
+
+
+def test_a_written_calibration_with_stderr_into_a_closed_pipe_still_exits_0(tmp_path, rng):
+    # its one result line went to stderr with print(): a reader gone ('2>&1 | head -0', a stopped log shipper)
+    # turned the finished, written calibration into an internal BrokenPipeError (exit 1)
+    dark = tmp_path / "dark.aedat4"
+    _write_dark_recording(dark, rng, 10.0)
+    saved = tmp_path / "cam.json"
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    try:
+        proc = subprocess.run([sys.executable, "-m", "edi_live", "--replay", str(dark), "--speed", "0",
+                               "--calibrate-dark", "5", "--save-calibration", str(saved)], cwd=REPO,
+                              stdout=subprocess.DEVNULL, stderr=write_end, timeout=60,
+                              env={**os.environ, "PYTHONPATH": str(REPO)})
+    finally:
+        os.close(write_end)
+    assert proc.returncode == 0
+    assert abs(calibration.load(saved).black_level - 10.0) <= 0.5
+
+
+def test_a_pipe_as_the_target_is_refused_as_not_a_file_without_reading_it(tmp_path, rng):
+    # the target was first read as an existing calibration: a FIFO waited 5 s for a writer and was then called a
+    # pipe nothing wrote to (/dev/full: 'not a JSON file, larger than 64 MiB'), where a run says 'not a regular file'
+    dark = tmp_path / "dark.aedat4"
+    _write_dark_recording(dark, rng, 10.0)
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    proc = _node("--replay", str(dark), "--speed", "0", "--calibrate-dark", "3", "--save-calibration", str(fifo))
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("edi-live: error:")]
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    assert "not a regular file" in lines[0] and "nothing wrote" not in lines[0]
+    assert fifo.is_fifo()

@@ -131,3 +131,74 @@ def test_out_writes_colour_reconstructions_as_colour_frames(tmp_path):
     assert frame.image.shape == (6, 8, 3) and np.array_equal(frame.image, bgr)  # dv-processing: BGR
     (packet,) = list(aedat.Decoder(str(path)))
     assert packet["frame"]["format"] == "RGB" and np.array_equal(packet["frame"]["pixels"], bgr[..., ::-1])
+
+
+def test_a_folder_removed_during_the_run_is_an_error_naming_the_file_not_a_silent_loss(tmp_path):
+    import shutil
+
+    from edi_live.errors import RecordingError
+
+    folder = tmp_path / "run"
+    folder.mkdir()
+    errors = []
+    w = OutWriter(folder / "sharp.aedat4", 8, 6, on_error=errors.append)
+    w.start()
+    w.submit(recon(1000, 10))
+    shutil.rmtree(folder)  # as a clean-up job or a user might while the node runs
+    w.submit(recon(2000, 20))  # writes into the open (now nameless) file still succeed
+    w.close(timeout_s=10)
+    assert not (folder / "sharp.aedat4").exists()
+    assert len(errors) == 1 and isinstance(errors[0], RecordingError)
+    assert str(folder / "sharp.aedat4") in str(errors[0]) and "no longer there" in str(errors[0])
+
+
+def test_a_file_still_at_its_path_closes_without_an_error(tmp_path):
+    errors = []
+    w = OutWriter(tmp_path / "sharp.aedat4", 8, 6, on_error=errors.append)
+    w.start()
+    w.submit(recon(1000, 10))
+    w.close(timeout_s=10)
+    assert errors == [] and len(read_frames(tmp_path / "sharp.aedat4")[1]) == 1
+
+
+_FULL_DISK = """
+import resource, sys
+import numpy as np
+from edi_live.datatypes import Reconstruction
+from edi_live.writers import OutWriter
+
+resource.setrlimit(resource.RLIMIT_FSIZE, (400_000, 400_000))  # writes past 400 kB fail (EFBIG), as on a full disk
+errors = []
+w = OutWriter(sys.argv[1], 256, 192, on_error=errors.append, reorder_us=0)
+w.start()
+rng = np.random.default_rng(1)
+for i in range(40):  # ~49 kB a frame (noise does not compress): the limit comes after 8, and the cut-off
+    # frame frees far more room than the table of those 8 needs
+    w.submit(Reconstruction(rng.integers(0, 255, (192, 256), dtype=np.uint8), 1000 * (i + 1), "latent",
+                            0, 0, 0, 0.2, 0.2, 1))
+w.close(timeout_s=30)
+print(w.frames, type(errors[0]).__name__ if errors else "no error")
+"""
+
+
+def test_a_full_disk_keeps_every_frame_written_before_it_in_a_finalised_file(tmp_path):
+    # the failed packet stayed half-written and the table was never written: DV tools saw an interrupted file
+    # ending in a broken packet, and --replay of a --record cut this way ended with a 'truncated' error (exit 1)
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    path = tmp_path / "sharp.aedat4"
+    repo = Path(__file__).resolve().parents[2]
+    proc = subprocess.run([sys.executable, "-c", _FULL_DISK, str(path)], cwd=repo, capture_output=True, text=True,
+                          timeout=60, env={"PYTHONPATH": str(repo), "PATH": "/usr/bin:/bin"})
+    written, error = proc.stdout.split()
+    assert error == "RecordingError", proc.stderr
+    assert 0 < int(written) < 40
+    rec, frames = read_frames(path)  # dv-processing reads it: a whole file, no broken packet at its end
+    assert [f.timestamp for f in frames] == [1000 * (i + 1) for i in range(int(written))]
+    from edi_live.aedat4 import Aedat4Reader
+
+    with Aedat4Reader(path) as reader:
+        assert reader.data_table() is not None and len(reader.data_table()) == int(written)
+        assert sum(1 for _ in reader) == int(written)  # read to its end without a 'truncated' error

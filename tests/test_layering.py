@@ -17,7 +17,7 @@ PACKAGES = ("edi_live", "drivers")
 
 # top-level import name -> modules (repo-relative path prefixes) allowed to import it
 RESTRICTED = {
-    "zmq": ("edi_live/publisher.py", "edi_live/client.py"),
+    "zmq": ("edi_live/publisher.py", "edi_live/zmq_bind.py", "edi_live/client.py"),
     "msgpack": ("edi_live/wire.py",),
     "lz4": ("edi_live/aedat4/",),
     "zstandard": ("edi_live/aedat4/",),
@@ -48,7 +48,8 @@ PURE_MATH_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.errors", "edi_live.edi"
                          "edi_live.psnr")
 DRIVERS_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.source", "edi_live.errors", "edi_live.aedat4",
                        "edi_live.kernel_cache",  # numba's cache folder, settled before a kernel is defined
-                       "edi_live.simulation")  # the emulator's generated scene
+                       "edi_live.simulation",  # the emulator's generated scene
+                       "edi_live.console")  # printing to a terminal or pipe that may be closed (stdlib only)
 # the simulator is the ground truth: it must not use the EDI code it is there to judge
 SIMULATION_ALLOWED_EDI = ("edi_live.datatypes", "edi_live.errors", "edi_live.aedat4", "edi_live.simulation",
                           "edi_live.checks")  # (plain argument and resource checks, no EDI)

@@ -156,6 +156,9 @@ class Subscriber:
             sock.curve_secretkey, sock.curve_publickey = secret, public
             sock.curve_serverkey = self._server_key
         sock.setsockopt(zmq.SUBSCRIBE, topic)
+        # a literal IPv6 address needs ZMQ_IPV6 (without it libzmq retries for ever, unheard); not for host names,
+        # where it would try an IPv6 address first and never fall back to an IPv4-only node
+        sock.setsockopt(zmq.IPV6, int(self.endpoint.startswith("tcp://[")))
         try:
             sock.connect(self.endpoint)
         except zmq.ZMQError as exc:

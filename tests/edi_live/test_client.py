@@ -282,6 +282,21 @@ def test_a_slow_reader_with_a_full_queue_does_not_abort_libzmq():
     assert "still connected" in proc.stdout and "drained" in proc.stdout
 
 
+def test_a_publisher_on_the_ipv6_loopback_is_received():
+    p = Publisher(["tcp://[::1]:*"], "cam", sndhwm=1000, stats_interval_s=0.1)
+    try:
+        p.start()
+    except Exception as exc:  # noqa: BLE001 - a machine without IPv6 cannot run this
+        pytest.skip(f"no IPv6 loopback here: {exc}")
+    try:
+        gen = subscribe(p.bound_endpoints[0], timeout_s=RECV_S)
+        with _feeding(lambda i: p.submit(make_rec(5))), contextlib.closing(gen):
+            header, image = next(gen)
+        assert p.bound_endpoints[0].startswith("tcp://[::1]:") and header["n_events"] == 5
+    finally:
+        p.close()
+
+
 def test_stats_arrive_on_their_own_socket(pub):
     with Subscriber(pub.bound_endpoints[0], newest_only=False) as sub:
         stats = sub.recv_stats(RECV_S)

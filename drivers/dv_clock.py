@@ -73,12 +73,15 @@ class DvClock:
         elif first < before - self.restart_us:
             generation = self._generation.get(kind, 0) + 1
             self._generation[kind] = generation
-            if generation == len(self._offsets):  # the first stream to show this restart
+            first_to_show = generation == len(self._offsets)
+            if first_to_show:
                 self._offsets.append(self.newest_us + 1 - first)
                 self.restarts += 1
-            log.warning("the DV %s stream's clock went back %.3f s (its server started again, or serves a "
-                        "recording again): its times now continue after the earlier ones (%+d µs)",
-                        _NAMES.get(kind, kind), (before - first) / 1e6, self._offsets[generation])
+            # one line per restart, not one per stream: the camera's other streams follow onto the same clock
+            log.log(logging.WARNING if first_to_show else logging.DEBUG,
+                    "the DV %s stream's clock went back %.3f s (its server started again, or serves a recording "
+                    "again): its times now continue after the earlier ones (%+d µs)",
+                    _NAMES.get(kind, kind), (before - first) / 1e6, self._offsets[generation])
             self._on_restart()
             before = None
         self._last_raw[kind] = last if before is None else max(before, last)

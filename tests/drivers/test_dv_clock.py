@@ -3,6 +3,8 @@ offset per restart that the camera's streams share."""
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from drivers.dv_clock import RESTART_US, DvClock
@@ -62,3 +64,23 @@ def test_a_frame_stream_that_shows_the_restart_first_sets_the_offset_for_the_eve
     assert frame.exposure_start_us == 6_000_001
     events = clock.events(_events(5_000_300, 5_000_900))
     assert events["t"][0] - 5_000_300 == frame.exposure_start_us - 5_000_200  # the camera's one clock, one offset
+
+
+def test_a_restart_shown_by_every_stream_is_one_warning_line(caplog):
+    # events, frames and IMU of one server served again: one restart, which was said once per stream (three
+    # near-identical warnings for one event; the README promises one line)
+    clock = DvClock()
+    imu = np.zeros(2, [("t", "<i8")])
+    imu["t"] = [5_900_000, 5_990_000]
+    clock.events(_events(5_000_000, 6_000_000))
+    clock.frame(_frame(5_900_000, 5_950_000))
+    clock.stamped(imu, "IMUS")
+    with caplog.at_level("WARNING", logger="drivers.dv_clock"):
+        clock.events(_events(5_000_000, 5_001_000))
+        clock.frame(_frame(5_000_200, 5_000_700))
+        imu["t"] = [5_000_100, 5_000_900]
+        clock.stamped(imu, "IMUS")
+        warned = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+        assert clock.restarts == 1 and len(warned) == 1 and "events stream's clock went back" in warned[0], warned
+        clock.events(_events(0, 10))  # a second restart is a second line
+        assert len([r for r in caplog.records if r.levelno >= logging.WARNING]) == 2

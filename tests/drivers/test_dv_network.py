@@ -170,10 +170,12 @@ def test_a_server_that_serves_its_recording_again_continues_after_the_earlier_ti
     with source:
         it = iter(source)
         packets: list = []
-        while sum(len(p.events) for p in packets) < 6_676:
+        deadline = time.monotonic() + 30  # (the source yields None while idle: without it a loss hung the suite)
+        while sum(len(p.events) for p in packets) < 6_676 and time.monotonic() < deadline:
             packet = next(it)
             if packet is not None:
                 packets.append(packet)
+        assert sum(len(p.events) for p in packets) == 6_676, "the first serving did not arrive whole"
         first.finish()
         again = Peer("events", path, "--port", str(first.port))
         resumed: list = []

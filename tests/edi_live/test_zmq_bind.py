@@ -15,7 +15,7 @@ from edi_live.publisher import Publisher
 from tests.edi_live.test_publisher import make_rec
 
 
-def _has_ipv6_loopback() -> bool:
+def has_ipv6_loopback() -> bool:
     try:
         with socket.socket(socket.AF_INET6) as s:
             s.bind(("::1", 0))
@@ -39,7 +39,7 @@ def started():
         pub.close()
 
 
-@pytest.mark.skipif(not _has_ipv6_loopback(), reason="this machine has no IPv6 loopback")
+@pytest.mark.skipif(not has_ipv6_loopback(), reason="this machine has no IPv6 loopback")
 def test_an_ipv6_loopback_endpoint_is_bound_and_serves_a_subscriber(started):
     pub = started(["tcp://[::1]:*"])
     (endpoint,) = pub.bound_endpoints

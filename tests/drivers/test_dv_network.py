@@ -137,19 +137,20 @@ def test_reconnect_resumes_with_a_gap_and_a_sensor_size_change_is_refused(real_r
     later, other = None, None
     with source:
         it = iter(source)
-        got = 0
-        while got < 6_676:  # the whole first recording, then the server goes away
+        got, deadline = 0, time.monotonic() + 30  # (the source yields None while idle: a lost event must not hang)
+        while got < 6_676 and time.monotonic() < deadline:  # the whole first recording, then the server goes away
             packet = next(it)
             got += 0 if packet is None else len(packet.events)
+        assert got == 6_676, f"the first recording did not arrive whole ({got} events)"
         first.finish()
         # the same endpoint comes back (a later recording: time goes on), and the stream resumes with a gap mark
         later = Peer("events", real_recordings["aestream_davis346.aedat4"], "--port", str(first.port))
-        resumed = []
-        while sum(len(p.events) for p in resumed) < 117_667:
+        resumed, deadline = [], time.monotonic() + 30
+        while sum(len(p.events) for p in resumed) < 117_667 and time.monotonic() < deadline:
             packet = next(it)
             if packet is not None:
                 resumed.append(packet)
-        assert resumed[0].gap and source.status().gaps >= 1
+        assert sum(len(p.events) for p in resumed) == 117_667 and resumed[0].gap and source.status().gaps >= 1
         later.finish()
         # now it comes back as another sensor: that cannot be followed, and says so
         other = Peer("events", real_recordings["evlib_sample_davis346.aedat4"], "--port", str(first.port),

@@ -155,6 +155,19 @@ def consistency(times: np.ndarray, images: list[np.ndarray], gt: list[np.ndarray
     return float(np.mean(at) / np.mean(away))
 
 
+def reference_index(mids: np.ndarray, refs: np.ndarray) -> np.ndarray:
+    """Index of the APS frame each latent frame's ref_t_us names. ref_t_us is that frame's mid-exposure in the event
+    clock, so once the node has estimated a clock offset (it does whenever c is estimated) it sits that offset
+    away from the simulator's mid-exposure: the nearest mid-exposure is the frame (offsets are a few ms, frames
+    tens of ms apart)."""
+    mids = np.asarray(mids, np.int64)
+    refs = np.asarray(refs, np.int64)
+    k = np.clip(np.searchsorted(mids, refs), 1, max(1, len(mids) - 1))
+    before = np.clip(k - 1, 0, len(mids) - 1)
+    after = np.clip(k, 0, len(mids) - 1)
+    return np.where(np.abs(refs - mids[before]) <= np.abs(mids[after] - refs), before, after)
+
+
 def score_scene(label: str, sim: Simulation, *, every: int, modes=MODES_RUN, c: tuple[float, float] | None = None,
                 log=print, estimate_c: tuple[int, ...] = ()) -> dict[str, dict[str, float]]:
     """Per mode: PSNR/SSIM against the truth, PSNR against the oracles, consistency, latency and cost. With
@@ -179,13 +192,14 @@ def score_scene(label: str, sim: Simulation, *, every: int, modes=MODES_RUN, c: 
         g = [gt[int(t)] for t in ts]
         row = {"frames": len(ts), "psnr": np.mean([psnr(a, b) for a, b in zip(imgs, g)]),
                "ssim": np.mean([ssim(a, b) for a, b in zip(imgs, g)])}
-        own = [oracle.image(int(t), int(np.flatnonzero(mids == r)[0])) for t, r in zip(ts, refs)]  # true c
+        ks = reference_index(mids, refs)
+        own = [oracle.image(int(t), int(k)) for t, k in zip(ts, ks)]  # true c
         row["psnr_own_oracle_truth"] = np.mean([psnr(a, b) for a, b in zip(own, g)])
         row["dn_vs_own_oracle"] = np.mean([np.mean(np.abs(a.astype(np.float64) - b)) for a, b in zip(imgs, own)])
         switch = refs[1:] != refs[:-1]
         row["consistency"] = consistency(ts, imgs, g, switch)
         # sensor-time latency: a frame rendered from a later APS frame waited until that frame's exposure ended
-        ends = oracle.ends[[int(np.flatnonzero(mids == r)[0]) for r in refs]]
+        ends = oracle.ends[ks]
         wait_ms = np.where(refs > ts, (ends - ts) / 1e3, 0.0)
         row["wait_mean_ms"], row["wait_max_ms"] = float(np.mean(wait_ms)), float(np.max(wait_ms))
         row["ms_per_latent"] = run.wall_ms_per_latent

@@ -21,6 +21,12 @@ from edi_live.simulation.engine import Simulation
 _DEFAULTS = dataclasses.asdict(SceneConfig())
 
 
+def camera_name(color_filter: str | None) -> str:
+    """The camera a simulated recording names: a colour sensor is another camera than a grey one of the same size,
+    so that a calibration saved from one is refused for the other (calibrations are keyed by camera and size)."""
+    return "edi-live-sim" if color_filter is None else f"edi-live-sim-{color_filter}"
+
+
 def write_aedat4(sim: Simulation, path: str | Path, *, chunk_events: int = 20_000) -> None:
     """Write events and APS frames (and IMU if simulated) in time order through edi_live's Aedat4Writer.
 
@@ -31,7 +37,7 @@ def write_aedat4(sim: Simulation, path: str | Path, *, chunk_events: int = 20_00
     ev = sim.events
     cfg = sim.config
     with Aedat4Writer(path, cfg.width, cfg.height, events=True, frames=True, imu=bool(sim.imu.size),
-                      camera_name="edi-live-sim", color_filter=cfg.color_filter) as wr:
+                      camera_name=camera_name(cfg.color_filter), color_filter=cfg.color_filter) as wr:
         pos = 0
         imu_pos = 0
         bounds = [f.exposure_end_us for f in sim.frames] + [np.iinfo(np.int64).max]

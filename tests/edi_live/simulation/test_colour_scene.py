@@ -71,3 +71,25 @@ def test_a_written_colour_recording_names_its_pattern(tmp_path):
         assert source.info.color_filter == "GRBG"  # else a replay would read the mosaic as grey
     finally:
         source.stop()
+
+
+def test_a_grey_simulations_calibration_is_refused_for_a_colour_one(tmp_path):
+    """Calibrations are keyed by camera and size: a colour simulation must not name the grey one's camera."""
+    from drivers.replay import ReplaySource
+    from edi_live import calibration
+    from edi_live.errors import ConfigError
+    from edi_live.simulation import write_aedat4
+
+    infos = {}
+    for name, pattern in (("grey", None), ("colour", "RGGB")):
+        write_aedat4(simulate(SceneConfig(width=16, height=12, duration_s=0.06, color_filter=pattern)),
+                     tmp_path / f"{name}.aedat4")
+        source = ReplaySource(tmp_path / f"{name}.aedat4")
+        try:
+            infos[name] = source.info
+        finally:
+            source.stop()
+    grey = calibration.Calibration(infos["grey"].label, 16, 12, 0.2, 0.2)
+    grey.check_for(infos["grey"], "grey.json")
+    with pytest.raises(ConfigError, match="is for edi-live-sim .*but this camera is edi-live-sim-RGGB"):
+        grey.check_for(infos["colour"], "grey.json")

@@ -32,7 +32,7 @@ from edi_live.aedat4.decode import NO_EVENTS, decode_events, decode_frame
 from edi_live.aedat4.header import SUPPORTED_TYPES, StreamInfo, read_header, split_camera_label
 from edi_live.aedat4.payloads import decode_imu, decode_triggers
 from edi_live.datatypes import EVENT_DTYPE
-from edi_live.errors import RecordingError
+from edi_live.errors import RecordingError, ResourceError
 
 __all__ = ["Aedat4Reader", "StreamInfo", "DATA_TABLE_DTYPE", "SUPPORTED_TYPES", "split_camera_label", "READ_CHUNK"]
 
@@ -235,6 +235,9 @@ class Aedat4Reader:
             raise self._error(str(exc), pos) from None
         except S.FlatBufferError as exc:
             raise self._error(f"corrupt {stream.type} packet: {exc} (payload byte {exc.pos})", pos) from None
+        except (MemoryError, OSError) as exc:  # this process's limits (memory, open files): not the file's fault
+            raise ResourceError(f"{self.path}: cannot decode its {stream.type} packet at byte {pos} "
+                                f"({type(exc).__name__}: {exc}): a limit of this process, not damage in the file") from exc
         except Exception as exc:  # anything else a damaged payload provokes (struct, numpy, ...) is the same fault
             raise self._error(f"corrupt {stream.type} packet ({type(exc).__name__}: {exc})", pos) from exc
 

@@ -15,7 +15,7 @@ from drivers.replay import merged_packets
 from edi_live.aedat4 import Aedat4Reader, Aedat4Writer
 from edi_live.aedat4 import schema as S
 from edi_live.datatypes import EVENT_DTYPE, Frame
-from edi_live.errors import RecordingError
+from edi_live.errors import RecordingError, ResourceError
 
 T0 = 1_700_000_000_000_000
 
@@ -366,3 +366,23 @@ def test_a_table_that_lists_other_packets_is_damage(tmp_path):
     got, err = _read(path)
     assert len(got) == 7 and err is not None and err.offset == dtp + 8 + size
     assert "lists 6 packets but the file holds 7" in str(err)
+
+
+@pytest.mark.parametrize("failure", [OSError(24, "Too many open files"), MemoryError()])
+def test_running_out_of_files_or_memory_while_decoding_is_not_called_damage(tmp_path, monkeypatch, failure):
+    """Under a tight ulimit the decoder's numba cache could not be opened and the replay called the packet corrupt."""
+    import edi_live.aedat4.reader as reader
+
+    path = tmp_path / "ok.aedat4"
+    events = np.zeros(10, EVENT_DTYPE)
+    events["t"] = np.arange(10)
+    with Aedat4Writer(path, 8, 8) as writer:
+        writer.write_events(events)
+
+    def fail(*args, **kwargs):
+        raise failure
+
+    monkeypatch.setattr(reader, "decode_events", fail)
+    with pytest.raises(ResourceError, match="a limit of this process, not damage in the file") as caught:
+        _read(path)
+    assert "corrupt" not in str(caught.value)

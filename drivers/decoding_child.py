@@ -24,6 +24,7 @@ group) stops only the node, which then stops the child.
 from __future__ import annotations
 
 import atexit
+import errno
 import logging
 import multiprocessing as mp
 import multiprocessing.util  # noqa: F401 - registers its exit handler before ours (ours must run first)
@@ -51,6 +52,7 @@ _JOIN_S = 2.0
 _HEAD = struct.Struct("<QQ")  # bytes of the pickled message, bytes of raw events after it
 _SOCK_BUF = 4 << 20
 _NICE = 5  # the child only reads ahead: when a core is contended, the node's threads go first
+_MIN_FREE_FDS = 16  # under fewer (ulimit -n), multiprocessing's forkserver fails and prints its own traceback
 
 
 def _context() -> Any:
@@ -198,6 +200,21 @@ def _send_quietly(conn: _Sender, message: tuple) -> None:
         pass
 
 
+def _check_free_descriptors() -> None:
+    """OSError (the replay then decodes in its own process) when too few file descriptors are free to start a child:
+    the forkserver would fail receiving them and print a traceback of its own (seen under ulimit -n 14-20)."""
+    import resource
+
+    soft = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+    try:
+        free = soft - len(os.listdir("/proc/self/fd")) if soft != resource.RLIM_INFINITY else None
+    except OSError:  # no /proc (not Linux): nothing to check against
+        free = None
+    if free is not None and free < _MIN_FREE_FDS:
+        raise OSError(errno.EMFILE, f"only {free} file descriptors free under 'ulimit -n {soft}', a decoding process "
+                                    f"needs {_MIN_FREE_FDS}")
+
+
 class DecodeProcess:
     """Iterates the packets a child process decodes from `path` (see the module docstring).
 
@@ -206,6 +223,7 @@ class DecodeProcess:
     """
 
     def __init__(self, path: str, max_packet_us: int, loop: bool) -> None:
+        _check_free_descriptors()
         ctx = _context()
         self._sock, child_sock = socket.socketpair()
         for sk, opt in ((self._sock, socket.SO_RCVBUF), (child_sock, socket.SO_SNDBUF)):

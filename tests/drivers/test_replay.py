@@ -8,6 +8,7 @@ import select
 import threading
 import time
 import tracemalloc
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -450,6 +451,30 @@ def test_decoding_falls_back_to_this_process_when_no_child_can_start(real_record
         with ReplaySource(path, speed=0, decode_process=True) as src:
             got = sum(len(p.events) for p in src if p is not None)
     assert got == 6_676
+
+
+def test_too_few_file_descriptors_decode_in_this_process_without_a_forkserver_traceback(real_recordings):
+    """Under 'ulimit -n 14' multiprocessing's forkserver failed receiving the child's descriptors and printed its own
+    traceback before the replay fell back; now the replay checks first and says why in its warning."""
+    import resource
+    import subprocess
+    import sys
+
+    path = real_recordings["evlib_sample_davis346.aedat4"]
+    code = ("import warnings; from drivers.replay import ReplaySource\n"
+            "with warnings.catch_warnings(record=True) as w:\n"
+            "    warnings.simplefilter('always')\n"
+            f"    with ReplaySource({str(path)!r}, speed=0, decode_process=True) as src:\n"
+            "        n = sum(len(p.events) for p in src if p is not None)\n"
+            "print(n, [str(x.message) for x in w])\n")
+
+    def few_files() -> None:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (14, resource.getrlimit(resource.RLIMIT_NOFILE)[1]))
+
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                          preexec_fn=few_files, cwd=str(Path(__file__).resolve().parents[2]))
+    assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr[-2000:]
+    assert done.stdout.startswith("6676 ") and "file descriptors free" in done.stdout, done.stdout
 
 
 def test_a_file_gone_before_the_child_opens_it_is_one_clear_error(tmp_path):

@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 import signal
 import sys
 import threading
 import time
 from pathlib import Path
 
+from edi_live.checks import finite_number
 from edi_live.client import DEFAULT_ENDPOINT, ClientHandshakeError, Subscriber, number_arg
 from edi_live.errors import ClientError, EdiLiveError
 from tools.viewer_http import BOUNDARY, FrameHub, MjpegServer, json_safe  # noqa: F401 - BOUNDARY, json_safe: API
@@ -68,14 +68,9 @@ class Rates:
         return True
 
 
-def _shown(value: object) -> bool:
-    """A stats value the status line can print: a finite number (a publisher may send NaN, inf or true)."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-
-
 def _num(stats: dict, key: str, scale: float = 1.0, fmt: str = "{:.2f}") -> str:
     value = stats.get(key)
-    return fmt.format(value * scale) if _shown(value) else "-"
+    return fmt.format(value * scale) if finite_number(value) else "-"  # (a publisher may send NaN, inf or true)
 
 
 STATS_STALE_S = 3.0  # the node sends stats once a second: older ones describe a node that stopped or went away
@@ -97,7 +92,7 @@ def status_line(rates: Rates, skipped: int, stats: dict | None, stats_age_s: flo
         # all of the node's drops (source, ring, publisher), not only the publisher's
         drops_key = "drops" if "drops" in stats else "publish_dropped"
         parts.append(f"node drops {_num(stats, drops_key, fmt='{:.0f}')}")
-        if _shown(stats.get("pred_psnr_db")):  # the live quality figure (docs/quality.md)
+        if finite_number(stats.get("pred_psnr_db")):  # the live quality figure (docs/quality.md)
             parts.append(f"predicts next APS frame {_num(stats, 'pred_psnr_db', fmt='{:.1f}')} dB "
                          f"(nothing moved: {_num(stats, 'still_psnr_db', fmt='{:.1f}')} dB)")
     else:

@@ -94,6 +94,12 @@ def tcp_parts(endpoint: str) -> tuple[str, str] | None:
     return host.strip("[]"), port
 
 
+def ipv6_literal(endpoint: str) -> bool:
+    """'tcp://[::1]:5555': a tcp endpoint that names an IPv6 address (libzmq binds and connects to one only with
+    ZMQ_IPV6 set; a host name is left alone, where IPv6 first would never fall back to an IPv4-only peer)."""
+    return endpoint.startswith("tcp://[")
+
+
 def parse_tcp_endpoint(endpoint: str, flag: str = "--dv-output") -> tuple[str, int]:
     """'tcp://HOST:PORT' -> (host, port); ConfigError otherwise. Port 0 picks a free port."""
     host, port = tcp_parts(endpoint) or ("", "")

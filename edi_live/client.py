@@ -39,7 +39,7 @@ import zmq
 from zmq.utils.monitor import parse_monitor_message
 
 from edi_live import wire
-from edi_live.checks import tcp_parts
+from edi_live.checks import ipv6_literal, tcp_parts
 from edi_live.curve_keys import check_z85, load_certificate
 from edi_live.errors import ClientError
 
@@ -156,9 +156,7 @@ class Subscriber:
             sock.curve_secretkey, sock.curve_publickey = secret, public
             sock.curve_serverkey = self._server_key
         sock.setsockopt(zmq.SUBSCRIBE, topic)
-        # a literal IPv6 address needs ZMQ_IPV6 (without it libzmq retries for ever, unheard); not for host names,
-        # where it would try an IPv6 address first and never fall back to an IPv4-only node
-        sock.setsockopt(zmq.IPV6, int(self.endpoint.startswith("tcp://[")))
+        sock.setsockopt(zmq.IPV6, int(ipv6_literal(self.endpoint)))  # (without it libzmq retries for ever, unheard)
         try:
             sock.connect(self.endpoint)
         except zmq.ZMQError as exc:

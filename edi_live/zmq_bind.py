@@ -16,6 +16,7 @@ import stat
 
 import zmq
 
+from edi_live.checks import ipv6_literal
 from edi_live.errors import BindError
 
 
@@ -24,7 +25,7 @@ def bind(sock: zmq.Socket, endpoint: str) -> str:
     scheme, _, address = endpoint.partition("://")
     # per bind (libzmq reads the option then): on for an IPv6 address only, so that an IPv4 endpoint is bound,
     # and reported in the log, as the IPv4 address it names rather than as ::ffff:127.0.0.1
-    sock.setsockopt(zmq.IPV6, int(scheme == "tcp" and address.startswith("[")))
+    sock.setsockopt(zmq.IPV6, int(ipv6_literal(endpoint)))
     if scheme == "ipc" and _served(address):
         raise BindError(f"cannot publish on {endpoint}: another process (another edi-live?) is publishing there "
                         "already; stop it or choose another path")

@@ -61,16 +61,16 @@ def main(argv: list[str] | None = None) -> int:
             subprocess.run([sys.executable, "-m", "edi_live", "--replay", str(args.recording), "--speed", "0",
                             "--no-publish", "--mode", mode, "--every", str(args.every), "--out", str(out)],
                            check=True, capture_output=True)
+            frames = frames_of(out)  # read once, for every picture below
             if args.interval:
-                intervals.append(interval_row(frames_of(out), aps, min(args.interval_frame, len(aps) - 2), mode,
-                                              gain))
-                print(speckle_line(frames_of(out), aps, mode))
+                intervals.append(interval_row(frames, aps, min(args.interval_frame, len(aps) - 2), mode, gain))
+                print(speckle_line(frames, aps, mode))
             if args.strip and mode != "causal":
                 crop = moving_box(np.abs(aps[k + 1].image.astype(np.float64) - aps[k].image))
-                strips.append(switch_strip(frames_of(out), aps[k + 1], mode, gain, crop=crop))
+                strips.append(switch_strip(frames, aps[k + 1], mode, gain, crop=crop))
             # an --out frame's exposure window is its latent time; pick the one nearest the midpoint
             lo, hi = aps[k].mid_exposure_us, aps[k + 1].mid_exposure_us
-            inside = [f for f in frames_of(out) if lo < f.exposure_start_us < hi]
+            inside = [f for f in frames if lo < f.exposure_start_us < hi]
             best = min(inside, key=lambda f: abs(f.exposure_start_us - t))
             after_ms = (best.exposure_start_us - aps[k].mid_exposure_us) / 1000
             tiles.append(_label(best.image * gain, f"{mode}: APS {k} + {after_ms:.1f} ms"))

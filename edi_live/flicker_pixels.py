@@ -19,6 +19,15 @@ Between APS frames the flags found in a stream take effect at fixed points of th
 at the first event past the STEP_US span they were found in. Taking them at the end of each read made the
 latent frames depend on where the reads were cut. The kernel stops at such a point, so a read without flag
 changes (nearly all) is one call.
+
+A scene without a lamp does not need the detector on every event (it was ~8 ns an event, about 7 % of the worker
+on a busy scene). While no pixel is flagged, it reads only the first SCAN_US of every IDLE_PERIOD_US of the event
+clock, counted from the first event it sees; once LAMP_PIXELS pixels are flagged (a lamp: hundreds to thousands of
+pixels; a moving texture flags a few by chance) it reads every event until a scan ends with fewer. Pixels
+flagged by a scan stay flagged until a later read shows their flicker stopped (up to one period after it did). A lamp that comes into view is flagged within one idle period plus its two cycles
+(at most ~0.45 s), and one in view from the start is flagged as before, in the first scan. The points where it
+decides (a period's start, its scan's end) are fixed in the event clock, so the result does not depend on how the
+events were cut into reads.
 """
 
 from __future__ import annotations
@@ -28,11 +37,14 @@ import numpy as np
 import edi_live.edi as edi
 
 STEP_US = 1_000  # flags found within one span of the event clock take effect at the first event after it
+IDLE_PERIOD_US = 400_000  # with no pixel flagged, one scan per period...
+SCAN_US = 80_000  # ...this long: three whole cycles even at 2 x 11.3 ms (a pixel that misses every other switch)
+LAMP_PIXELS = 16  # flagged pixels from which a lamp is in view; a moving texture flags ~1-11 by chance
 
 
 class FlickerPixels:
     def __init__(self, width: int, height: int, *, min_period_us: int = 7300, max_period_us: int = 11300,
-                 cycles: int = 2, hold_us: int = 30_000) -> None:
+                 cycles: int = 2, hold_us: int = 30_000, idle_scan: bool = True) -> None:
         self.width, self.height = width, height
         self._args = {"min_period_us": min_period_us, "max_period_us": max_period_us, "cycles": cycles,
                       "hold_us": hold_us}
@@ -43,6 +55,9 @@ class FlickerPixels:
         self._due: list[np.ndarray] = []  # pixels flagged by noted events, not yet taken
         self._due_changed = False
         self._due_span = 0
+        self._idle_scan = idle_scan
+        self._gate: tuple[int, int, int, bool] | None = None  # (period, phase start, phase end, read it)
+        self._origin: int | None = None  # the event time the idle periods count from
 
     @property
     def mask(self) -> np.ndarray:
@@ -55,13 +70,47 @@ class FlickerPixels:
 
     def observe(self, events: np.ndarray) -> tuple[bool, np.ndarray]:
         """Feed time-ordered events: (whether the mask changed, the flat pixels these events flagged)."""
-        flagged_now = edi.flicker_cycles(events, self._state, **self._args)
+        flagged = [edi.flicker_cycles(events[a:b], self._state, **self._args) for a, b in self._reads(events["t"])]
+        flagged_now = flagged[0] if len(flagged) == 1 else np.concatenate(flagged or [np.empty(0, np.int64)])
         return self._refresh_mask(), flagged_now
 
     def steps(self, events: np.ndarray) -> list[tuple[int, np.ndarray | None, np.ndarray]]:
         """Feed time-ordered events; flag changes take effect at the first event past the STEP_US span they were
         found in. Returns those points among the events: (index, the mask from there on or None if unchanged, the
         flat pixels newly flagged); a span still open at the end is taken by a later call, or by due()."""
+        out = []
+        for a, b in self._reads(events["t"]):
+            out += [(a + at, mask, flagged) for at, mask, flagged in self._steps_within(events[a:b])]
+        return out
+
+    def _reads(self, t: np.ndarray):
+        """The (start, end) index ranges of `t` the detector reads (module docstring), decided lazily: each range
+        after the previous one has been read."""
+        n = int(t.size)
+        if not self._idle_scan or n == 0:
+            return [(0, n)] if n else []
+        if self._gate is not None and self._gate[1] <= int(t[0]) and int(t[-1]) < self._gate[2]:
+            return [(0, n)] if self._gate[3] else []  # nearly every read: within one phase
+        return self._reads_across(t)
+
+    def _reads_across(self, t: np.ndarray):
+        n, pos = int(t.size), 0
+        while pos < n:
+            ti = int(t[pos])
+            if self._origin is None:
+                self._origin = ti
+            period = (ti - self._origin) // IDLE_PERIOD_US
+            begin = self._origin + period * IDLE_PERIOD_US
+            lo, hi = (begin, begin + SCAN_US) if ti < begin + SCAN_US else (begin + SCAN_US, begin + IDLE_PERIOD_US)
+            if self._gate is None or self._gate[1] != lo:
+                reads = lo == begin or int(np.count_nonzero(self._state.bits & 4)) >= LAMP_PIXELS
+                self._gate = (period, lo, hi, reads)
+            stop = pos + int(np.searchsorted(t[pos:], hi))
+            if self._gate[3]:
+                yield pos, stop
+            pos = stop
+
+    def _steps_within(self, events: np.ndarray) -> list[tuple[int, np.ndarray | None, np.ndarray]]:
         out: list[tuple[int, np.ndarray | None, np.ndarray]] = []
         t, pos, n = events["t"], 0, len(events)
         if not self._due_changed:
@@ -118,3 +167,4 @@ class FlickerPixels:
         self._mask = np.zeros((self.height, self.width), bool)
         self._count = 0
         self._due, self._due_changed = [], False
+        self._gate, self._origin = None, None

@@ -8,6 +8,7 @@ import pytest
 
 import edi_live.edi as edi
 from edi_live.datatypes import EVENT_DTYPE
+import edi_live.flicker_pixels as fpm
 from edi_live.flicker_pixels import FlickerPixels
 
 W, H = 8, 4
@@ -32,8 +33,8 @@ def _flicker(x: int, y: int, period_us: float, t0: int, t1: int, burst: int = 3)
     return rows
 
 
-def _flag_time(events: np.ndarray, x: int, y: int) -> int | None:
-    fp = FlickerPixels(W, H)
+def _flag_time(events: np.ndarray, x: int, y: int, **kwargs) -> int | None:
+    fp = FlickerPixels(W, H, **kwargs)
     for e in events:
         fp.observe(e[None])
         if fp.mask[y, x]:
@@ -68,7 +69,7 @@ def test_a_moving_edge_and_noise_are_not_flagged():
 
 def test_a_pixel_is_released_once_its_flicker_stops():
     ev = _events(_flicker(2, 1, 10_000, 0, 60_000) + [(150_000, 2, 1, True)])
-    fp = FlickerPixels(W, H, hold_us=30_000)
+    fp = FlickerPixels(W, H, hold_us=30_000, idle_scan=False)  # every event read (a lamp in view; below)
     changed, flagged = fp.observe(ev[ev["t"] < 60_000])
     assert changed and flagged.tolist() == [1 * W + 2] and fp.mask[1, 2]
     changed, flagged = fp.observe(ev[ev["t"] >= 60_000])  # the next event comes long after the last cycle
@@ -125,3 +126,64 @@ def test_a_gap_forgets_cycles_not_yet_flagged(gap):
         rec.mark_gap()
     rec.on_events(events[cut:])  # the switch at 30 ms, then 40 ms
     assert rec.stats()["flicker_pixels"] == (0 if gap else 1)
+
+
+LAMP = [(x, y) for y in range(H) for x in range(W) if (x, y) != (0, 0)][:fpm.LAMP_PIXELS + 4]
+
+
+def _lamp(t0: int, t1: int) -> list:
+    return [row for x, y in LAMP for row in _flicker(x, y, 10_000, t0, t1)]
+
+
+def _noise(t1: int, seed: int = 1) -> list:
+    rng = np.random.default_rng(seed)
+    return [(int(t), int(rng.integers(0, W)), int(rng.integers(0, H)), bool(rng.random() < 0.5))
+            for t in rng.uniform(0, t1, t1 // 2000)]
+
+
+def test_with_nothing_flagged_only_a_scan_per_period_is_read():
+    """Skipping what the scene does not need: with no lamp in view, a pixel that flickers only between two scans
+    is never read (it would have been flagged had every event been read)."""
+    start = fpm.SCAN_US + 20_000
+    ev = _events([(0, 0, 0, True)] + _flicker(2, 1, 10_000, start, fpm.IDLE_PERIOD_US - 20_000))
+    assert _flag_time(ev, 2, 1, idle_scan=False) is not None
+    assert _flag_time(ev, 2, 1) is None
+
+
+def test_a_lamp_that_comes_into_view_later_is_flagged_by_the_next_scan():
+    on_at = fpm.IDLE_PERIOD_US + fpm.SCAN_US + 10_000  # just after a scan: the worst case
+    ev = _events([(0, 0, 0, True)] + _noise(3 * fpm.IDLE_PERIOD_US) + _lamp(on_at, 3 * fpm.IDLE_PERIOD_US))
+    x, y = LAMP[0]
+    t = _flag_time(ev, x, y)
+    assert t is not None and t <= 2 * fpm.IDLE_PERIOD_US + 3 * 10_000 + 1000, t
+    assert _flag_time(ev, x, y, idle_scan=False) < t
+
+
+def test_with_a_lamp_in_view_every_event_is_read():
+    """Once a lamp flags LAMP_PIXELS pixels, the detector reads as it does without idle scans, and a pixel whose
+    flicker stops is released at its next event."""
+    ev = _events(_lamp(0, 3 * fpm.IDLE_PERIOD_US) + _noise(3 * fpm.IDLE_PERIOD_US)
+                 + _flicker(0, 0, 10_000, 0, fpm.IDLE_PERIOD_US + fpm.SCAN_US + 30_000)
+                 + [(2 * fpm.IDLE_PERIOD_US - 50_000, 0, 0, True)])
+    got = []
+    for idle in (True, False):
+        fp = FlickerPixels(W, H, idle_scan=idle)
+        got.append([(int(ev["t"][a + k]), None if m is None else m.tobytes(), f.tolist())
+                    for a in range(0, ev.size, 97) for k, m, f in fp.steps(ev[a:a + 97])])
+    assert got[0] == got[1]
+    assert any(m is not None and not np.frombuffer(m, bool)[0] for t, m, f in got[0] if t > fpm.IDLE_PERIOD_US)
+
+
+@pytest.mark.parametrize("chunk", [1, 13, 1000])
+def test_what_is_read_does_not_depend_on_how_the_events_are_cut(chunk):
+    ev = _events(_noise(3 * fpm.IDLE_PERIOD_US) + _lamp(fpm.IDLE_PERIOD_US + 100_000, 3 * fpm.IDLE_PERIOD_US)
+                 + _flicker(2, 1, 10_000, 40_000, 150_000))
+    results = []
+    for size in (ev.size, chunk):
+        fp = FlickerPixels(W, H)
+        points = []
+        for a in range(0, ev.size, size):
+            points += [(int(ev["t"][a + k]), f.tolist(), None if m is None else m.tobytes())
+                       for k, m, f in fp.steps(ev[a:a + size])]
+        results.append(points)
+    assert results[0] == results[1] and len(results[0]) >= 3

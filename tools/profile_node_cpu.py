@@ -75,11 +75,11 @@ def _filled_ring(path: Path):
 def _start_subscriber(pub):
     import multiprocessing as mp
 
-    from tools.bench_stream import _subscriber
+    from tools.stream_harness import subscriber_child
 
     ctx = mp.get_context("spawn")
     parent, child = ctx.Pipe()
-    proc = ctx.Process(target=_subscriber, args=(pub.bound_endpoints[0], child), daemon=True)
+    proc = ctx.Process(target=subscriber_child, args=(pub.bound_endpoints[0], child), daemon=True)
     proc.start()
     if not parent.poll(60):
         raise SystemExit("subscriber did not connect")
@@ -137,7 +137,7 @@ def profile(path: Path, every: int, extra: dict, top: int) -> None:
 
 def _threads_cpu() -> dict[str, float]:
     """CPU seconds by thread name (comm) of this process, summed over threads of the same name (Linux)."""
-    from tools.bench_stream import thread_cpu_seconds
+    from tools.thread_cpu import thread_cpu_seconds
 
     out: dict[str, float] = {}
     for name, cpu_s in thread_cpu_seconds().values():
@@ -376,7 +376,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="worker: these EdiConfig options against the default, or in both checkouts; ab: the new side's")
     args = ap.parse_args(argv)
     if not args.input:
-        from tools.bench_stream import default_recording
+        from tools.stream_harness import default_recording
 
         args.input = [default_recording()]
     from tools.bench_option import parse_setting

@@ -74,26 +74,12 @@ def _filled_ring(path: Path):
     return ring, src.info
 
 
-def _start_subscriber(pub):
-    import multiprocessing as mp
-
-    from tools.stream_harness import subscriber_child
-
-    ctx = mp.get_context("spawn")
-    parent, child = ctx.Pipe()
-    proc = ctx.Process(target=subscriber_child, args=(pub.bound_endpoints[0], child), daemon=True)
-    proc.start()
-    if not parent.poll(60):
-        raise SystemExit("subscriber did not connect")
-    parent.recv()
-    return proc, parent
-
-
 def profile(path: Path, every: int, extra: dict, top: int) -> None:
     from edi_live.config import EdiConfig
     from edi_live.node import default_reconstructor
     from edi_live.publisher import Publisher
     from edi_live.worker import EdiWorker
+    from tools.stream_harness import start_subscriber
 
     cfg = EdiConfig(every=every, deblur_thread=False, **extra)
     # warm the kernels on a first pass so that compile/load is not profiled
@@ -102,7 +88,7 @@ def profile(path: Path, every: int, extra: dict, top: int) -> None:
     ring, info = _filled_ring(path)
     pub = Publisher(["tcp://127.0.0.1:*"], "profile", inbox_size=1 << 20, sndhwm=0, stats_interval_s=0.2)
     pub.start()
-    proc, conn = _start_subscriber(pub)
+    proc, conn = start_subscriber(pub.bound_endpoints[0], 60)
     try:
         worker = EdiWorker(ring, default_reconstructor(info.width, info.height, cfg), cfg, [pub.submit])
         prof = cProfile.Profile()
@@ -154,6 +140,7 @@ def split(path: Path, every: int, extra: dict, repeat: int) -> None:
     from edi_live.node import default_reconstructor
     from edi_live.publisher import Publisher
     from edi_live.worker import EdiWorker
+    from tools.stream_harness import start_subscriber
 
     configs = {"EDI only (no sink, no quality score)": (0, None), "+ quality score": (2, None),
                "+ publisher, nobody subscribed": (2, "idle"), "+ publisher, 1 subscriber (the node)": (2, "pub")}
@@ -165,7 +152,7 @@ def split(path: Path, every: int, extra: dict, repeat: int) -> None:
     idle = Publisher(["tcp://127.0.0.1:*"], "profile", inbox_size=1 << 20, sndhwm=0)
     pub.start()
     idle.start()
-    proc, conn = _start_subscriber(pub)
+    proc, conn = start_subscriber(pub.bound_endpoints[0], 60)
     try:
         for r in range(repeat + 1):  # the first round warms kernels and caches; not counted
             for name, (quality, publish) in configs.items():

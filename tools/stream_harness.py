@@ -9,6 +9,8 @@ import multiprocessing as mp
 import tempfile
 import threading
 import time
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
 from pathlib import Path
 
 import numpy as np
@@ -122,6 +124,18 @@ def subscriber_child(endpoint: str, conn) -> None:
                    "arrivals": np.array(arrivals, np.int64).reshape(-1, 3)})
 
 
+def start_subscriber(endpoint: str, timeout_s: float = 30.0) -> tuple[BaseProcess, Connection]:
+    """subscriber_child in a spawned process, once its subscription is live: (the process, the parent's pipe end)."""
+    ctx = mp.get_context("spawn")
+    parent, child = ctx.Pipe()
+    proc = ctx.Process(target=subscriber_child, args=(endpoint, child), daemon=True)
+    proc.start()
+    if not parent.poll(timeout_s):
+        raise SystemExit("subscriber did not connect")
+    parent.recv()
+    return proc, parent
+
+
 class _RecordingPublisher:
     """A Publisher that also keeps every frame's latency (arrival of its last event -> sent), for percentiles."""
 
@@ -170,13 +184,7 @@ def run_with_subscriber(path: Path, options: dict, speed: float, publisher_facto
     thread.start()
     if not node.started.wait(30):
         raise SystemExit(f"node did not start: {result.get('error')}")
-    ctx = mp.get_context("spawn")
-    parent, child = ctx.Pipe()
-    proc = ctx.Process(target=subscriber_child, args=(node.bound_endpoints[0], child), daemon=True)
-    proc.start()
-    if not parent.poll(30):
-        raise SystemExit("subscriber did not connect")
-    parent.recv()
+    proc, parent = start_subscriber(node.bound_endpoints[0])
     cpu0 = time.process_time()
     with ThreadCpu() as threads_cpu:
         gate.set()

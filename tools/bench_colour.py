@@ -235,7 +235,7 @@ def speed_table(everies: list[int], repeats: int) -> None:
 _NODE_RUN = r"""
 import json, sys
 from pathlib import Path
-from tools.bench_stream import run_with_subscriber
+from tools.stream_harness import run_with_subscriber
 stats, sub, _, _ = run_with_subscriber(Path(sys.argv[1]), json.loads(sys.argv[2]), 0)
 print(json.dumps({"cpu_s": stats["node_cpu_s"], "frames": sub.get("frames", 0)}))
 """

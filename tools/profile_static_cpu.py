@@ -91,7 +91,9 @@ def run(seconds: float, use_cprofile: bool, top: int, noise_hz: float, step_call
     from edi_live.node import Node
     from edi_live.ring import EventRing
     from edi_live.worker import EdiWorker
-    from tools.bench_stream import ThreadCpu, _replay, noise_recording
+    from tools.stream_harness import replay_source
+    from tools.stream_noise import noise_recording
+    from tools.thread_cpu import ThreadCpu
 
     path = noise_recording(seconds + 4, noise_hz)
     saved = (EdiWorker._run, Node._pump_loop)
@@ -105,7 +107,7 @@ def run(seconds: float, use_cprofile: bool, top: int, noise_hz: float, step_call
         for c in counters + steps:
             c.__enter__()
         cfg = NodeConfig.from_options({"replay": str(path), "publish": ["tcp://127.0.0.1:*"]})
-        source = _replay(path, 1.0)
+        source = replay_source(path, 1.0)
         node = Node(cfg, source)
         thread = threading.Thread(target=node.run, daemon=True)
         thread.start()

@@ -12,7 +12,7 @@ from edi_live.datatypes import EVENT_DTYPE
 from edi_live.node import default_reconstructor
 from edi_live.ring import EventRing
 from edi_live.worker import EdiWorker
-from tools.bench_stream import noisy_scene, onset_delay_us, scene_packets
+from tools.stream_noise import noisy_scene, onset_delay_us, scene_packets
 
 
 def test_a_still_noisy_scene_makes_no_frames_and_no_deblurs_beyond_the_first():

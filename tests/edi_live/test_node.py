@@ -20,7 +20,7 @@ from edi_live.config import NodeConfig
 from edi_live.errors import BindError, NodeError, RecordingError
 from edi_live.node import Node, default_reconstructor
 from tests.edi_live.test_worker import StandIn
-from tools.bench_stream import GatedSource  # holds the first packet until a subscriber joined
+from tools.stream_harness import GatedSource  # holds the first packet until a subscriber joined
 
 DEMO = "emlb_demo-01_davis346.aedat4"  # 0.51 s, 13 APS frames, 346x260, motion blur
 

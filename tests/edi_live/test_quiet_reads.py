@@ -19,7 +19,7 @@ from edi_live.quiet_reads import MAX_BATCH_US, MIN_BATCH_US, QuietReads
 from edi_live.ring import EventChunk, EventRing
 from edi_live.ring_wake import WakeWhen
 from tests.helpers.recordings import events_at_random_pixels
-from tools.bench_stream import noisy_scene, onset_delay_us
+from tools.stream_noise import noisy_scene, onset_delay_us
 
 
 class ReadCountingRing(EventRing):
@@ -133,8 +133,9 @@ def test_the_wake_count_follows_the_noise_rate_and_an_active_scene_is_not_batche
 
 def _still_scene_through_a_small_ring(policy: str) -> tuple[EventRing, object, int, bool]:
     from edi_live.config import EdiConfig
+    from edi_live.node import default_reconstructor
     from edi_live.worker import EdiWorker
-    from tools.bench_stream import default_reconstructor, scene_packets
+    from tools.stream_noise import scene_packets
 
     events, frames, _ = noisy_scene(1.5)
     ring = EventRing(capacity_events=1024, capacity_frames=16, policy=policy)  # the smallest --ring-events

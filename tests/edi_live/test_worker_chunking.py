@@ -14,7 +14,7 @@ from edi_live.config import EdiConfig
 from edi_live.node import default_reconstructor
 from edi_live.ring import EventRing
 from edi_live.worker import EdiWorker
-from tools.bench_stream import noisy_scene, scene_packets
+from tools.stream_noise import noisy_scene, scene_packets
 
 
 @pytest.fixture(scope="module")

@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from edi_live.simulation import simulate
+from tools import accuracy_harness as harness
+from tools import accuracy_methods as methods
 from tools import bench_accuracy as ba
 from tools import bench_realistic as br
 
@@ -17,8 +20,8 @@ def _tiny(**kw):
 
 def test_oracle_inputs_undo_the_true_camera():
     from edi_live.simulation import with_effects
-    ideal = ba.simulate(_tiny())
-    real = ba.simulate(with_effects(_tiny(), "clock_offset", "black_level", "response", "hot_pixels"))
+    ideal = simulate(_tiny())
+    real = simulate(with_effects(_tiny(), "clock_offset", "black_level", "response", "hot_pixels"))
     ev, frames = br.oracle_inputs(real)
     hot = {tuple(xy) for xy in real.hot_pixel_xy}
     assert hot and not any((int(e["x"]), int(e["y"])) in hot for e in ev)
@@ -30,14 +33,14 @@ def test_oracle_inputs_undo_the_true_camera():
 
 
 def test_oracle_camera_is_plain_edi_on_an_ideal_camera_and_wins_on_a_real_one():
-    ideal = ba.simulate(_tiny())
-    a, b = br.run_oracle_camera(ideal), ba.run_edi_functions(ideal)
+    ideal = simulate(_tiny())
+    a, b = br.run_oracle_camera(ideal), methods.run_edi_functions(ideal)
     for g in a.deblurred:
         np.testing.assert_allclose(a.deblurred[g][0], b.deblurred[g][0], rtol=1e-6)
     from edi_live.simulation import with_effects
-    real = ba.simulate(with_effects(_tiny(), "black_level", "response", "clock_offset"))
-    oracle = ba.score(real, br.run_oracle_camera(real))
-    default = ba.score(real, ba.run_reconstructor(real))
+    real = simulate(with_effects(_tiny(), "black_level", "response", "clock_offset"))
+    oracle = harness.score(real, br.run_oracle_camera(real))
+    default = harness.score(real, harness.run_reconstructor(real))
     assert oracle.psnr_deblur > default.psnr_deblur + 3.0 and oracle.psnr_latent > default.psnr_latent
 
 
@@ -58,7 +61,7 @@ def test_tone_is_the_response_and_leaves_linear_methods_comparable():
     np.testing.assert_allclose(br.tone(x, 1.15), 255.0 * (x / 255.0) ** (1 / 1.15))
     np.testing.assert_array_equal(br.tone(x, 1.0), x)
     from edi_live.simulation import linearise_aps, with_effects
-    sim = ba.simulate(with_effects(_tiny(), "response"))
+    sim = simulate(with_effects(_tiny(), "response"))
     toned = br.in_camera_tone(sim)
     # the truth in the camera's tone is what the camera's APS reads for the sharp scene, before 8-bit rounding
     for g in range(len(sim.gt_images)):
@@ -71,12 +74,12 @@ def test_a_node_that_does_not_know_the_response_loses_only_in_linear_light():
     the oracle that knows gamma; in linear light it loses the tone curve. Per-pixel EDI on both sides (the node's
     smoothed divisor would beat the oracle by ~3 dB here, whatever the response)."""
     from edi_live.simulation import with_effects
-    sim = ba.simulate(with_effects(_tiny(), "response"))
+    sim = simulate(with_effects(_tiny(), "response"))
     gamma = float(sim.camera()["aps_gamma"])
-    node, oracle = ba.run_reconstructor(sim, divisor_median=False), br.run_oracle_camera(sim)
+    node, oracle = harness.run_reconstructor(sim, divisor_median=False), br.run_oracle_camera(sim)
     toned = br.in_camera_tone(sim)
-    tone_gap = ba.score(toned, node).psnr_deblur - ba.score(toned, br.toned(oracle, gamma)).psnr_deblur
-    linear_gap = ba.score(sim, node).psnr_deblur - ba.score(sim, oracle).psnr_deblur
+    tone_gap = harness.score(toned, node).psnr_deblur - harness.score(toned, br.toned(oracle, gamma)).psnr_deblur
+    linear_gap = harness.score(sim, node).psnr_deblur - harness.score(sim, oracle).psnr_deblur
     assert abs(tone_gap) < 1.0
     assert linear_gap < -3.0
 
@@ -89,10 +92,10 @@ def test_calibrated_run_starts_from_what_a_first_run_of_the_same_camera_saved():
     from edi_live.simulation import preset, with_effects
     cfg = with_effects(preset("translate", texture="blocks", duration_s=0.3, velocity_px_s=(200.0, 50.0), seed=5,
                               latent_per_interval=1), "black_level")
-    real = ba.simulate(cfg)
+    real = simulate(cfg)
     first = EdiReconstructor(cfg.width, cfg.height)
-    ba.run_reconstructor(ba.simulate(br.calibration_scene(cfg)), reconstructor=first)
+    harness.run_reconstructor(simulate(br.calibration_scene(cfg)), reconstructor=first)
     assert first.black_level > 0  # the calibration scene shows the black level
     out = br.run_calibrated(real)
     assert f"black {first.black_level:g} DN, offset {first.clock_offset_us} µs" in out.note
-    assert ba.score(real, out).psnr_deblur > ba.score(real, ba.run_reconstructor(real)).psnr_deblur + 1.0
+    assert harness.score(real, out).psnr_deblur > harness.score(real, harness.run_reconstructor(real)).psnr_deblur + 1.0

@@ -1,9 +1,9 @@
-"""tools.bench_stream's latency seen from the subscriber: receive time against the paced wall time of each frame's
-last event, relative to the fastest frame of each pass over a looped recording."""
+"""tools.bench_stream's latency (tools/stream_latency.py) seen from the subscriber: receive time against the paced
+wall time of each frame's last event, relative to the fastest frame of each pass over a looped recording."""
 
 import numpy as np
 
-from tools.bench_stream import outside_latency_us
+from tools.stream_latency import outside_latency_us
 
 
 def test_latency_relative_to_the_fastest_frame_of_each_pass():

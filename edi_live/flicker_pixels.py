@@ -78,10 +78,23 @@ class FlickerPixels:
         """Feed time-ordered events; flag changes take effect at the first event past the STEP_US span they were
         found in. Returns those points among the events: (index, the mask from there on or None if unchanged, the
         flat pixels newly flagged); a span still open at the end is taken by a later call, or by due()."""
-        out = []
-        for a, b in self._reads(events["t"]):
+        t = events["t"]
+        out: list[tuple[int, np.ndarray | None, np.ndarray]] = []
+        done = 0
+        for a, b in self._reads(t):
+            self._due_in_skipped(t, done, a, out)
             out += [(a + at, mask, flagged) for at, mask, flagged in self._steps_within(events[a:b])]
+            done = b
+        self._due_in_skipped(t, done, int(t.size), out)
         return out
+
+    def _due_in_skipped(self, t: np.ndarray, a: int, b: int, out: list) -> None:
+        """A change found in a scan's last span is due at the first event past that span even when the detector
+        does not read it (idle scans): there, not at the next range it reads (320 ms later)."""
+        if self._due_changed and a < b:
+            k = a + int(np.searchsorted(t[a:b], (self._due_span + 1) * STEP_US))
+            if k < b:
+                out.append((k, *self._take_due()))
 
     def _reads(self, t: np.ndarray):
         """The (start, end) index ranges of `t` the detector reads (module docstring), decided lazily: each range

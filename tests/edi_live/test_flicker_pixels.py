@@ -187,3 +187,22 @@ def test_what_is_read_does_not_depend_on_how_the_events_are_cut(chunk):
                        for k, m, f in fp.steps(ev[a:a + size])]
         results.append(points)
     assert results[0] == results[1] and len(results[0]) >= 3
+
+
+@pytest.mark.parametrize("chunk", [1, 1000])
+def test_a_flag_found_at_the_end_of_a_scan_takes_effect_past_its_span_not_at_the_next_scan(chunk):
+    """A flag change found in a scan's last STEP_US span is due at the first event past that span, which the
+    detector does not read (the scan ended): it must be taken there, as when every event is read, not carried over
+    the skipped range to the next scan's first event."""
+    flag_at = fpm.SCAN_US - 500  # the third OFF -> ON switch: the end of two whole cycles
+    lamp = [row for row in _flicker(2, 1, 10_000, flag_at - 30_000, flag_at + 1) if row[0] < fpm.SCAN_US]
+    past = fpm.SCAN_US + 200  # the first event past the span, at another pixel
+    ev = _events([(0, 0, 0, True)] + lamp + [(past, 5, 3, True), (fpm.SCAN_US + 300_000, 5, 3, False),
+                                            (fpm.IDLE_PERIOD_US + 1_000, 6, 3, True)])
+    got = []
+    for idle in (True, False):
+        fp = FlickerPixels(W, H, idle_scan=idle)
+        got.append([(int(ev["t"][a + k]), None if m is None else np.flatnonzero(m).tolist(), f.tolist())
+                    for a in range(0, ev.size, chunk) for k, m, f in fp.steps(ev[a:a + chunk])])
+    assert got[1] == [(past, [1 * W + 2], [1 * W + 2])]
+    assert got[0] == got[1]

@@ -206,3 +206,30 @@ def test_a_flag_found_at_the_end_of_a_scan_takes_effect_past_its_span_not_at_the
                     for a in range(0, ev.size, chunk) for k, m, f in fp.steps(ev[a:a + chunk])])
     assert got[1] == [(past, [1 * W + 2], [1 * W + 2])]
     assert got[0] == got[1]
+
+
+@pytest.mark.parametrize("period_us", [10_000, 8_333, 20_000, 22_000])
+def test_a_small_lamp_that_keeps_flickering_stays_flagged_across_the_skipped_ranges(period_us):
+    """Fewer than LAMP_PIXELS pixels flagged: the detector skips most of each period, but pixels flagged by a scan
+    stay flagged until a later read shows their flicker stopped. A lamp still flickering at the next scan must not
+    be released at its first event there (the gap since its last cycle is the detector's, not the lamp's) and
+    flagged again two cycles later: its events would go into the latent image in between."""
+    small = [(1, 1), (2, 1), (3, 1)]
+    ev = _events([row for x, y in small for row in _flicker(x, y, period_us, 0, 3 * fpm.IDLE_PERIOD_US + 50_000)])
+    for chunk in (ev.size, 7):
+        fp = FlickerPixels(W, H)
+        got = [(int(ev["t"][a + k]), None if m is None else np.flatnonzero(m).tolist())
+               for a in range(0, ev.size, chunk) for k, m, f in fp.steps(ev[a:a + chunk])]
+        assert got == [(got[0][0], [y * W + x for x, y in small])], got
+
+
+def test_a_small_lamp_that_stopped_is_released_by_the_next_scan():
+    """...and a flagged pixel whose flicker stopped is released when a later scan reads its events (here they
+    switch every 4 ms: not a mains period)."""
+    ev = _events(_flicker(2, 1, 10_000, 0, 60_000) + [(t, 2, 1, k % 2 == 0) for k, t in
+                                                       enumerate(range(fpm.IDLE_PERIOD_US, 2 * fpm.IDLE_PERIOD_US,
+                                                                       2_000))])
+    fp = FlickerPixels(W, H)
+    got = [(int(ev["t"][k]), None if m is None else bool(m[1, 2])) for k, m, f in fp.steps(ev)]
+    assert [m for t, m in got] == [True, False], got
+    assert fpm.IDLE_PERIOD_US <= got[1][0] <= fpm.IDLE_PERIOD_US + fpm.SCAN_US, got

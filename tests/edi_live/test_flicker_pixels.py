@@ -233,3 +233,52 @@ def test_a_small_lamp_that_stopped_is_released_by_the_next_scan():
     got = [(int(ev["t"][k]), None if m is None else bool(m[1, 2])) for k, m, f in fp.steps(ev)]
     assert [m for t, m in got] == [True, False], got
     assert fpm.IDLE_PERIOD_US <= got[1][0] <= fpm.IDLE_PERIOD_US + fpm.SCAN_US, got
+
+
+@pytest.mark.parametrize("period_us", [8_333, 10_000, 20_000, 22_000])
+@pytest.mark.parametrize("on_after_scan_end_us", [-15_000, 1_000])
+def test_a_lamp_coming_into_view_is_flagged_within_the_documented_reaction_time(period_us, on_after_scan_end_us):
+    """The module docstring's bound: one idle period plus two cycles, at most ~0.45 s, also at 50 Hz (a lamp
+    flickering at the mains frequency) and at twice the longest mains period (a pixel missing every other switch),
+    for a lamp that comes on just before a scan ends (too late for two cycles in it) or just after."""
+    on_at = fpm.IDLE_PERIOD_US + fpm.SCAN_US + on_after_scan_end_us
+    ev = _events([(0, 0, 0, True)] + _flicker(2, 1, period_us, on_at, on_at + fpm.IDLE_PERIOD_US + 100_000))
+    fp = FlickerPixels(W, H)
+    flagged_at = next(int(ev["t"][k]) for k, m, f in fp.steps(ev) if 1 * W + 2 in f.tolist())
+    assert 0 < flagged_at - on_at <= 450_000, (flagged_at, on_at)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_cuts_at_random_places_and_empty_reads_do_not_change_the_result(seed):
+    """Chunking independence with what the idle scans skip: a small lamp held across skipped ranges, a flag found
+    in a scan's last span, events exactly at the phase boundaries, a pause longer than a period, empty reads;
+    steps() and observe() alike."""
+    origin, rng = 5_000, np.random.default_rng(seed)
+    at = [origin + k * fpm.IDLE_PERIOD_US + d for k in range(5) for d in (0, fpm.SCAN_US)]  # phase boundaries
+    rows = ([(t, 7, 3, True) for t in at] + [r for r in _noise(2 * fpm.IDLE_PERIOD_US, seed) if r[1:3] != (4, 2)]
+            + _flicker(1, 1, 10_000, 0, 2 * fpm.IDLE_PERIOD_US)  # a small lamp, held across the skipped ranges
+            + [r for r in _flicker(2, 1, 10_000, origin + fpm.SCAN_US - 30_600, origin + fpm.SCAN_US)]
+            # its third switch exactly at the scan's end: not in the scan, so never read
+            + [r for r in _flicker(4, 2, 10_000, at[1] - 30_000, at[1] + 1) if r[0] <= at[1]]
+            + _flicker(3, 2, 20_000, 4 * fpm.IDLE_PERIOD_US, 5 * fpm.IDLE_PERIOD_US))  # after a pause
+    ev = _events([(origin, 0, 0, True)] + [r for r in rows if r[0] > origin])
+    at_boundary = np.flatnonzero(np.isin(ev["t"], at)) + 1  # reads that end exactly at a boundary, too
+    cuts = np.sort(np.concatenate([rng.integers(0, ev.size + 1, 60), at_boundary, [0, ev.size // 2, ev.size // 2]]))
+    pieces = np.split(ev, cuts)  # with empty pieces where cuts repeat
+
+    def steps(parts):
+        fp, out, base = FlickerPixels(W, H), [], 0
+        for p in parts:
+            out += [(base + k, None if m is None else np.flatnonzero(m).tolist(), f.tolist())
+                    for k, m, f in fp.steps(p)]
+            base += p.size
+        return out
+
+    def observe(parts):
+        fp = FlickerPixels(W, H)
+        return [q for p in parts for q in fp.observe(p)[1].tolist()]
+
+    whole = steps([ev])
+    assert steps(pieces) == whole and len(whole) >= 3
+    assert all(2 * W + 4 not in f for k, m, f in whole if ev["t"][k] < at[2])
+    assert observe(pieces) == observe([ev]) and observe([ev])

@@ -282,3 +282,29 @@ def test_cuts_at_random_places_and_empty_reads_do_not_change_the_result(seed):
     assert steps(pieces) == whole and len(whole) >= 3
     assert all(2 * W + 4 not in f for k, m, f in whole if ev["t"][k] < at[2])
     assert observe(pieces) == observe([ev]) and observe([ev])
+
+
+def test_a_small_lamp_does_not_bloom_in_the_latent_image_at_each_scan():
+    """What the hold across skipped ranges is for, seen in the reconstructor: a small lamp's halo (4 ON, 1 OFF
+    event a cycle) must not climb in the latent image when the next scan starts reading it again."""
+    from edi_live.datatypes import Frame
+    from edi_live.reconstructor import EdiReconstructor
+
+    lamp = [(1, 1), (2, 1), (3, 1)]
+    rows = []
+    for x, y in lamp:
+        for k in range(130):  # 1.3 s at 100 Hz
+            t = 1_000 + k * 10_000
+            rows += [(t + 100 * j, x, y, True) for j in range(4)] + [(t + 5_000, x, y, False)]
+    ev = _events(rows)
+    rec = EdiReconstructor(W, H, c=0.2)
+    rec.on_frame(Frame(np.full((H, W), 100, np.uint8), -2000, -1000), _events([]))
+    reference = rec.latent_log_image[1, 2]
+    second_scan = ev["t"] >= fpm.IDLE_PERIOD_US + 1_000  # the periods count from the first event, at 1 ms
+    rec.on_events(ev[~second_scan])
+    assert rec.stats()["flicker_pixels"] == len(lamp) and rec.latent_log_image[1, 2] == reference
+    for a in range(int(np.count_nonzero(~second_scan)), ev.size, 20):  # the first 30 ms of the second scan
+        if ev["t"][a] > fpm.IDLE_PERIOD_US + 30_000:
+            break
+        rec.on_events(ev[a:a + 20])
+        assert rec.latent_log_image[1, 2] == reference, int(ev["t"][a])

@@ -24,10 +24,13 @@ A scene without a lamp does not need the detector on every event (it was ~8 ns a
 on a busy scene). While no pixel is flagged, it reads only the first SCAN_US of every IDLE_PERIOD_US of the event
 clock, counted from the first event it sees; once LAMP_PIXELS pixels are flagged (a lamp: hundreds to thousands of
 pixels; a moving texture flags a few by chance) it reads every event until a scan ends with fewer. Pixels
-flagged by a scan stay flagged until a later read shows their flicker stopped (up to one period after it did). A lamp that comes into view is flagged within one idle period plus its two cycles
-(at most ~0.45 s), and one in view from the start is flagged as before, in the first scan. The points where it
-decides (a period's start, its scan's end) are fixed in the event clock, so the result does not depend on how the
-events were cut into reads.
+flagged by a scan stay flagged until a later read shows their flicker stopped (up to one period after it did):
+after a skipped range their hold counts from the scan's start plus two long cycles, so a small lamp that still
+flickers is not released at its first event there. A lamp that comes into view is flagged within one idle period
+plus its two cycles (at most ~0.45 s), and one in view from the start is flagged as before, in the first scan.
+The points where it decides (a period's start, its scan's end) are fixed in the event clock, so the result does
+not depend on how the events were cut into reads; a flag change due at the first event past its span is taken
+there even if that event is not read.
 """
 
 from __future__ import annotations
@@ -58,6 +61,7 @@ class FlickerPixels:
         self._idle_scan = idle_scan
         self._gate: tuple[int, int, int, bool] | None = None  # (period, phase start, phase end, read it)
         self._origin: int | None = None  # the event time the idle periods count from
+        self._skipped = False  # a phase went unread since the last scan (flagged pixels' holds restart then)
 
     @property
     def mask(self) -> np.ndarray:
@@ -78,10 +82,23 @@ class FlickerPixels:
         """Feed time-ordered events; flag changes take effect at the first event past the STEP_US span they were
         found in. Returns those points among the events: (index, the mask from there on or None if unchanged, the
         flat pixels newly flagged); a span still open at the end is taken by a later call, or by due()."""
-        out = []
-        for a, b in self._reads(events["t"]):
+        t = events["t"]
+        out: list[tuple[int, np.ndarray | None, np.ndarray]] = []
+        done = 0
+        for a, b in self._reads(t):
+            self._due_in_skipped(t, done, a, out)
             out += [(a + at, mask, flagged) for at, mask, flagged in self._steps_within(events[a:b])]
+            done = b
+        self._due_in_skipped(t, done, int(t.size), out)
         return out
+
+    def _due_in_skipped(self, t: np.ndarray, a: int, b: int, out: list) -> None:
+        """A change found in a scan's last span is due at the first event past that span even when the detector
+        does not read it (idle scans): there, not at the next range it reads (320 ms later)."""
+        if self._due_changed and a < b:
+            k = a + int(np.searchsorted(t[a:b], (self._due_span + 1) * STEP_US))
+            if k < b:
+                out.append((k, *self._take_due()))
 
     def _reads(self, t: np.ndarray):
         """The (start, end) index ranges of `t` the detector reads (module docstring), decided lazily: each range
@@ -105,10 +122,24 @@ class FlickerPixels:
             if self._gate is None or self._gate[1] != lo:
                 reads = lo == begin or int(np.count_nonzero(self._state.bits & 4)) >= LAMP_PIXELS
                 self._gate = (period, lo, hi, reads)
+                if not reads:
+                    self._skipped = True
+                elif self._skipped:
+                    self._skipped = False
+                    self._hold_from(lo)
             stop = pos + int(np.searchsorted(t[pos:], hi))
             if self._gate[3]:
                 yield pos, stop
             pos = stop
+
+    def _hold_from(self, t_us: int) -> None:
+        """A scan after a skipped range: the flagged pixels' holds count from when each could show a whole cycle in
+        it (its first switch within 2 * max_period_us, a cycle after it), not from its last cycle before the range:
+        a lamp still flickering would be released at its first event and flagged again two cycles later."""
+        flagged = (self._state.bits & 4) != 0
+        if flagged.any():
+            times = self._state.times[:, 1]
+            times[flagged] = np.maximum(times[flagged], t_us + 2 * self._args["max_period_us"])
 
     def _steps_within(self, events: np.ndarray) -> list[tuple[int, np.ndarray | None, np.ndarray]]:
         out: list[tuple[int, np.ndarray | None, np.ndarray]] = []
@@ -167,4 +198,4 @@ class FlickerPixels:
         self._mask = np.zeros((self.height, self.width), bool)
         self._count = 0
         self._due, self._due_changed = [], False
-        self._gate, self._origin = None, None
+        self._gate, self._origin, self._skipped = None, None, False

@@ -187,3 +187,124 @@ def test_what_is_read_does_not_depend_on_how_the_events_are_cut(chunk):
                        for k, m, f in fp.steps(ev[a:a + size])]
         results.append(points)
     assert results[0] == results[1] and len(results[0]) >= 3
+
+
+@pytest.mark.parametrize("chunk", [1, 1000])
+def test_a_flag_found_at_the_end_of_a_scan_takes_effect_past_its_span_not_at_the_next_scan(chunk):
+    """A flag change found in a scan's last STEP_US span is due at the first event past that span, which the
+    detector does not read (the scan ended): it must be taken there, as when every event is read, not carried over
+    the skipped range to the next scan's first event."""
+    flag_at = fpm.SCAN_US - 500  # the third OFF -> ON switch: the end of two whole cycles
+    lamp = [row for row in _flicker(2, 1, 10_000, flag_at - 30_000, flag_at + 1) if row[0] < fpm.SCAN_US]
+    past = fpm.SCAN_US + 200  # the first event past the span, at another pixel
+    ev = _events([(0, 0, 0, True)] + lamp + [(past, 5, 3, True), (fpm.SCAN_US + 300_000, 5, 3, False),
+                                            (fpm.IDLE_PERIOD_US + 1_000, 6, 3, True)])
+    got = []
+    for idle in (True, False):
+        fp = FlickerPixels(W, H, idle_scan=idle)
+        got.append([(int(ev["t"][a + k]), None if m is None else np.flatnonzero(m).tolist(), f.tolist())
+                    for a in range(0, ev.size, chunk) for k, m, f in fp.steps(ev[a:a + chunk])])
+    assert got[1] == [(past, [1 * W + 2], [1 * W + 2])]
+    assert got[0] == got[1]
+
+
+@pytest.mark.parametrize("period_us", [10_000, 8_333, 20_000, 22_000])
+def test_a_small_lamp_that_keeps_flickering_stays_flagged_across_the_skipped_ranges(period_us):
+    """Fewer than LAMP_PIXELS pixels flagged: the detector skips most of each period, but pixels flagged by a scan
+    stay flagged until a later read shows their flicker stopped. A lamp still flickering at the next scan must not
+    be released at its first event there (the gap since its last cycle is the detector's, not the lamp's) and
+    flagged again two cycles later: its events would go into the latent image in between."""
+    small = [(1, 1), (2, 1), (3, 1)]
+    ev = _events([row for x, y in small for row in _flicker(x, y, period_us, 0, 3 * fpm.IDLE_PERIOD_US + 50_000)])
+    for chunk in (ev.size, 7):
+        fp = FlickerPixels(W, H)
+        got = [(int(ev["t"][a + k]), None if m is None else np.flatnonzero(m).tolist())
+               for a in range(0, ev.size, chunk) for k, m, f in fp.steps(ev[a:a + chunk])]
+        assert got == [(got[0][0], [y * W + x for x, y in small])], got
+
+
+def test_a_small_lamp_that_stopped_is_released_by_the_next_scan():
+    """...and a flagged pixel whose flicker stopped is released when a later scan reads its events (here they
+    switch every 4 ms: not a mains period)."""
+    ev = _events(_flicker(2, 1, 10_000, 0, 60_000) + [(t, 2, 1, k % 2 == 0) for k, t in
+                                                       enumerate(range(fpm.IDLE_PERIOD_US, 2 * fpm.IDLE_PERIOD_US,
+                                                                       2_000))])
+    fp = FlickerPixels(W, H)
+    got = [(int(ev["t"][k]), None if m is None else bool(m[1, 2])) for k, m, f in fp.steps(ev)]
+    assert [m for t, m in got] == [True, False], got
+    assert fpm.IDLE_PERIOD_US <= got[1][0] <= fpm.IDLE_PERIOD_US + fpm.SCAN_US, got
+
+
+@pytest.mark.parametrize("period_us", [8_333, 10_000, 20_000, 22_000])
+@pytest.mark.parametrize("on_after_scan_end_us", [-15_000, 1_000])
+def test_a_lamp_coming_into_view_is_flagged_within_the_documented_reaction_time(period_us, on_after_scan_end_us):
+    """The module docstring's bound: one idle period plus two cycles, at most ~0.45 s, also at 50 Hz (a lamp
+    flickering at the mains frequency) and at twice the longest mains period (a pixel missing every other switch),
+    for a lamp that comes on just before a scan ends (too late for two cycles in it) or just after."""
+    on_at = fpm.IDLE_PERIOD_US + fpm.SCAN_US + on_after_scan_end_us
+    ev = _events([(0, 0, 0, True)] + _flicker(2, 1, period_us, on_at, on_at + fpm.IDLE_PERIOD_US + 100_000))
+    fp = FlickerPixels(W, H)
+    flagged_at = next(int(ev["t"][k]) for k, m, f in fp.steps(ev) if 1 * W + 2 in f.tolist())
+    assert 0 < flagged_at - on_at <= 450_000, (flagged_at, on_at)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_cuts_at_random_places_and_empty_reads_do_not_change_the_result(seed):
+    """Chunking independence with what the idle scans skip: a small lamp held across skipped ranges, a flag found
+    in a scan's last span, events exactly at the phase boundaries, a pause longer than a period, empty reads;
+    steps() and observe() alike."""
+    origin, rng = 5_000, np.random.default_rng(seed)
+    at = [origin + k * fpm.IDLE_PERIOD_US + d for k in range(5) for d in (0, fpm.SCAN_US)]  # phase boundaries
+    rows = ([(t, 7, 3, True) for t in at] + [r for r in _noise(2 * fpm.IDLE_PERIOD_US, seed) if r[1:3] != (4, 2)]
+            + _flicker(1, 1, 10_000, 0, 2 * fpm.IDLE_PERIOD_US)  # a small lamp, held across the skipped ranges
+            + [r for r in _flicker(2, 1, 10_000, origin + fpm.SCAN_US - 30_600, origin + fpm.SCAN_US)]
+            # its third switch exactly at the scan's end: not in the scan, so never read
+            + [r for r in _flicker(4, 2, 10_000, at[1] - 30_000, at[1] + 1) if r[0] <= at[1]]
+            + _flicker(3, 2, 20_000, 4 * fpm.IDLE_PERIOD_US, 5 * fpm.IDLE_PERIOD_US))  # after a pause
+    ev = _events([(origin, 0, 0, True)] + [r for r in rows if r[0] > origin])
+    at_boundary = np.flatnonzero(np.isin(ev["t"], at)) + 1  # reads that end exactly at a boundary, too
+    cuts = np.sort(np.concatenate([rng.integers(0, ev.size + 1, 60), at_boundary, [0, ev.size // 2, ev.size // 2]]))
+    pieces = np.split(ev, cuts)  # with empty pieces where cuts repeat
+
+    def steps(parts):
+        fp, out, base = FlickerPixels(W, H), [], 0
+        for p in parts:
+            out += [(base + k, None if m is None else np.flatnonzero(m).tolist(), f.tolist())
+                    for k, m, f in fp.steps(p)]
+            base += p.size
+        return out
+
+    def observe(parts):
+        fp = FlickerPixels(W, H)
+        return [q for p in parts for q in fp.observe(p)[1].tolist()]
+
+    whole = steps([ev])
+    assert steps(pieces) == whole and len(whole) >= 3
+    assert all(2 * W + 4 not in f for k, m, f in whole if ev["t"][k] < at[2])
+    assert observe(pieces) == observe([ev]) and observe([ev])
+
+
+def test_a_small_lamp_does_not_bloom_in_the_latent_image_at_each_scan():
+    """What the hold across skipped ranges is for, seen in the reconstructor: a small lamp's halo (4 ON, 1 OFF
+    event a cycle) must not climb in the latent image when the next scan starts reading it again."""
+    from edi_live.datatypes import Frame
+    from edi_live.reconstructor import EdiReconstructor
+
+    lamp = [(1, 1), (2, 1), (3, 1)]
+    rows = []
+    for x, y in lamp:
+        for k in range(130):  # 1.3 s at 100 Hz
+            t = 1_000 + k * 10_000
+            rows += [(t + 100 * j, x, y, True) for j in range(4)] + [(t + 5_000, x, y, False)]
+    ev = _events(rows)
+    rec = EdiReconstructor(W, H, c=0.2)
+    rec.on_frame(Frame(np.full((H, W), 100, np.uint8), -2000, -1000), _events([]))
+    reference = rec.latent_log_image[1, 2]
+    second_scan = ev["t"] >= fpm.IDLE_PERIOD_US + 1_000  # the periods count from the first event, at 1 ms
+    rec.on_events(ev[~second_scan])
+    assert rec.stats()["flicker_pixels"] == len(lamp) and rec.latent_log_image[1, 2] == reference
+    for a in range(int(np.count_nonzero(~second_scan)), ev.size, 20):  # the first 30 ms of the second scan
+        if ev["t"][a] > fpm.IDLE_PERIOD_US + 30_000:
+            break
+        rec.on_events(ev[a:a + 20])
+        assert rec.latent_log_image[1, 2] == reference, int(ev["t"][a])

@@ -9,6 +9,8 @@ instance per reader, so the publisher's once-a-second map and the status line do
 from __future__ import annotations
 
 import dataclasses
+import io
+import os
 import time
 from typing import Any, Callable, TextIO
 
@@ -219,6 +221,15 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
     return "\n".join(lines)
 
 
+def fit_fields(line: str, width: int) -> str:
+    """`line` cut to at most `width` characters at a field boundary (fields are separated by two spaces); a first
+    field longer than that is cut where it must be."""
+    if len(line) <= width:
+        return line
+    cut = line.rfind("  ", 0, width + 2)  # a field may end exactly at `width`
+    return line[:cut] if cut > 0 else line[:max(0, width)]
+
+
 class StatusLine:
     """A live status line on a TTY (redrawn in place every `interval_s`), plain lines otherwise."""
 
@@ -237,11 +248,24 @@ class StatusLine:
         self._next = now + self.interval_s
         line = format_status(with_rates(stats_fn(), self._rates))
         if self.tty:
+            # a line longer than the terminal wraps, and '\r' then returns to the wrapped part only: every redraw
+            # would leave a row behind. Whole fields are dropped from the end (the summary has them all).
+            line = fit_fields(line, self._columns() - 1)
             pad = max(0, self._drawn - len(line))
             self._write("\r" + line + " " * pad)
             self._drawn = len(line)
         else:
             self._write("edi-live: " + line + "\n")
+
+    def _columns(self) -> int:
+        """The terminal's width now (it may be resized while the node runs); COLUMNS, else 80, when unknown."""
+        try:
+            return os.get_terminal_size(self.stream.fileno()).columns  # type: ignore[union-attr]
+        except (AttributeError, OSError, ValueError, io.UnsupportedOperation):
+            try:
+                return max(1, int(os.environ.get("COLUMNS", "")))
+            except ValueError:
+                return 80
 
     def finish(self) -> None:
         """End the live line so the next output starts on a fresh line."""

@@ -154,3 +154,66 @@ def test_raw_usb_data_lost_is_said_in_the_summary_in_bytes():
     text = format_summary({**STATS, "source_dropped_bytes": 65536, "source_gaps": 2}, 1.0)
     assert "dropped 65536 bytes of raw data" in text and "2 gap(s)" in text
     assert "raw data" not in format_summary(STATS, 1.0)
+
+
+LONG = {**STATS, "black_level_dn": 3.0, "clock_offset_us": 2803, "noise_hz_p50": 0.116, "noise_hz_p99": 2.45,
+        "noisy_pixels": 184, "pred_psnr_db": 34.69, "still_psnr_db": 29.76, "pred_enabled": True}
+
+
+def _pty_stream(columns: int):
+    """A real terminal of `columns` columns: (its reading end, the stream the status line writes to)."""
+    import fcntl
+    import os
+    import pty
+    import struct
+    import termios
+
+    master, slave = pty.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, columns, 0, 0))
+    return master, os.fdopen(slave, "w", encoding="utf-8")
+
+
+def _drawn(master: int) -> str:
+    import os
+    import select
+
+    out = b""
+    while select.select([master], [], [], 0)[0]:
+        out += os.read(master, 65536)
+    return out.decode("utf-8")
+
+
+def test_the_live_line_fits_the_terminal_so_redraws_do_not_wrap():
+    """A line longer than the terminal wraps, and every redraw then left a row behind (an 80-column terminal
+    showed one new row per redraw). Whole fields are dropped from its end; a wide terminal shows them all."""
+    import os
+
+    assert len(format_status(LONG)) > 100
+    for columns in (60, 80, 200):
+        master, stream = _pty_stream(columns)
+        try:
+            line = StatusLine(stream, interval_s=0.0)
+            assert line.tty
+            for _ in range(3):
+                line.maybe_draw(lambda: LONG)
+            drawn = [d for d in _drawn(master).split("\r") if d]
+        finally:
+            stream.close()
+            os.close(master)
+        assert len(drawn) == 3
+        fields = format_status(LONG).split("  ")[2:]  # after the two rates, which differ from draw to draw
+        for d in drawn:
+            assert len(d) <= columns - 1, (columns, d)
+            shown = d.rstrip().split("  ")[2:]
+            assert shown and shown == fields[:len(shown)], d  # whole fields, from the start
+        if columns == 200:
+            assert drawn[0].rstrip().split("  ")[2:] == fields
+
+
+def test_fields_are_dropped_whole_and_a_narrow_terminal_still_gets_something():
+    from edi_live.stats import fit_fields
+
+    assert fit_fields("aa bb  cc  dd", 9) == "aa bb  cc"
+    assert fit_fields("aa bb  cc  dd", 8) == "aa bb"
+    assert fit_fields("aaaaaaaa  bb", 4) == "aaaa"
+    assert fit_fields("short", 80) == "short"

@@ -24,6 +24,7 @@ from edi_live.cli_parser import PROG, build_parser
 from edi_live.config import NodeConfig, merge_options, read_toml
 from edi_live.console import escape_what_cannot_be_encoded, occupy_closed_standard_fds, print_lines
 from edi_live.file_roles import check_apart
+from edi_live.live_line import LogHandler
 from edi_live.resource_limits import check_open_files, out_of_memory
 from edi_live.datatypes import SourceInfo
 from edi_live.errors import ConfigError, EdiLiveError, RecordingError, SourceError
@@ -171,16 +172,6 @@ def calibrate_dark_command(config: NodeConfig, source: Any, n_frames: int, signa
     return 0
 
 
-class _LogHandler(logging.StreamHandler):
-    """stderr logging that first erases the live status line on a terminal (it is redrawn at the next tick);
-    without this a log message is glued to the end of the status line."""
-
-    def format(self, record: logging.LogRecord) -> str:
-        text = super().format(record)
-        isatty = getattr(self.stream, "isatty", None)
-        return "\r\x1b[K" + text if isatty is not None and isatty() else text
-
-
 _DEVICE_ONLY = ("serial", "exposure_us", "frame_interval_us", "usb_backend")
 
 
@@ -231,7 +222,7 @@ def _log_warning(message: Warning | str, category: type[Warning], filename: str,
 
 def _setup_logging(level: str, stream: Any = None) -> None:
     warnings.showwarning = _log_warning
-    handler = _LogHandler(sys.stderr if stream is None else stream)
+    handler = LogHandler(sys.stderr if stream is None else stream)
     handler.setFormatter(logging.Formatter("edi-live: %(levelname)s: %(message)s"))
     root = logging.getLogger()
     root.handlers[:] = [handler]

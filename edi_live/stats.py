@@ -9,12 +9,13 @@ instance per reader, so the publisher's once-a-second map and the status line do
 from __future__ import annotations
 
 import dataclasses
-import io
-import os
 import time
 from typing import Any, Callable, TextIO
 
 import numpy as np
+
+from edi_live import live_line
+from edi_live.live_line import fit_fields  # noqa: F401 - where the status line's fitting was first
 
 
 def collect(source: Any = None, ring: Any = None, worker: Any = None, publisher: Any = None,
@@ -221,17 +222,9 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
     return "\n".join(lines)
 
 
-def fit_fields(line: str, width: int) -> str:
-    """`line` cut to at most `width` characters at a field boundary (fields are separated by two spaces); a first
-    field longer than that is cut where it must be."""
-    if len(line) <= width:
-        return line
-    cut = line.rfind("  ", 0, width + 2)  # a field may end exactly at `width`
-    return line[:cut] if cut > 0 else line[:max(0, width)]
-
-
 class StatusLine:
-    """A live status line on a TTY (redrawn in place every `interval_s`), plain lines otherwise."""
+    """A live status line on a TTY (redrawn in place every `interval_s`, edi_live/live_line.py), plain lines
+    otherwise."""
 
     def __init__(self, stream: TextIO, interval_s: float | None = None, tty: bool | None = None) -> None:
         self.stream: TextIO | None = stream
@@ -239,7 +232,7 @@ class StatusLine:
         self.interval_s = interval_s if interval_s is not None else (0.5 if self.tty else 5.0)
         self._next = time.monotonic() + self.interval_s
         self._rates = Rates()
-        self._drawn = 0
+        self._last: str | None = None
 
     def maybe_draw(self, stats_fn: Callable[[], dict[str, Any]]) -> None:
         now = time.monotonic()
@@ -248,30 +241,17 @@ class StatusLine:
         self._next = now + self.interval_s
         line = format_status(with_rates(stats_fn(), self._rates))
         if self.tty:
-            # a line longer than the terminal wraps, and '\r' then returns to the wrapped part only: every redraw
-            # would leave a row behind. Whole fields are dropped from the end (the summary has them all).
-            line = fit_fields(line, self._columns() - 1)
-            pad = max(0, self._drawn - len(line))
-            self._write("\r" + line + " " * pad)
-            self._drawn = len(line)
+            # whole fields are dropped from the end to fit the terminal (the summary has them all)
+            self._write(live_line.redraw(line, live_line.columns(self.stream)))
+            self._last = line
         else:
             self._write("edi-live: " + line + "\n")
 
-    def _columns(self) -> int:
-        """The terminal's width now (it may be resized while the node runs); COLUMNS, else 80, when unknown."""
-        try:
-            return os.get_terminal_size(self.stream.fileno()).columns  # type: ignore[union-attr]
-        except (AttributeError, OSError, ValueError, io.UnsupportedOperation):
-            try:
-                return max(1, int(os.environ.get("COLUMNS", "")))
-            except ValueError:
-                return 80
-
     def finish(self) -> None:
-        """End the live line so the next output starts on a fresh line."""
-        if self.tty and self._drawn:
-            self._write("\n")
-            self._drawn = 0
+        """Leave the last live line on the screen, so the next output starts on a fresh line below it."""
+        if self.tty and self._last is not None:
+            self._write(live_line.end(self._last, live_line.columns(self.stream)))
+            self._last = None
 
     def _write(self, text: str) -> None:
         """A stream that went away ('2>&1 | head', a closed terminal) ends the status, never the run."""

@@ -18,6 +18,7 @@ import threading
 import time
 from pathlib import Path
 
+from edi_live import live_line
 from edi_live.checks import finite_number
 from edi_live.client import DEFAULT_ENDPOINT, ClientHandshakeError, Subscriber, number_arg
 from edi_live.errors import ClientError, EdiLiveError
@@ -76,6 +77,9 @@ def _num(stats: dict, key: str, scale: float = 1.0, fmt: str = "{:.2f}") -> str:
 STATS_STALE_S = 3.0  # the node sends stats once a second: older ones describe a node that stopped or went away
 
 
+_SEP = " | "
+
+
 def status_line(rates: Rates, skipped: int, stats: dict | None, stats_age_s: float = 0.0) -> str:
     parts = [f"recv {rates.fps:6.1f} fps"]
     if stats and stats_age_s > STATS_STALE_S:
@@ -98,7 +102,7 @@ def status_line(rates: Rates, skipped: int, stats: dict | None, stats_age_s: flo
     else:
         parts.append("no stats yet")
     parts.append(f"lost {rates.lost}, skipped {skipped}")
-    return " | ".join(parts)
+    return _SEP.join(parts)
 
 
 def parse_host_port(text: str) -> tuple[str, int]:
@@ -155,6 +159,7 @@ class Viewer:
         self._tty = sys.stderr.isatty()
         self._stats_at = time.monotonic()  # when the newest stats message came
         self._skipped_shown = 0  # self.sub.skipped when the latest frame was shown
+        self._drawn: str | None = None  # the status line last drawn on the terminal
 
     @property
     def url(self) -> str | None:
@@ -202,9 +207,11 @@ class Viewer:
             self.hub.status = {"viewer_fps": round(self.rates.fps, 1), "lost": self.rates.lost,
                                "skipped": self.sub.skipped, "line": line, "node": self.sub.last_stats}
             if not self.args.quiet:
-                try:
-                    sys.stderr.write(f"\r{line}\x1b[K" if self._tty else line + "\n")
+                try:  # on a terminal: redrawn in place, cut to its width (a wrapped line left a row per redraw)
+                    sys.stderr.write(live_line.redraw(line, live_line.columns(sys.stderr), _SEP) if self._tty
+                                     else line + "\n")
                     sys.stderr.flush()
+                    self._drawn = line
                 except (OSError, ValueError):  # stderr went away ('2>&1 | head'): the status ends, not the run
                     self.args.quiet = True
 
@@ -221,7 +228,10 @@ class Viewer:
             self.server.close()
         self.sub.close()
         if self._tty and not self.args.quiet:
-            sys.stderr.write("\n")
+            try:
+                sys.stderr.write(live_line.end(self._drawn, live_line.columns(sys.stderr), _SEP))
+            except (OSError, ValueError):
+                pass
         saved = f", {self.recorder.written} saved" if (self.args.mp4 or self.args.png) else ""
         if self.recorder.skipped_size:
             saved += f" ({self.recorder.skipped_size} left out of the MP4: another size than its first frame)"
@@ -231,7 +241,8 @@ class Viewer:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="viewer: %(message)s")
+    # (on a terminal a message first erases the status line, which waits at its start between redraws)
+    logging.basicConfig(level=logging.INFO, format="viewer: %(message)s", handlers=[live_line.LogHandler()])
     try:
         viewer = Viewer(args)
     except EdiLiveError as exc:

@@ -312,7 +312,7 @@ def test_log_lines_erase_the_live_status_line_on_a_terminal(tty):
     # the status line is drawn with '\r' and no newline; a log record must not be glued to its end
     import logging
 
-    from edi_live import cli
+    from edi_live import cli, live_line
 
     stream = _FakeTerminal(tty)
     root = logging.getLogger()
@@ -324,7 +324,7 @@ def test_log_lines_erase_the_live_status_line_on_a_terminal(tty):
         root.handlers[:], root.level = saved[0], saved[1]
         logging.getLogger("edi_live").setLevel(saved[2])
     expected = "edi-live: INFO: --duration 3.0 s reached\n"
-    assert stream.text == ("\r\x1b[K" + expected if tty else expected)
+    assert stream.text == (live_line.ERASE + expected if tty else expected)
 
 
 @pytest.mark.parametrize("endpoints,curve,warned", [

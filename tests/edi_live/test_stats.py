@@ -4,12 +4,9 @@ from __future__ import annotations
 
 import io
 
+import pytest
+
 from edi_live.stats import Rates, StatusLine, collect, format_status, format_summary
-
-
-class FakeTTY(io.StringIO):
-    def isatty(self) -> bool:
-        return True
 
 
 STATS = {"events_processed": 1000, "frames_out": 10, "c_on": 0.2, "c_off": 0.25, "drops": 3,
@@ -17,14 +14,16 @@ STATS = {"events_processed": 1000, "frames_out": 10, "c_on": 0.2, "c_off": 0.25,
 
 
 def test_tty_status_is_redrawn_in_place():
-    stream = FakeTTY()
-    line = StatusLine(stream, interval_s=0.0)
+    from tests.helpers.terminal import Screen
+
+    screen = Screen(200)
+    line = StatusLine(_ScreenStream(screen), interval_s=0.0)
     for _ in range(3):
         line.maybe_draw(lambda: STATS)
     line.finish()
-    text = stream.getvalue()
-    assert text.count("\r") == 3 and text.count("\n") == 1 and text.endswith("\n")
-    assert "c_on=0.200 c_off=0.250" in text and "p99 0.90ms" in text and "drops 3" in text
+    rows = screen.text()
+    assert len(rows) == 1 and (screen.y, screen.x) == (1, 0)  # one row, and the cursor on the next
+    assert "c_on=0.200 c_off=0.250" in rows[0] and "p99 0.90ms" in rows[0] and "drops 3" in rows[0]
 
 
 def test_plain_status_lines_when_not_a_terminal():
@@ -196,7 +195,7 @@ def test_the_live_line_fits_the_terminal_so_redraws_do_not_wrap():
             assert line.tty
             for _ in range(3):
                 line.maybe_draw(lambda: LONG)
-            drawn = [d for d in _drawn(master).split("\r") if d]
+            drawn = [d for d in _drawn(master).replace("\x1b[J", "").split("\r") if d]
         finally:
             stream.close()
             os.close(master)
@@ -217,3 +216,71 @@ def test_fields_are_dropped_whole_and_a_narrow_terminal_still_gets_something():
     assert fit_fields("aa bb  cc  dd", 8) == "aa bb"
     assert fit_fields("aaaaaaaa  bb", 4) == "aaaa"
     assert fit_fields("short", 80) == "short"
+
+
+class _ScreenStream(io.StringIO):
+    """A terminal's stream whose output lands on a model of its screen (tests/helpers/terminal.py); its width
+    is COLUMNS (no file descriptor to ask)."""
+
+    def __init__(self, screen) -> None:
+        super().__init__()
+        self.screen = screen
+
+    def isatty(self) -> bool:
+        return True
+
+    def write(self, text: str) -> int:
+        self.screen.write(text)
+        return len(text)
+
+
+@pytest.mark.parametrize("reflow", [True, False])
+def test_a_resized_terminal_keeps_one_status_row_and_the_summary_starts_below_it(monkeypatch, reflow):
+    """Shrinking the window (tmux resize-window -x 50) while the node ran stacked rows: a terminal that re-wraps
+    made two rows of the drawn line, '\\r' returned to the second only, and the padding of the old line's length
+    wrapped again; widening then joined the leftovers into one row of garbage. One that cuts its rows (xterm)
+    got a row of padding, and every later redraw went one row lower."""
+    from tests.helpers.terminal import Screen
+
+    screen = Screen(120, reflow=reflow)
+    screen.write("edi-live: INFO: publishing\n")
+    monkeypatch.setenv("COLUMNS", "120")
+    line = StatusLine(_ScreenStream(screen), interval_s=0.0)
+    line.maybe_draw(lambda: LONG)
+    fields = format_status(LONG).split("  ")[2:]  # after the two rates, which differ from draw to draw
+    for columns in (50, 120, 60, 80):
+        screen.resize(columns)
+        monkeypatch.setenv("COLUMNS", str(columns))
+        for _ in range(2):
+            line.maybe_draw(lambda: LONG)
+        rows = screen.text()
+        assert len(rows) == 2 and rows[0] == "edi-live: INFO: publishing", (columns, rows)
+        assert len(rows[1]) <= columns - 1 and rows[1].split("  ")[2:] == fields[:len(rows[1].split("  ")) - 2]
+    line.finish()
+    screen.write("edi-live: done")
+    assert screen.text()[1:] == [rows[1], "edi-live: done"]
+
+
+def test_a_log_message_takes_the_live_lines_place_and_the_line_ends_below_it(monkeypatch):
+    """With the cursor waiting at the line's start, a message written over it without erasing would keep the
+    rest of the line (and the rows a shrink made of it) beside and below the message."""
+    import logging
+
+    from edi_live.live_line import LogHandler
+    from tests.helpers.terminal import Screen
+
+    screen = Screen(120)
+    stream = _ScreenStream(screen)
+    monkeypatch.setenv("COLUMNS", "120")
+    line = StatusLine(stream, interval_s=0.0)
+    line.maybe_draw(lambda: LONG)
+    screen.resize(50)
+    monkeypatch.setenv("COLUMNS", "50")
+    handler = LogHandler(stream)
+    handler.setFormatter(logging.Formatter("edi-live: %(levelname)s: %(message)s"))
+    handler.emit(logging.LogRecord("edi_live", logging.INFO, __file__, 1, "SIGINT: stopping", None, None))
+    assert screen.text() == ["edi-live: INFO: SIGINT: stopping"]
+    line.finish()
+    rows = screen.text()
+    assert len(rows) == 2 and rows[1].split("  ")[2] == format_status(LONG).split("  ")[2] and len(rows[1]) <= 49
+    assert (screen.y, screen.x) == (2, 0)

@@ -573,3 +573,36 @@ def test_a_publisher_that_encrypts_is_one_error_line_not_a_silent_wait(tmp_path)
         pub.close()
     lines = [line for line in err.splitlines() if line.startswith("viewer: error:")]
     assert proc.returncode == 1 and len(lines) == 1 and "encrypts (CURVE" in lines[0], err
+
+
+def test_the_status_line_fits_the_terminal_and_a_shrink_leaves_no_rows(raw_pub, monkeypatch):
+    """At 80 columns the viewer's status line with the node's stats (~160 characters) wrapped, and every
+    redraw left a row behind: the terminal filled with half lines. Fields are dropped whole from its end, and
+    a window shrunk while it runs (a terminal that re-wraps) keeps one row; it ends on its own row at close."""
+    from edi_live import wire
+    from tests.edi_live.test_stats import _ScreenStream
+    from tests.helpers.terminal import Screen
+
+    pub, endpoint = raw_pub
+    v = joined_viewer(pub, ["--endpoint", endpoint, "--no-http"])
+    screen = Screen(80)
+    monkeypatch.setattr(sys, "stderr", _ScreenStream(screen))
+    monkeypatch.setenv("COLUMNS", "80")
+    v._tty = True
+    stats = {"frames_per_s": 640.0, "events_per_s": 630_000.0, "c": 0.44, "c_on": 0.44, "c_off": 0.44,
+             "latency_p50_us": 490.0, "latency_p99_us": 5110.0, "drops": 0, "pred_psnr_db": 33.4,
+             "still_psnr_db": 30.1}
+    try:
+        for i, columns in enumerate((80, 80, 50, 50), start=1):
+            screen.resize(columns)
+            monkeypatch.setenv("COLUMNS", str(columns))
+            v.rates._window_start -= 2.0  # each step draws the status line (due once a second)
+            pub.send_multipart(wire.encode_stats(stats))
+            pub.send_multipart(wire.encode_frame(rec(i), i, "cam"))
+            step_until(v, i)
+            rows = screen.text()
+            assert len(rows) == 1 and len(rows[0]) <= columns - 1, (columns, rows)
+            assert rows[0].startswith("recv") and len(viewer.status_line(v.rates, 0, stats)) > 100
+    finally:
+        v.close()
+    assert len(screen.text()) == 1 and (screen.y, screen.x) == (1, 0)

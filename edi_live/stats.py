@@ -124,7 +124,7 @@ def _camera_short(s: dict[str, Any]) -> str:
     if s.get("noise_hz_p50") is not None:
         parts.append(f"noise {s['noise_hz_p50']:.2g}/{s.get('noise_hz_p99', 0):.2g} Hz "
                      f"({s.get('noisy_pixels', 0)} noisy)")
-    return "  " + " ".join(parts) if parts else ""
+    return "  " + "  ".join(parts) if parts else ""  # each its own field: a narrow terminal lays them out apart
 
 
 def _noise_text(s: dict[str, Any]) -> str:

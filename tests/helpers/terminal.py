@@ -2,9 +2,9 @@
 
 A pty only carries bytes; what stays on the screen after a resize is the terminal's doing. Modelled here: printable
 characters with autowrap at the right margin, CR, LF (as CR LF: a pty's onlcr), erase to end of line (ESC [ K)
-and to end of screen (ESC [ J), and a resize either re-wrapping soft-wrapped rows into the new width (tmux,
+and to end of screen (ESC [ J), cursor up (ESC [ n A), and a resize either re-wrapping soft-wrapped rows into the new width (tmux,
 GNOME Terminal, kitty, iTerm2: a row that wrapped joins its continuation and the cursor keeps its place in that
-text) or cutting rows at the new width (xterm, the Linux console). Nothing else (no cursor movement, no
+text) or cutting rows at the new width (xterm, the Linux console). Nothing else (no other cursor movement, no
 scrolling region); an unknown escape sequence is an error, so a new one cannot pass unseen.
 """
 
@@ -60,6 +60,8 @@ class Screen:
         if op == "K" and arg in ("", "0"):
             del self.rows[self.y][self.x:]
             self.wrapped[self.y] = False
+        elif op == "A":  # cursor up, stopping at the top row
+            self.y = max(0, self.y - int(arg or "1"))
         elif op == "J" and arg in ("", "0"):
             del self.rows[self.y][self.x:]
             del self.rows[self.y + 1:]

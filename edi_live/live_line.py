@@ -22,14 +22,18 @@ ERASE = "\r\x1b[J"
 
 
 def columns(stream: Any) -> int:
-    """The width of the terminal behind `stream` now; COLUMNS, else 80, when unknown."""
+    """The width of the terminal behind `stream` now; COLUMNS, else 80, when unknown. A terminal whose size was
+    never set (a pty made by `script`, some CI runners and containers) says 0 columns: unknown too."""
     try:
-        return os.get_terminal_size(stream.fileno()).columns
+        width = os.get_terminal_size(stream.fileno()).columns
+        if width > 0:
+            return width
     except (AttributeError, OSError, ValueError, io.UnsupportedOperation):
-        try:
-            return max(1, int(os.environ.get("COLUMNS", "")))
-        except ValueError:
-            return 80
+        pass
+    try:
+        return max(1, int(os.environ.get("COLUMNS", "")))
+    except ValueError:
+        return 80
 
 
 def fit_fields(line: str, width: int, sep: str = "  ") -> str:

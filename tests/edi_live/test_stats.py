@@ -297,3 +297,24 @@ def test_a_log_message_takes_the_live_lines_place_and_the_line_ends_below_it(mon
     assert rows[0] == "edi-live: INFO: SIGINT: stopping" and 2 <= len(rows) <= 4, rows
     assert all(len(r) <= 49 for r in rows[1:]) and _fields(rows[1:])[0] == format_status(LONG).split("  ")[2]
     assert (screen.y, screen.x) == (len(rows), 0)
+
+
+def test_a_terminal_that_says_zero_columns_gets_a_usable_line(monkeypatch):
+    """A pty whose size was never set (made by `script`, some CI runners) reports 0 columns: the line was laid
+    out one character per row, three rows of single letters."""
+    import os
+
+    from tests.helpers.terminal import Screen
+
+    monkeypatch.delenv("COLUMNS", raising=False)
+    master, stream = _pty_stream(0)
+    try:
+        line = StatusLine(stream, interval_s=0.0)
+        line.maybe_draw(lambda: STATS)
+        screen = Screen(80)
+        screen.write(_drawn(master))
+    finally:
+        stream.close()
+        os.close(master)
+    rows = screen.text()
+    assert len(rows) <= 2 and "drops 3" in " ".join(rows) and all(len(r) <= 79 for r in rows), rows

@@ -36,15 +36,6 @@ def columns(stream: Any) -> int:
         return 80
 
 
-def fit_fields(line: str, width: int, sep: str = "  ") -> str:
-    """`line` cut to at most `width` characters at a field boundary (fields are separated by `sep`); a first
-    field longer than that is cut where it must be."""
-    if len(line) <= width:
-        return line
-    cut = line.rfind(sep, 0, width + len(sep))  # a field may end exactly at `width`
-    return line[:cut] if cut > 0 else line[:max(0, width)]
-
-
 MAX_ROWS = 3
 
 

@@ -15,7 +15,6 @@ from typing import Any, Callable, TextIO
 import numpy as np
 
 from edi_live import live_line
-from edi_live.live_line import fit_fields  # noqa: F401 - where the status line's fitting was first
 
 
 def collect(source: Any = None, ring: Any = None, worker: Any = None, publisher: Any = None,
@@ -241,7 +240,7 @@ class StatusLine:
         self._next = now + self.interval_s
         line = format_status(with_rates(stats_fn(), self._rates))
         if self.tty:
-            # whole fields are dropped from the end to fit the terminal (the summary has them all)
+            # laid out in rows of whole fields that fit the terminal (edi_live/live_line.py)
             self._write(live_line.redraw(line, live_line.columns(self.stream)))
             self._last = line
         else:

@@ -207,7 +207,7 @@ class Viewer:
             self.hub.status = {"viewer_fps": round(self.rates.fps, 1), "lost": self.rates.lost,
                                "skipped": self.sub.skipped, "line": line, "node": self.sub.last_stats}
             if not self.args.quiet:
-                try:  # on a terminal: redrawn in place, cut to its width (a wrapped line left a row per redraw)
+                try:  # on a terminal: redrawn in place, in rows that fit it (a wrapped line left a row per redraw)
                     sys.stderr.write(live_line.redraw(line, live_line.columns(sys.stderr), _SEP) if self._tty
                                      else line + "\n")
                     sys.stderr.flush()

@@ -219,13 +219,14 @@ def test_the_live_line_fits_the_terminal_so_redraws_do_not_wrap():
         assert (len(block) == 1) == (columns == 200)
 
 
-def test_fields_are_dropped_whole_and_a_narrow_terminal_still_gets_something():
-    from edi_live.stats import fit_fields
+def test_fields_are_laid_out_whole_and_a_narrow_terminal_still_gets_something():
+    from edi_live.live_line import MAX_ROWS, rows
 
-    assert fit_fields("aa bb  cc  dd", 9) == "aa bb  cc"
-    assert fit_fields("aa bb  cc  dd", 8) == "aa bb"
-    assert fit_fields("aaaaaaaa  bb", 4) == "aaaa"
-    assert fit_fields("short", 80) == "short"
+    assert rows("aa bb  cc  dd", 9) == ["aa bb  cc", "dd"]
+    assert rows("aa bb  cc  dd", 8) == ["aa bb", "cc  dd"]
+    assert rows("aaaaaaaa  bb", 4) == ["aaaa", "bb"]
+    assert rows("short", 80) == ["short"]
+    assert rows("  ".join("abcdefgh"), 1) == list("abc")[:MAX_ROWS]  # fields beyond MAX_ROWS rows are dropped
 
 
 class _ScreenStream(io.StringIO):

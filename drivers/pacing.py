@@ -3,7 +3,11 @@
 speed 1 replays in real time, 4 four times faster, 0 as fast as possible. The schedule is anchored once (the first
 timestamp meets the first call), so waiting never accumulates drift. A jump of the recording's clock by more than
 MAX_GAP_US (a clock reset: minutes to years between two packets) is not waited out: the schedule moves past it,
-with one warning.
+with one warning. Falling more than MAX_LATE_S behind the schedule (the process was suspended with Ctrl-Z, the
+machine stalled) is not caught up by replaying the backlog at full speed: the schedule restarts at the late
+timestamp, with one warning, as a paused video resumes where it stopped. A replay slower than its speed asks for
+(an overloaded node) is re-anchored the same way each time it falls that far behind, so it runs as fast as it can,
+as it did before.
 """
 
 from __future__ import annotations
@@ -18,6 +22,9 @@ log = logging.getLogger(__name__)
 MAX_GAP_US = 60_000_000
 """Longest pause between two timestamps that is replayed as a pause; a longer one is a jump of the clock."""
 
+MAX_LATE_S = 1.0
+"""How far (host seconds) data may fall behind its schedule and still be caught up; later, pacing restarts."""
+
 
 class Pacer:
     """Decides when data stamped `t_us` is due on the host clock."""
@@ -30,6 +37,8 @@ class Pacer:
         self._anchor_t_us: int | None = None
         self._anchor_s = 0.0
         self._latest_t_us: int | None = None
+        self._late_warned = False
+        self._first_t_us: int | None = None
 
     @property
     def unpaced(self) -> bool:
@@ -46,6 +55,7 @@ class Pacer:
             return 0.0
         if self._anchor_t_us is None:
             self.anchor(t_us)
+            self._first_t_us = int(t_us)
         elif int(t_us) - self._latest_t_us > MAX_GAP_US:  # due when the latest timestamp was, not years later
             gap = int(t_us) - self._latest_t_us
             self._anchor_t_us += gap
@@ -53,7 +63,16 @@ class Pacer:
                         self._latest_t_us)
         self._latest_t_us = int(t_us) if self._latest_t_us is None else max(self._latest_t_us, int(t_us))
         due = self._anchor_s + (int(t_us) - self._anchor_t_us) / (1e6 * self.speed)
-        return due - self._clock()
+        delay = due - self._clock()
+        if delay < -MAX_LATE_S:
+            self.anchor(t_us)
+            (log.debug if self._late_warned else log.warning)(
+                "paced replay resumed %.1f s behind its schedule, %.1f s into the recording (the process was "
+                "stopped, or could not keep up): it goes on from there at its speed instead of rushing through the "
+                "backlog", -delay, (int(t_us) - (self._first_t_us or int(t_us))) / 1e6)
+            self._late_warned = True
+            return 0.0
+        return delay
 
     def wait(self, t_us: int, timeout_s: float, stop: threading.Event | None = None) -> bool:
         """Sleep until `t_us` is due, at most `timeout_s`. True when due; False on timeout or when `stop` is set."""

@@ -269,6 +269,26 @@ def test_pacer_skips_a_clock_jump_of_years_with_one_warning_and_keeps_real_pause
     assert len(warnings) == 1 and "5.0 years" in warnings[0], warnings
 
 
+def test_pacer_resumes_at_its_speed_after_a_suspend_instead_of_bursting_the_backlog(caplog):
+    """After Ctrl-Z and fg, a paced replay poured out everything it would have shown while stopped, as fast as it
+    could; it now goes on at its speed from where it stopped, with one warning. Short lateness (a busy moment)
+    is still caught up, so the replay keeps to real time."""
+    now = [100.0]
+    pacer = Pacer(1.0, clock=lambda: now[0])
+    with caplog.at_level("WARNING"):
+        assert pacer.delay_s(T0) == 0.0
+        now[0] += 0.5  # half a second late: caught up, the schedule stays
+        assert pacer.delay_s(T0 + 100_000) == pytest.approx(-0.4)
+        now[0] += 30.0  # suspended for 30 s
+        assert pacer.delay_s(T0 + 200_000) == 0.0  # due now, not 30 s overdue
+        assert pacer.delay_s(T0 + 300_000) == pytest.approx(0.1)  # and the next 100 ms come 100 ms later
+        now[0] += 10.0  # again: the second stall is logged at debug level only
+        assert pacer.delay_s(T0 + 400_000) == 0.0
+        assert pacer.delay_s(T0 + 1_400_000) == pytest.approx(1.0)
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1 and "30.3 s behind its schedule, 0.2 s into" in warnings[0], warnings
+
+
 def test_pacer_wait_returns_false_on_timeout_and_on_stop():
     pacer = Pacer(1.0)
     pacer.anchor(T0)

@@ -1,5 +1,6 @@
 """Whether the worker's latent frames are wanted now: a node whose only sink is the publisher need not render
-frames that no subscriber would receive (`Publisher.wants_frames`, from the XPUB socket's subscriptions).
+frames that no subscriber would receive (`Publisher.wants_frames`, from the XPUB socket's subscriptions), and a
+node without any sink (`--no-publish` without `--out` or `--dv-output`) renders none (`nobody_wants`).
 
 Owns the question and the count of frames not rendered; the worker asks before rendering a batch. The latent
 image still moves with every event (the next frame wanted is exact), only the copies, the `Reconstruction`s
@@ -10,6 +11,11 @@ a prediction that nobody saw; it scores again once frames flow (see edi_live/qua
 from __future__ import annotations
 
 from typing import Callable, Protocol
+
+
+def nobody_wants() -> bool:
+    """The demand of a node that has no sink: no latent frame is wanted, ever."""
+    return False
 
 
 class _Resettable(Protocol):

@@ -34,6 +34,7 @@ from typing import Any, Callable, ContextManager, TextIO
 from edi_live import calibration, fused_mode
 from edi_live.config import EdiConfig, NodeConfig
 from edi_live.errors import ConfigError, EdiLiveError, NodeError, OutputError, SourceError
+from edi_live.frame_demand import nobody_wants
 from edi_live.reconstruction import Reconstructor
 from edi_live.ring import EventRing, as_events
 from edi_live.source import Source, stop_from_another_thread
@@ -271,11 +272,13 @@ class Node:
             self.record_writer.start()
         if self.out_writer is not None:
             sinks.append(self.out_writer.submit)
-        # with the publisher as the only sink, latent frames no subscriber would receive are not rendered
+        # latent frames nobody would receive are not rendered: with the publisher as the only sink, while no
+        # subscriber listens; with no sink at all (--no-publish without --out or --dv-output), ever
         only_publisher = self.publisher is not None and sinks == [self.publisher.submit]
         self.worker = EdiWorker(self.ring, reconstructor, cfg.effective_edi, sinks,
                                 on_error=lambda e: self.fail(e, "edi-worker"),
-                                frames_wanted=self.publisher.wants_frames if only_publisher else None)
+                                frames_wanted=(nobody_wants if not sinks else
+                                               self.publisher.wants_frames if only_publisher else None))
         self.worker.start()
         self._pump = threading.Thread(target=self._pump_loop, name="pump", daemon=True)
         self._pump.start()

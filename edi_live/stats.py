@@ -205,6 +205,9 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         nobody += f", {unrendered} latent frames not rendered" if unrendered else ""
         nobody += " (no subscriber)" if nobody else ""
         lines.append(f"  published {s['frames_sent']} frames{nobody}{latency}")
+    if "frames_sent" not in s and s.get("frames_not_rendered"):
+        lines.append(f"  {s['frames_not_rendered']} latent frames not rendered: nothing takes them (no publisher, "
+                     f"no --out or --dv-output), and so no prediction figure")
     prediction = _prediction_line(s)
     if prediction is not None:
         lines.append(prediction)

@@ -14,6 +14,7 @@ from edi_live.node import Node
 from edi_live.quality import PredictionScore
 from edi_live.reconstructor import EdiReconstructor
 from edi_live.ring import EventRing
+from edi_live.stats import format_summary
 from edi_live.worker import EdiWorker
 from tests.edi_live.edi_scenes import make_scene
 
@@ -89,3 +90,18 @@ def test_a_node_publishing_to_nobody_renders_no_latent_frame_but_one_writing_out
     assert nobody["frames_latent"] == 0 and nobody["frames_not_rendered"] == out["frames_latent"] > 100
     assert nobody["frames_sent"] == 0 and nobody["frames_unsubscribed"] == nobody["frames_deblurred"] > 0
     assert out["frames_not_rendered"] == 0 and out["frames_unsubscribed"] == out["frames_out"]
+
+
+def test_a_node_without_any_sink_renders_no_latent_frame_and_says_so(real_recordings):
+    """--no-publish without --out rendered every latent frame for nobody (a copy, a Reconstruction and the quality
+    score's work per frame: ~20 % of the node alone's rate on the demo recording)."""
+    import drivers
+
+    path = real_recordings["emlb_demo-01_davis346.aedat4"]
+    config = NodeConfig.from_options({"replay": str(path), "speed": 0, "no_publish": True})
+    stats = Node(config, drivers.open_source("replay", path=str(path), speed=0)).run()
+    assert stats["frames_latent"] == 0 and stats["frames_not_rendered"] > 100
+    assert stats["frames_deblurred"] > 0  # each deblurred frame is still made: it is the reference the latent image moves from
+    summary = format_summary(stats, 1.0)
+    assert f"{stats['frames_not_rendered']} latent frames not rendered: nothing takes them" in summary
+    assert "prediction of the next APS frame" not in summary

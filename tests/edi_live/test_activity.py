@@ -153,6 +153,42 @@ def test_verdicts_on_random_events_with_pixels_off_the_sensor_and_empty_reads():
     assert 0 < sum(b for _, b, _ in want) < len(want)
 
 
+def test_spans_decided_by_their_count_keep_the_times_later_tests_read():
+    """A busy read's spans are decided by their counts before their events are looked at, and their times enter
+    the map only within support_us before a span that may be tested. Bursts (decided by the count) each followed
+    by 8 events d µs after the burst's last 8 (all at its last time) and beside them, so that their span is active
+    exactly when all 8 find those neighbours' time (d <= support_us: 5000 is the edge), read whole and in random
+    parts: the rule written out plainly."""
+    rng = np.random.default_rng(11)
+    w, h = 240, 180
+    parts, gaps = [], (2_000, 5_000, 5_001, 8_000) * 3
+    for k, d in enumerate(gaps):
+        burst = np.zeros(3000, EVENT_DTYPE)  # ~500 events a ms: far above what noise gives
+        burst["t"] = np.sort(30_000 * k + rng.integers(0, 6_000, burst.size))
+        burst["x"], burst["y"] = rng.integers(0, w - 1, burst.size), rng.integers(0, h, burst.size)
+        burst["t"][-8:] = burst["t"][-1]  # the burst's last 8 at one time: all 8 tests hang on it
+        late = burst[-8:].copy()
+        late["t"] += d
+        late["x"] += 1
+        parts += [burst, late]
+    closing = np.zeros(1, EVENT_DTYPE)  # a span is judged at the first event after it
+    closing["t"] = parts[-1]["t"][-1] + 50_000
+    events = np.concatenate(parts + [closing])
+    act = SceneActivity(w, h)
+    want = _reference_verdicts(events, w, h, check_us=act.check_us, window_us=act.window_us,
+                               max_noise_hz=act.max_noise_hz, sigmas=act.sigmas, margin=act.margin,
+                               support_us=act.support_us)
+    t = events["t"]
+    sparse = [active for _, active, end in want if np.count_nonzero((t >= end - act.check_us) & (t < end)) <= 8]
+    assert sparse.count(True) == 6 and sparse.count(False) == 6  # d <= 5000: active through the neighbour tests
+    for sizes in ([len(events)], rng.integers(1, 9_000, 40)):
+        act, got, pos = SceneActivity(w, h), [], 0
+        for size in list(sizes) + [len(events)]:
+            got += [(pos + at, active, end) for at, active, end in act.update(events[pos:pos + int(size)])]
+            pos = min(pos + int(size), len(events))
+        assert [(int(a), bool(b), int(c)) for a, b, c in got] == want
+
+
 def _reference_states(events, verdicts, hold_us):
     """Per event, written out: active before the first verdict; after it, active while the latest active verdict
     before the event (its span's end) is at most hold_us before the event's time."""

@@ -6,7 +6,7 @@ IOHeader) hold the GIL, so in the test's process they would starve the Python se
     python tests/dv_peer.py read HOST PORT N            NetworkReader: print the stream info, then N frames or
                                                         event batches as JSON lines, then exit (= disconnect)
     python tests/dv_peer.py serve KIND FILE [--port P] [--wait-clients K] [--hold-s S] [--size WxH]
-                                                        [--pace-s S] [--go-file F]
+                                                        [--pace-s S] [--go-file F] [--exit-file F]
                                                         NetworkWriter serving one stream KIND (events | frames |
                                                         imu | triggers) of a real recording, read with
                                                         dv-processing's own MonoCameraRecording; prints
@@ -62,7 +62,7 @@ def _free_port() -> int:
 
 
 def serve(kind: str, path: str, port: int, wait_clients: int, hold_s: float, size: str | None,
-          pace_s: float, go_file: str | None = None) -> None:
+          pace_s: float, go_file: str | None = None, exit_file: str | None = None) -> None:
     rec = dv.io.MonoCameraRecording(path)
     camera = rec.getCameraName()
     res = tuple(int(v) for v in size.split("x")) if size else rec.getEventResolution()
@@ -95,7 +95,12 @@ def serve(kind: str, path: str, port: int, wait_clients: int, hold_s: float, siz
     while writer.getQueuedPacketCount() and time.monotonic() < deadline:
         time.sleep(0.005)
     _print({"done": n})
-    time.sleep(hold_s)
+    if exit_file:  # the client says when it has everything: what the writer still buffers would die with us
+        deadline = time.monotonic() + 60
+        while not os.path.exists(exit_file) and time.monotonic() < deadline:
+            time.sleep(0.01)
+    else:
+        time.sleep(hold_s)
     # the end of a DV instance: the OS closes every connection. (Destroying a NetworkWriter right as a client
     # leaves can hang in dv-processing 2.0.4, so the destructor is not used.)
     os._exit(0)
@@ -117,11 +122,12 @@ def main() -> None:
     s.add_argument("--size")
     s.add_argument("--pace-s", type=float, default=0.0)
     s.add_argument("--go-file", help="start writing once this file exists")
+    s.add_argument("--exit-file", help="after writing, end once this file exists (not after --hold-s)")
     a = p.parse_args()
     if a.cmd == "read":
         read(a.host, a.port, a.n)
     else:
-        serve(a.kind, a.file, a.port, a.wait_clients, a.hold_s, a.size, a.pace_s, a.go_file)
+        serve(a.kind, a.file, a.port, a.wait_clients, a.hold_s, a.size, a.pace_s, a.go_file, a.exit_file)
     sys.stdout.flush()
 
 

@@ -134,7 +134,8 @@ def as_path(v: Any) -> Path | None:
 def as_endpoints(v: Any) -> tuple[str, ...]:
     if isinstance(v, str):
         return (v,)
-    _check(isinstance(v, (list, tuple)), f"publish must be a list of endpoints (got {v!r})")
+    if not isinstance(v, (list, tuple)):  # publish and dv-input: the caller names the key
+        raise TypeError("expected a list of endpoints")
     return tuple(v)
 
 

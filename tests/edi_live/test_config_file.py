@@ -100,3 +100,17 @@ def test_a_home_relative_path_in_a_config_file_is_in_the_home_folder(tmp_path: P
     options = read_toml(path)
     assert Path(options["calibration"]) == home / "cal.json"
     assert Path(options["replay"]) == path.parent / "rec.aedat4"
+
+
+@pytest.mark.parametrize("key", ["dv-input", "publish"])
+def test_an_endpoint_list_of_the_wrong_type_names_its_own_key(tmp_path: Path, key):
+    """`dv-input = 5` in a config file was refused as "publish must be a list of endpoints (got 5)": the user was
+    sent to fix a key the file did not have."""
+    from edi_live.config import NodeConfig
+
+    path = tmp_path / "edi.toml"
+    path.write_text(f"{key} = 5\n")
+    with pytest.raises(ConfigError) as info:
+        NodeConfig.from_toml(path)
+    assert str(info.value).startswith(f"{key}: ") and "list of endpoints" in str(info.value)
+    assert "(got 5)" in str(info.value) and info.value.exit_code == 2

@@ -134,3 +134,16 @@ def test_the_setup_tools_into_a_closed_pipe_end_without_a_traceback(tmp_path):
     assert (tmp_path / "curve" / "server.key_secret").is_file()
     rule = _into_a_closed_pipe("drivers.udev")
     assert rule.returncode == 0 and rule.stderr == "", rule.stderr
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full")
+@pytest.mark.parametrize("module,args", [("edi_live.publisher", ("--gen-curve-keys", "curve")), ("drivers.udev", ())])
+def test_the_setup_tools_into_a_full_disk_say_so_in_one_line(tmp_path, module, args):
+    """'python -m drivers.udev > rules' on a full disk ended in an OSError traceback; so did the key generation
+    (whose keys were written, but whose paths the user never saw)."""
+    with open("/dev/full", "w") as full:
+        proc = subprocess.run([sys.executable, "-m", module, *args], cwd=tmp_path, stdout=full,
+                              stderr=subprocess.PIPE, text=True, timeout=60, env=_env())
+    assert proc.returncode == 1
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1 and "error: cannot write to stdout (No space left on device)" in lines[0], proc.stderr

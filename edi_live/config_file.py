@@ -95,6 +95,11 @@ def read_toml(path: str | Path, known: Iterable[str]) -> dict[str, Any]:
         raise ConfigError(f"config file {path} is not valid TOML ({type(exc).__name__}: {exc})") from None
     nested = [k for k, v in data.items() if isinstance(v, dict)]
     _check(not nested, f"config file {path}: keys go at the top level, like the flags (got table(s) {nested})")
+    spellings: dict[str, list[str]] = {}
+    for key in data:  # `c-on` and `c_on` are two keys to TOML, one option to us: one of the values would be lost
+        spellings.setdefault(norm_key(key), []).append(key)
+    twice = "; ".join(" and ".join(repr(k) for k in keys) for keys in spellings.values() if len(keys) > 1)
+    _check(not twice, f"config file {path}: one option given twice ({twice}); keep one of them")
     normalized = {norm_key(k): v for k, v in data.items()}
     unknown = sorted(set(normalized) - set(known))
     _check(not unknown, f"config file {path}: unknown key(s) {', '.join(unknown)}")

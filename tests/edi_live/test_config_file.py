@@ -114,3 +114,14 @@ def test_an_endpoint_list_of_the_wrong_type_names_its_own_key(tmp_path: Path, ke
         NodeConfig.from_toml(path)
     assert str(info.value).startswith(f"{key}: ") and "list of endpoints" in str(info.value)
     assert "(got 5)" in str(info.value) and info.value.exit_code == 2
+
+
+def test_one_option_spelled_twice_in_a_config_file_is_refused(tmp_path: Path):
+    """`c-on = 0.2` and `c_on = 0.3` in one file (TOML sees two keys, edi-live one option) ran with 0.3 and no
+    word: one of the two values the user wrote was silently dropped."""
+    path = tmp_path / "edi.toml"
+    path.write_text('c-on = 0.2\nc-off = 0.2\nc_on = 0.3\n')
+    with pytest.raises(ConfigError) as info:
+        read_toml(path)
+    message = str(info.value)
+    assert str(path) in message and "c-on" in message and "c_on" in message and info.value.exit_code == 2

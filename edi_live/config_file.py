@@ -107,7 +107,7 @@ def read_toml(path: str | Path, known: Iterable[str]) -> dict[str, Any]:
     for key in ("replay", "out", "record", "emulate_from", "curve_secret_key", "calibration", "save_calibration"):
         # relative paths in a config file are relative to the file, not to the working directory; ~ is the home
         # folder, as a shell would read it in a flag
-        if isinstance(normalized.get(key), str):
+        if isinstance(normalized.get(key), str) and normalized[key]:  # ("" stays "": as_path refuses it)
             given = Path(os.path.expanduser(normalized[key]))  # (Path.expanduser raises on an unknown ~user)
             normalized[key] = str(given if given.is_absolute() else base / given)
     return normalized
@@ -133,6 +133,8 @@ def merge_options(file_options: Mapping[str, Any], flag_options: Mapping[str, An
 def as_path(v: Any) -> Path | None:
     if v is not None and not isinstance(v, (str, os.PathLike)):  # Path(3)'s own message is Python's, not ours
         raise TypeError("expected a file path")
+    if v is not None and not os.fspath(v):  # Path("") is ".": an unset shell variable would name the folder
+        raise ValueError("expected a file path, not an empty one")
     return None if v is None else Path(v)
 
 

@@ -125,3 +125,31 @@ def test_one_option_spelled_twice_in_a_config_file_is_refused(tmp_path: Path):
         read_toml(path)
     message = str(info.value)
     assert str(path) in message and "c-on" in message and "c_on" in message and info.value.exit_code == 2
+
+
+_PATH_OPTIONS = ["replay", "out", "record", "calibration", "save_calibration", "curve_secret_key", "emulate_from"]
+
+
+def _with_empty(key: str) -> dict:
+    base = ({"device": "davis240", "usb_backend": "drivers.emulator:backend"} if key == "emulate_from"
+            else {} if key == "replay" else {"replay": "rec.aedat4"})
+    return {**base, key: ""}
+
+
+@pytest.mark.parametrize("key", _PATH_OPTIONS)
+def test_an_empty_file_path_is_a_usage_error_naming_its_option(tmp_path: Path, key):
+    """`--save-calibration "$CAL"` with CAL unset ran the whole replay and then failed with "the main thread failed:
+    ValueError: PosixPath('.') has an empty name", the calibration lost; an empty --out or --replay was read as the
+    current folder (".: cannot create the recording (Is a directory)", exit 1). In a config file `out = ""` named
+    the file's own folder."""
+    from edi_live.config import NodeConfig
+
+    flag = key.replace("_", "-")
+    with pytest.raises(ConfigError) as info:
+        NodeConfig.from_options(_with_empty(key))
+    assert str(info.value).startswith(f"{flag}: ") and "(got '')" in str(info.value) and info.value.exit_code == 2
+    path = tmp_path / "edi.toml"
+    path.write_text("".join(f'{k.replace("_", "-")} = "{v}"\n' for k, v in _with_empty(key).items()))
+    with pytest.raises(ConfigError) as info:
+        NodeConfig.from_toml(path)
+    assert str(info.value).startswith(f"{flag}: ") and "(got '')" in str(info.value)

@@ -197,6 +197,9 @@ def check_can_save(path: Path | str) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp.open("w").close()
         tmp.unlink()
+    except (FileExistsError, NotADirectoryError):  # a file where a folder of the path should be ("File exists")
+        blocker = next((p for p in reversed(path.parents) if p.exists() and not p.is_dir()), path.parent)
+        raise ConfigError(f"cannot write calibration {path} ({blocker} is a file, not a folder)") from None
     except OSError as exc:
         raise ConfigError(f"cannot write calibration {path} ({exc.strerror or exc})") from None
 

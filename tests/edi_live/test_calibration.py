@@ -185,6 +185,19 @@ def test_a_huge_file_given_as_calibration_is_refused_without_reading_it_all(tmp_
         calibration.load(big)
 
 
+def test_a_file_where_the_save_needs_a_folder_is_named_not_called_an_existing_calibration(tmp_path):
+    """`--save-calibration rec.aedat4/cam.json` (a file where a folder should be) was refused with "(File exists)",
+    as if the calibration existed and could not be replaced; the file in the way is named instead."""
+    blocker = tmp_path / "rec.aedat4"
+    blocker.write_bytes(b"a recording")
+    target = blocker / "cams" / "cam.json"
+    with pytest.raises(ConfigError) as info:
+        calibration.check_can_save(target)
+    message = str(info.value)
+    assert str(target) in message and f"{blocker} is a file, not a folder" in message and "File exists" not in message
+    assert blocker.read_bytes() == b"a recording"
+
+
 def test_a_save_never_replaces_a_device_or_a_pipe(tmp_path):
     # the rename used to replace whatever was there: as root, --save-calibration /dev/full turned the device
     # into a JSON file

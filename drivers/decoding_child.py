@@ -18,12 +18,14 @@ again as "__mp_main__": that module must not start work at import (the CLI's doe
 `drivers._forkserver_warmup`, which calls `warm_decoder()` there once, so every child is forked with the AEDAT4
 reader's numba kernels loaded (a child that loads them itself needs ~0.4 s for its first packet). The parent closes its end
 to stop the child. The child ignores SIGINT, SIGTERM and SIGHUP, so Ctrl-C in a terminal (or a signal to the process
-group) stops only the node, which then stops the child.
+group) stops only the node, which then stops the child. Those signals are blocked while the server or a child is
+started (`_stop_signals_held`), so that one arriving before the new process ignores them cannot kill it.
 """
 
 from __future__ import annotations
 
 import atexit
+import contextlib
 import errno
 import logging
 import multiprocessing as mp
@@ -106,7 +108,8 @@ def start_early() -> None:
     try:
         from multiprocessing import forkserver
 
-        forkserver.ensure_running()
+        with _stop_signals_held():
+            forkserver.ensure_running()
     except (OSError, ValueError) as exc:
         log.debug("the decoding forkserver did not start early (%s); DecodeProcess will report it", exc)
 
@@ -144,6 +147,28 @@ class _Sender:
 
 # the node's stop signals (edi_live.stop_signals): the node stops this child itself, after it stopped reading
 _STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
+
+
+@contextlib.contextmanager
+def _stop_signals_held() -> Iterator[None]:
+    """Block the stop signals in the calling thread while it starts a process, which inherits the mask (through
+    exec too). The forkserver ignores SIGINT only after importing its preload (~0.5 s of numba), and a child only
+    once `_child` runs: a Ctrl-C to the whole group before that killed them, printing a KeyboardInterrupt
+    traceback on the node's stderr. Here the signals stay pending and arrive when the block ends.
+
+    multiprocessing's resource tracker, which the forkserver starts first, unblocks SIGINT and SIGTERM after
+    starting itself (it blocks them around its own start): it is started before the block, so it leaves it."""
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
 
 
 def _child(conn: Any, path: str, max_packet_us: int, loop: bool) -> None:
@@ -231,7 +256,8 @@ class DecodeProcess:
         self._proc = ctx.Process(target=_child, args=(child_sock, path, max_packet_us, loop),
                                  name="edi-live-decode", daemon=True)
         try:
-            self._proc.start()
+            with _stop_signals_held():
+                self._proc.start()
         except BaseException:
             self._sock.close()
             raise

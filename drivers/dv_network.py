@@ -50,10 +50,12 @@ MAX_PACKET_BYTES = 256 << 20
 
 
 def parse_dv_endpoint(spec: str) -> tuple[str | None, str, int]:
-    """'[TYPE=]tcp://HOST:PORT' -> (expected type identifier or None, host, port); ConfigError otherwise."""
-    kind, sep, endpoint = spec.partition("=")
+    """'[TYPE=]tcp://HOST:PORT' -> (expected type identifier or None, host, port); ConfigError otherwise (also for
+    a value that is not text: a config file's `dv-input = [5]`)."""
+    text = spec if isinstance(spec, str) else ""  # not text: refused below like any malformed endpoint
+    kind, sep, endpoint = text.partition("=")
     if not sep:
-        kind, endpoint = "", spec
+        kind, endpoint = "", text
     scheme, sep, rest = endpoint.partition("://")
     host, _, port = rest.rpartition(":")
     host = host.strip("[]")

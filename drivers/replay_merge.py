@@ -27,6 +27,7 @@ from edi_live.aedat4 import Aedat4Reader
 from edi_live.datatypes import EVENT_DTYPE, IMU_DTYPE, TRIGGER_DTYPE, Frame, Packet, concat_events
 from edi_live.errors import RecordingError
 
+_NAMES = {"EVTS": "event", "FRME": "frame", "IMUS": "IMU", "TRIG": "trigger"}
 _NEG_INF = -(2**62)
 _POS_INF = 2**62
 
@@ -40,6 +41,7 @@ class _Merger:
         self.max_packet_us, self.horizon_us, self.max_pending_events = max_packet_us, horizon_us, max_pending_events
         self.last = {t: _NEG_INF for t in types}  # newest key seen per primary stream type
         self.max_key = _NEG_INF
+        self.max_key_from = ("EVTS", 0)  # the stream and byte of the packet that holds max_key
         self.emitted_to = _NEG_INF  # exclusive bound already emitted
         self.events: list[tuple[int, int, np.ndarray]] = []  # (t_first, t_last, events)
         self.n_events = 0
@@ -61,9 +63,15 @@ class _Merger:
             if off:
                 data = _shifted(data, off)
             t0, t1 = int(data["t"][0]), int(data["t"][-1])
-            if t0 < self.last["EVTS"] or t0 < self.emitted_to:
+            if t0 < self.last["EVTS"]:
                 raise RecordingError(f"event packet starts at {t0 - off} µs, before events already read "
                                      f"(events out of time order)", self.path, pos)
+            if t0 < self.emitted_to:  # in order among the events: another stream's timestamp ran far ahead
+                kind_ahead, pos_ahead = self.max_key_from
+                raise RecordingError(f"event packet starts at {t0 - off} µs, {(self.max_key - t0) / 1e6:.1f} s "
+                                     f"behind the {_NAMES[kind_ahead]} timestamp {self.max_key - off} µs read at "
+                                     f"byte {pos_ahead}: the streams are more than {self.horizon_us / 1e6:g} s "
+                                     f"out of step (a damaged timestamp?)", self.path, pos)
             self.events.append((t0, t1, data))
             self.n_events += len(data)
             key_lo, key = t0, t1
@@ -94,7 +102,8 @@ class _Merger:
             (self.imu if kind == "IMUS" else self.triggers).append((key_lo, key, data))
         self._span(key_lo, key)
         self.last[kind] = max(self.last[kind], key)
-        self.max_key = max(self.max_key, key)
+        if key > self.max_key:
+            self.max_key, self.max_key_from = key, (kind, pos)
 
     def bound(self) -> int:
         """Exclusive time bound below which everything has been read."""

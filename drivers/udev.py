@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from edi_live.console import print_lines
+from edi_live.errors import OutputError
 
 RULES_FILE = Path(__file__).resolve().parent / "99-edi-live-davis.rules"
 RULE_TEXT = ('SUBSYSTEM=="usb", ATTR{idVendor}=="152a", ATTR{idProduct}=="84[0-1]?", MODE="0660", '
@@ -43,7 +44,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--install", action="store_true", help=f"copy the rule to {INSTALL_DIR} and reload udev")
     args = ap.parse_args(argv)
     if not args.install:
-        print_lines(RULES_FILE.read_text().splitlines())  # ('| sudo tee FILE' that fails: no traceback)
+        try:
+            print_lines(RULES_FILE.read_text().splitlines())  # ('| sudo tee FILE' that fails: no traceback)
+        except OutputError as exc:  # ('> FILE' on a full disk)
+            print(f"{ap.prog}: error: {exc}", file=sys.stderr)
+            return 1
         return 0
     try:
         print(f"installed {install()}; unplug and replug the camera")

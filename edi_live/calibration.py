@@ -35,7 +35,7 @@ import time
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -106,6 +106,23 @@ def _own_target(info: SourceInfo) -> Path | None:
     return default_path(info)
 
 
+def _integer(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+# what load() accepts, per field: (field, what it must be, check); a refusal names the fields that broke their rule
+_FIELD_RULES: tuple[tuple[str, str, Callable[[Any], bool]], ...] = (
+    ("camera", "text", lambda v: isinstance(v, str)),
+    ("width", "a positive integer", lambda v: _integer(v) and v > 0),
+    ("height", "a positive integer", lambda v: _integer(v) and v > 0),
+    ("c_on", "a contrast threshold in [0.01, 2]", lambda v: finite_number(v) and 0.01 <= v <= 2.0),
+    ("c_off", "a contrast threshold in [0.01, 2]", lambda v: finite_number(v) and 0.01 <= v <= 2.0),
+    ("black_level", "DN in [0, 128)", lambda v: finite_number(v) and 0 <= v < 128),
+    ("clock_offset_us", "an integer of µs within ±100000", lambda v: _integer(v) and abs(v) <= 100_000),
+    ("aps_gamma", "an exponent in [0.2, 5]", lambda v: finite_number(v) and 0.2 <= v <= 5),
+    ("black_level_measured", "true or false", lambda v: isinstance(v, bool)),
+)
+
 MAX_FILE_BYTES = 64 << 20  # a DAVIS346's file is ~0.5 MB, most of it the noise rates
 
 
@@ -124,17 +141,11 @@ def load(path: Path | str) -> Calibration:
     try:
         values = {f.name: data[f.name] for f in dataclasses.fields(Calibration) if f.name in data and f.name != "noise"}
         cal = Calibration(**values)
-        numbers = (cal.c_on, cal.c_off, cal.black_level, cal.clock_offset_us, cal.aps_gamma)
-        ok = (isinstance(cal.camera, str) and isinstance(cal.width, int) and isinstance(cal.height, int)
-              and cal.width > 0 and cal.height > 0
-              and all(finite_number(v) for v in numbers)
-              and 0.01 <= cal.c_on <= 2.0 and 0.01 <= cal.c_off <= 2.0 and 0 <= cal.black_level < 128
-              and isinstance(cal.clock_offset_us, int) and abs(cal.clock_offset_us) <= 100_000
-              and 0.2 <= cal.aps_gamma <= 5 and isinstance(cal.black_level_measured, bool))
     except TypeError as exc:
         raise ConfigError(f"calibration {path} lacks a field ({exc})") from None
-    if not ok:
-        raise ConfigError(f"calibration {path} holds values out of range (c in [0.01, 2], black level in [0, 128))")
+    bad = [f"{name}={getattr(cal, name)!r} ({rule})" for name, rule, ok in _FIELD_RULES if not ok(getattr(cal, name))]
+    if bad:
+        raise ConfigError(f"calibration {path} holds values out of range: {'; '.join(bad)}")
     if data.get("noise") is not None:
         cal = dataclasses.replace(cal, noise=_decode_noise(data["noise"], (cal.height, cal.width), path))
     return cal
@@ -186,6 +197,9 @@ def check_can_save(path: Path | str) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp.open("w").close()
         tmp.unlink()
+    except (FileExistsError, NotADirectoryError):  # a file where a folder of the path should be ("File exists")
+        blocker = next((p for p in reversed(path.parents) if p.exists() and not p.is_dir()), path.parent)
+        raise ConfigError(f"cannot write calibration {path} ({blocker} is a file, not a folder)") from None
     except OSError as exc:
         raise ConfigError(f"cannot write calibration {path} ({exc.strerror or exc})") from None
 

@@ -35,9 +35,17 @@ def finite_number(value: Any) -> bool:
         return False
 
 
-def positive_or_none(name: str, value: float | None) -> None:
+MAX_WAIT_S = 10**9
+"""The longest period (s) an option may set for the node's threads to wait out (~31 years): beyond it a wait
+overflows (threading.TIMEOUT_MAX is ~9.2e9 s) and so does a period in µs once it is infinite as a float."""
+
+
+def positive_or_none(name: str, value: float | None, *, wait: bool = False) -> None:
+    """A positive finite number, or None; `wait`: also at most MAX_WAIT_S (a period the node waits out)."""
     if value is not None:
-        check(finite_number(value) and value > 0, f"{name} must be a positive number (got {value!r})")
+        limit = " of at most 10^9 s" if wait else ""
+        check(finite_number(value) and value > 0 and (not wait or value <= MAX_WAIT_S),
+              f"{name} must be a positive number{limit} (got {value!r})")
 
 
 def available_memory_bytes() -> int | None:

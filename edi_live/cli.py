@@ -36,7 +36,9 @@ def options_from_args(argv: Sequence[str] | None) -> tuple[dict[str, Any], Path 
     """Explicitly given flags (flag name -> value) and the --config path."""
     args = vars(build_parser().parse_args(argv))
     config_path = args.pop("config", None)
-    return args, (Path(config_path) if config_path else None)
+    if config_path == "":  # (an unset shell variable) read as no config, the run went on without the options meant
+        raise ConfigError("config: expected a file path, not an empty one (got '')")
+    return args, (Path(config_path) if config_path is not None else None)
 
 
 def build_config(flags: dict[str, Any], config_path: Path | None) -> NodeConfig:

@@ -156,7 +156,7 @@ class EdiConfig:
                f"use either c or c-on/c-off (got c={self.c!r}, c-on={self.c_on!r})")
         _check(self.mode in MODES, f"mode must be one of {', '.join(MODES)} (got {self.mode!r})")
         _positive_or_none("max-fps", self.max_fps)
-        _positive_or_none("heartbeat-s", self.heartbeat_s)
+        _positive_or_none("heartbeat-s", self.heartbeat_s, wait=True)
         _int_in("reestimate-every", self.reestimate_every, 0, 10**9, "APS frames; 0 = only when c stops fitting")
         _int_in("quality-every", self.quality_every, 0, 10**6, "score one APS frame in N; 0 = off")
         _check(self.aps_gamma is None or (isinstance(self.aps_gamma, (int, float))
@@ -197,7 +197,7 @@ class PublisherConfig:
     def __post_init__(self) -> None:
         for endpoint in self.endpoints:
             check_endpoint(endpoint)
-        _positive_or_none("stats-interval-s", self.stats_interval_s)
+        _positive_or_none("stats-interval-s", self.stats_interval_s, wait=True)
 
     @property
     def enabled(self) -> bool:

@@ -95,6 +95,11 @@ def read_toml(path: str | Path, known: Iterable[str]) -> dict[str, Any]:
         raise ConfigError(f"config file {path} is not valid TOML ({type(exc).__name__}: {exc})") from None
     nested = [k for k, v in data.items() if isinstance(v, dict)]
     _check(not nested, f"config file {path}: keys go at the top level, like the flags (got table(s) {nested})")
+    spellings: dict[str, list[str]] = {}
+    for key in data:  # `c-on` and `c_on` are two keys to TOML, one option to us: one of the values would be lost
+        spellings.setdefault(norm_key(key), []).append(key)
+    twice = "; ".join(" and ".join(repr(k) for k in keys) for keys in spellings.values() if len(keys) > 1)
+    _check(not twice, f"config file {path}: one option given twice ({twice}); keep one of them")
     normalized = {norm_key(k): v for k, v in data.items()}
     unknown = sorted(set(normalized) - set(known))
     _check(not unknown, f"config file {path}: unknown key(s) {', '.join(unknown)}")
@@ -102,7 +107,7 @@ def read_toml(path: str | Path, known: Iterable[str]) -> dict[str, Any]:
     for key in ("replay", "out", "record", "emulate_from", "curve_secret_key", "calibration", "save_calibration"):
         # relative paths in a config file are relative to the file, not to the working directory; ~ is the home
         # folder, as a shell would read it in a flag
-        if isinstance(normalized.get(key), str):
+        if isinstance(normalized.get(key), str) and normalized[key]:  # ("" stays "": as_path refuses it)
             given = Path(os.path.expanduser(normalized[key]))  # (Path.expanduser raises on an unknown ~user)
             normalized[key] = str(given if given.is_absolute() else base / given)
     return normalized
@@ -128,13 +133,16 @@ def merge_options(file_options: Mapping[str, Any], flag_options: Mapping[str, An
 def as_path(v: Any) -> Path | None:
     if v is not None and not isinstance(v, (str, os.PathLike)):  # Path(3)'s own message is Python's, not ours
         raise TypeError("expected a file path")
+    if v is not None and not os.fspath(v):  # Path("") is ".": an unset shell variable would name the folder
+        raise ValueError("expected a file path, not an empty one")
     return None if v is None else Path(v)
 
 
 def as_endpoints(v: Any) -> tuple[str, ...]:
     if isinstance(v, str):
         return (v,)
-    _check(isinstance(v, (list, tuple)), f"publish must be a list of endpoints (got {v!r})")
+    if not isinstance(v, (list, tuple)):  # publish and dv-input: the caller names the key
+        raise TypeError("expected a list of endpoints")
     return tuple(v)
 
 

@@ -4,7 +4,8 @@ C locale with PYTHONIOENCODING=ascii.
 Owns three things: file descriptors 0-2 that were closed are filled with /dev/null (so that no file of ours
 takes their number); text a stream cannot encode ("µs" on an ASCII stream) is written escaped (`\\xb5s`) instead of
 raising UnicodeEncodeError, which turned `--help` into an internal error; and a reader of stdout that went away
-(`edi-live --list-devices | head -0`) ends the output quietly instead of a BrokenPipeError.
+(`edi-live --list-devices | head -0`) ends the output quietly instead of a BrokenPipeError (a stdout that
+cannot take the lines, such as a full disk, is an OutputError).
 """
 
 from __future__ import annotations
@@ -13,6 +14,8 @@ import os
 import sys
 from collections.abc import Iterable
 from typing import Any
+
+from edi_live.errors import OutputError
 
 
 def occupy_closed_standard_fds() -> None:
@@ -58,7 +61,8 @@ def _can_encode(stream: Any, text: str) -> bool:
 
 def print_lines(lines: Iterable[str]) -> None:
     """The lines on stdout; a reader that closed the pipe early ends them without an error (it has what it
-    wanted), and stdout goes to /dev/null so that the interpreter's last flush is quiet too."""
+    wanted), and stdout goes to /dev/null so that the interpreter's last flush is quiet too. Any other failure to
+    write them raises OutputError."""
     if sys.stdout is None:  # started with stdout closed (`>&-`): there is no one to tell
         return
     try:
@@ -67,6 +71,9 @@ def print_lines(lines: Iterable[str]) -> None:
         sys.stdout.flush()
     except BrokenPipeError:
         _stdout_to_devnull()
+    except OSError as exc:  # a full disk, an I/O error: the lines are lost, which the user must hear
+        _stdout_to_devnull()
+        raise OutputError(f"cannot write to stdout ({exc.strerror or exc})") from None
 
 
 def _stdout_to_devnull() -> None:

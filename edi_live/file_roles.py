@@ -19,7 +19,7 @@ def same_file(a: Path | str, b: Path | str) -> bool:
         if Path(a).exists() and Path(b).exists():
             return os.path.samefile(a, b)
         return Path(a).resolve() == Path(b).resolve()
-    except OSError:
+    except (OSError, RuntimeError):  # RuntimeError: a symlink loop (Python < 3.13), which names no file
         return False
 
 

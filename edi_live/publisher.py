@@ -35,7 +35,7 @@ from edi_live import wire
 from edi_live.console import print_lines
 from edi_live.curve_keys import load_secret_key
 from edi_live.datatypes import Reconstruction
-from edi_live.errors import PublishError
+from edi_live.errors import OutputError, PublishError
 from edi_live.stats import LatencySamples
 from edi_live.subscriptions import Subscriptions
 from edi_live.zmq_bind import bind
@@ -373,10 +373,11 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         public, secret = generate_curve_keys(args.gen_curve_keys)
-    except PublishError as exc:
+        print_lines([f"public key (for subscribers): {public}",
+                     f"secret key (for edi-live --curve-secret-key): {secret}"])
+    except (PublishError, OutputError) as exc:
         print(f"{parser.prog}: error: {exc}", file=sys.stderr)
         return 1
-    print_lines([f"public key (for subscribers): {public}", f"secret key (for edi-live --curve-secret-key): {secret}"])
     return 0
 
 

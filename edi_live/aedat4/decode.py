@@ -97,8 +97,10 @@ def decode_frame(payload: bytes, stream: StreamInfo, seq: int) -> Frame:
     dtype = np.uint8 if depth == 1 else np.dtype("<u2")
     img = np.frombuffer(payload, dtype=dtype, count=w * h * channels, offset=start)
     img = img.reshape(h, w) if channels == 1 else np.ascontiguousarray(img.reshape(h, w, channels)[..., :3])
-    if (stream.width and stream.height and (w, h) != (stream.width, stream.height)
-            and px + w <= stream.width and py + h <= stream.height):
+    if stream.width and stream.height and (w, h) != (stream.width, stream.height):
+        if px + w > stream.width or py + h > stream.height:  # the reconstructor, set up for the sensor, refuses it
+            raise RecordingError(f"frame of {w}x{h} at ({px}, {py}) does not fit the {stream.width}x{stream.height} "
+                                 f"sensor the header declares")
         full = np.zeros((stream.height, stream.width) + img.shape[2:], dtype=img.dtype)  # an ROI frame: on the sensor
         full[py:py + h, px:px + w] = img
         img = full

@@ -181,6 +181,15 @@ def test_unexpected_stream_types_are_refused(real_recordings):
             parse_dv_endpoint(bad)
 
 
+@pytest.mark.parametrize("bad", [5, 7.0, True, None, ["tcp://127.0.0.1:7777"]])
+def test_an_endpoint_that_is_not_text_is_a_usage_error(bad):
+    """`dv-input = [5]` in a config file ended in "internal error: AttributeError: 'int' object has no attribute
+    'partition' ... report it" (exit 1) instead of the usage error a bad endpoint string gets."""
+    with pytest.raises(ConfigError, match="--dv-input must look like") as info:
+        parse_dv_endpoint(bad)
+    assert f"(got {bad!r})" in str(info.value) and info.value.exit_code == 2
+
+
 def test_reconnect_resumes_with_a_gap_and_a_sensor_size_change_is_refused(real_recordings):
     first = Peer("events", real_recordings["evlib_sample_davis346.aedat4"])
     source = DvNetworkSource([first.endpoint], reconnect=True, retry_s=0.05)

@@ -181,6 +181,24 @@ def test_frame_with_negative_exposure(tmp_path):
     assert len(got) == 5 and err.offset == pos and "negative exposure" in str(err)
 
 
+@pytest.mark.parametrize("shape", [(48, 80), (60, 64), (49, 65, 3)])
+def test_a_frame_larger_than_the_sensor_is_a_corrupt_packet(tmp_path, shape):
+    """A frame the header's sensor cannot hold (here: larger than 64x48) reached the reconstructor, which refused it
+    as a usage error (exit 2, "check the source resolution") naming neither the file nor the byte. Now it is damage
+    like an event off the sensor: the packets before it, then the error at its packet."""
+    path = tmp_path / "f.aedat4"
+    with Aedat4Writer(path, 64, 48, compression="none") as w:
+        ev = np.zeros(10, dtype=EVENT_DTYPE)
+        ev["t"] = T0 + np.arange(10)
+        w.write_events(ev)
+        w.write_frame(Frame(np.full(shape, 7, np.uint8), T0 + 100, T0 + 200))
+    pos = _packet_offsets(path.read_bytes())[-1][0]
+    got, err = _read(path)
+    assert [kind for kind, _ in got] == ["EVTS"]
+    assert err is not None and err.offset == pos and f"{shape[1]}x{shape[0]}" in str(err)
+    assert "64x48 sensor" in str(err)
+
+
 def test_events_off_the_sensor_are_a_corrupt_packet_in_replay(tmp_path):
     path = tmp_path / "f.aedat4"
     data = bytearray(_simple_file(path, "none"))

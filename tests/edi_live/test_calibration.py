@@ -72,6 +72,21 @@ def test_a_hand_edited_calibration_beyond_what_json_numbers_or_nesting_allow_is_
     assert str(path) in str(info.value) and "\n" not in str(info.value)
 
 
+@pytest.mark.parametrize("field,value", [("clock_offset_us", 1e30), ("clock_offset_us", 1.5), ("aps_gamma", 0),
+                                         ("black_level_measured", "yes"), ("width", "346"), ("c_off", None)])
+def test_a_value_out_of_range_is_named_with_its_field(tmp_path, field, value):
+    """Every value out of range was refused as "holds values out of range (c in [0.01, 2], black level in
+    [0, 128))", also a clock offset of 1e30 or an APS gamma of 0: the user was pointed at fields that were fine."""
+    path = tmp_path / "edited.json"
+    path.write_text(_hand_edited(**{field: value}))
+    with pytest.raises(ConfigError) as info:
+        calibration.load(path)
+    message = str(info.value)
+    assert str(path) in message and f"{field}={value!r}" in message
+    others = {"c_on", "c_off", "black_level", "clock_offset_us", "aps_gamma", "width"} - {field}
+    assert not any(f"{other}=" in message for other in others), message
+
+
 def test_noise_rates_that_inflate_far_beyond_their_size_are_refused_without_inflating_them(tmp_path):
     # 2 GiB of zeros compress to 2 MB: such a file used to be inflated whole (a 4 GiB one took 8.7 GB of memory
     # and 21 s; a 64 MB file would have been killed by the kernel) before its size was found wrong
@@ -168,6 +183,19 @@ def test_a_huge_file_given_as_calibration_is_refused_without_reading_it_all(tmp_
         fh.truncate(calibration.MAX_FILE_BYTES + 1)  # sparse: no disk used
     with pytest.raises(ConfigError, match=f"calibration {big} is not a JSON file .larger than 64 MiB"):
         calibration.load(big)
+
+
+def test_a_file_where_the_save_needs_a_folder_is_named_not_called_an_existing_calibration(tmp_path):
+    """`--save-calibration rec.aedat4/cam.json` (a file where a folder should be) was refused with "(File exists)",
+    as if the calibration existed and could not be replaced; the file in the way is named instead."""
+    blocker = tmp_path / "rec.aedat4"
+    blocker.write_bytes(b"a recording")
+    target = blocker / "cams" / "cam.json"
+    with pytest.raises(ConfigError) as info:
+        calibration.check_can_save(target)
+    message = str(info.value)
+    assert str(target) in message and f"{blocker} is a file, not a folder" in message and "File exists" not in message
+    assert blocker.read_bytes() == b"a recording"
 
 
 def test_a_save_never_replaces_a_device_or_a_pipe(tmp_path):

@@ -95,6 +95,8 @@ def test_help_teaches_groups_units_defaults_and_examples():
      "frame-interval-us must be at most 8388607 µs"),
     (("--device", "davis240", "--usb-backend", "no_such_module:backend"), 2, "cannot import module"),
     (("--config", "no-such.toml"), 2, "config file no-such.toml not found"),
+    # `--config "$CFG"` with CFG unset: the file the user meant was silently not read, the run went on without it
+    (("--config", "", "--replay", "x.aedat4"), 2, "config: expected a file path, not an empty one (got '')"),
 ])
 def test_errors_are_one_line_with_the_right_exit_code(args, code, fragment):
     proc = run_cli(*args)

@@ -69,6 +69,10 @@ def test_defaults_are_safe():
                                                       "inside the edi-live process"),
     ({"replay": "x", "ring_events": 10}, "ring-events"),
     ({"replay": "x", "duration": -2}, "duration must be a positive number (got -2"),
+    # accepted, then the run failed: "the main thread failed: OverflowError: cannot convert float infinity to
+    # integer" (the heartbeat in µs), "the publisher thread failed: OverflowError: timestamp out of range" (its wait)
+    ({"replay": "x", "heartbeat_s": 1e308}, "heartbeat-s must be a positive number of at most 10^9 s (got 1e+308)"),
+    ({"replay": "x", "stats_interval_s": 1e13}, "stats-interval-s must be a positive number of at most 10^9 s"),
     ({"replay": "x", "frobnicate": 1}, "unknown option(s) frobnicate"),
     ({"replay": "x", "log_level": "loud"}, "log-level"),
     # TOML switches written as strings or numbers would be "true" to Python: a usage error instead

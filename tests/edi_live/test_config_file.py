@@ -100,3 +100,56 @@ def test_a_home_relative_path_in_a_config_file_is_in_the_home_folder(tmp_path: P
     options = read_toml(path)
     assert Path(options["calibration"]) == home / "cal.json"
     assert Path(options["replay"]) == path.parent / "rec.aedat4"
+
+
+@pytest.mark.parametrize("key", ["dv-input", "publish"])
+def test_an_endpoint_list_of_the_wrong_type_names_its_own_key(tmp_path: Path, key):
+    """`dv-input = 5` in a config file was refused as "publish must be a list of endpoints (got 5)": the user was
+    sent to fix a key the file did not have."""
+    from edi_live.config import NodeConfig
+
+    path = tmp_path / "edi.toml"
+    path.write_text(f"{key} = 5\n")
+    with pytest.raises(ConfigError) as info:
+        NodeConfig.from_toml(path)
+    assert str(info.value).startswith(f"{key}: ") and "list of endpoints" in str(info.value)
+    assert "(got 5)" in str(info.value) and info.value.exit_code == 2
+
+
+def test_one_option_spelled_twice_in_a_config_file_is_refused(tmp_path: Path):
+    """`c-on = 0.2` and `c_on = 0.3` in one file (TOML sees two keys, edi-live one option) ran with 0.3 and no
+    word: one of the two values the user wrote was silently dropped."""
+    path = tmp_path / "edi.toml"
+    path.write_text('c-on = 0.2\nc-off = 0.2\nc_on = 0.3\n')
+    with pytest.raises(ConfigError) as info:
+        read_toml(path)
+    message = str(info.value)
+    assert str(path) in message and "c-on" in message and "c_on" in message and info.value.exit_code == 2
+
+
+_PATH_OPTIONS = ["replay", "out", "record", "calibration", "save_calibration", "curve_secret_key", "emulate_from"]
+
+
+def _with_empty(key: str) -> dict:
+    base = ({"device": "davis240", "usb_backend": "drivers.emulator:backend"} if key == "emulate_from"
+            else {} if key == "replay" else {"replay": "rec.aedat4"})
+    return {**base, key: ""}
+
+
+@pytest.mark.parametrize("key", _PATH_OPTIONS)
+def test_an_empty_file_path_is_a_usage_error_naming_its_option(tmp_path: Path, key):
+    """`--save-calibration "$CAL"` with CAL unset ran the whole replay and then failed with "the main thread failed:
+    ValueError: PosixPath('.') has an empty name", the calibration lost; an empty --out or --replay was read as the
+    current folder (".: cannot create the recording (Is a directory)", exit 1). In a config file `out = ""` named
+    the file's own folder."""
+    from edi_live.config import NodeConfig
+
+    flag = key.replace("_", "-")
+    with pytest.raises(ConfigError) as info:
+        NodeConfig.from_options(_with_empty(key))
+    assert str(info.value).startswith(f"{flag}: ") and "(got '')" in str(info.value) and info.value.exit_code == 2
+    path = tmp_path / "edi.toml"
+    path.write_text("".join(f'{k.replace("_", "-")} = "{v}"\n' for k, v in _with_empty(key).items()))
+    with pytest.raises(ConfigError) as info:
+        NodeConfig.from_toml(path)
+    assert str(info.value).startswith(f"{flag}: ") and "(got '')" in str(info.value)

@@ -7,6 +7,9 @@ import io
 import os
 import subprocess
 import sys
+from pathlib import Path
+
+import pytest
 
 from edi_live import console
 from tests.edi_live.test_cli import REPO, _env
@@ -52,6 +55,20 @@ def test_list_devices_with_stdout_closed_is_not_an_error():
                           preexec_fn=lambda: os.close(1))  # `>&-`: Python starts with sys.stdout None
     assert proc.returncode == 0, proc.stderr
     assert proc.stderr == ""
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full")
+def test_list_devices_into_a_full_disk_is_one_error_line_not_an_internal_error():
+    """`edi-live --list-devices > devices.txt` on a full disk said "internal error: OSError: [Errno 28] No space
+    left on device (... report it)": a bug to report, where the listing was lost to the disk."""
+    with open("/dev/full", "w") as full:
+        proc = subprocess.run([sys.executable, "-m", "edi_live", "--list-devices", "--usb-backend",
+                               "drivers.emulator:backend"], cwd=REPO, stdout=full, stderr=subprocess.PIPE,
+                              text=True, timeout=60, env=_env())
+    assert proc.returncode == 1
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("edi-live: error: ") and "internal error" not in lines[0], lines
+    assert "stdout" in lines[0] and "No space left on device" in lines[0]
 
 
 def test_with_stderr_closed_the_summary_does_not_land_on_stdout(real_recordings, tmp_path):
@@ -117,3 +134,16 @@ def test_the_setup_tools_into_a_closed_pipe_end_without_a_traceback(tmp_path):
     assert (tmp_path / "curve" / "server.key_secret").is_file()
     rule = _into_a_closed_pipe("drivers.udev")
     assert rule.returncode == 0 and rule.stderr == "", rule.stderr
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full")
+@pytest.mark.parametrize("module,args", [("edi_live.publisher", ("--gen-curve-keys", "curve")), ("drivers.udev", ())])
+def test_the_setup_tools_into_a_full_disk_say_so_in_one_line(tmp_path, module, args):
+    """'python -m drivers.udev > rules' on a full disk ended in an OSError traceback; so did the key generation
+    (whose keys were written, but whose paths the user never saw)."""
+    with open("/dev/full", "w") as full:
+        proc = subprocess.run([sys.executable, "-m", module, *args], cwd=tmp_path, stdout=full,
+                              stderr=subprocess.PIPE, text=True, timeout=60, env=_env())
+    assert proc.returncode == 1
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1 and "error: cannot write to stdout (No space left on device)" in lines[0], proc.stderr

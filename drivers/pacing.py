@@ -1,4 +1,5 @@
-"""Pacing: maps sensor time (µs) to host `time.monotonic()` with a speed factor; shared by replay and the emulator.
+"""Pacing: maps sensor time (µs) to host `time.monotonic()` with a speed factor, for the replay (drivers/replay.py;
+the USB emulator paces itself, from when it starts streaming, and does not re-anchor).
 
 speed 1 replays in real time, 4 four times faster, 0 as fast as possible. The schedule is anchored once (the first
 timestamp meets the first call), so waiting never accumulates drift. A jump of the recording's clock by more than

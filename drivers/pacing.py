@@ -1,4 +1,5 @@
-"""Pacing: maps sensor time (µs) to host `time.monotonic()` with a speed factor; shared by replay and the emulator.
+"""Pacing: maps sensor time (µs) to host `time.monotonic()` with a speed factor, for the replay (drivers/replay.py;
+the USB emulator paces itself, from when it starts streaming, and does not re-anchor).
 
 speed 1 replays in real time, 4 four times faster, 0 as fast as possible. The schedule is anchored once (the first
 timestamp meets the first call), so waiting never accumulates drift. A jump of the recording's clock by more than
@@ -39,6 +40,7 @@ class Pacer:
         self._latest_t_us: int | None = None
         self._late_warned = False
         self._first_t_us: int | None = None
+        self._jumped_us = 0  # clock jumps moved past: not replayed time
 
     @property
     def unpaced(self) -> bool:
@@ -59,6 +61,7 @@ class Pacer:
         elif int(t_us) - self._latest_t_us > MAX_GAP_US:  # due when the latest timestamp was, not years later
             gap = int(t_us) - self._latest_t_us
             self._anchor_t_us += gap
+            self._jumped_us += gap
             log.warning("the recording's clock jumps %s ahead at %d µs: replayed without waiting for it", _span(gap),
                         self._latest_t_us)
         self._latest_t_us = int(t_us) if self._latest_t_us is None else max(self._latest_t_us, int(t_us))
@@ -67,9 +70,9 @@ class Pacer:
         if delay < -MAX_LATE_S:
             self.anchor(t_us)
             (log.debug if self._late_warned else log.warning)(
-                "paced replay resumed %.1f s behind its schedule, %.1f s into the recording (the process was "
+                "paced replay resumed %.1f s behind its schedule, %.1f s into the replay (the process was "
                 "stopped, or could not keep up): it goes on from there at its speed instead of rushing through the "
-                "backlog", -delay, (int(t_us) - (self._first_t_us or int(t_us))) / 1e6)
+                "backlog", -delay, _replayed_s(t_us, self._first_t_us, self._jumped_us))
             self._late_warned = True
             return 0.0
         return delay
@@ -83,6 +86,12 @@ class Pacer:
             return not stop.wait(min(delay, timeout_s)) and delay <= timeout_s
         time.sleep(min(delay, timeout_s))
         return delay <= timeout_s
+
+
+def _replayed_s(t_us: int, first_t_us: int | None, jumped_us: int) -> float:
+    """Sensor seconds replayed up to t_us: from the first timestamp paced (across --loop's passes, whose time runs
+    on), without the clock jumps moved past."""
+    return (int(t_us) - (int(t_us) if first_t_us is None else first_t_us) - jumped_us) / 1e6
 
 
 def _span(us: int) -> str:

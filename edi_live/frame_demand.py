@@ -2,7 +2,8 @@
 frames that no subscriber would receive (`Publisher.wants_frames`, from the XPUB socket's subscriptions), and a
 node without any sink (`--no-publish` without `--out` or `--dv-output`) renders none (`nobody_wants`).
 
-Owns the question and the count of frames not rendered; the worker asks before rendering a batch. The latent
+Owns the question and the count of frames not rendered; the worker asks before rendering a batch (its causal
+path without --max-fps only: --mode nearest / fused and --max-fps render every latent frame). The latent
 image still moves with every event (the next frame wanted is exact), only the copies, the `Reconstruction`s
 and the quality score's work are saved. The quality score is reset while nothing is shown, so it never scores
 a prediction that nobody saw; it scores again once frames flow (see edi_live/quality.py on resets).

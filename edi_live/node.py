@@ -275,7 +275,9 @@ class Node:
         # latent frames nobody would receive are not rendered: with the publisher as the only sink, while no
         # subscriber listens; with no sink at all (--no-publish without --out or --dv-output), ever
         only_publisher = self.publisher is not None and sinks == [self.publisher.submit]
-        self.worker = EdiWorker(self.ring, reconstructor, cfg.effective_edi, sinks,
+        # nor scored: the prediction figure is of frames someone received, and with no sink nobody receives any
+        worker_cfg = cfg.effective_edi if sinks else dataclasses.replace(cfg.effective_edi, quality_every=0)
+        self.worker = EdiWorker(self.ring, reconstructor, worker_cfg, sinks,
                                 on_error=lambda e: self.fail(e, "edi-worker"),
                                 frames_wanted=(nobody_wants if not sinks else
                                                self.publisher.wants_frames if only_publisher else None))

@@ -195,6 +195,14 @@ def mark_pixels(x, y, width, height, out):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _count_bound(max_noise_hz, npix, span_us, sigmas, margin):
+    """The most events noise gives a window of span_us (µs), in the verdict's own order of operations: a bound
+    rounded otherwise (max_noise_hz * npix * span_us first) can fall on the other side of a whole count."""
+    most = max_noise_hz * (npix * span_us * 1e-6)
+    return most + sigmas * np.sqrt(most) + margin
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _first_at_or_after(t, value, lo, hi):
     """The first index in [lo, hi) of time-ordered t with t >= value (hi if none), by bisection."""
     while lo < hi:
@@ -255,16 +263,14 @@ def activity_verdicts(t, x, y, width, height, last_t, state, params, out_at, out
     check_us, window_us, support_us = np.int64(params[0]), np.int64(params[1]), np.int64(params[5])
     max_noise_hz, sigmas, margin = params[2], params[3], params[4]
     npix = width * height
-    fewest = max_noise_hz * npix * check_us * 1e-6
-    fewest += sigmas * np.sqrt(fewest) + margin
+    fewest = _count_bound(max_noise_hz, npix, check_us, sigmas, margin)  # a one-span window's bound
     # the state in locals for the loop (kept in memory, each event paid a load and a store of the counts: the
     # compiler cannot tell `state` from the time map it writes)
     begin_w, span_end, n, s = state[0], state[1], state[2], state[3]
     windows, active_windows, started = state[4], state[5], state[6]
     sure = np.inf  # events in the window above which its verdict is active by the count alone
     if started != 0:
-        most = max_noise_hz * npix * (span_end - begin_w) * 1e-6
-        sure = most + sigmas * np.sqrt(most) + margin
+        sure = _count_bound(max_noise_hz, npix, span_end - begin_w, sigmas, margin)
     size = t.size
     chain_end = -1  # _tested_from's answer holds for spans that start before it
     nv = 0
@@ -284,10 +290,9 @@ def activity_verdicts(t, x, y, width, height, last_t, state, params, out_at, out
                 pixel_s = npix * (span_end - begin_w) * 1e-6
                 active = False
                 if s > margin or n > fewest:
-                    most = max_noise_hz * pixel_s
                     p = 1.0 - np.exp(-8.0 * (n / pixel_s) * support_us * 1e-6)
                     mean = n * p
-                    active = (n > most + sigmas * np.sqrt(most) + margin
+                    active = (n > sure
                               or s > mean + sigmas * np.sqrt(mean * (1.0 - p)) + margin)
                 out_at[nv] = i
                 out_active[nv] = active
@@ -300,8 +305,7 @@ def activity_verdicts(t, x, y, width, height, last_t, state, params, out_at, out
                     n = 0
                     s = 0
             span_end = begin + check_us
-            most = max_noise_hz * npix * (span_end - begin_w) * 1e-6
-            sure = most + sigmas * np.sqrt(most) + margin
+            sure = _count_bound(max_noise_hz, npix, span_end - begin_w, sigmas, margin)
             j = _span_decided_by_count(t, i, span_end, sure - n, support_us)
             if j >= 0:  # the span ends in this read, active by its count
                 if j >= chain_end:

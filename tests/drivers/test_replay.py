@@ -289,6 +289,32 @@ def test_pacer_resumes_at_its_speed_after_a_suspend_instead_of_bursting_the_back
     assert len(warnings) == 1 and "30.3 s behind its schedule, 0.2 s into" in warnings[0], warnings
 
 
+def test_pacer_says_where_a_stall_fell_in_the_replayed_time_not_across_a_skipped_clock_jump(caplog):
+    """The stall warning's '... s into the recording' counted the clock jumps the schedule moved past: a stall 1 s
+    after a 5-year jump was '157680002.0 s into the recording'. A jump's first packet is due when the latest one
+    was, so 1 s of sensor time was replayed. And a replay whose time starts at 0 always said '0.0 s'."""
+    year_us = 365 * 24 * 3600 * 10**6
+    now = [100.0]
+    pacer = Pacer(1.0, clock=lambda: now[0])
+    with caplog.at_level("WARNING"):
+        assert pacer.delay_s(T0) == 0.0
+        now[0] += 1.0
+        jump = T0 + 1_000_000 + 5 * year_us
+        assert pacer.delay_s(jump) <= 0  # moved past, with its own warning
+        now[0] += 30.0  # then suspended
+        assert pacer.delay_s(jump + 1_000_000) == 0.0
+    warnings = [r.getMessage() for r in caplog.records if "behind its schedule" in r.getMessage()]
+    assert len(warnings) == 1 and "30.0 s behind its schedule, 1.0 s into the replay" in warnings[0], warnings
+    with caplog.at_level("WARNING"):
+        caplog.clear()
+        pacer = Pacer(1.0, clock=lambda: now[0])  # a recording whose time starts at 0 said 0.0 s
+        assert pacer.delay_s(0) == 0.0
+        now[0] += 30.0
+        assert pacer.delay_s(2_000_000) == 0.0
+    warnings += [r.getMessage() for r in caplog.records if "behind its schedule" in r.getMessage()]
+    assert len(warnings) == 2 and "28.0 s behind its schedule, 2.0 s into the replay" in warnings[1], warnings
+
+
 def test_pacer_wait_returns_false_on_timeout_and_on_stop():
     pacer = Pacer(1.0)
     pacer.anchor(T0)

@@ -189,6 +189,24 @@ def test_spans_decided_by_their_count_keep_the_times_later_tests_read():
         assert [(int(a), bool(b), int(c)) for a, b, c in got] == want
 
 
+def test_a_count_exactly_at_the_noise_bound_as_the_rule_rounds_it():
+    """The kernel bounded a window's count by max_noise_hz * npix * span * 1e-6, the rule by max_noise_hz * (npix *
+    span * 1e-6): on a 32x100 sensor the first is 42.0 and the second 41.99999999999999 for one 1 ms span, so 42
+    unsupported events in it were noise to the kernel (the shortcut 'n <= the one-span bound and s <= margin: not
+    active') and active to the rule. Its spans' count bound must be the rule's, to the last bit."""
+    w, h = 32, 100
+    events = np.zeros(43, EVENT_DTYPE)
+    events["t"][:42] = np.arange(42) * 20
+    events["t"][42] = 100_000  # a span is judged at the first event after it
+    events["x"][:42], events["y"][:42] = np.arange(42) % 16 * 2, np.arange(42) // 16 * 2  # no two are neighbours
+    act = SceneActivity(w, h)
+    want = _reference_verdicts(events, w, h, check_us=act.check_us, window_us=act.window_us,
+                               max_noise_hz=act.max_noise_hz, sigmas=act.sigmas, margin=act.margin,
+                               support_us=act.support_us)
+    assert len(want) == 1  # one verdict, and which way it goes is the rule's rounding
+    assert [(int(a), bool(b), int(c)) for a, b, c in act.update(events)] == want
+
+
 def _reference_states(events, verdicts, hold_us):
     """Per event, written out: active before the first verdict; after it, active while the latest active verdict
     before the event (its span's end) is at most hold_us before the event's time."""

@@ -105,3 +105,18 @@ def test_a_node_without_any_sink_renders_no_latent_frame_and_says_so(real_record
     summary = format_summary(stats, 1.0)
     assert f"{stats['frames_not_rendered']} latent frames not rendered: nothing takes them" in summary
     assert "prediction of the next APS frame" not in summary
+
+
+def test_a_node_without_any_sink_scores_no_prediction_nobody_saw(real_recordings):
+    """With --every larger than some APS intervals' events, a sinkless node left some intervals without a latent
+    frame due: their APS frames were scored against the deblurred frames alone (a prediction nobody received,
+    nor would the node have shown), and the summary printed that figure right after saying there was none."""
+    import drivers
+
+    path = real_recordings["emlb_demo-01_davis346.aedat4"]
+    for extra in ({"every": 40_000}, {"max_fps": 100_000}):
+        config = NodeConfig.from_options({"replay": str(path), "speed": 0, "no_publish": True, **extra})
+        stats = Node(config, drivers.open_source("replay", path=str(path), speed=0)).run()
+        assert stats["frames_deblurred"] > 0 and stats["frames_not_rendered"] + stats["frames_latent"] > 0
+        assert not stats.get("pred_frames_scored"), stats.get("pred_frames_scored")
+        assert "prediction of the next APS frame" not in format_summary(stats, 1.0)

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 from typing import Callable, Protocol
 
+from edi_live.datatypes import Reconstruction
+
 
 def nobody_wants() -> bool:
     """The demand of a node that has no sink: no latent frame is wanted, ever."""
@@ -23,12 +25,25 @@ class _Resettable(Protocol):
     def reset(self) -> None: ...
 
 
+class _Score(_Resettable, Protocol):
+    def on_emitted(self, rec: Reconstruction) -> object: ...
+
+
 class FrameDemand:
     """`wanted`: asked before each batch of latent frames (None: always wanted, e.g. when --out takes them)."""
 
     def __init__(self, wanted: Callable[[], bool] | None = None) -> None:
         self._wanted = wanted
         self.not_rendered = 0  # latent frames counted but not rendered: nobody subscribed
+
+    def score(self, rec: Reconstruction, quality: _Score) -> None:
+        """`rec` to the quality score if someone receives it; a frame made while nobody would (a deblurred frame, a
+        heartbeat, a frame of a path that renders them all) resets the score instead: the figure is of what was
+        received."""
+        if self._wanted is not None and not self._wanted():
+            quality.reset()
+        else:
+            quality.on_emitted(rec)
 
     def skip(self, n_frames: int, quality: _Resettable | None) -> bool:
         """True (and the frames counted) when nobody wants these n_frames frames."""

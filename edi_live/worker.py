@@ -386,7 +386,7 @@ class EdiWorker:
         self._still.emitted(rec.t_us)
         self.sent[rec.kind] = self.sent.get(rec.kind, 0) + 1
         if self.quality is not None:
-            self.quality.on_emitted(rec)
+            self.demand.score(rec, self.quality)
 
     # ---------------------------------------------------------------- stats (any thread)
 

@@ -120,3 +120,19 @@ def test_a_node_without_any_sink_scores_no_prediction_nobody_saw(real_recordings
         assert stats["frames_deblurred"] > 0 and stats["frames_not_rendered"] + stats["frames_latent"] > 0
         assert not stats.get("pred_frames_scored"), stats.get("pred_frames_scored")
         assert "prediction of the next APS frame" not in format_summary(stats, 1.0)
+
+
+def test_a_node_publishing_to_nobody_scores_no_prediction_nobody_received(real_recordings):
+    """With a publisher and no subscriber, the frames still made (the deblurred frames; every latent frame with
+    --max-fps, which asks no demand) were scored: the summary printed a prediction line under 'N latent frames
+    not rendered (no subscriber)', a figure of frames nobody received."""
+    import drivers
+
+    path = real_recordings["emlb_demo-01_davis346.aedat4"]
+    for extra in ({"every": 40_000}, {"max_fps": 100_000}):
+        config = NodeConfig.from_options({"replay": str(path), "speed": 0, "publish": ["tcp://127.0.0.1:*"],
+                                          **extra})
+        stats = Node(config, drivers.open_source("replay", path=str(path), speed=0)).run()
+        assert stats["frames_deblurred"] > 0 and stats["frames_sent"] == 0
+        assert not stats.get("pred_frames_scored"), stats.get("pred_frames_scored")
+        assert "prediction of the next APS frame" not in format_summary(stats, 1.0)

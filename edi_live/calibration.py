@@ -284,3 +284,15 @@ def from_stats(info: SourceInfo, stats: dict, noise: NoiseRates | None = None,
     return Calibration(info.label, info.width, info.height, float(c_on), float(c_off), black,
                        int(stats.get("clock_offset_us") or 0), float(stats.get("aps_gamma") or 1.0), noise=noise,
                        black_level_measured=measured)
+
+
+def measured(info: SourceInfo, stats: dict, noise: NoiseRates | None, start: Calibration | None,
+             black_level_flag: bool, target: Path | str) -> Calibration | None:
+    """from_stats for saving to `target`: an OutputError when the run measured nothing (fewer than two APS frames
+    deblurred: no frame pair, so the values are the defaults or the start's, whose noise rates would be lost),
+    so that a file that is there stays as it was."""
+    deblurred = int(stats.get("frames_deblurred") or 0)
+    if deblurred < 2:
+        raise OutputError(f"nothing to save in {target}: {deblurred} APS frame(s) deblurred, and the calibration is "
+                          f"measured on pairs of them; the file is left as it was")
+    return from_stats(info, stats, noise, start, black_level_flag)

@@ -288,14 +288,15 @@ class Node:
     def _save_calibration(self) -> None:
         """--save-calibration (a failure is the run's error), or a live camera's own file (a failure is a warning)."""
         target = self._calibration_to
-        noise = self.worker.noise_rates() if target is not None and self.worker is not None else None
-        cal = calibration.from_stats(self.source.info, self.final_stats, noise, self._calibration_start,
-                                     self.config.edi.black_level is not None) if target is not None else None
-        if cal is None:
+        if target is None:
             return
+        noise = self.worker.noise_rates() if self.worker is not None else None
         try:
-            calibration.save(cal, target)
-            log.info("calibration saved to %s", target)
+            cal = calibration.measured(self.source.info, self.final_stats, noise, self._calibration_start,
+                                       self.config.edi.black_level is not None, target)
+            if cal is not None:
+                calibration.save(cal, target)
+                log.info("calibration saved to %s", target)
         except (ConfigError, OutputError) as exc:
             if self.config.save_calibration is not None:
                 self.fail(exc, "calibration", input_fault=True)

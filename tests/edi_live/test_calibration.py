@@ -129,6 +129,31 @@ def test_the_node_saves_and_starts_from_a_calibration(real_recordings, tmp_path)
     assert other.returncode == 2 and len(errors) == 1 and "DAVIS346_00000391" in errors[0], other.stderr
 
 
+def test_a_run_that_measured_nothing_leaves_the_saved_calibration_as_it_was(tmp_path):
+    """A recording with one APS frame (no frame pair: nothing is measured) saved the defaults over the file given
+    to --save-calibration, a good calibration among them, with its noise rates gone."""
+    import numpy as np
+
+    from edi_live.aedat4 import Aedat4Writer
+    from edi_live.datatypes import EVENT_DTYPE, Frame
+
+    rec = tmp_path / "one_frame.aedat4"
+    events = np.zeros(2000, EVENT_DTYPE)
+    events["t"] = 10_000 + np.arange(2000) * 10
+    events["x"], events["y"] = np.arange(2000) % 346, np.arange(2000) % 260
+    with Aedat4Writer(rec, 346, 260, camera_name=CAM.label) as w:
+        w.write_events(events)
+        w.write_frame(Frame(np.full((260, 346), 80, np.uint8), 20_000, 25_000))
+    saved = tmp_path / "cam.json"
+    calibration.save(calibration.Calibration(CAM.label, 346, 260, 0.31, 0.27, 4.5), saved)
+    before = saved.read_bytes()
+    run = _node("--replay", str(rec), "--speed", "0", "--no-publish", "--save-calibration", str(saved))
+    errors = [line for line in run.stderr.splitlines() if line.startswith("edi-live: error:")]
+    assert run.returncode == 1 and len(errors) == 1, run.stderr
+    assert "nothing to save" in errors[0] and str(saved) in errors[0] and "left as it was" in errors[0]
+    assert saved.read_bytes() == before
+
+
 def test_a_live_camera_picks_up_its_own_calibration(tmp_path):
     env = {"XDG_CONFIG_HOME": str(tmp_path)}
     args = ("--device", "davis240", "--usb-backend", "drivers.emulator:backend", "--duration", "1.5", "--no-publish")

@@ -36,11 +36,11 @@ class FrameDemand:
         self._wanted = wanted
         self.not_rendered = 0  # latent frames counted but not rendered: nobody subscribed
 
-    def score(self, rec: Reconstruction, quality: _Score) -> None:
+    def score(self, rec: Reconstruction, quality: _Score, asked: bool = False) -> None:
         """`rec` to the quality score if someone receives it; a frame made while nobody would (a deblurred frame, a
         heartbeat, a frame of a path that renders them all) resets the score instead: the figure is of what was
-        received."""
-        if self._wanted is not None and not self._wanted():
+        received. `asked`: rendered because skip() said it was wanted (not asked again: ~1 µs a frame)."""
+        if not asked and self._wanted is not None and not self._wanted():
             quality.reset()
         else:
             quality.on_emitted(rec)

@@ -241,7 +241,7 @@ class EdiWorker:
                                                  [chunk.arrival_ns_at(lo + c) for c in group])
                 pos = end
                 for rec in recs:
-                    self._emit(rec)
+                    self._emit(rec, asked=True)
             if pos < n:
                 self.rec.on_events(events[pos:], chunk.arrival_ns_at(hi))
             self._since = tail
@@ -370,9 +370,9 @@ class EdiWorker:
         for rec in held_frames.render_rest(self.rec, self.ring, self._nearest, self._ref_f_us):
             self._emit(rec)
 
-    def _emit(self, rec: Reconstruction) -> None:
+    def _emit(self, rec: Reconstruction, asked: bool = False) -> None:
         self._since = 0
-        self._count_emitted(rec)
+        self._count_emitted(rec, asked)
         self._to_sinks(rec)
 
     def _to_sinks(self, rec: Reconstruction) -> None:
@@ -381,12 +381,12 @@ class EdiWorker:
             for sink in self.sinks if self._sinks_open else ():
                 sink(rec)
 
-    def _count_emitted(self, rec: Reconstruction) -> None:
+    def _count_emitted(self, rec: Reconstruction, asked: bool = False) -> None:
         self._last_emit_s = time.monotonic()
         self._still.emitted(rec.t_us)
         self.sent[rec.kind] = self.sent.get(rec.kind, 0) + 1
         if self.quality is not None:
-            self.demand.score(rec, self.quality)
+            self.demand.score(rec, self.quality, asked)
 
     # ---------------------------------------------------------------- stats (any thread)
 

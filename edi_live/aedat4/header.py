@@ -21,6 +21,9 @@ SUPPORTED_TYPES = ("EVTS", "FRME", "IMUS", "TRIG")
 _I32, _I64 = struct.Struct("<i"), struct.Struct("<q")
 
 
+MAX_SENSOR_SIDE = 8192
+"""Sensor sides above this are refused as a damaged header (the largest event cameras are 1280 wide)."""
+
 @dataclass(frozen=True)
 class StreamInfo:
     """One stream declared in the header XML."""
@@ -117,9 +120,13 @@ def _parse_xml(xml: bytes, error: Callable[[str, int | None], RecordingError]) -
             continue
         info = node.find("node[@name='info']")
         iattrs = {a.get("key"): (a.text or "") for a in info.findall("attr")} if info is not None else {}
+        width, height = _int(iattrs.get("sizeX")), _int(iattrs.get("sizeY"))
+        if max(width, height) > MAX_SENSOR_SIDE:  # its buffers would be allocated before anything else failed
+            raise error(f"the stream description declares a {width}x{height} sensor, larger than any event camera "
+                        f"(at most {MAX_SENSOR_SIDE} pixels a side are read): a damaged header?", S.HEADER_START)
         streams.append(StreamInfo(id=sid, type=attrs["typeIdentifier"].strip(),
                                   name=attrs.get("originalOutputName", "").strip() or f"stream{sid}",
-                                  width=_int(iattrs.get("sizeX")), height=_int(iattrs.get("sizeY")),
+                                  width=width, height=height,
                                   source=iattrs.get("source", "").strip(),
                                   compression=attrs.get("compression", "").strip(),
                                   color_filter=color_filter_of_metadata(iattrs.get(COLOR_FILTER_KEY))))

@@ -199,6 +199,20 @@ def test_a_frame_larger_than_the_sensor_is_a_corrupt_packet(tmp_path, shape):
     assert "64x48 sensor" in str(err)
 
 
+@pytest.mark.parametrize("size", [(32000, 32000), (9000, 260)])
+def test_a_header_declaring_a_sensor_no_camera_has_is_refused_before_anything_is_allocated(tmp_path, size):
+    """A header naming a 32000x32000 sensor (one damaged digit) made the node allocate ~18 GB of per-pixel state
+    before any check; it is now the header's damage, in one line."""
+    path = tmp_path / "huge.aedat4"
+    with Aedat4Writer(path, *size, compression="none") as w:
+        ev = np.zeros(10, dtype=EVENT_DTYPE)
+        ev["t"] = T0 + np.arange(10)
+        w.write_events(ev)
+    with pytest.raises(RecordingError, match=f"{size[0]}x{size[1]} sensor, larger than any event camera") as info:
+        Aedat4Reader(path)
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
 def test_events_off_the_sensor_are_a_corrupt_packet_in_replay(tmp_path):
     path = tmp_path / "f.aedat4"
     data = bytearray(_simple_file(path, "none"))

@@ -23,6 +23,9 @@ log = logging.getLogger(__name__)
 MAX_GAP_US = 60_000_000
 """Longest pause between two timestamps that is replayed as a pause; a longer one is a jump of the clock."""
 
+JUMPS_SHOWN = 3
+"""Clock jumps warned about; later ones (a looped recording repeats its own every pass) are logged at debug level."""
+
 MAX_LATE_S = 1.0
 """How far (host seconds) data may fall behind its schedule and still be caught up; later, pacing restarts."""
 
@@ -39,6 +42,7 @@ class Pacer:
         self._anchor_s = 0.0
         self._latest_t_us: int | None = None
         self._late_warned = False
+        self._jumps = 0
         self._first_t_us: int | None = None
         self._jumped_us = 0  # clock jumps moved past: not replayed time
 
@@ -62,8 +66,10 @@ class Pacer:
             gap = int(t_us) - self._latest_t_us
             self._anchor_t_us += gap
             self._jumped_us += gap
-            log.warning("the recording's clock jumps %s ahead at %d µs: replayed without waiting for it", _span(gap),
-                        self._latest_t_us)
+            self._jumps += 1  # with --loop the same jump comes back every pass: the first few are shown
+            (log.warning if self._jumps <= JUMPS_SHOWN else log.debug)(
+                "the recording's clock jumps %s ahead at %d µs: replayed without waiting for it%s", _span(gap),
+                self._latest_t_us, " (further jumps are not shown)" if self._jumps == JUMPS_SHOWN else "")
         self._latest_t_us = int(t_us) if self._latest_t_us is None else max(self._latest_t_us, int(t_us))
         due = self._anchor_s + (int(t_us) - self._anchor_t_us) / (1e6 * self.speed)
         delay = due - self._clock()

@@ -315,6 +315,19 @@ def test_pacer_says_where_a_stall_fell_in_the_replayed_time_not_across_a_skipped
     assert len(warnings) == 2 and "28.0 s behind its schedule, 2.0 s into the replay" in warnings[1], warnings
 
 
+def test_a_looped_clock_jump_is_warned_about_a_few_times_not_every_pass(caplog):
+    """--loop over a recording with a clock jump warned once per pass: a long loop flooded the log."""
+    now = [100.0]
+    pacer = Pacer(1.0, clock=lambda: now[0])
+    t = T0
+    with caplog.at_level("WARNING"):
+        for _ in range(20):  # 20 passes, each ending in a 2-minute jump
+            pacer.delay_s(t)
+            t += 120_000_000
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 3 and "further jumps are not shown" in warnings[-1], warnings
+
+
 def test_pacer_wait_returns_false_on_timeout_and_on_stop():
     pacer = Pacer(1.0)
     pacer.anchor(T0)

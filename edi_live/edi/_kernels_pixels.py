@@ -6,9 +6,11 @@ Private to edi_live.edi (see its public functions and their numpy references).
 
 from __future__ import annotations
 
-
 import numpy as np
 from numba import njit
+
+from edi_live.edi._kernels_stream import _first_at_or_after
+
 
 @njit(cache=True, nogil=True, inline="always")
 def _neighbour_fired(last_t, xi, yi, ti, dt_us):
@@ -200,18 +202,6 @@ def _count_bound(max_noise_hz, npix, span_us, sigmas, margin):
     rounded otherwise (max_noise_hz * npix * span_us first) can fall on the other side of a whole count."""
     most = max_noise_hz * (npix * span_us * 1e-6)
     return most + sigmas * np.sqrt(most) + margin
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _first_at_or_after(t, value, lo, hi):
-    """The first index in [lo, hi) of time-ordered t with t >= value (hi if none), by bisection."""
-    while lo < hi:
-        mid = (lo + hi) >> 1
-        if t[mid] < value:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
 
 
 @njit(cache=True, nogil=True)

@@ -10,6 +10,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from edi_live.edi._kernels_stream import _first_at_or_after
+
 
 @njit(cache=True, nogil=True)
 def _value(t, ta, ca, tb, cb, seen_from, seen_to, table_a, table_b, a_unknown):
@@ -34,13 +36,7 @@ def _gallop(times, lo, hi, value):
         if times[lo] >= value:
             return lo
         lo += 1
-    while lo < hi:
-        mid = (lo + hi) >> 1
-        if times[mid] < value:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
+    return _first_at_or_after(times, value, lo, hi)
 
 
 @njit(cache=True, nogil=True)

@@ -40,6 +40,18 @@ def propagate(x, y, p, width, height, mask, use_mask, flat, d_on, d_off, lo, hi,
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _first_at_or_after(t, value, lo, hi):
+    """The first index in [lo, hi) of time-ordered t with t >= value (hi if none), by bisection."""
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if t[mid] < value:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _exp_u8(v, gain):
     z = gain * math.exp(min(v, 6.0)) + 0.5
     if z > 255.0:

@@ -117,6 +117,9 @@ class _Feed:
             if self.expect is not None and s.type != self.expect:
                 raise ProtocolError(f"{self.where} serves {_NAMES[s.type]} ({s.type}), not the "
                                     f"{_NAMES[self.expect]} its --dv-input prefix says")
+            if s.type in ("EVTS", "FRME") and (s.width <= 0 or s.height <= 0):  # as a replayed file's header
+                raise ProtocolError(f"{self.where}: the stream header gives the {_NAMES[s.type]} stream no sensor "
+                                    f"size (sizeX/sizeY of its info node missing, zero or negative)")
         if self.streams:  # a reconnection: the same streams, the same sensor
             old = {(s.type, s.width, s.height) for s in self.streams.values()}
             new = {(s.type, s.width, s.height) for s in streams.values()}

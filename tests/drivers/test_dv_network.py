@@ -3,10 +3,12 @@ per stream, as DV serves them) replaying the real DAVIS346 recordings."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Callable
@@ -331,3 +333,68 @@ def test_colour_frames_from_a_dv_network_writer_arrive_as_bgr(tmp_path, rng):
             peer.finish()
     frames = [f for p in packets for f in p.frames]
     assert len(frames) == 2 and all(np.array_equal(f.image, image) for f, image in zip(frames, bgr))
+
+
+# ---- hostile or broken servers: a plain socket server on the loopback sends exactly the bytes the test gives
+
+def _events_header(xml: bytes | None = None) -> bytes:
+    from edi_live.aedat4.writer import info_xml, io_header
+    xml = xml if xml is not None else info_xml([(0, "EVTS", "events")], 32, 24, "DAVIS346_00000001", "none")
+    return io_header("none", -1, xml)[0]
+
+
+def _events_packets(n: int = 300) -> bytes:
+    import struct
+
+    from edi_live.aedat4.writer import events_payloads
+    from edi_live.datatypes import EVENT_DTYPE
+    ev = np.zeros(n, EVENT_DTYPE)
+    ev["t"] = 1_700_000_000_000_000 + np.arange(n) * 10
+    ev["x"], ev["y"], ev["p"] = np.arange(n) % 32, np.arange(n) % 24, np.arange(n) % 2 == 0
+    return b"".join(struct.pack("<ii", 0, len(p)) + p for p, *_ in events_payloads(ev))
+
+
+@contextlib.contextmanager
+def _hostile_server(data: bytes):
+    """A one-connection TCP server that sends `data`, then closes; yields its endpoint."""
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    server.settimeout(10)
+
+    def run() -> None:
+        try:
+            conn, _ = server.accept()
+            with conn:
+                conn.sendall(data)
+        except OSError:
+            pass
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    try:
+        yield f"tcp://127.0.0.1:{server.getsockname()[1]}"
+    finally:
+        thread.join(10)
+        server.close()
+
+
+@pytest.mark.parametrize("width, height", [(0, 0), (-5, 24), (346, 0), (None, None)])
+def test_a_header_without_a_sensor_size_is_the_streams_one_line_fault(width, height):
+    """An events stream whose header declares no usable sensor size (sizeX/sizeY missing, 0 or negative) was
+    accepted as a 0x0 sensor with its events; the node then stopped with 'sensor size must be positive (got 0x0)',
+    exit 2 (a usage error), naming neither the endpoint nor the header. A replayed file is refused the same way."""
+    from edi_live.aedat4.writer import info_xml
+    xml = info_xml([(0, "EVTS", "events")], 32, 24, "DAVIS346_00000001", "none")
+    if width is None:
+        xml = xml.replace(b'<attr key="sizeX" type="int">32</attr>', b"").replace(
+            b'<attr key="sizeY" type="int">24</attr>', b"")
+    else:
+        xml = xml.replace(b">32<", f">{width}<".encode()).replace(b">24<", f">{height}<".encode())
+    with _hostile_server(_events_header(xml) + _events_packets()) as endpoint:
+        with pytest.raises(ProtocolError) as err:
+            with DvNetworkSource([endpoint], connect_timeout_s=2):
+                pass
+    message = str(err.value)
+    assert "\n" not in message and endpoint in message and "sensor size" in message
+    assert err.value.exit_code == 1

@@ -110,6 +110,10 @@ class _Feed:
         streams = {s.id: s for s in decoder.streams}
         if not streams:
             raise ProtocolError(f"{self.where}: the stream header declares no stream")
+        if len(streams) < len(decoder.streams):  # the packets could not say which stream they belong to
+            ids = [s.id for s in decoder.streams]
+            raise ProtocolError(f"{self.where}: the stream header declares stream id "
+                                f"{next(i for i in ids if ids.count(i) > 1)} twice")
         for s in streams.values():
             if s.type not in _NAMES:
                 raise ProtocolError(f"{self.where} serves a {s.type} stream ('{s.name}'); --dv-input takes events "

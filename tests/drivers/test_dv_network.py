@@ -398,3 +398,15 @@ def test_a_header_without_a_sensor_size_is_the_streams_one_line_fault(width, hei
     message = str(err.value)
     assert "\n" not in message and endpoint in message and "sensor size" in message
     assert err.value.exit_code == 1
+
+
+def test_two_streams_with_one_id_in_a_header_are_a_protocol_error():
+    """An events and a frames stream both declared as id 0: the frames entry replaced the events one, and the
+    node said '--dv-input: no endpoint serves events' (a usage error, exit 2) of an endpoint that declares them."""
+    from edi_live.aedat4.writer import info_xml
+    xml = info_xml([(0, "EVTS", "events"), (0, "FRME", "frames")], 32, 24, "DAVIS346_00000001", "none")
+    with _hostile_server(_events_header(xml) + _events_packets()) as endpoint:
+        with pytest.raises(ProtocolError) as err:
+            with DvNetworkSource([endpoint], connect_timeout_s=2):
+                pass
+    assert "\n" not in str(err.value) and endpoint in str(err.value) and "id 0" in str(err.value)

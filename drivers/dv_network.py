@@ -47,6 +47,7 @@ _NAMES = {v: k for k, v in TYPES.items()}
 _HEAD = struct.Struct("<ii")
 MAX_HEADER_BYTES = 1 << 20
 MAX_PACKET_BYTES = 256 << 20
+_READ_CHUNK = 1 << 20
 
 
 def parse_dv_endpoint(spec: str) -> tuple[str | None, str, int]:
@@ -135,11 +136,12 @@ class _Feed:
         self.streams = streams
 
     def _read(self, sock: socket.socket, n: int, what: str) -> bytes:
-        buf = bytearray(n)
-        view, got = memoryview(buf), 0
+        # at most _READ_CHUNK at once: memory follows the bytes that arrive, not the size a peer announces
+        parts: list[bytes] = []
+        got = 0
         while got < n:
             try:
-                k = sock.recv_into(view[got:])
+                chunk = sock.recv(min(n - got, _READ_CHUNK))
             except socket.timeout:
                 if self.owner._stop.is_set():
                     raise _Stopped() from None
@@ -150,10 +152,11 @@ class _Feed:
                 continue
             except OSError as exc:
                 raise DeviceDisconnectedError(self._lost(f"connection lost ({exc.strerror or exc})")) from None
-            if not k:
+            if not chunk:
                 raise DeviceDisconnectedError(self._lost("the server closed the connection"))
-            got += k
-        return bytes(buf)
+            parts.append(chunk)
+            got += len(chunk)
+        return parts[0] if len(parts) == 1 else b"".join(parts)
 
     def _lost(self, why: str) -> str:
         kinds = "+".join(_NAMES[s.type] for s in self.streams.values()) or "DV"

@@ -410,3 +410,25 @@ def test_two_streams_with_one_id_in_a_header_are_a_protocol_error():
             with DvNetworkSource([endpoint], connect_timeout_s=2):
                 pass
     assert "\n" not in str(err.value) and endpoint in str(err.value) and "id 0" in str(err.value)
+
+
+def test_a_packet_announced_but_never_sent_costs_no_memory_of_its_announced_size():
+    """A peer announcing a packet of almost MAX_PACKET_BYTES (8 bytes) made the reader allocate all of it before
+    a byte of it arrived (and copy it at the end): 256 MB per connection for a slowloris. Memory now follows
+    what arrives. The peer closes mid-packet: the events before it are kept and the end is one line."""
+    import struct
+    import tracemalloc
+
+    from drivers.dv_network import MAX_PACKET_BYTES
+    data = _events_header() + _events_packets() + struct.pack("<ii", 0, MAX_PACKET_BYTES - 1) + b"\0" * 1000
+    tracemalloc.start()
+    try:
+        with _hostile_server(data) as endpoint:
+            with DvNetworkSource([endpoint], connect_timeout_s=2, end_grace_s=0.2) as source:
+                packets, error = _drain(source)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert sum(len(p.events) for p in packets) == 300
+    assert isinstance(error, DeviceDisconnectedError) and "\n" not in str(error)
+    assert peak < 32 << 20, f"{peak / 2**20:.0f} MB traced"

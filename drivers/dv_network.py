@@ -48,6 +48,7 @@ _HEAD = struct.Struct("<ii")
 MAX_HEADER_BYTES = 1 << 20
 MAX_PACKET_BYTES = 256 << 20
 _READ_CHUNK = 1 << 20
+_POLL_S = 0.2  # a reader blocked in recv() wakes up this often to check for stop()
 
 
 def parse_dv_endpoint(spec: str) -> tuple[str | None, str, int]:
@@ -78,6 +79,7 @@ class _Feed:
         self.decoder: Aedat4Reader | None = None
         self.streams: dict[int, StreamInfo] = {}
         self.thread: threading.Thread | None = None
+        self.header_deadline = 0.0
 
     def connect(self) -> None:
         """Connect and read the header; SourceError subclasses with one-line messages."""
@@ -90,7 +92,10 @@ class _Feed:
             raise DeviceNotFoundError(f"cannot connect to the DV stream at {self.where}: "
                                       f"{exc.strerror or exc}") from None
         try:
-            sock.settimeout(self.owner.connect_timeout_s)
+            # short waits, to see stop(), under one deadline for the whole header (a peer sending it byte by byte
+            # does not reset it)
+            sock.settimeout(_POLL_S)
+            self.header_deadline = time.monotonic() + self.owner.connect_timeout_s
             size = struct.unpack("<I", self._read(sock, 4, "the stream header"))[0]
             if not 0 < size <= MAX_HEADER_BYTES:
                 raise ProtocolError(f"{self.where} is not an AEDAT4 network stream (header size {size}); is it a DV "
@@ -101,7 +106,6 @@ class _Feed:
             except RecordingError as exc:
                 raise ProtocolError(f"{self.where} sent no valid AEDAT4 header ({exc})") from None
             self._check_header(decoder)
-            sock.settimeout(0.2)  # the reader thread wakes up to check for stop()
         except BaseException:
             sock.close()
             raise
@@ -143,19 +147,21 @@ class _Feed:
             try:
                 chunk = sock.recv(min(n - got, _READ_CHUNK))
             except socket.timeout:
-                if self.owner._stop.is_set():
-                    raise _Stopped() from None
-                if self.sock is None:  # still connecting: the server sent nothing
-                    raise ProtocolError(f"{self.where} accepted the connection but did not send {what} within "
-                                        f"{self.owner.connect_timeout_s:g} s (an old DV without the network "
-                                        f"header, or not a DV output?)") from None
-                continue
+                chunk = None
             except OSError as exc:
                 raise DeviceDisconnectedError(self._lost(f"connection lost ({exc.strerror or exc})")) from None
-            if not chunk:
+            if chunk == b"":
                 raise DeviceDisconnectedError(self._lost("the server closed the connection"))
-            parts.append(chunk)
-            got += len(chunk)
+            if chunk:
+                parts.append(chunk)
+                got += len(chunk)
+            # (checked after data too: a peer trickling bytes never lets recv() time out)
+            if self.owner._stop.is_set():
+                raise _Stopped()
+            if self.sock is None and got < n and time.monotonic() >= self.header_deadline:  # still connecting
+                raise ProtocolError(f"{self.where} accepted the connection but did not send {what} within "
+                                    f"{self.owner.connect_timeout_s:g} s (an old DV without the network "
+                                    f"header, or not a DV output?)")
         return parts[0] if len(parts) == 1 else b"".join(parts)
 
     def _lost(self, why: str) -> str:
@@ -248,6 +254,9 @@ class DvNetworkSource:
             for feed in self._feeds:
                 feed.connect()
             self.info = self._combined_info()
+        except _Stopped:  # stop() while a server was still sending its header: nothing to read, iteration ends
+            self._close()
+            return self
         except BaseException:
             self._close()
             raise

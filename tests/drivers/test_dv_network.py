@@ -355,8 +355,9 @@ def _events_packets(n: int = 300) -> bytes:
 
 
 @contextlib.contextmanager
-def _hostile_server(data: bytes):
-    """A one-connection TCP server that sends `data`, then closes; yields its endpoint."""
+def _hostile_server(data: bytes, sent: threading.Event | None = None, release: threading.Event | None = None):
+    """A one-connection TCP server that sends `data`, sets `sent`, waits for `release` (when given), then closes;
+    yields its endpoint."""
     server = socket.socket()
     server.bind(("127.0.0.1", 0))
     server.listen(1)
@@ -367,6 +368,10 @@ def _hostile_server(data: bytes):
             conn, _ = server.accept()
             with conn:
                 conn.sendall(data)
+                if sent is not None:
+                    sent.set()
+                if release is not None:
+                    release.wait(10)
         except OSError:
             pass
 
@@ -432,3 +437,61 @@ def test_a_packet_announced_but_never_sent_costs_no_memory_of_its_announced_size
     assert sum(len(p.events) for p in packets) == 300
     assert isinstance(error, DeviceDisconnectedError) and "\n" not in str(error)
     assert peak < 32 << 20, f"{peak / 2**20:.0f} MB traced"
+
+
+def test_a_stop_while_a_server_stalls_inside_its_header_ends_the_opening_at_once():
+    """Ctrl-C while a server had sent a header size and then nothing: the node waited out connect_timeout_s, then
+    exited 1 with 'the main thread failed: _Stopped:' (an internal exception leaking). A stop now ends the opening
+    within the reader's poll, and the source then yields nothing (the node ends as a stopped node does)."""
+    import struct
+    sent, release, opened = threading.Event(), threading.Event(), threading.Event()
+    outcome: list = []
+    with _hostile_server(struct.pack("<I", 500) + b"\0" * 10, sent, release) as endpoint:
+        source = DvNetworkSource([endpoint], connect_timeout_s=60)
+
+        def open_it() -> None:
+            try:
+                with source:
+                    opened.set()
+                    outcome.append(list(source))
+            except BaseException as exc:  # noqa: BLE001 - the test reports it
+                outcome.append(exc)
+
+        opener = threading.Thread(target=open_it, daemon=True)
+        opener.start()
+        assert sent.wait(10)
+        source.stop()
+        opener.join(5)
+        release.set()
+    assert not opener.is_alive(), "the opening did not end after stop()"
+    assert opened.is_set() and outcome == [[]], outcome
+
+
+def test_a_header_sent_byte_by_byte_is_bounded_by_the_connect_timeout_as_a_whole():
+    """Each byte of the header restarted connect_timeout_s: a peer sending one byte every few seconds held the
+    node's start-up for as long as it liked (a 1 MB header: weeks). The whole header now has connect_timeout_s."""
+    import struct
+    header = struct.pack("<I", 500)
+    done = threading.Event()
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    endpoint = f"tcp://127.0.0.1:{server.getsockname()[1]}"
+
+    def trickle() -> None:
+        with server, server.accept()[0] as conn:
+            conn.sendall(header)
+            while not done.wait(0.05):  # the peer's pace, well inside each wait of the reader
+                conn.sendall(b"\0")
+
+    thread = threading.Thread(target=trickle, daemon=True)
+    thread.start()
+    started = time.monotonic()
+    try:
+        with pytest.raises(ProtocolError, match="did not send the stream header within 0.5 s"):
+            with DvNetworkSource([endpoint], connect_timeout_s=0.5):
+                pass
+    finally:
+        done.set()
+        thread.join(5)
+    assert time.monotonic() - started < 5

@@ -15,7 +15,8 @@ event stream (two cameras, or DV replaying an old file on one output only) is re
 starts again with an older clock (a recording served again) continues after the earlier times (drivers.dv_clock).
 
 Care as in the USB driver: one reader thread per connection feeds one bounded queue; when the consumer falls
-behind, the oldest queued event packets are dropped, counted, and the next packet is marked as a gap. Faults
+behind, the oldest queued event packets are dropped, counted, and the next packet is marked as a gap (frames, IMU
+and triggers beyond `max_queued_frame_bytes` too: dropped oldest first, said in a warning). Faults
 (connection refused, an unexpected stream type, a sensor-size change, a dropped connection, a corrupt packet) are
 one-line `SourceError`s raised after everything received before them has been yielded (when one stream ends, the
 others are read until they end too or stay silent for `end_grace_s`: DV closes its outputs one by one). With
@@ -227,16 +228,23 @@ class _Stopped(Exception):
     pass
 
 
+def _nbytes(item: tuple) -> int:
+    """The memory a queued frame, IMU or trigger item holds."""
+    return item[1].image.nbytes if item[0] == "FRME" else item[1].nbytes
+
+
 class DvNetworkSource:
     """The `edi_live.source.Source` of one camera served by DV over TCP, one endpoint per stream (see module doc)."""
 
     def __init__(self, endpoints: Sequence[str], *, reconnect: bool = False, max_queued_events: int = 4_000_000,
-                 max_queued_items: int = 100_000, connect_timeout_s: float = 5.0, retry_s: float = 0.5,
+                 max_queued_items: int = 100_000, max_queued_frame_bytes: int = 256 << 20,
+                 connect_timeout_s: float = 5.0, retry_s: float = 0.5,
                  frame_wait_s: float = 1.0, max_clock_skew_us: int = 10_000_000, end_grace_s: float = 1.0) -> None:
         if not endpoints:
             raise ConfigError("--dv-input needs at least one endpoint, e.g. tcp://127.0.0.1:7777")
         self.reconnect = bool(reconnect)
         self.max_queued_events, self.max_queued_items = max_queued_events, max_queued_items
+        self.max_queued_frame_bytes = max_queued_frame_bytes  # frames, IMU and triggers
         self.connect_timeout_s, self.retry_s, self.frame_wait_s = connect_timeout_s, retry_s, frame_wait_s
         self.max_clock_skew_us, self.end_grace_s = max_clock_skew_us, end_grace_s
         self._feeds = [_Feed(spec, self) for spec in endpoints]
@@ -245,6 +253,8 @@ class DvNetworkSource:
         self._cv = threading.Condition()
         self._queue: collections.deque = collections.deque()
         self._queued_events = 0
+        self._queued_other_bytes = 0  # frames, IMU and triggers queued
+        self._dropped_other: collections.Counter = collections.Counter()  # of those, dropped: type -> count
         self._gap = False
         self._status = SourceStatus()
 
@@ -373,11 +383,32 @@ class DvNetworkSource:
         with self._cv:
             if item[0] == "EVTS":
                 self._queued_events += len(item[1])
+            elif item[0] != "fault":
+                self._queued_other_bytes += _nbytes(item)
             self._queue.append(item)
             while (self._queued_events > self.max_queued_events or len(self._queue) > self.max_queued_items) \
                     and self._drop_oldest():
                 pass
+            # events alone are dropped above; frames, IMU and triggers from a server sending them faster than
+            # they are taken would otherwise queue without bound
+            while self._queued_other_bytes > self.max_queued_frame_bytes and self._drop_oldest_other(item):
+                pass
             self._cv.notify()
+
+    def _drop_oldest_other(self, newest: tuple) -> bool:
+        """Drop the oldest queued frame, IMU or trigger packet other than `newest`; False when there is none."""
+        for i, queued in enumerate(self._queue):
+            if queued[0] not in ("EVTS", "fault") and queued is not newest:
+                del self._queue[i]
+                self._queued_other_bytes -= _nbytes(queued)
+                if not self._dropped_other:
+                    log.warning("the DV %s arrive faster than edi-live takes them: the oldest are dropped "
+                                "(counted when the input closes)", _NAMES[queued[0]])
+                self._dropped_other[queued[0]] += 1
+                self._status.gaps += not self._gap
+                self._gap = True
+                return True
+        return False
 
     def _drop_oldest(self) -> bool:
         """Drop the oldest queued event packet (faults, frames and IMU are kept); False when there is none."""
@@ -400,6 +431,8 @@ class DvNetworkSource:
             item = self._queue.popleft()
             if item[0] == "EVTS":
                 self._queued_events -= len(item[1])
+            elif item[0] != "fault":
+                self._queued_other_bytes -= _nbytes(item)
             return item
 
     def _mark_gap(self) -> None:
@@ -409,6 +442,11 @@ class DvNetworkSource:
             self._gap = True
 
     def _close(self) -> None:
+        if self._dropped_other:  # said once (_close runs again from __exit__)
+            dropped = ", ".join(f"{n} {'frames' if t == 'FRME' else _NAMES[t] + ' packets'}"
+                                for t, n in sorted(self._dropped_other.items()))
+            log.warning("the DV input dropped %s that arrived faster than edi-live took them", dropped)
+            self._dropped_other.clear()
         self._stop.set()
         for feed in self._feeds:
             if feed.thread is not None:

@@ -495,3 +495,31 @@ def test_a_header_sent_byte_by_byte_is_bounded_by_the_connect_timeout_as_a_whole
         done.set()
         thread.join(5)
     assert time.monotonic() - started < 5
+
+
+def test_frames_that_arrive_faster_than_they_are_taken_are_bounded_counted_and_the_newest_kept(caplog):
+    """The queue between the readers and the consumer dropped only event packets: frames (and IMU, triggers) from
+    a server sending them faster than the node takes them queued without bound (a frames-only flood: all of
+    them in memory). Frames beyond max_queued_frame_bytes now drop the oldest ones, counted in a warning and
+    marked as a gap."""
+    import struct
+
+    from edi_live.aedat4.writer import frame_payload, info_xml
+    xml = info_xml([(0, "EVTS", "events"), (1, "FRME", "frames")], 32, 24, "DAVIS346_00000001", "none")
+    t0 = 1_700_000_000_000_000
+    frames = b"".join(struct.pack("<ii", 1, len(p)) + p for p in (
+        frame_payload(Frame(np.full((24, 32), k % 256, np.uint8), t0 + 1000 * k, t0 + 1000 * k + 10), 1)
+        for k in range(400)))
+    one_frame = 24 * 32
+    with _hostile_server(_events_header(xml) + frames) as endpoint:
+        source = DvNetworkSource([endpoint], max_queued_frame_bytes=50 * one_frame, end_grace_s=0.2)
+        with source, caplog.at_level("WARNING", logger="drivers.dv_network"):
+            source._feeds[0].thread.join(10)  # the reader has read everything the server sent, and its end
+            assert not source._feeds[0].thread.is_alive()
+            assert len(source._queue) <= 50 + 1  # the frames, and the end of the stream
+            packets, error = _drain(source)
+    got = [f for p in packets for f in p.frames]
+    assert 0 < len(got) <= 50 and got[-1].exposure_end_us == t0 + 1000 * 399 + 10  # the newest are kept
+    assert any(p.gap for p in packets) and source.status().gaps >= 1
+    assert isinstance(error, DeviceDisconnectedError)
+    assert any(f"{400 - len(got)} frame" in r.getMessage() for r in caplog.records), caplog.text

@@ -16,7 +16,7 @@ starts again with an older clock (a recording served again) continues after the 
 
 Care as in the USB driver: one reader thread per connection feeds one bounded queue; when the consumer falls
 behind, the oldest queued event packets are dropped, counted, and the next packet is marked as a gap (frames, IMU
-and triggers beyond `max_queued_frame_bytes` too: dropped oldest first, said in a warning). Faults
+and triggers beyond `max_queued_frame_bytes` too, said in a warning: drivers.dv_queue). Faults
 (connection refused, an unexpected stream type, a sensor-size change, a dropped connection, a corrupt packet) are
 one-line `SourceError`s raised after everything received before them has been yielded (when one stream ends, the
 others are read until they end too or stay silent for `end_grace_s`: DV closes its outputs one by one). With
@@ -25,7 +25,6 @@ others are read until they end too or stay silent for `end_grace_s`: DV closes i
 
 from __future__ import annotations
 
-import collections
 import logging
 import socket
 import struct
@@ -34,6 +33,7 @@ import time
 from typing import Iterator, Sequence
 
 from drivers.dv_clock import DvClock
+from drivers.dv_queue import DvQueue
 from edi_live.aedat4 import Aedat4Reader, StreamInfo
 from edi_live.aedat4.compression import decompressor
 from edi_live.aedat4.reader import split_camera_label
@@ -185,9 +185,9 @@ class _Feed:
         except _Stopped:
             return
         except SourceError as exc:
-            owner._put(("fault", exc))
+            owner._queue.put(("fault", exc))
         except BaseException as exc:  # noqa: BLE001 - handed to the iterating thread as a source fault
-            owner._put(("fault", SourceError(f"DV reader for {self.where} failed: {type(exc).__name__}: {exc}")))
+            owner._queue.put(("fault", SourceError(f"DV reader for {self.where} failed: {type(exc).__name__}: {exc}")))
 
     def _pump(self) -> None:
         decode, decompress = self.decoder.decode_payload, decompressor(self.decoder.compression)
@@ -207,13 +207,13 @@ class _Feed:
             data = decode(stream, pos, payload, seq)
             seq += stream.type == "FRME"
             pos += 8 + size
-            self.owner._put((stream.type, data, arrival_ns))
+            self.owner._queue.put((stream.type, data, arrival_ns))
 
     def _reconnect(self) -> bool:
         if self.sock is not None:
             self.sock.close()
         self.sock = None
-        self.owner._mark_gap()
+        self.owner._queue.mark_gap()
         while not self.owner._stop.wait(self.owner.retry_s):
             try:
                 self.connect()
@@ -228,10 +228,6 @@ class _Stopped(Exception):
     pass
 
 
-def _nbytes(item: tuple) -> int:
-    """The memory a queued frame, IMU or trigger item holds."""
-    return item[1].image.nbytes if item[0] == "FRME" else item[1].nbytes
-
 
 class DvNetworkSource:
     """The `edi_live.source.Source` of one camera served by DV over TCP, one endpoint per stream (see module doc)."""
@@ -243,20 +239,13 @@ class DvNetworkSource:
         if not endpoints:
             raise ConfigError("--dv-input needs at least one endpoint, e.g. tcp://127.0.0.1:7777")
         self.reconnect = bool(reconnect)
-        self.max_queued_events, self.max_queued_items = max_queued_events, max_queued_items
-        self.max_queued_frame_bytes = max_queued_frame_bytes  # frames, IMU and triggers
         self.connect_timeout_s, self.retry_s, self.frame_wait_s = connect_timeout_s, retry_s, frame_wait_s
         self.max_clock_skew_us, self.end_grace_s = max_clock_skew_us, end_grace_s
         self._feeds = [_Feed(spec, self) for spec in endpoints]
         self.info = SourceInfo(0, 0, name="DV", kind="network")
         self._stop = threading.Event()
-        self._cv = threading.Condition()
-        self._queue: collections.deque = collections.deque()
-        self._queued_events = 0
-        self._queued_other_bytes = 0  # frames, IMU and triggers queued
-        self._dropped_other: collections.Counter = collections.Counter()  # of those, dropped: type -> count
-        self._gap = False
         self._status = SourceStatus()
+        self._queue = DvQueue(self._status, max_queued_events, max_queued_items, max_queued_frame_bytes)
 
     # ---- Source protocol ----------------------------------------------------------------------------
     def __enter__(self) -> "DvNetworkSource":
@@ -281,23 +270,22 @@ class DvNetworkSource:
 
     def stop(self) -> None:
         self._stop.set()
-        with self._cv:
-            self._cv.notify_all()
+        self._queue.wake()
 
     def status(self) -> SourceStatus:
-        self._status.backlog = self._queued_events
+        self._status.backlog = self._queue.queued_events
         return self._status
 
     def __iter__(self) -> Iterator[Packet | None]:
         held: list[tuple[float, Frame]] = []  # frames waiting for their events: (wall-clock arrival, frame)
         events_to = -(2**62)  # newest event time yielded
         frame_clock_checked = False
-        clock = DvClock(self._mark_gap)  # a server that starts again: its times continue after the earlier ones
+        clock = DvClock(self._queue.mark_gap)  # a server starting again: its times continue after the earlier ones
         ended: SourceError | None = None  # a stream ended while others still deliver: raised once they are done
         last_item = time.monotonic()
         st = self._status
         while not self._stop.is_set():
-            item = self._get(0.1)
+            item = self._queue.get(0.1, self._stop)
             fault = None
             packet = Packet()
             if item is not None and item[0] != "fault":
@@ -317,7 +305,7 @@ class DvNetworkSource:
                     keep = events["t"] >= events_to
                     st.dropped_events += int(len(events) - keep.sum())
                     events = events[keep]
-                    self._mark_gap()
+                    self._queue.mark_gap()
                 if len(events):
                     events_to = int(events["t"][-1])
                     packet.events, packet.arrival_ns = events, item[2]
@@ -346,8 +334,7 @@ class DvNetworkSource:
                 held = [h for h, d in zip(held, due) if not d]
             if len(packet.events) or packet.frames or len(packet.imu) or len(packet.triggers):
                 packet.watermark_us = events_to
-                with self._cv:
-                    packet.gap, self._gap = self._gap, False
+                packet.gap = self._queue.take_gap()
                 st.packets += 1
                 st.events += len(packet.events)
                 st.frames += len(packet.frames)
@@ -379,74 +366,8 @@ class DvNetworkSource:
         return SourceInfo(w, h, name=name, serial=serial, kind="network",
                           color_filter=next((s.color_filter for s in streams if s.color_filter), None))
 
-    def _put(self, item: tuple) -> None:
-        with self._cv:
-            if item[0] == "EVTS":
-                self._queued_events += len(item[1])
-            elif item[0] != "fault":
-                self._queued_other_bytes += _nbytes(item)
-            self._queue.append(item)
-            while (self._queued_events > self.max_queued_events or len(self._queue) > self.max_queued_items) \
-                    and self._drop_oldest():
-                pass
-            # events alone are dropped above; frames, IMU and triggers from a server sending them faster than
-            # they are taken would otherwise queue without bound
-            while self._queued_other_bytes > self.max_queued_frame_bytes and self._drop_oldest_other(item):
-                pass
-            self._cv.notify()
-
-    def _drop_oldest_other(self, newest: tuple) -> bool:
-        """Drop the oldest queued frame, IMU or trigger packet other than `newest`; False when there is none."""
-        for i, queued in enumerate(self._queue):
-            if queued[0] not in ("EVTS", "fault") and queued is not newest:
-                del self._queue[i]
-                self._queued_other_bytes -= _nbytes(queued)
-                if not self._dropped_other:
-                    log.warning("the DV %s arrive faster than edi-live takes them: the oldest are dropped "
-                                "(counted when the input closes)", _NAMES[queued[0]])
-                self._dropped_other[queued[0]] += 1
-                self._status.gaps += not self._gap
-                self._gap = True
-                return True
-        return False
-
-    def _drop_oldest(self) -> bool:
-        """Drop the oldest queued event packet (faults, frames and IMU are kept); False when there is none."""
-        for i, queued in enumerate(self._queue):
-            if queued[0] == "EVTS":
-                del self._queue[i]
-                self._queued_events -= len(queued[1])
-                self._status.dropped_events += len(queued[1])
-                self._status.gaps += not self._gap
-                self._gap = True
-                return True
-        return False
-
-    def _get(self, timeout_s: float) -> tuple | None:
-        with self._cv:
-            if not self._queue and not self._stop.is_set():
-                self._cv.wait(timeout_s)
-            if not self._queue:
-                return None
-            item = self._queue.popleft()
-            if item[0] == "EVTS":
-                self._queued_events -= len(item[1])
-            elif item[0] != "fault":
-                self._queued_other_bytes -= _nbytes(item)
-            return item
-
-    def _mark_gap(self) -> None:
-        with self._cv:
-            if not self._gap:
-                self._status.gaps += 1
-            self._gap = True
-
     def _close(self) -> None:
-        if self._dropped_other:  # said once (_close runs again from __exit__)
-            dropped = ", ".join(f"{n} {'frames' if t == 'FRME' else _NAMES[t] + ' packets'}"
-                                for t, n in sorted(self._dropped_other.items()))
-            log.warning("the DV input dropped %s that arrived faster than edi-live took them", dropped)
-            self._dropped_other.clear()
+        self._queue.report_drops()
         self._stop.set()
         for feed in self._feeds:
             if feed.thread is not None:

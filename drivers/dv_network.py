@@ -30,6 +30,7 @@ import socket
 import struct
 import threading
 import time
+from collections import Counter
 from typing import Iterator, Sequence
 
 from drivers.dv_clock import DvClock
@@ -117,9 +118,8 @@ class _Feed:
         if not streams:
             raise ProtocolError(f"{self.where}: the stream header declares no stream")
         if len(streams) < len(decoder.streams):  # the packets could not say which stream they belong to
-            ids = [s.id for s in decoder.streams]
             raise ProtocolError(f"{self.where}: the stream header declares stream id "
-                                f"{next(i for i in ids if ids.count(i) > 1)} twice")
+                                f"{Counter(s.id for s in decoder.streams).most_common(1)[0][0]} twice")
         for s in streams.values():
             if s.type not in _NAMES:
                 raise ProtocolError(f"{self.where} serves a {s.type} stream ('{s.name}'); --dv-input takes events "
@@ -130,6 +130,10 @@ class _Feed:
             if s.type in ("EVTS", "FRME") and (s.width <= 0 or s.height <= 0):  # as a replayed file's header
                 raise ProtocolError(f"{self.where}: the stream header gives the {_NAMES[s.type]} stream no sensor "
                                     f"size (sizeX/sizeY of its info node missing, zero or negative)")
+        twice, count = Counter(s.type for s in decoder.streams).most_common(1)[0]
+        if count > 1:  # the node takes one stream of each type
+            raise ProtocolError(f"{self.where}: the stream header declares {count} {_NAMES[twice]} streams; "
+                                f"edi-live reads one stream of each type")
         if self.streams:  # a reconnection: the same streams, the same sensor
             old = {(s.type, s.width, s.height) for s in self.streams.values()}
             new = {(s.type, s.width, s.height) for s in streams.values()}

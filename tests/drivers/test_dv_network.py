@@ -523,3 +523,17 @@ def test_frames_that_arrive_faster_than_they_are_taken_are_bounded_counted_and_t
     assert any(p.gap for p in packets) and source.status().gaps >= 1
     assert isinstance(error, DeviceDisconnectedError)
     assert any(f"{400 - len(got)} frame" in r.getMessage() for r in caplog.records), caplog.text
+
+
+def test_one_header_declaring_two_streams_of_one_type_names_that_endpoint():
+    """One endpoint whose header declares two IMU streams was refused with '--dv-input: two endpoints serve imu;
+    give one endpoint per stream type' (a usage error, exit 2) although only one endpoint was given."""
+    from edi_live.aedat4.writer import info_xml
+    xml = info_xml([(0, "EVTS", "events"), (1, "IMUS", "imu"), (2, "IMUS", "imu2")], 32, 24, "DAVIS346_00000001",
+                   "none")
+    with _hostile_server(_events_header(xml) + _events_packets()) as endpoint:
+        with pytest.raises(ProtocolError) as err:
+            with DvNetworkSource([endpoint], connect_timeout_s=2):
+                pass
+    message = str(err.value)
+    assert "\n" not in message and endpoint in message and "2 imu streams" in message and err.value.exit_code == 1

@@ -537,3 +537,39 @@ def test_one_header_declaring_two_streams_of_one_type_names_that_endpoint():
                 pass
     message = str(err.value)
     assert "\n" not in message and endpoint in message and "2 imu streams" in message and err.value.exit_code == 1
+
+
+def test_a_stop_while_a_server_trickles_a_packet_ends_the_reader_at_once():
+    """A peer sending a packet's body a byte at a time never let recv() time out, and the reader looked for stop()
+    only on a timeout: a stop waited for __exit__'s 2 s join per such endpoint, then closed the socket under it."""
+    import struct
+    done = threading.Event()
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    endpoint = f"tcp://127.0.0.1:{server.getsockname()[1]}"
+    started = threading.Event()
+
+    def trickle() -> None:
+        with server, server.accept()[0] as conn:
+            conn.sendall(_events_header() + _events_packets() + struct.pack("<ii", 0, 1 << 20))
+            started.set()
+            while not done.wait(0.02):  # the peer's pace, well inside each wait of the reader
+                conn.sendall(b"\0")
+
+    thread = threading.Thread(target=trickle, daemon=True)
+    thread.start()
+    try:
+        source = DvNetworkSource([endpoint], connect_timeout_s=2)
+        with source:
+            for packet in source:
+                if packet is not None and len(packet.events):
+                    break  # the events before the trickled packet have arrived
+            assert started.wait(5)
+            source.stop()
+            stopping = time.monotonic()
+        assert not source._feeds[0].thread.is_alive()
+        assert time.monotonic() - stopping < 1.5, "the reader did not see stop() while bytes kept coming"
+    finally:
+        done.set()
+        thread.join(5)

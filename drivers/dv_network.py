@@ -15,7 +15,8 @@ event stream (two cameras, or DV replaying an old file on one output only) is re
 starts again with an older clock (a recording served again) continues after the earlier times (drivers.dv_clock).
 
 Care as in the USB driver: one reader thread per connection feeds one bounded queue; when the consumer falls
-behind, the oldest queued event packets are dropped, counted, and the next packet is marked as a gap. Faults
+behind, the oldest queued event packets are dropped, counted, and the next packet is marked as a gap (frames, IMU
+and triggers beyond `max_queued_frame_bytes` too, said in a warning: drivers.dv_queue). Faults
 (connection refused, an unexpected stream type, a sensor-size change, a dropped connection, a corrupt packet) are
 one-line `SourceError`s raised after everything received before them has been yielded (when one stream ends, the
 others are read until they end too or stay silent for `end_grace_s`: DV closes its outputs one by one). With
@@ -24,15 +25,16 @@ others are read until they end too or stay silent for `end_grace_s`: DV closes i
 
 from __future__ import annotations
 
-import collections
 import logging
 import socket
 import struct
 import threading
 import time
+from collections import Counter
 from typing import Iterator, Sequence
 
 from drivers.dv_clock import DvClock
+from drivers.dv_queue import DvQueue
 from edi_live.aedat4 import Aedat4Reader, StreamInfo
 from edi_live.aedat4.compression import decompressor
 from edi_live.aedat4.reader import split_camera_label
@@ -47,6 +49,8 @@ _NAMES = {v: k for k, v in TYPES.items()}
 _HEAD = struct.Struct("<ii")
 MAX_HEADER_BYTES = 1 << 20
 MAX_PACKET_BYTES = 256 << 20
+_READ_CHUNK = 1 << 20
+_POLL_S = 0.2  # a reader blocked in recv() wakes up this often to check for stop()
 
 
 def parse_dv_endpoint(spec: str) -> tuple[str | None, str, int]:
@@ -77,6 +81,7 @@ class _Feed:
         self.decoder: Aedat4Reader | None = None
         self.streams: dict[int, StreamInfo] = {}
         self.thread: threading.Thread | None = None
+        self.header_deadline = 0.0
 
     def connect(self) -> None:
         """Connect and read the header; SourceError subclasses with one-line messages."""
@@ -89,7 +94,10 @@ class _Feed:
             raise DeviceNotFoundError(f"cannot connect to the DV stream at {self.where}: "
                                       f"{exc.strerror or exc}") from None
         try:
-            sock.settimeout(self.owner.connect_timeout_s)
+            # short waits, to see stop(), under one deadline for the whole header (a peer sending it byte by byte
+            # does not reset it)
+            sock.settimeout(_POLL_S)
+            self.header_deadline = time.monotonic() + self.owner.connect_timeout_s
             size = struct.unpack("<I", self._read(sock, 4, "the stream header"))[0]
             if not 0 < size <= MAX_HEADER_BYTES:
                 raise ProtocolError(f"{self.where} is not an AEDAT4 network stream (header size {size}); is it a DV "
@@ -100,7 +108,6 @@ class _Feed:
             except RecordingError as exc:
                 raise ProtocolError(f"{self.where} sent no valid AEDAT4 header ({exc})") from None
             self._check_header(decoder)
-            sock.settimeout(0.2)  # the reader thread wakes up to check for stop()
         except BaseException:
             sock.close()
             raise
@@ -110,6 +117,9 @@ class _Feed:
         streams = {s.id: s for s in decoder.streams}
         if not streams:
             raise ProtocolError(f"{self.where}: the stream header declares no stream")
+        if len(streams) < len(decoder.streams):  # the packets could not say which stream they belong to
+            raise ProtocolError(f"{self.where}: the stream header declares stream id "
+                                f"{Counter(s.id for s in decoder.streams).most_common(1)[0][0]} twice")
         for s in streams.values():
             if s.type not in _NAMES:
                 raise ProtocolError(f"{self.where} serves a {s.type} stream ('{s.name}'); --dv-input takes events "
@@ -117,6 +127,13 @@ class _Feed:
             if self.expect is not None and s.type != self.expect:
                 raise ProtocolError(f"{self.where} serves {_NAMES[s.type]} ({s.type}), not the "
                                     f"{_NAMES[self.expect]} its --dv-input prefix says")
+            if s.type in ("EVTS", "FRME") and (s.width <= 0 or s.height <= 0):  # as a replayed file's header
+                raise ProtocolError(f"{self.where}: the stream header gives the {_NAMES[s.type]} stream no sensor "
+                                    f"size (sizeX/sizeY of its info node missing, zero or negative)")
+        twice, count = Counter(s.type for s in decoder.streams).most_common(1)[0]
+        if count > 1:  # the node takes one stream of each type
+            raise ProtocolError(f"{self.where}: the stream header declares {count} {_NAMES[twice]} streams; "
+                                f"edi-live reads one stream of each type")
         if self.streams:  # a reconnection: the same streams, the same sensor
             old = {(s.type, s.width, s.height) for s in self.streams.values()}
             new = {(s.type, s.width, s.height) for s in streams.values()}
@@ -128,25 +145,29 @@ class _Feed:
         self.streams = streams
 
     def _read(self, sock: socket.socket, n: int, what: str) -> bytes:
-        buf = bytearray(n)
-        view, got = memoryview(buf), 0
+        # at most _READ_CHUNK at once: memory follows the bytes that arrive, not the size a peer announces
+        parts: list[bytes] = []
+        got = 0
         while got < n:
             try:
-                k = sock.recv_into(view[got:])
+                chunk = sock.recv(min(n - got, _READ_CHUNK))
             except socket.timeout:
-                if self.owner._stop.is_set():
-                    raise _Stopped() from None
-                if self.sock is None:  # still connecting: the server sent nothing
-                    raise ProtocolError(f"{self.where} accepted the connection but did not send {what} within "
-                                        f"{self.owner.connect_timeout_s:g} s (an old DV without the network "
-                                        f"header, or not a DV output?)") from None
-                continue
+                chunk = None
             except OSError as exc:
                 raise DeviceDisconnectedError(self._lost(f"connection lost ({exc.strerror or exc})")) from None
-            if not k:
+            if chunk == b"":
                 raise DeviceDisconnectedError(self._lost("the server closed the connection"))
-            got += k
-        return bytes(buf)
+            if chunk:
+                parts.append(chunk)
+                got += len(chunk)
+            # (checked after data too: a peer trickling bytes never lets recv() time out)
+            if self.owner._stop.is_set():
+                raise _Stopped()
+            if self.sock is None and got < n and time.monotonic() >= self.header_deadline:  # still connecting
+                raise ProtocolError(f"{self.where} accepted the connection but did not send {what} within "
+                                    f"{self.owner.connect_timeout_s:g} s (an old DV without the network "
+                                    f"header, or not a DV output?)")
+        return parts[0] if len(parts) == 1 else b"".join(parts)
 
     def _lost(self, why: str) -> str:
         kinds = "+".join(_NAMES[s.type] for s in self.streams.values()) or "DV"
@@ -168,9 +189,9 @@ class _Feed:
         except _Stopped:
             return
         except SourceError as exc:
-            owner._put(("fault", exc))
+            owner._queue.put(("fault", exc))
         except BaseException as exc:  # noqa: BLE001 - handed to the iterating thread as a source fault
-            owner._put(("fault", SourceError(f"DV reader for {self.where} failed: {type(exc).__name__}: {exc}")))
+            owner._queue.put(("fault", SourceError(f"DV reader for {self.where} failed: {type(exc).__name__}: {exc}")))
 
     def _pump(self) -> None:
         decode, decompress = self.decoder.decode_payload, decompressor(self.decoder.compression)
@@ -190,13 +211,13 @@ class _Feed:
             data = decode(stream, pos, payload, seq)
             seq += stream.type == "FRME"
             pos += 8 + size
-            self.owner._put((stream.type, data, arrival_ns))
+            self.owner._queue.put((stream.type, data, arrival_ns))
 
     def _reconnect(self) -> bool:
         if self.sock is not None:
             self.sock.close()
         self.sock = None
-        self.owner._mark_gap()
+        self.owner._queue.mark_gap()
         while not self.owner._stop.wait(self.owner.retry_s):
             try:
                 self.connect()
@@ -211,26 +232,24 @@ class _Stopped(Exception):
     pass
 
 
+
 class DvNetworkSource:
     """The `edi_live.source.Source` of one camera served by DV over TCP, one endpoint per stream (see module doc)."""
 
     def __init__(self, endpoints: Sequence[str], *, reconnect: bool = False, max_queued_events: int = 4_000_000,
-                 max_queued_items: int = 100_000, connect_timeout_s: float = 5.0, retry_s: float = 0.5,
+                 max_queued_items: int = 100_000, max_queued_frame_bytes: int = 256 << 20,
+                 connect_timeout_s: float = 5.0, retry_s: float = 0.5,
                  frame_wait_s: float = 1.0, max_clock_skew_us: int = 10_000_000, end_grace_s: float = 1.0) -> None:
         if not endpoints:
             raise ConfigError("--dv-input needs at least one endpoint, e.g. tcp://127.0.0.1:7777")
         self.reconnect = bool(reconnect)
-        self.max_queued_events, self.max_queued_items = max_queued_events, max_queued_items
         self.connect_timeout_s, self.retry_s, self.frame_wait_s = connect_timeout_s, retry_s, frame_wait_s
         self.max_clock_skew_us, self.end_grace_s = max_clock_skew_us, end_grace_s
         self._feeds = [_Feed(spec, self) for spec in endpoints]
         self.info = SourceInfo(0, 0, name="DV", kind="network")
         self._stop = threading.Event()
-        self._cv = threading.Condition()
-        self._queue: collections.deque = collections.deque()
-        self._queued_events = 0
-        self._gap = False
         self._status = SourceStatus()
+        self._queue = DvQueue(self._status, max_queued_events, max_queued_items, max_queued_frame_bytes)
 
     # ---- Source protocol ----------------------------------------------------------------------------
     def __enter__(self) -> "DvNetworkSource":
@@ -238,6 +257,9 @@ class DvNetworkSource:
             for feed in self._feeds:
                 feed.connect()
             self.info = self._combined_info()
+        except _Stopped:  # stop() while a server was still sending its header: nothing to read, iteration ends
+            self._close()
+            return self
         except BaseException:
             self._close()
             raise
@@ -252,23 +274,22 @@ class DvNetworkSource:
 
     def stop(self) -> None:
         self._stop.set()
-        with self._cv:
-            self._cv.notify_all()
+        self._queue.wake()
 
     def status(self) -> SourceStatus:
-        self._status.backlog = self._queued_events
+        self._status.backlog = self._queue.queued_events
         return self._status
 
     def __iter__(self) -> Iterator[Packet | None]:
         held: list[tuple[float, Frame]] = []  # frames waiting for their events: (wall-clock arrival, frame)
         events_to = -(2**62)  # newest event time yielded
         frame_clock_checked = False
-        clock = DvClock(self._mark_gap)  # a server that starts again: its times continue after the earlier ones
+        clock = DvClock(self._queue.mark_gap)  # a server starting again: its times continue after the earlier ones
         ended: SourceError | None = None  # a stream ended while others still deliver: raised once they are done
         last_item = time.monotonic()
         st = self._status
         while not self._stop.is_set():
-            item = self._get(0.1)
+            item = self._queue.get(0.1, self._stop)
             fault = None
             packet = Packet()
             if item is not None and item[0] != "fault":
@@ -288,7 +309,7 @@ class DvNetworkSource:
                     keep = events["t"] >= events_to
                     st.dropped_events += int(len(events) - keep.sum())
                     events = events[keep]
-                    self._mark_gap()
+                    self._queue.mark_gap()
                 if len(events):
                     events_to = int(events["t"][-1])
                     packet.events, packet.arrival_ns = events, item[2]
@@ -317,8 +338,7 @@ class DvNetworkSource:
                 held = [h for h, d in zip(held, due) if not d]
             if len(packet.events) or packet.frames or len(packet.imu) or len(packet.triggers):
                 packet.watermark_us = events_to
-                with self._cv:
-                    packet.gap, self._gap = self._gap, False
+                packet.gap = self._queue.take_gap()
                 st.packets += 1
                 st.events += len(packet.events)
                 st.frames += len(packet.frames)
@@ -350,46 +370,8 @@ class DvNetworkSource:
         return SourceInfo(w, h, name=name, serial=serial, kind="network",
                           color_filter=next((s.color_filter for s in streams if s.color_filter), None))
 
-    def _put(self, item: tuple) -> None:
-        with self._cv:
-            if item[0] == "EVTS":
-                self._queued_events += len(item[1])
-            self._queue.append(item)
-            while (self._queued_events > self.max_queued_events or len(self._queue) > self.max_queued_items) \
-                    and self._drop_oldest():
-                pass
-            self._cv.notify()
-
-    def _drop_oldest(self) -> bool:
-        """Drop the oldest queued event packet (faults, frames and IMU are kept); False when there is none."""
-        for i, queued in enumerate(self._queue):
-            if queued[0] == "EVTS":
-                del self._queue[i]
-                self._queued_events -= len(queued[1])
-                self._status.dropped_events += len(queued[1])
-                self._status.gaps += not self._gap
-                self._gap = True
-                return True
-        return False
-
-    def _get(self, timeout_s: float) -> tuple | None:
-        with self._cv:
-            if not self._queue and not self._stop.is_set():
-                self._cv.wait(timeout_s)
-            if not self._queue:
-                return None
-            item = self._queue.popleft()
-            if item[0] == "EVTS":
-                self._queued_events -= len(item[1])
-            return item
-
-    def _mark_gap(self) -> None:
-        with self._cv:
-            if not self._gap:
-                self._status.gaps += 1
-            self._gap = True
-
     def _close(self) -> None:
+        self._queue.report_drops()
         self._stop.set()
         for feed in self._feeds:
             if feed.thread is not None:

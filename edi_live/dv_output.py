@@ -22,6 +22,7 @@ all there was before: 138 of 148 deblurred frames of a looped real recording nev
 from __future__ import annotations
 
 import collections
+import errno
 import logging
 import selectors
 import socket
@@ -48,6 +49,10 @@ DEFAULT_HOLD_S = 0.1  # wall time a frame may wait for an older one (the deblurr
 _CLIENT_LINES = 20  # log lines about clients connecting and leaving, before they are only counted
 _STOP_FLUSH_S = 0.5  # at close, how long clients get to take what is already queued for them
 _HEAD = struct.Struct("<ii")
+# errors Linux's accept() passes on from the connection being accepted; accept(2): "treat them like EAGAIN"
+_CLIENT_ACCEPT_ERRNOS = {getattr(errno, name) for name in ("EPROTO", "ENOPROTOOPT", "EHOSTDOWN", "ENONET",
+                                                            "EHOSTUNREACH", "EOPNOTSUPP", "ENETUNREACH", "ENETDOWN",
+                                                            "EPERM") if hasattr(errno, name)}
 _RECONSTRUCTION = S.FRAME_SOURCES["reconstruction"]
 
 
@@ -233,13 +238,23 @@ class DvOutput:
             sock, addr = self._listener.accept()
         except (BlockingIOError, InterruptedError):
             return
+        except OSError as exc:
+            if not isinstance(exc, ConnectionError) and exc.errno not in _CLIENT_ACCEPT_ERRNOS:
+                raise  # the server's own trouble (no file descriptors left, ...): the node's error line
+            self._client_log(logging.INFO, "a DV client failed while connecting (%s)", exc.strerror or exc)
+            return
         peer = f"{addr[0]}:{addr[1]}"
         if len(self._clients) >= self.max_clients:
             self._client_log(logging.WARNING, "refused DV client %s (already %d clients)", peer, self.max_clients)
             sock.close()
             return
-        sock.setblocking(False)
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        try:
+            sock.setblocking(False)
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        except OSError as exc:  # (EINVAL on some systems for a connection already reset)
+            sock.close()
+            self._client_log(logging.INFO, "DV client %s failed while connecting (%s)", peer, exc.strerror or exc)
+            return
         client = _Client(sock, peer, self._header)
         self._clients[sock.fileno()] = client
         self.connections += 1

@@ -3,10 +3,12 @@ per stream, as DV serves them) replaying the real DAVIS346 recordings."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Callable
@@ -331,3 +333,243 @@ def test_colour_frames_from_a_dv_network_writer_arrive_as_bgr(tmp_path, rng):
             peer.finish()
     frames = [f for p in packets for f in p.frames]
     assert len(frames) == 2 and all(np.array_equal(f.image, image) for f, image in zip(frames, bgr))
+
+
+# ---- hostile or broken servers: a plain socket server on the loopback sends exactly the bytes the test gives
+
+def _events_header(xml: bytes | None = None) -> bytes:
+    from edi_live.aedat4.writer import info_xml, io_header
+    xml = xml if xml is not None else info_xml([(0, "EVTS", "events")], 32, 24, "DAVIS346_00000001", "none")
+    return io_header("none", -1, xml)[0]
+
+
+def _events_packets(n: int = 300) -> bytes:
+    import struct
+
+    from edi_live.aedat4.writer import events_payloads
+    from edi_live.datatypes import EVENT_DTYPE
+    ev = np.zeros(n, EVENT_DTYPE)
+    ev["t"] = 1_700_000_000_000_000 + np.arange(n) * 10
+    ev["x"], ev["y"], ev["p"] = np.arange(n) % 32, np.arange(n) % 24, np.arange(n) % 2 == 0
+    return b"".join(struct.pack("<ii", 0, len(p)) + p for p, *_ in events_payloads(ev))
+
+
+@contextlib.contextmanager
+def _hostile_server(data: bytes, sent: threading.Event | None = None, release: threading.Event | None = None):
+    """A one-connection TCP server that sends `data`, sets `sent`, waits for `release` (when given), then closes;
+    yields its endpoint."""
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    server.settimeout(10)
+
+    def run() -> None:
+        try:
+            conn, _ = server.accept()
+            with conn:
+                conn.sendall(data)
+                if sent is not None:
+                    sent.set()
+                if release is not None:
+                    release.wait(10)
+        except OSError:
+            pass
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    try:
+        yield f"tcp://127.0.0.1:{server.getsockname()[1]}"
+    finally:
+        thread.join(10)
+        server.close()
+
+
+@pytest.mark.parametrize("width, height", [(0, 0), (-5, 24), (346, 0), (None, None)])
+def test_a_header_without_a_sensor_size_is_the_streams_one_line_fault(width, height):
+    """An events stream whose header declares no usable sensor size (sizeX/sizeY missing, 0 or negative) was
+    accepted as a 0x0 sensor with its events; the node then stopped with 'sensor size must be positive (got 0x0)',
+    exit 2 (a usage error), naming neither the endpoint nor the header. A replayed file is refused the same way."""
+    from edi_live.aedat4.writer import info_xml
+    xml = info_xml([(0, "EVTS", "events")], 32, 24, "DAVIS346_00000001", "none")
+    if width is None:
+        xml = xml.replace(b'<attr key="sizeX" type="int">32</attr>', b"").replace(
+            b'<attr key="sizeY" type="int">24</attr>', b"")
+    else:
+        xml = xml.replace(b">32<", f">{width}<".encode()).replace(b">24<", f">{height}<".encode())
+    with _hostile_server(_events_header(xml) + _events_packets()) as endpoint:
+        with pytest.raises(ProtocolError) as err:
+            with DvNetworkSource([endpoint], connect_timeout_s=2):
+                pass
+    message = str(err.value)
+    assert "\n" not in message and endpoint in message and "sensor size" in message
+    assert err.value.exit_code == 1
+
+
+def test_two_streams_with_one_id_in_a_header_are_a_protocol_error():
+    """An events and a frames stream both declared as id 0: the frames entry replaced the events one, and the
+    node said '--dv-input: no endpoint serves events' (a usage error, exit 2) of an endpoint that declares them."""
+    from edi_live.aedat4.writer import info_xml
+    xml = info_xml([(0, "EVTS", "events"), (0, "FRME", "frames")], 32, 24, "DAVIS346_00000001", "none")
+    with _hostile_server(_events_header(xml) + _events_packets()) as endpoint:
+        with pytest.raises(ProtocolError) as err:
+            with DvNetworkSource([endpoint], connect_timeout_s=2):
+                pass
+    assert "\n" not in str(err.value) and endpoint in str(err.value) and "id 0" in str(err.value)
+
+
+def test_a_packet_announced_but_never_sent_costs_no_memory_of_its_announced_size():
+    """A peer announcing a packet of almost MAX_PACKET_BYTES (8 bytes) made the reader allocate all of it before
+    a byte of it arrived (and copy it at the end): 256 MB per connection for a slowloris. Memory now follows
+    what arrives. The peer closes mid-packet: the events before it are kept and the end is one line."""
+    import struct
+    import tracemalloc
+
+    from drivers.dv_network import MAX_PACKET_BYTES
+    data = _events_header() + _events_packets() + struct.pack("<ii", 0, MAX_PACKET_BYTES - 1) + b"\0" * 1000
+    tracemalloc.start()
+    try:
+        with _hostile_server(data) as endpoint:
+            with DvNetworkSource([endpoint], connect_timeout_s=2, end_grace_s=0.2) as source:
+                packets, error = _drain(source)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert sum(len(p.events) for p in packets) == 300
+    assert isinstance(error, DeviceDisconnectedError) and "\n" not in str(error)
+    assert peak < 32 << 20, f"{peak / 2**20:.0f} MB traced"
+
+
+def test_a_stop_while_a_server_stalls_inside_its_header_ends_the_opening_at_once():
+    """Ctrl-C while a server had sent a header size and then nothing: the node waited out connect_timeout_s, then
+    exited 1 with 'the main thread failed: _Stopped:' (an internal exception leaking). A stop now ends the opening
+    within the reader's poll, and the source then yields nothing (the node ends as a stopped node does)."""
+    import struct
+    sent, release, opened = threading.Event(), threading.Event(), threading.Event()
+    outcome: list = []
+    with _hostile_server(struct.pack("<I", 500) + b"\0" * 10, sent, release) as endpoint:
+        source = DvNetworkSource([endpoint], connect_timeout_s=60)
+
+        def open_it() -> None:
+            try:
+                with source:
+                    opened.set()
+                    outcome.append(list(source))
+            except BaseException as exc:  # noqa: BLE001 - the test reports it
+                outcome.append(exc)
+
+        opener = threading.Thread(target=open_it, daemon=True)
+        opener.start()
+        assert sent.wait(10)
+        source.stop()
+        opener.join(5)
+        release.set()
+    assert not opener.is_alive(), "the opening did not end after stop()"
+    assert opened.is_set() and outcome == [[]], outcome
+
+
+def test_a_header_sent_byte_by_byte_is_bounded_by_the_connect_timeout_as_a_whole():
+    """Each byte of the header restarted connect_timeout_s: a peer sending one byte every few seconds held the
+    node's start-up for as long as it liked (a 1 MB header: weeks). The whole header now has connect_timeout_s."""
+    import struct
+    header = struct.pack("<I", 500)
+    done = threading.Event()
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    endpoint = f"tcp://127.0.0.1:{server.getsockname()[1]}"
+
+    def trickle() -> None:
+        with server, server.accept()[0] as conn:
+            conn.sendall(header)
+            while not done.wait(0.05):  # the peer's pace, well inside each wait of the reader
+                conn.sendall(b"\0")
+
+    thread = threading.Thread(target=trickle, daemon=True)
+    thread.start()
+    started = time.monotonic()
+    try:
+        with pytest.raises(ProtocolError, match="did not send the stream header within 0.5 s"):
+            with DvNetworkSource([endpoint], connect_timeout_s=0.5):
+                pass
+    finally:
+        done.set()
+        thread.join(5)
+    assert time.monotonic() - started < 5
+
+
+def test_frames_that_arrive_faster_than_they_are_taken_are_bounded_counted_and_the_newest_kept(caplog):
+    """The queue between the readers and the consumer dropped only event packets: frames (and IMU, triggers) from
+    a server sending them faster than the node takes them queued without bound (a frames-only flood: all of
+    them in memory). Frames beyond max_queued_frame_bytes now drop the oldest ones, counted in a warning and
+    marked as a gap."""
+    import struct
+
+    from edi_live.aedat4.writer import frame_payload, info_xml
+    xml = info_xml([(0, "EVTS", "events"), (1, "FRME", "frames")], 32, 24, "DAVIS346_00000001", "none")
+    t0 = 1_700_000_000_000_000
+    frames = b"".join(struct.pack("<ii", 1, len(p)) + p for p in (
+        frame_payload(Frame(np.full((24, 32), k % 256, np.uint8), t0 + 1000 * k, t0 + 1000 * k + 10), 1)
+        for k in range(400)))
+    one_frame = 24 * 32
+    with _hostile_server(_events_header(xml) + frames) as endpoint:
+        source = DvNetworkSource([endpoint], max_queued_frame_bytes=50 * one_frame, end_grace_s=0.2)
+        with source, caplog.at_level("WARNING", logger="drivers.dv_network"):
+            source._feeds[0].thread.join(10)  # the reader has read everything the server sent, and its end
+            assert not source._feeds[0].thread.is_alive()
+            assert len(source._queue) <= 50 + 1  # the frames, and the end of the stream
+            packets, error = _drain(source)
+    got = [f for p in packets for f in p.frames]
+    assert 0 < len(got) <= 50 and got[-1].exposure_end_us == t0 + 1000 * 399 + 10  # the newest are kept
+    assert any(p.gap for p in packets) and source.status().gaps >= 1
+    assert isinstance(error, DeviceDisconnectedError)
+    assert any(f"{400 - len(got)} frame" in r.getMessage() for r in caplog.records), caplog.text
+
+
+def test_one_header_declaring_two_streams_of_one_type_names_that_endpoint():
+    """One endpoint whose header declares two IMU streams was refused with '--dv-input: two endpoints serve imu;
+    give one endpoint per stream type' (a usage error, exit 2) although only one endpoint was given."""
+    from edi_live.aedat4.writer import info_xml
+    xml = info_xml([(0, "EVTS", "events"), (1, "IMUS", "imu"), (2, "IMUS", "imu2")], 32, 24, "DAVIS346_00000001",
+                   "none")
+    with _hostile_server(_events_header(xml) + _events_packets()) as endpoint:
+        with pytest.raises(ProtocolError) as err:
+            with DvNetworkSource([endpoint], connect_timeout_s=2):
+                pass
+    message = str(err.value)
+    assert "\n" not in message and endpoint in message and "2 imu streams" in message and err.value.exit_code == 1
+
+
+def test_a_stop_while_a_server_trickles_a_packet_ends_the_reader_at_once():
+    """A peer sending a packet's body a byte at a time never let recv() time out, and the reader looked for stop()
+    only on a timeout: a stop waited for __exit__'s 2 s join per such endpoint, then closed the socket under it."""
+    import struct
+    done = threading.Event()
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    endpoint = f"tcp://127.0.0.1:{server.getsockname()[1]}"
+    started = threading.Event()
+
+    def trickle() -> None:
+        with server, server.accept()[0] as conn:
+            conn.sendall(_events_header() + _events_packets() + struct.pack("<ii", 0, 1 << 20))
+            started.set()
+            while not done.wait(0.02):  # the peer's pace, well inside each wait of the reader
+                conn.sendall(b"\0")
+
+    thread = threading.Thread(target=trickle, daemon=True)
+    thread.start()
+    try:
+        source = DvNetworkSource([endpoint], connect_timeout_s=2)
+        with source:
+            for packet in source:
+                if packet is not None and len(packet.events):
+                    break  # the events before the trickled packet have arrived
+            assert started.wait(5)
+            source.stop()
+            stopping = time.monotonic()
+        assert not source._feeds[0].thread.is_alive()
+        assert time.monotonic() - stopping < 1.5, "the reader did not see stop() while bytes kept coming"
+    finally:
+        done.set()
+        thread.join(5)

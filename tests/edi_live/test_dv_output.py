@@ -381,3 +381,48 @@ def test_a_flood_of_connections_is_logged_a_few_lines_then_counted(caplog):
     lines = [r.getMessage() for r in caplog.records if "DV client" in r.getMessage()]
     assert 1 <= len(lines) <= 25, len(lines)
     assert "60 client connection(s)" in caplog.records[-1].getMessage()  # the closing line counts them all
+
+
+def test_an_error_that_accept_passes_on_from_a_client_costs_that_client_only(monkeypatch):
+    """Linux's accept() hands a connection's pending network error to the server (ECONNABORTED, EPROTO,
+    EHOSTUNREACH, ... 'treat them like EAGAIN', accept(2)); such an error ended the server thread, and with it
+    the node ('dv-output-frames failed: ...'), for one client that went wrong while it connected."""
+    real_accept = socket.socket.accept
+    failed = []
+
+    def accept_failing_once(self):
+        if not failed:
+            failed.append(True)
+            raise ConnectionAbortedError(103, "Software caused connection abort")
+        return real_accept(self)
+
+    monkeypatch.setattr(socket.socket, "accept", accept_failing_once)
+    out = DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, hold_s=0)
+    out.start()
+    try:
+        host, port = parse_tcp_endpoint(out.bound_endpoint)
+        with socket.create_connection((host, port)) as client:
+            _wait(lambda: out.client_count() == 1 or out.error is not None)
+            assert out.error is None and failed
+            out.submit(_rec(T0, 5))
+            _, packets = _recv_stream(client, 1)
+        assert len(packets) == 1
+    finally:
+        out.close()
+
+
+def test_a_client_that_sends_data_is_dropped_and_the_others_keep_their_frames():
+    out = DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, hold_s=0)
+    out.start()
+    try:
+        host, port = parse_tcp_endpoint(out.bound_endpoint)
+        with socket.create_connection((host, port)) as good, socket.create_connection((host, port)) as bad:
+            _wait(lambda: out.client_count() == 2)
+            bad.sendall(b"GET / HTTP/1.1\r\n\r\n" + bytes(range(256)) * 64)
+            _wait(lambda: out.client_count() == 1)
+            for k in range(3):
+                out.submit(_rec(T0 + k, k))
+            _, packets = _recv_stream(good, 3)
+        assert len(packets) == 3 and out.error is None
+    finally:
+        out.close()

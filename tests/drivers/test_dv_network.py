@@ -3,7 +3,6 @@ per stream, as DV serves them) replaying the real DAVIS346 recordings."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import socket
 import subprocess
@@ -20,6 +19,7 @@ from drivers.dv_network import DvNetworkSource, parse_dv_endpoint
 from edi_live.aedat4 import Aedat4Reader
 from edi_live.datatypes import Frame
 from edi_live.errors import ConfigError, DeviceDisconnectedError, DeviceNotFoundError, ProtocolError, SourceError
+from tests.helpers.one_shot_server import one_shot_server
 
 pytest.importorskip("dv_processing")
 REPO = Path(__file__).resolve().parents[2]
@@ -354,36 +354,6 @@ def _events_packets(n: int = 300) -> bytes:
     return b"".join(struct.pack("<ii", 0, len(p)) + p for p, *_ in events_payloads(ev))
 
 
-@contextlib.contextmanager
-def _hostile_server(data: bytes, sent: threading.Event | None = None, release: threading.Event | None = None):
-    """A one-connection TCP server that sends `data`, sets `sent`, waits for `release` (when given), then closes;
-    yields its endpoint."""
-    server = socket.socket()
-    server.bind(("127.0.0.1", 0))
-    server.listen(1)
-    server.settimeout(10)
-
-    def run() -> None:
-        try:
-            conn, _ = server.accept()
-            with conn:
-                conn.sendall(data)
-                if sent is not None:
-                    sent.set()
-                if release is not None:
-                    release.wait(10)
-        except OSError:
-            pass
-
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-    try:
-        yield f"tcp://127.0.0.1:{server.getsockname()[1]}"
-    finally:
-        thread.join(10)
-        server.close()
-
-
 @pytest.mark.parametrize("width, height", [(0, 0), (-5, 24), (346, 0), (None, None)])
 def test_a_header_without_a_sensor_size_is_the_streams_one_line_fault(width, height):
     """An events stream whose header declares no usable sensor size (sizeX/sizeY missing, 0 or negative) was
@@ -396,7 +366,7 @@ def test_a_header_without_a_sensor_size_is_the_streams_one_line_fault(width, hei
             b'<attr key="sizeY" type="int">24</attr>', b"")
     else:
         xml = xml.replace(b">32<", f">{width}<".encode()).replace(b">24<", f">{height}<".encode())
-    with _hostile_server(_events_header(xml) + _events_packets()) as endpoint:
+    with one_shot_server(_events_header(xml) + _events_packets()) as endpoint:
         with pytest.raises(ProtocolError) as err:
             with DvNetworkSource([endpoint], connect_timeout_s=2):
                 pass
@@ -410,7 +380,7 @@ def test_two_streams_with_one_id_in_a_header_are_a_protocol_error():
     node said '--dv-input: no endpoint serves events' (a usage error, exit 2) of an endpoint that declares them."""
     from edi_live.aedat4.writer import info_xml
     xml = info_xml([(0, "EVTS", "events"), (0, "FRME", "frames")], 32, 24, "DAVIS346_00000001", "none")
-    with _hostile_server(_events_header(xml) + _events_packets()) as endpoint:
+    with one_shot_server(_events_header(xml) + _events_packets()) as endpoint:
         with pytest.raises(ProtocolError) as err:
             with DvNetworkSource([endpoint], connect_timeout_s=2):
                 pass
@@ -428,7 +398,7 @@ def test_a_packet_announced_but_never_sent_costs_no_memory_of_its_announced_size
     data = _events_header() + _events_packets() + struct.pack("<ii", 0, MAX_PACKET_BYTES - 1) + b"\0" * 1000
     tracemalloc.start()
     try:
-        with _hostile_server(data) as endpoint:
+        with one_shot_server(data) as endpoint:
             with DvNetworkSource([endpoint], connect_timeout_s=2, end_grace_s=0.2) as source:
                 packets, error = _drain(source)
         peak = tracemalloc.get_traced_memory()[1]
@@ -446,7 +416,7 @@ def test_a_stop_while_a_server_stalls_inside_its_header_ends_the_opening_at_once
     import struct
     sent, release, opened = threading.Event(), threading.Event(), threading.Event()
     outcome: list = []
-    with _hostile_server(struct.pack("<I", 500) + b"\0" * 10, sent, release) as endpoint:
+    with one_shot_server(struct.pack("<I", 500) + b"\0" * 10, sent, release) as endpoint:
         source = DvNetworkSource([endpoint], connect_timeout_s=60)
 
         def open_it() -> None:
@@ -511,7 +481,7 @@ def test_frames_that_arrive_faster_than_they_are_taken_are_bounded_counted_and_t
         frame_payload(Frame(np.full((24, 32), k % 256, np.uint8), t0 + 1000 * k, t0 + 1000 * k + 10), 1)
         for k in range(400)))
     one_frame = 24 * 32
-    with _hostile_server(_events_header(xml) + frames) as endpoint:
+    with one_shot_server(_events_header(xml) + frames) as endpoint:
         source = DvNetworkSource([endpoint], max_queued_frame_bytes=50 * one_frame, end_grace_s=0.2)
         with source, caplog.at_level("WARNING", logger="drivers.dv_network"):
             source._feeds[0].thread.join(10)  # the reader has read everything the server sent, and its end
@@ -531,7 +501,7 @@ def test_one_header_declaring_two_streams_of_one_type_names_that_endpoint():
     from edi_live.aedat4.writer import info_xml
     xml = info_xml([(0, "EVTS", "events"), (1, "IMUS", "imu"), (2, "IMUS", "imu2")], 32, 24, "DAVIS346_00000001",
                    "none")
-    with _hostile_server(_events_header(xml) + _events_packets()) as endpoint:
+    with one_shot_server(_events_header(xml) + _events_packets()) as endpoint:
         with pytest.raises(ProtocolError) as err:
             with DvNetworkSource([endpoint], connect_timeout_s=2):
                 pass

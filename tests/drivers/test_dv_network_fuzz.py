@@ -4,9 +4,7 @@ at most one one-line SourceError; never another exception, a hang or unbounded m
 
 from __future__ import annotations
 
-import socket
 import struct
-import threading
 
 import numpy as np
 from hypothesis import HealthCheck, given, settings
@@ -16,6 +14,7 @@ from drivers.dv_network import DvNetworkSource
 from edi_live.aedat4.writer import events_payloads, info_xml, io_header
 from edi_live.datatypes import EVENT_DTYPE
 from edi_live.errors import SourceError
+from tests.helpers.one_shot_server import serve_once
 
 
 def _valid_stream() -> bytes:
@@ -31,27 +30,6 @@ def _valid_stream() -> bytes:
 VALID = _valid_stream()
 
 
-def _serve_once(data: bytes) -> tuple[int, threading.Thread]:
-    server = socket.socket()
-    server.bind(("127.0.0.1", 0))
-    server.listen(1)
-    server.settimeout(10)
-
-    def run() -> None:
-        try:
-            conn, _ = server.accept()
-            with conn:
-                conn.sendall(data)
-        except OSError:
-            pass
-        finally:
-            server.close()
-
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-    return server.getsockname()[1], thread
-
-
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.lists(st.tuples(st.integers(0, len(VALID) - 1), st.integers(1, 255)), max_size=6),
        st.one_of(st.none(), st.integers(0, len(VALID))), st.binary(max_size=64))
@@ -60,7 +38,7 @@ def test_a_mangled_dv_stream_ends_in_packets_and_at_most_one_clear_error(flips, 
     for where, xor in flips:
         data[where] ^= xor
     data = bytes(data[:cut] if cut is not None else data) + tail
-    port, server = _serve_once(data)
+    port, server = serve_once(data)
     events = 0
     try:
         with DvNetworkSource([f"tcp://127.0.0.1:{port}"]) as source:
@@ -76,7 +54,7 @@ def test_a_mangled_dv_stream_ends_in_packets_and_at_most_one_clear_error(flips, 
 
 
 def test_the_unmangled_stream_delivers_every_event():
-    port, server = _serve_once(VALID)
+    port, server = serve_once(VALID)
     events = []
     try:
         with DvNetworkSource([f"tcp://127.0.0.1:{port}"]) as source:

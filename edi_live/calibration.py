@@ -210,8 +210,11 @@ def _check_regular(path: Path) -> None:
 
 
 def save(cal: Calibration, path: Path | str) -> None:
-    """Write atomically (a temporary file renamed over the target), creating the folder."""
+    """Write atomically (a temporary file renamed over the target), creating the folder. A symbolic link is
+    written through: its target is replaced, the link stays (a calibration kept with a user's dotfiles)."""
     path = Path(path)
+    if path.is_symlink():
+        path = Path(os.path.realpath(path))
     _check_regular(path)
     data: dict[str, Any] = {"format": FORMAT, "version": VERSION,
                             **{f.name: getattr(cal, f.name) for f in dataclasses.fields(cal) if f.name != "noise"}}

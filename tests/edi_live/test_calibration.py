@@ -52,6 +52,17 @@ def test_a_damaged_calibration_is_one_config_error(tmp_path, content):
         calibration.load(tmp_path / "missing.json")
 
 
+def test_a_calibration_saved_through_a_symlink_replaces_its_target_and_keeps_the_link(tmp_path):
+    """--save-calibration to a symbolic link (a calibration kept with a user's dotfiles) replaced the link with a
+    regular file: the file the link pointed at kept the old values."""
+    target = tmp_path / "dotfiles" / "cam.json"
+    calibration.save(calibration.Calibration(CAM.label, 346, 260, 0.2, 0.2), target)
+    link = tmp_path / "cam.json"
+    link.symlink_to(target)
+    calibration.save(calibration.Calibration(CAM.label, 346, 260, 0.31, 0.27, 4.5), link)
+    assert link.is_symlink() and calibration.load(target).c_on == 0.31
+
+
 def _hand_edited(**changes: object) -> str:
     good = {"format": "edi-live calibration", "version": 1, "camera": CAM.label, "width": 346, "height": 260,
             "c_on": 0.3, "c_off": 0.3}

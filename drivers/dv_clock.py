@@ -22,6 +22,7 @@ from typing import Callable
 
 import numpy as np
 
+from edi_live.aedat4.header import STREAM_NAMES
 from edi_live.datatypes import Frame
 
 log = logging.getLogger(__name__)
@@ -30,7 +31,6 @@ RESTART_US = 100_000
 """A stream whose times go back by more than this restarted (DV sends ~1 ms event packets and frames every few
 tens of ms, in order)."""
 
-_NAMES = {"EVTS": "events", "FRME": "frames", "IMUS": "imu", "TRIG": "triggers"}
 
 
 class DvClock:
@@ -81,7 +81,7 @@ class DvClock:
             log.log(logging.WARNING if first_to_show else logging.DEBUG,
                     "the DV %s stream's clock went back %.3f s (its server started again, or serves a recording "
                     "again): its times now continue after the earlier ones (%+d µs)",
-                    _NAMES.get(kind, kind), (before - first) / 1e6, self._offsets[generation])
+                    STREAM_NAMES.get(kind, kind), (before - first) / 1e6, self._offsets[generation])
             self._on_restart()
             before = None
         self._last_raw[kind] = last if before is None else max(before, last)

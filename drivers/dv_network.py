@@ -36,6 +36,7 @@ from typing import Iterator, Sequence
 from drivers.dv_clock import DvClock
 from drivers.dv_queue import DvQueue
 from edi_live.aedat4 import Aedat4Reader, StreamInfo
+from edi_live.aedat4.header import STREAM_NAMES
 from edi_live.aedat4.compression import decompressor
 from edi_live.aedat4.reader import split_camera_label
 from edi_live.datatypes import Frame, Packet, SourceInfo, SourceStatus
@@ -44,8 +45,8 @@ from edi_live.errors import (ConfigError, DeviceDisconnectedError, DeviceNotFoun
 
 log = logging.getLogger(__name__)
 
-TYPES = {"events": "EVTS", "frames": "FRME", "imu": "IMUS", "triggers": "TRIG"}
-_NAMES = {v: k for k, v in TYPES.items()}
+_NAMES = STREAM_NAMES
+TYPES = {v: k for k, v in STREAM_NAMES.items()}
 _HEAD = struct.Struct("<ii")
 MAX_HEADER_BYTES = 1 << 20
 MAX_PACKET_BYTES = 256 << 20
@@ -230,7 +231,6 @@ class _Feed:
 
 class _Stopped(Exception):
     pass
-
 
 
 class DvNetworkSource:

@@ -13,10 +13,10 @@ import collections
 import logging
 import threading
 
+from edi_live.aedat4.header import STREAM_NAMES
 from edi_live.datatypes import SourceStatus
 
 log = logging.getLogger("drivers.dv_network")
-_NAMES = {"EVTS": "events", "FRME": "frames", "IMUS": "imu", "TRIG": "triggers"}
 
 
 def _nbytes(item: tuple) -> int:
@@ -73,7 +73,7 @@ class DvQueue:
             self.cv.notify_all()
 
     def mark_gap(self) -> None:
-        with self.cv:
+        with self.cv:  # (re-entrant: the drops below call it with the lock held)
             self.status.gaps += not self._gap
             self._gap = True
 
@@ -89,7 +89,7 @@ class DvQueue:
             dropped, self._dropped_other = self._dropped_other, collections.Counter()
         if dropped:
             log.warning("the DV input dropped %s that arrived faster than edi-live took them",
-                        ", ".join(f"{n} {'frames' if t == 'FRME' else _NAMES[t] + ' packets'}"
+                        ", ".join(f"{n} {'frames' if t == 'FRME' else STREAM_NAMES[t] + ' packets'}"
                                   for t, n in sorted(dropped.items())))
 
     def _drop_events(self) -> bool:
@@ -99,8 +99,7 @@ class DvQueue:
                 del self.items[i]
                 self.queued_events -= len(queued[1])
                 self.status.dropped_events += len(queued[1])
-                self.status.gaps += not self._gap
-                self._gap = True
+                self.mark_gap()
                 return True
         return False
 
@@ -112,9 +111,8 @@ class DvQueue:
                 self._other_bytes -= _nbytes(queued)
                 if not self._dropped_other:
                     log.warning("the DV %s arrive faster than edi-live takes them: the oldest are dropped "
-                                "(counted when the input closes)", _NAMES[queued[0]])
+                                "(counted when the input closes)", STREAM_NAMES[queued[0]])
                 self._dropped_other[queued[0]] += 1
-                self.status.gaps += not self._gap
-                self._gap = True
+                self.mark_gap()
                 return True
         return False

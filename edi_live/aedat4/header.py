@@ -17,12 +17,14 @@ from edi_live.datatypes import COLOR_FILTERS, ColorFilter, SourceInfo
 from edi_live.errors import RecordingError
 
 SUPPORTED_TYPES = ("EVTS", "FRME", "IMUS", "TRIG")
-
-_I32, _I64 = struct.Struct("<i"), struct.Struct("<q")
-
+STREAM_NAMES = {"EVTS": "events", "FRME": "frames", "IMUS": "imu", "TRIG": "triggers"}
+"""Each supported stream type identifier as a user names it (the DV network input's endpoint prefixes)."""
 
 MAX_SENSOR_SIDE = 8192
 """Sensor sides above this are refused as a damaged header (the largest event cameras are 1280 wide)."""
+
+_I32, _I64 = struct.Struct("<i"), struct.Struct("<q")
+
 
 @dataclass(frozen=True)
 class StreamInfo:

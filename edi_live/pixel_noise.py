@@ -180,13 +180,13 @@ class PixelNoise:
     def __init__(self, width: int, height: int, *, enabled: bool = True, fixed_hz: float | None = None,
                  start: NoiseRates | None = None, memory_s: float = 60.0, prior_s: float = PRIOR_S,
                  neighbour_events: int = 2, aps_tolerance_dn: float = 4.0, aps_tolerance_rel: float = 0.1,
-                 noisy_factor: float = 5.0, summary_every: int = 25) -> None:
+                 noisy_factor: float = 5.0, global_every: int = 25) -> None:
         self.width, self.height = width, height
         self.enabled = enabled
         self.fixed_hz = fixed_hz
         self.memory_s, self.prior_s, self.neighbour_events = memory_s, prior_s, neighbour_events
         self.aps_tolerance_dn, self.aps_tolerance_rel = aps_tolerance_dn, aps_tolerance_rel
-        self.noisy_factor, self.summary_every = noisy_factor, summary_every
+        self.noisy_factor, self.global_every = noisy_factor, global_every
         shape = (height, width)
         self._on = np.zeros(shape, np.float64)  # decayed ON counts in still windows
         self._off = np.zeros(shape, np.float64)
@@ -225,8 +225,8 @@ class PixelNoise:
             decay=math.exp(-dt / self.memory_s), interval_s=dt)
         self.updates += 1
         self._stale = True
-        if self.updates <= 4 or self.updates % self.summary_every == 0:  # the sensor-wide rates the next uses
-            self._refresh()
+        if self.updates <= 4 or self.updates % self.global_every == 0:  # the sensor-wide rates the next uses
+            self._refresh_global()
 
     def rates(self) -> NoiseRates | None:
         """What was observed so far (None when off, or fixed: a fixed rate is a setting, not a calibration)."""
@@ -238,12 +238,18 @@ class PixelNoise:
 
     def summary(self) -> dict[str, float | int]:
         """noise_hz_p50 / noise_hz_p99 (ON + OFF, Hz per pixel), noise_on_hz_p50, noise_off_hz_p50, noisy_pixels;
-        empty while off or before anything was seen. Refreshed every `summary_every` updates (~4 ms at 346x260),
-        and when asked for during the first 50 (a short recording's end-of-run figures are current): the figures
-        lag by at most `summary_every` frame pairs, and cost nothing while the scene is still (few updates)."""
-        if self._stale and self.updates <= 50:
-            self._refresh()  # on the caller's thread: a figure may mix two updates, never more
+        empty while off or before anything was seen. Computed when asked for after an update (~4 ms at 346x260,
+        on the caller's thread: a figure may mix two updates, never more), not per update: the node asks once a
+        stats interval, and a fast replay makes many updates between two asks."""
+        if self._stale:
+            self._refresh()
         return dict(self._summary)
+
+    def _refresh_global(self) -> None:
+        """The sensor-wide rates update() reads for its neighbour limit (two passes over the pixels)."""
+        if self.active and self._seconds.any():
+            self.global_on_hz = pooled_rate(self._on, self._seconds)
+            self.global_off_hz = pooled_rate(self._off, self._seconds)
 
     def _refresh(self) -> None:
         self._stale = False
@@ -258,14 +264,14 @@ class PixelNoise:
         if not self._seconds.any():
             self._summary = {}
             return
-        self.global_on_hz = pooled_rate(self._on, self._seconds)
-        self.global_off_hz = pooled_rate(self._off, self._seconds)
-        on = shrunk_rate(self._on, self._seconds, self.global_on_hz, self.prior_s)
-        off = shrunk_rate(self._off, self._seconds, self.global_off_hz, self.prior_s)
+        # its own sensor-wide rates: update()'s stay on their schedule, whoever asks for a summary when
+        g_on, g_off = pooled_rate(self._on, self._seconds), pooled_rate(self._off, self._seconds)
+        on = shrunk_rate(self._on, self._seconds, g_on, self.prior_s)
+        off = shrunk_rate(self._off, self._seconds, g_off, self.prior_s)
         # the percentiles of sorted copies: the same values (they depend on the multiset only), but numpy's sort
         # is ~4x faster than its selection on unsorted rates with few ties (a simulated sensor's)
         p50, p99 = np.percentile(np.sort(on + off, axis=None), [50, 99])
-        noisy = noisy_pixels(self._on + self._off, self._seconds, self.global_on_hz + self.global_off_hz,
+        noisy = noisy_pixels(self._on + self._off, self._seconds, g_on + g_off,
                              self.noisy_factor, self.prior_s)
         self._summary = {"noise_hz_p50": round(float(p50), 3), "noise_hz_p99": round(float(p99), 3),
                          "noise_on_hz_p50": round(float(median_of_sorted(np.sort(on, axis=None))), 3),

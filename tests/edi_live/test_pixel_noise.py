@@ -5,6 +5,8 @@ another camera; the compiled update does what its numpy reference does."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -331,3 +333,30 @@ def test_median_of_sorted_is_numpys_median_bit_for_bit(dtype):
             (values[:4], got, want)
     with pytest.warns(RuntimeWarning):  # no values: NaN, as numpy's median gives
         assert np.isnan(median_of_sorted(np.zeros(0, dtype)))
+
+
+def _noise_updates(seed: int, n: int, h: int = 20, w: int = 30):
+    """n frame pairs of Poisson counts on a still APS image, busy enough that the neighbour limit follows the
+    sensor-wide rate (λ over 8 neighbours well above 2)."""
+    rng = np.random.default_rng(seed)
+    b = np.full((h, w), 120.0, np.float32)
+    rate = rng.gamma(2.0, 4.0, h * w)  # Hz per pixel and polarity, a tail of noisier pixels
+    for _ in range(n):
+        yield rng.poisson(rate * 0.05), rng.poisson(rate * 0.05), b, b, 50_000
+
+
+def test_summary_is_current_when_asked_and_asking_changes_no_estimate():
+    """The summary is computed when the stats ask for it, from the counts as they stand (not those of up to 25
+    pairs before), and asking for it, on any schedule, leaves the estimate itself (the still test reads the
+    sensor-wide rates) as it would be without asking."""
+    asked, quiet = PixelNoise(30, 20), PixelNoise(30, 20)
+    for k, pair in enumerate(_noise_updates(8, 61)):
+        asked.update(*pair)
+        quiet.update(*pair)
+        if k % 3 == 0:
+            asked.summary()
+    assert asked.updates == 61  # between two refreshes of the sensor-wide rates (every 25)
+    assert quiet.summary() == _summary_reference(quiet)
+    assert asked.summary() == _summary_reference(asked)
+    for a, b in zip(dataclasses.astuple(asked.rates()), dataclasses.astuple(quiet.rates())):
+        np.testing.assert_array_equal(a, b)

@@ -74,6 +74,9 @@ def build_parser() -> argparse.ArgumentParser:
                                                                          "until the input ends or Ctrl-C)")
     edi = p.add_argument_group("EDI reconstruction")
     edi.add_argument("--every", type=int, metavar="N", help="emit a latent frame every N events (default: 1000)")
+    edi.add_argument("--every-ms", type=float, metavar="MS",
+                     help="... or at the first event MS ms of sensor time after the previous frame, whichever comes "
+                          "first (default: 2; 0 = by event count only)")
     edi.add_argument("--c", type=float, metavar="C", help="fixed contrast threshold for both polarities "
                                                           "(default: estimated, re-estimated when it stops fitting)")
     edi.add_argument("--c-on", type=float, metavar="C", help="fixed ON threshold (with --c-off)")

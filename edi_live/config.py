@@ -108,6 +108,7 @@ class EdiConfig:
     """What the worker emits and how the reconstructor gets its contrast threshold."""
 
     every: int = 1000  # emit a latent frame every N events
+    every_ms: float = 2.0  # ... or at the first event this much sensor time after the previous frame (0: events only)
     c: float | None = None  # fixed threshold for both polarities
     c_on: float | None = None
     c_off: float | None = None
@@ -146,6 +147,10 @@ class EdiConfig:
 
     def __post_init__(self) -> None:
         _int_in("every", self.every, 1, 10**12, "events per latent frame")
+        _check(isinstance(self.every_ms, (int, float)) and not isinstance(self.every_ms, bool)
+               and math.isfinite(self.every_ms) and 0 <= self.every_ms <= 3_600_000,
+               f"every-ms must be a number of milliseconds in [0, 3600000]; 0 = by event count only "
+               f"(got {self.every_ms!r})")
         for name in ("c", "c_on", "c_off"):
             value = getattr(self, name)
             _check(value is None or (isinstance(value, (int, float)) and 0.01 <= value <= 2.0),
@@ -301,6 +306,7 @@ OPTION_KEYS: dict[str, tuple[str, str, Any]] = {
     "ring_frames": ("ring", "capacity_frames", None),
     "ring_policy": ("ring", "policy", None),
     "every": ("edi", "every", None),
+    "every_ms": ("edi", "every_ms", _num),
     "c": ("edi", "c", _num),
     "c_on": ("edi", "c_on", _num),
     "c_off": ("edi", "c_off", _num),

@@ -7,7 +7,7 @@ deblurred it). Times are µs on the sensor clock; host times (latency, --max-fps
 comes) are time.monotonic. Without --max-fps and the deblur thread, the frames depend on the event stream only,
 not on how the reads cut it (a replay is repeatable). The policy, in full in docs/node.md:
 - an APS frame is deblurred once its exposure's events (event clock: frame_gate) are read; then a latent frame
-  every `every` events, at most `max_fps` per second;
+  every `every` events or `every_ms` of sensor time (frame_cadence), at most `max_fps` per second;
 - noise-only events (edi_live.activity) move the latent image but make no frame, an onset makes one at its first
   event; a still scene is deblurred, and a heartbeat sent, once per `heartbeat_s` of sensor time (still_frames);
 - "nearest" renders latent times past the midpoint from the next APS frame (nearest_mode); a gap pauses them;
@@ -29,6 +29,7 @@ from edi_live.config import EdiConfig
 from edi_live.datatypes import Frame, Reconstruction
 from edi_live.deblur_handover import DeblurThread, PendingDeblur
 from edi_live import held_frames
+from edi_live.frame_cadence import FrameCadence
 from edi_live.frame_demand import FrameDemand
 from edi_live.frame_gate import FrameGate, in_event_clock
 from edi_live.fused_mode import FusedHoldBack
@@ -73,6 +74,7 @@ class EdiWorker:
         self.error: BaseException | None = None
         # everything below is touched only by the worker thread (stats readers see plain ints)
         self._since = 0  # events since the last sent frame
+        self._cadence = FrameCadence(config.every, round(config.every_ms * 1000))  # ... and its sensor time
         self._await_reference = False  # after a gap: no latent frames until the next APS frame
         self._last_emit_s = 0.0
         self._last_arrival_ns = 0
@@ -227,8 +229,7 @@ class EdiWorker:
         events, n, every = chunk.events[lo:hi], hi - lo, self.config.every
         if self.config.max_fps is None and self.config.mode == "causal":  # batches: no frame is held back
             # up to _BATCH_FRAMES frames per call (the loop's frames); a 64k-event chunk at --every 1: 64k images
-            cuts = range(max(1, every - self._since), n + 1, every)
-            tail = n - cuts[-1] if len(cuts) else self._since + n
+            cuts, tail = self._cadence.cuts(events["t"], self._since)
             if self.demand.skip(len(cuts), self.quality):
                 cuts = cuts[:0]  # the events below still move the latent image
             pos = 0
@@ -246,20 +247,21 @@ class EdiWorker:
                 self.rec.on_events(events[pos:], chunk.arrival_ns_at(hi))
             self._since = tail
             return
-        pos = 0
+        pos, t = 0, events["t"]
         while pos < n and not self._abort.is_set():
-            take = min(n - pos, max(1, every - self._since))
+            take = self._cadence.take(t[pos:], self._since)
             part = events[pos:pos + take]
             pos += take
             self._since += take
             arrival = chunk.arrival_ns_at(lo + pos)
             self.rec.on_events(part, arrival)
-            if self._since >= every:
-                self._latent_due(int(part["t"][-1]), arrival)
+            if self._since >= every or self._cadence.due(int(t[pos - 1])):
+                self._latent_due(int(t[pos - 1]), arrival)
 
     def _latent_due(self, t_us: int, arrival_ns: int) -> None:
         now = time.monotonic()
         self._since = 0
+        self._cadence.made(t_us)
         if self.config.max_fps is not None and now - self._last_emit_s < 1.0 / self.config.max_fps:
             self.skipped_max_fps += 1
             return
@@ -372,6 +374,8 @@ class EdiWorker:
 
     def _emit(self, rec: Reconstruction, asked: bool = False) -> None:
         self._since = 0
+        if rec.kind == "latent":  # (a deblurred frame shows f: the latent frames' time rule goes on)
+            self._cadence.made(rec.t_us)
         self._count_emitted(rec, asked)
         self._to_sinks(rec)
 

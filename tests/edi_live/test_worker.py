@@ -144,7 +144,7 @@ def test_deblur_gets_every_event_of_the_exposure_and_latent_frames_follow_every_
     f = aps(1000, 3000)
     # the frame is delivered in the packet that holds its exposure end, as the Packet contract requires
     packets = [Packet(events=ev[:600]), Packet(events=ev[600:900], frames=[f]), Packet(events=ev[900:])]
-    worker, rec, out, errors = run_worker(packets, EdiConfig(every=500))
+    worker, rec, out, errors = run_worker(packets, EdiConfig(every=500, every_ms=0))  # by event count only
     assert not errors
     (frame, given), = rec.frames_given
     inside = ev[(ev["t"] >= 1000) & (ev["t"] <= 3000)]
@@ -180,8 +180,8 @@ def test_with_a_clock_offset_the_worker_reads_only_through_the_late_window_befor
     ev = events_at(t)
     rec = StandIn()
     rec.clock_offset_us = 2000
-    worker, rec, out, errors = run_worker([Packet(events=ev, frames=[aps(1000, 3000)])], EdiConfig(every=500),
-                                          rec=rec)
+    worker, rec, out, errors = run_worker([Packet(events=ev, frames=[aps(1000, 3000)])],
+                                          EdiConfig(every=500, every_ms=0), rec=rec)  # by event count only
     assert not errors
     (frame, given), = rec.frames_given
     assert given["t"].max() == t[t > 5000][0], "read through the first event after the late window, no further"
@@ -363,7 +363,8 @@ def test_static_aps_frames_are_not_sent_again():
     # one is not sent. The events span a few ms, as the activity test judges 1 ms spans of the event clock.
     ev = events_at(np.arange(0, 50) * 100)
     packets = [Packet(events=ev[:10], frames=[aps(0, 900)]), Packet(events=ev[10:], frames=[aps(2000, 4900)])]
-    worker, rec, out, errors = run_worker(packets, EdiConfig(every=1000, heartbeat_s=60))
+    # (every_ms=0: 40 events over 4 ms would make latent frames by the time rule, test_frame_cadence.py)
+    worker, rec, out, errors = run_worker(packets, EdiConfig(every=1000, heartbeat_s=60, every_ms=0))
     assert len(rec.frames_given) == 2  # both deblurred (the reference follows the newest frame)
     assert [r.kind for r in out] == ["deblurred"]
     assert worker.skipped_static == 1

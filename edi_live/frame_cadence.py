@@ -1,0 +1,90 @@
+"""When the streaming worker cuts a latent frame: every `every` events, or at the first event `every_us` of sensor
+time after the previous frame, whichever comes first.
+
+Counting events alone gives a slow scene a slow video: at 40k events/s and the default 1000 events a frame, a
+frame every 25 ms, fewer than the APS frames. The time rule bounds how stale the shown image gets while events
+come (none come, nothing changes: the heartbeat covers that). Both rules follow the event stream only (sensor
+time, counts), never the host clock, so a replay cuts the same frames however its reads are split.
+
+Plain functions and one small state object the worker thread owns; no threads, no I/O.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+_NEVER = np.iinfo(np.int64).max
+
+
+class FrameCadence:
+    """The time rule's clock: the sensor time of the latest latent frame (`made`; a deblurred frame shows its
+    mid-exposure, so it does not restart the clock). `every_us` 0: events only."""
+
+    def __init__(self, every: int, every_us: int) -> None:
+        if every < 1 or every_us < 0:
+            raise ValueError(f"a frame cadence needs every >= 1 and every_us >= 0 (got {every}, {every_us})")
+        self.every, self.every_us = int(every), int(every_us)
+        self.last_t = -_NEVER  # no frame yet: the time rule waits for the first one
+
+    def made(self, t_us: int) -> None:
+        """A frame at sensor time t_us (a latent frame's last event, a deblurred frame's mid-exposure)."""
+        self.last_t = max(self.last_t, int(t_us))
+
+    def _due_t(self) -> int:
+        return _NEVER if self.every_us == 0 or self.last_t == -_NEVER else self.last_t + self.every_us
+
+    def cuts(self, t: np.ndarray, since: int) -> tuple[Sequence[int], int]:
+        """(end index of each frame's last event in `t`, events left after the last one): for events in time
+        order following `since` events that made no frame yet. Moves the clock to the last cut."""
+        n, every = int(t.size), self.every
+        counted = range(max(1, every - since), n + 1, every)
+        if self.every_us and self.last_t == -_NEVER and len(counted):  # the first frame starts the time rule
+            first = counted[0]
+            self.made(int(t[first - 1]))
+            rest, left = self.cuts(t[first:], 0)
+            return [first, *(first + c for c in rest)], left
+        due = self._due_t()  # later frames fall due later still: a read that ends before it has count cuts only
+        if n == 0 or int(t[-1]) < due or _count_rule_wins(t, counted, due, self.every_us):
+            out: Sequence[int] = counted
+        else:  # some gap reaches every_us: walk frame by frame
+            out, pos, left = [], 0, every - since
+            while True:
+                by_time = int(np.searchsorted(t, due, "left")) + 1  # the first event at or past `due`, inclusive
+                end = min(pos + max(1, left), by_time)
+                if end > n:
+                    break
+                out.append(end)
+                pos, left = end, every
+                due = int(t[end - 1]) + self.every_us
+        if out:
+            self.made(int(t[out[-1] - 1]))
+            return out, n - out[-1]
+        return out, since + n
+
+    def take(self, t: np.ndarray, since: int) -> int:
+        """How many of `t` (time order) to take before the next frame is due by either rule (all when none is);
+        the caller cuts a frame when the count reaches `every` or the last event taken is past the time rule."""
+        by_count = max(1, self.every - since)
+        due = self._due_t()
+        if due == _NEVER or t.size == 0 or int(t[min(by_count, t.size) - 1]) < due:
+            return min(by_count, int(t.size))
+        return int(np.searchsorted(t, due, "left")) + 1
+
+    def due(self, t_us: int) -> bool:
+        """Whether an event at t_us makes a frame by the time rule."""
+        return t_us >= self._due_t()
+
+
+def _count_rule_wins(t: np.ndarray, counted: range, due: int, every_us: int) -> bool:
+    """Whether no event reaches the time rule before the count rule cuts (the common case on a busy scene): each
+    counted frame's last event comes before its time rule's due time, and the events after the last cut too."""
+    ends = np.asarray(counted, dtype=np.int64)
+    last = t[ends - 1] if ends.size else t[:0]
+    # the frame cut at ends[k] is due at due (k = 0) or last[k-1] + every_us; its events end at last[k]
+    starts = np.concatenate(([due], last[:-1] + every_us)) if ends.size else np.zeros(0, np.int64)
+    if ends.size and not np.all(last < starts):
+        return False
+    tail_due = int(last[-1]) + every_us if ends.size else due
+    return int(t[-1]) < tail_due

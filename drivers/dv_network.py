@@ -33,6 +33,7 @@ import time
 from collections import Counter
 from typing import Iterator, Sequence
 
+from drivers import tcp_connect
 from drivers.dv_clock import DvClock
 from drivers.dv_queue import DvQueue
 from edi_live.aedat4 import Aedat4Reader, StreamInfo
@@ -86,14 +87,16 @@ class _Feed:
 
     def connect(self) -> None:
         """Connect and read the header; SourceError subclasses with one-line messages."""
-        try:
-            sock = socket.create_connection((self.host, self.port), timeout=self.owner.connect_timeout_s)
+        try:  # (a stop ends the connect too: a peer that drops SYNs held it for connect_timeout_s)
+            sock = tcp_connect.connect(self.host, self.port, self.owner.connect_timeout_s, self.owner._stop)
         except ConnectionRefusedError:
             raise DeviceNotFoundError(f"cannot connect to the DV stream at {self.where}: connection refused (is DV's "
                                       f"network output or a dv-processing NetworkWriter serving there?)") from None
         except OSError as exc:
             raise DeviceNotFoundError(f"cannot connect to the DV stream at {self.where}: "
                                       f"{exc.strerror or exc}") from None
+        if sock is None:
+            raise _Stopped()
         try:
             # short waits, to see stop(), under one deadline for the whole header (a peer sending it byte by byte
             # does not reset it)

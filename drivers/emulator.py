@@ -4,15 +4,17 @@
 register protocol from a register file (versions, chip ID, sizes, orientation; every write is recorded), and
 streaming the 16-bit word stream synthesised by `drivers.davis.encoder` from a recording (an .aedat4 path read
 through `drivers.replay.merged_packets`, or any iterable of `Packet`s) or, with no recording, from a generated
-scene. Pacing maps device time to host time (`speed`, 0 = as fast as read). Faults are injected by keyword:
-no_device, permission_denied, busy, logic_version/logic_patch/firmware, unplug_after_bytes (+ replug_after_s),
-garbage_words (random words inserted), drop_words (words removed: truncated columns, lost rows), reset_at_us
-(timestamp reset mid-stream). Options: serial (default: one per recording file and per colour or mono sensor,
-`default_serial`), width/height, color_filter (a colour DAVIS346: the APS
-colour-filter register answers libcaer's code of this Bayer pattern and APS frames are sent as its mosaic;
-default: the recording's pattern, or mono), dvs_orientation,
-aps_orientation, imu_orientation, chip_id, seed, holdback_us (how far events are held back so that a frame,
-which arrives after the events of its exposure, can still be sent at its exposure start; default 200 ms).
+scene. Pacing maps device time to host time (`speed`, 0 = as fast as read) with drivers.pacing's Pacer on an
+injectable `clock`, anchored by the first part read after streaming starts and again after a timestamp reset; a
+stall of more than pacing.MAX_LATE_S (Ctrl-Z and fg) goes on from where it stopped, with one warning, as the replay
+does, instead of bursting the backlog. Faults are injected by keyword: no_device, permission_denied, busy,
+logic_version/logic_patch/firmware, unplug_after_bytes (+ replug_after_s), garbage_words (random words inserted),
+drop_words (words removed: truncated columns, lost rows), reset_at_us (timestamp reset mid-stream). Options: serial
+(default: one per recording file and per colour or mono sensor, `default_serial`), width/height, color_filter (a
+colour DAVIS346: the APS colour-filter register answers libcaer's code of this Bayer pattern and APS frames are
+sent as its mosaic; default: the recording's pattern, or mono), dvs_orientation, aps_orientation, imu_orientation,
+chip_id, seed, holdback_us (how far events are held back so that a frame, which arrives after the events of its
+exposure, can still be sent at its exposure start; default 200 ms).
 Data is released in ~1 ms parts of device time, like a camera's 1 ms early-packet delay. On unplug the part in
 flight is lost; after `replug_after_s` the device reappears and its clock restarts at 0.
 
@@ -28,7 +30,7 @@ import threading
 import time
 import zlib
 from array import array
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import usb.backend
@@ -38,6 +40,7 @@ from drivers.davis import models, protocol as P
 from drivers.davis.encoder import WordEncoder
 from drivers.davis.wordstream import WordStream
 from drivers.emulator_recording import as_sensor_frames, is_path, recording_color_filter, recording_factory, recording_size
+from drivers.pacing import Pacer
 from edi_live.datatypes import COLOR_FILTERS, ColorFilter
 from edi_live.errors import RecordingError
 from edi_live.simulation.stream import generated_scene
@@ -64,7 +67,7 @@ class EmulatorBackend(usb.backend.IBackend):
     edi_live_emulator = True
 
     def __init__(self, recording: Any = None, *, model: str | None = None, speed: float = 1.0, loop: bool = False,
-                 **faults: Any) -> None:
+                 clock: Callable[[], float] = time.monotonic, **faults: Any) -> None:
         unknown = set(faults) - _FAULTS
         if unknown:
             raise TypeError(f"unknown emulator options {sorted(unknown)} (known: {sorted(_FAULTS)})")
@@ -109,7 +112,9 @@ class EmulatorBackend(usb.backend.IBackend):
         self._unplugged_at: float | None = None
         self._opened = 0
         self._claimed = False
-        self._t0_mono: float | None = None
+        self._clock = clock
+        self._pacer = Pacer(self.speed, clock, name="emulation")
+        self._paced_t: int | None = None  # device time of the last part released
         self._garbage = int(faults.get("garbage_words", 0))
         self._drop_words = int(faults.get("drop_words", 0))
         self._rng = np.random.default_rng(int(faults.get("seed", 7)))
@@ -288,7 +293,8 @@ class EmulatorBackend(usb.backend.IBackend):
                 if self.stream.shift is not None and self.encoder.started:
                     self.stream.shift += self.encoder.last_t
                     self.encoder.timestamp_reset()
-            self._t0_mono = time.monotonic()
+                self._pacer = Pacer(self.speed, self._clock, name="emulation")  # anchored by the first part read
+                self._paced_t = None
 
     # -- bulk data --
     def _fill_locked(self, need_one: bool = False) -> None:
@@ -329,9 +335,12 @@ class EmulatorBackend(usb.backend.IBackend):
         if not self._pending:
             return 0
         data, dev_t = self._pending[0]
-        if self.speed > 0 and self._t0_mono is not None:
-            if time.monotonic() < self._t0_mono + dev_t / 1e6 / self.speed:
+        if not self._pacer.unpaced:
+            if self._paced_t is not None and dev_t < self._paced_t:  # a timestamp reset: device time restarts
+                self._pacer.anchor(dev_t)
+            if self._pacer.delay_s(dev_t) > 0:
                 return 0
+            self._paced_t = dev_t
         limit = self.faults.get("unplug_after_bytes")
         n = min(len(buff), len(data))
         if limit is not None:

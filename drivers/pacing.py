@@ -1,5 +1,5 @@
-"""Pacing: maps sensor time (µs) to host `time.monotonic()` with a speed factor, for the replay (drivers/replay.py;
-the USB emulator paces itself, from when it starts streaming, and does not re-anchor).
+"""Pacing: maps sensor time (µs) to host `time.monotonic()` with a speed factor, for the replay (drivers/replay.py)
+and the USB emulator's device time (drivers/emulator.py).
 
 speed 1 replays in real time, 4 four times faster, 0 as fast as possible. The schedule is anchored once (the first
 timestamp meets the first call), so waiting never accumulates drift. A jump of the recording's clock by more than
@@ -33,11 +33,12 @@ MAX_LATE_S = 1.0
 class Pacer:
     """Decides when data stamped `t_us` is due on the host clock."""
 
-    def __init__(self, speed: float = 1.0, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(self, speed: float = 1.0, clock: Callable[[], float] = time.monotonic, name: str = "replay") -> None:
         if not speed >= 0:  # also rejects NaN
             raise ValueError(f"speed must be >= 0 (got {speed})")
         self.speed = float(speed)
         self._clock = clock
+        self._name = name  # what is paced, in the warnings
         self._anchor_t_us: int | None = None
         self._anchor_s = 0.0
         self._latest_t_us: int | None = None
@@ -76,9 +77,9 @@ class Pacer:
         if delay < -MAX_LATE_S:
             self.anchor(t_us)
             (log.debug if self._late_warned else log.warning)(
-                "paced replay resumed %.1f s behind its schedule, %.1f s into the replay (the process was "
-                "stopped, or could not keep up): it goes on from there at its speed instead of rushing through the "
-                "backlog", -delay, _replayed_s(t_us, self._first_t_us, self._jumped_us))
+                "paced %s resumed %.1f s behind its schedule, %.1f s into the %s (the process was stopped, or could "
+                "not keep up): it goes on from there at its speed instead of rushing through the backlog",
+                self._name, -delay, _replayed_s(t_us, self._first_t_us, self._jumped_us), self._name)
             self._late_warned = True
             return 0.0
         return delay

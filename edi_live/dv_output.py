@@ -12,11 +12,15 @@ Owns: the listening socket and its thread ([dv-output-frames] / [dv-output-event
 encodes (edi_live.aedat4.writer's payload functions) and fans every packet out with non-blocking sends.
 Never stalls the caller: `submit()` only appends to a bounded inbox (oldest dropped when full), and each client
 has a bounded queue of whole packets; a client that reads too slowly (or not at all) loses its oldest unsent
-packets, counted in `dropped`, and never holds up the others. Frames keep a time-ordered stream (DV's
-recorders reject a stream that goes back in time): in causal mode an APS frame's deblurred keyframe comes after
-newer latent frames, so frames are put back in order (edi_live.frame_order) before they are sent, each held at
-most `hold_s` of wall time; a frame older than one already sent is skipped and counted in `late`. (Skipping was
-all there was before: 138 of 148 deblurred frames of a looped real recording never reached a DV client.)
+packets, counted in `dropped`, and never holds up the others. The client slots (`max_clients`, 10 as in DV) cannot
+be held by clients that never read: when the server is full, a newcomer first takes the slot of a client that has
+gone (its end of the connection not yet seen), then that of the client stalled longest (its queue full and nothing
+taken for `stall_s`), which is dropped with one line naming it; with no such client the newcomer is refused.
+Frames keep a time-ordered stream (DV's recorders reject a stream that goes back in time): in causal mode an APS
+frame's deblurred keyframe comes after newer latent frames, so frames are put back in order (edi_live.frame_order)
+before they are sent, each held at most `hold_s` of wall time; a frame older than one already sent is skipped and
+counted in `late`. (Skipping was all there was before: 138 of 148 deblurred frames of a looped real recording never
+reached a DV client.)
 """
 
 from __future__ import annotations
@@ -46,6 +50,9 @@ DEFAULT_MAX_CLIENTS = 10  # as DV's and dv-processing's servers
 DEFAULT_CLIENT_QUEUE = 32  # packets waiting per client before its oldest are dropped
 DEFAULT_INBOX = 256
 DEFAULT_HOLD_S = 0.1  # wall time a frame may wait for an older one (the deblurred keyframe) before it is sent
+DEFAULT_STALL_S = 2.0  # a client whose queue is full and that took nothing for this long gives its slot to a newcomer
+_BACKLOG = 64  # connections the kernel holds until they are accepted (a burst of them: a hostile client, a restart)
+_ACCEPTS = 64  # connections accepted in one go; the clients are served between such batches
 _CLIENT_LINES = 20  # log lines about clients connecting and leaving, before they are only counted
 _STOP_FLUSH_S = 0.5  # at close, how long clients get to take what is already queued for them
 _HEAD = struct.Struct("<ii")
@@ -57,13 +64,14 @@ _RECONSTRUCTION = S.FRAME_SOURCES["reconstruction"]
 
 
 class _Client:
-    __slots__ = ("sock", "peer", "queue", "current", "in_header")
+    __slots__ = ("sock", "peer", "queue", "current", "in_header", "taken_s")
 
     def __init__(self, sock: socket.socket, peer: str, header: bytes) -> None:
         self.sock, self.peer = sock, peer
         self.queue: collections.deque[bytes] = collections.deque()
         self.current = memoryview(header)  # the header is never dropped: it is the first thing sent
         self.in_header = True
+        self.taken_s = time.monotonic()  # when it last took bytes (or connected)
 
 
 class DvOutput:
@@ -76,7 +84,7 @@ class DvOutput:
     def __init__(self, endpoint: str, stream: str, width: int, height: int, *, camera_name: str = "edi-live",
                  compression: str = "none", client_queue: int = DEFAULT_CLIENT_QUEUE, inbox: int = DEFAULT_INBOX,
                  max_clients: int = DEFAULT_MAX_CLIENTS, hold_s: float = DEFAULT_HOLD_S,
-                 on_error: Callable[[BaseException], None] | None = None) -> None:
+                 stall_s: float = DEFAULT_STALL_S, on_error: Callable[[BaseException], None] | None = None) -> None:
         if stream not in STREAMS:
             raise ValueError(f"stream must be one of {', '.join(STREAMS)} (got {stream!r})")
         self.endpoint, self.stream = endpoint, stream
@@ -84,6 +92,7 @@ class DvOutput:
                                                   else "--dv-output-events")
         self.width, self.height, self.camera_name = width, height, camera_name
         self.client_queue, self.inbox_size, self.max_clients = client_queue, inbox, max_clients
+        self.stall_s = stall_s
         self._compress = compressor(compression)
         xml = info_xml([(0, STREAMS[stream], stream)], width, height, camera_name, compression)
         self._header = io_header(compression, -1, xml)[0]
@@ -123,7 +132,7 @@ class DvOutput:
         try:
             listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             listener.bind(address)
-            listener.listen(8)
+            listener.listen(_BACKLOG)
         except OSError as exc:
             listener.close()
             why = "address already in use (another program holds that port)" if exc.errno == 98 else exc.strerror
@@ -234,17 +243,23 @@ class DvOutput:
             pass
 
     def _accept(self, sel: selectors.BaseSelector) -> None:
-        try:
-            sock, addr = self._listener.accept()
-        except (BlockingIOError, InterruptedError):
-            return
-        except OSError as exc:
-            if not isinstance(exc, ConnectionError) and exc.errno not in _CLIENT_ACCEPT_ERRNOS:
-                raise  # the server's own trouble (no file descriptors left, ...): the node's error line
-            self._client_log(logging.INFO, "a DV client failed while connecting (%s)", exc.strerror or exc)
-            return
-        peer = f"{addr[0]}:{addr[1]}"
-        if len(self._clients) >= self.max_clients:
+        """Accept what is waiting, up to _ACCEPTS at once: one per wake-up let a client connecting in a loop fill
+        the kernel's backlog, and every further connection (a real viewer's too) waited a second for its SYN to
+        be sent again."""
+        for _ in range(_ACCEPTS):
+            try:
+                sock, addr = self._listener.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:
+                if not isinstance(exc, ConnectionError) and exc.errno not in _CLIENT_ACCEPT_ERRNOS:
+                    raise  # the server's own trouble (no file descriptors left, ...): the node's error line
+                self._client_log(logging.INFO, "a DV client failed while connecting (%s)", exc.strerror or exc)
+                continue
+            self._admit(sel, sock, f"{addr[0]}:{addr[1]}")
+
+    def _admit(self, sel: selectors.BaseSelector, sock: socket.socket, peer: str) -> None:
+        if len(self._clients) >= self.max_clients and not self._make_room(sel, peer):
             self._client_log(logging.WARNING, "refused DV client %s (already %d clients)", peer, self.max_clients)
             sock.close()
             return
@@ -261,17 +276,38 @@ class DvOutput:
         sel.register(sock, selectors.EVENT_READ | selectors.EVENT_WRITE, client)
         self._client_log(logging.INFO, "DV client %s connected", peer)
 
+    def _make_room(self, sel: selectors.BaseSelector, newcomer: str) -> bool:
+        """A full server: drop the clients that have gone, else the one stalled longest. True if a slot is free."""
+        for client in list(self._clients.values()):
+            self._check_read(sel, client)
+        if len(self._clients) < self.max_clients:
+            return True
+        now = time.monotonic()
+        stalled = [c for c in self._clients.values()
+                   if len(c.queue) >= self.client_queue and now - c.taken_s >= self.stall_s]
+        if not stalled:
+            return False
+        victim = min(stalled, key=lambda c: c.taken_s)
+        self._drop_client(sel, victim, None)
+        self._client_log(logging.WARNING, "dropped DV client %s, which took nothing for %.1f s (its queue full), "
+                         "to make room for %s", victim.peer, now - victim.taken_s, newcomer)
+        return True
+
+    def _check_read(self, sel: selectors.BaseSelector, client: _Client) -> bool:
+        """Drop a client whose connection ended or that sent data; True if it is still there."""
+        try:
+            data = client.sock.recv(4096)
+        except (BlockingIOError, InterruptedError):
+            return True
+        except OSError:
+            data = b""
+        # end of stream, or data a DV client must never send (DV closes then too)
+        self._drop_client(sel, client, "disconnected" if not data else "sent data (not a DV client?)")
+        return False
+
     def _service(self, sel: selectors.BaseSelector, client: _Client, mask: int) -> None:
-        if mask & selectors.EVENT_READ:
-            try:
-                data = client.sock.recv(4096)
-            except (BlockingIOError, InterruptedError):
-                data = None
-            except OSError:
-                data = b""
-            if data is not None:  # end of stream, or data a DV client must never send (DV closes then too)
-                self._drop_client(sel, client, "disconnected" if not data else "sent data (not a DV client?)")
-                return
+        if mask & selectors.EVENT_READ and not self._check_read(sel, client):
+            return
         if mask & selectors.EVENT_WRITE:
             self._send(sel, client)
 
@@ -286,6 +322,7 @@ class DvOutput:
                     client.in_header = False
                 n = client.sock.send(client.current)
                 client.current = client.current[n:]
+                client.taken_s = time.monotonic()
                 if not client.current and not client.in_header:
                     self.sent += 1
         except (BlockingIOError, InterruptedError):

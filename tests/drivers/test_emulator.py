@@ -6,15 +6,19 @@ from __future__ import annotations
 import importlib
 import struct
 import time
+from array import array
 
 import numpy as np
 import usb.backend
 import usb.core
 
 from drivers import udev
+from drivers.davis import protocol as P
 from drivers.davis.device import DavisSource
 from drivers.davis.discovery import list_devices
-from drivers.emulator import backend
+from drivers.davis.models import DATA_ENDPOINT
+from drivers.emulator import EmulatorBackend, backend
+from edi_live.datatypes import EVENT_DTYPE, Packet
 from tests.helpers.recordings import flatten, random_recording
 
 
@@ -123,3 +127,74 @@ def test_an_unplug_comes_after_the_bytes_asked_not_at_the_first_empty_part(real_
             if p is not None:
                 got_events, got_frames = got_events + len(p.events), got_frames + len(p.frames)
     assert (got_events, got_frames) == (want_events, want_frames) and want_frames > 0
+
+
+def _one_event_a_millisecond(seconds: int) -> list[Packet]:
+    """Events 1 ms apart, in 10 ms packets: each ~1 ms part the emulated camera releases holds one of them."""
+    ev = np.zeros(seconds * 1000, EVENT_DTYPE)
+    ev["t"] = 1_700_000_000_000_000 + np.arange(len(ev)) * 1000
+    ev["x"], ev["y"] = np.arange(len(ev)) % 240, 7
+    return [Packet(events=ev[k:k + 10]) for k in range(0, len(ev), 10)]
+
+
+def _streaming(be: EmulatorBackend) -> EmulatorBackend:
+    for module, param, value in P.START_MUX_ON + [(P.DVS, P.DVS_RUN, 1)]:
+        be.ctrl_transfer("handle", P.REQ_OUT, P.VR_CONFIG, module, param, array("B", P.pack_value(value)), 0)
+    return be
+
+
+def _released_now(be: EmulatorBackend, limit: int = 5000) -> int:
+    """Parts (here 1 ms of device time each) the camera hands over without waiting; up to `limit`."""
+    buff = array("B", bytes(1 << 16))
+    for n in range(limit):
+        try:
+            be.bulk_read("handle", DATA_ENDPOINT, 0, buff, 1)
+        except usb.core.USBTimeoutError:  # the next part is not due yet
+            return n
+    return limit
+
+
+def test_a_suspended_emulator_resumes_at_its_speed_instead_of_bursting_the_backlog(caplog):
+    """After Ctrl-Z and fg the emulated camera poured out everything it would have sent while stopped, as fast as
+    it was read (as the replay did before drivers.pacing re-anchored it); it now goes on at its speed from where it
+    stopped, with one warning. Short lateness is still caught up. The pacing clock is injected: no waiting."""
+    now = [1000.0]
+    be = _streaming(EmulatorBackend(_one_event_a_millisecond(60), model="davis240", speed=1.0,
+                                    clock=lambda: now[0]))
+    with caplog.at_level("DEBUG", logger="drivers.pacing"):
+        assert _released_now(be) >= 1  # device time 0 is due at once
+        now[0] += 0.5
+        half_second = _released_now(be)  # half a second later: half a second of parts, caught up
+        now[0] += 30.0  # stopped for 30 s
+        after_stop = _released_now(be)
+        now[0] += 0.5
+        resumed = _released_now(be)
+        now[0] += 10.0  # stopped again: said at debug level only
+        _released_now(be)
+    assert 400 <= half_second <= 600, half_second
+    assert after_stop <= 2, f"{after_stop} parts burst out after the stop"
+    assert abs(resumed - half_second) <= 2, (resumed, half_second)
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1 and "paced emulation resumed 30.0 s behind its schedule" in warnings[0], warnings
+    assert "\n" not in warnings[0]
+    assert sum("behind its schedule" in r.getMessage() for r in caplog.records) == 2
+
+
+def test_a_timestamp_reset_restarts_the_emulators_schedule_without_a_warning(caplog):
+    """Device time restarts at 0 on a timestamp reset: paced against the old anchor, everything after it was
+    overdue and poured out until device time caught up with the time since streaming started."""
+    now = [1000.0]
+    be = _streaming(EmulatorBackend(_one_event_a_millisecond(60), model="davis240", speed=1.0,
+                                    clock=lambda: now[0]))
+    with caplog.at_level("WARNING", logger="drivers.pacing"):
+        for _ in range(10):  # 5 s of streaming, read as it comes
+            _released_now(be)
+            now[0] += 0.5
+        _released_now(be)
+        be.ctrl_transfer("handle", P.REQ_OUT, P.VR_CONFIG, P.MUX, P.MUX_TIMESTAMP_RESET, array("B", P.pack_value(1)), 0)
+        now[0] += 0.1
+        after_reset = _released_now(be)  # what was encoded before the reset, then device time 0 is now
+        now[0] += 0.5
+        half_second = _released_now(be)
+    assert after_reset <= 100 and 400 <= half_second <= 600, (after_reset, half_second)
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]

@@ -24,11 +24,16 @@ class StillFrames:
         self.heartbeat_us = int(heartbeat_s * 1e6)
         self.last_deblur_us: int | None = None  # exposure end of the latest deblurred APS frame
         self.last_emit_t = _T_MIN  # t_us of the latest frame sent
+        # events of an active scene since the latest deblurred APS frame (the worker's `since` counts from the latest
+        # frame, which the --every-ms rule makes a few ms old at most: too short a view of whether the scene moved)
+        self._streamed = 0
+        self._streamed_before = 0  # ... up to the latest deblurred APS frame, for its send decision
 
     def moving(self, n_exposure_events: int, since: int, scene: StaticScene) -> bool:
         """Whether a deblurred frame is worth sending: the scene was active, and a tenth of a latent frame's events
         (capped: a huge --every cannot hide moving frames) came during its exposure or since the last frame."""
         threshold = max(STATIC_EVENTS, min(self.every // 10, MOVING_EVENTS_CAP))
+        since = max(since, self._streamed_before)
         return (n_exposure_events >= threshold or since >= threshold) and scene.changed
 
     def skip_deblur(self, frame: Frame, n_events: int, since: int, scene: StaticScene) -> bool:
@@ -36,12 +41,18 @@ class StillFrames:
         current reference up to sensor noise. The events keep the latent image right; a real deblur is still
         forced every heartbeat_s of sensor time to bound drift. This is what keeps a still camera near zero CPU.
         Ask only with a reference in use."""
+        since = max(since, self._streamed)
         if (n_events >= STATIC_EVENTS or since >= STATIC_EVENTS) and scene.active_since_reference():
             return False
         return self.last_deblur_us is not None and frame.exposure_end_us - self.last_deblur_us < self.heartbeat_us
 
+    def streamed(self, n: int) -> None:
+        """n events of an active scene went to the latent image (not noise)."""
+        self._streamed += n
+
     def deblurred(self, frame: Frame) -> None:
         self.last_deblur_us = frame.exposure_end_us
+        self._streamed_before, self._streamed = self._streamed, 0
 
     def emitted(self, t_us: int) -> None:
         self.last_emit_t = max(self.last_emit_t, t_us)

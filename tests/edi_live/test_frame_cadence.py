@@ -115,3 +115,23 @@ def test_a_sparse_moving_scene_gets_a_frame_within_every_ms_while_events_come(sp
         assert [(r.kind, r.t_us, r.n_events) for r in frames] == [(r.kind, r.t_us, r.n_events) for r in timed], n
         for a, b in zip(frames, timed):
             assert np.array_equal(a.image, b.image), (n, a.kind, a.t_us)
+
+
+def test_on_a_slow_real_scene_the_time_rule_adds_latent_frames_and_keeps_every_deblurred_one(real_recordings, tmp_path):
+    """evlib (cars seen from a roof, ~40k events/s): by count alone a latent frame every ~25 ms. With the time rule
+    the worker's `since` (events since the latest frame) stays small, which must not make its APS frames look
+    still: each is deblurred and sent as by count alone."""
+    import drivers
+    from edi_live.config import NodeConfig
+    from edi_live.node import Node
+
+    path = real_recordings["evlib_sample_davis346.aedat4"]
+    runs = {}
+    for every_ms in (0, 2):
+        config = NodeConfig.from_options({"replay": str(path), "speed": 0, "no_publish": True, "every_ms": every_ms,
+                                          "out": str(tmp_path / f"sharp{every_ms}.aedat4")})
+        runs[every_ms] = Node(config, drivers.open_source("replay", path=str(path), speed=0)).run()
+    counted, timed = runs[0], runs[2]
+    assert timed["frames_latent"] > 5 * counted["frames_latent"]
+    assert timed["frames_deblurred"] == counted["frames_deblurred"] == counted["aps_frames_in"]
+    assert timed["skipped_static"] == 0

@@ -16,6 +16,7 @@ import pytest
 from drivers.dv_network import DvNetworkSource
 from edi_live.aedat4.writer import info_xml, io_header
 from edi_live.errors import DeviceNotFoundError
+from tests.helpers.polling import wait_until
 
 
 def _fill(port: int) -> socket.socket:
@@ -56,13 +57,6 @@ def _in_connect(thread: threading.Thread) -> bool:
     return False
 
 
-def _wait(cond, timeout_s: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < deadline, "condition not reached in time"
-        time.sleep(0.005)
-
-
 def test_a_stop_while_connecting_to_a_peer_that_does_not_answer_ends_the_opening_at_once():
     """stop() (Ctrl-C: the node calls it from the signal handler) while the opening waited for an unanswered SYN:
     the opening went on for the whole connect_timeout_s (5 s by default)."""
@@ -79,7 +73,7 @@ def test_a_stop_while_connecting_to_a_peer_that_does_not_answer_ends_the_opening
 
         opener = threading.Thread(target=open_it, daemon=True)
         opener.start()
-        _wait(lambda: _in_connect(opener))
+        wait_until(lambda: _in_connect(opener))
         source.stop()
         stopping = time.monotonic()
         opener.join(5)
@@ -105,7 +99,7 @@ def test_a_stop_while_reconnecting_to_a_peer_that_does_not_answer_ends_the_reade
             filler = _fill(port)  # before the connection ends: the reconnect finds the listener full
         try:
             reader = source._feeds[0].thread
-            _wait(lambda: _in_connect(reader))  # the connection ended; reconnecting to a silent peer
+            wait_until(lambda: _in_connect(reader))  # the connection ended; reconnecting to a silent peer
             source.stop()
             stopping = time.monotonic()
             source.__exit__(None, None, None)

@@ -21,6 +21,7 @@ from edi_live.aedat4.reader import Aedat4Reader
 from edi_live.datatypes import EVENT_DTYPE, Packet, Reconstruction
 from edi_live.dv_output import DvOutput, parse_tcp_endpoint
 from edi_live.errors import BindError, ConfigError
+from tests.helpers.polling import wait_until
 
 dv = pytest.importorskip("dv_processing")
 PEER = Path(__file__).resolve().parents[1] / "dv_peer.py"
@@ -31,13 +32,6 @@ def _rec(t_us: int, value: int, w: int = 346, h: int = 260) -> Reconstruction:
     img = np.full((h, w), value, np.uint8)
     img[0, :value] = 255  # a pixel pattern that tells frames apart
     return Reconstruction(img, t_us, "latent", t_us, t_us, t_us, 0.2, 0.2, 10)
-
-
-def _wait(cond, timeout_s: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < deadline, "condition not reached in time"
-        time.sleep(0.005)
 
 
 def _recv_stream(sock: socket.socket, packets: int, timeout_s: float = 5.0) -> tuple[bytes, list[tuple[int, bytes]]]:
@@ -77,7 +71,7 @@ def _reference_stream(kind: str) -> tuple[bytes, list[tuple[int, bytes]]]:
     writer = dv.io.NetworkWriter("127.0.0.1", port, stream)
     try:
         with socket.create_connection(("127.0.0.1", port)) as sock:
-            _wait(lambda: writer.getClientCount() == 1)
+            wait_until(lambda: writer.getClientCount() == 1)
             if kind == "frames":
                 writer.writeFrame(dv.Frame(T0, np.full((260, 346), 7, np.uint8)))
             else:
@@ -87,7 +81,7 @@ def _reference_stream(kind: str) -> tuple[bytes, list[tuple[int, bytes]]]:
                 writer.writeEvents(store)
             got = _recv_stream(sock, 1)
         # dv-processing 2.0.4's NetworkWriter hangs in its destructor when a client has just gone: let it notice
-        _wait(lambda: writer.getClientCount() == 0)
+        wait_until(lambda: writer.getClientCount() == 0)
         return got
     finally:
         del writer
@@ -101,7 +95,7 @@ def test_the_stream_is_laid_out_like_dv_processings_network_writer(kind):
     try:
         host, port = parse_tcp_endpoint(out.bound_endpoint)
         with socket.create_connection((host, port)) as sock:
-            _wait(lambda: out.client_count() == 1)
+            wait_until(lambda: out.client_count() == 1)
             if kind == "frames":
                 out.submit(_rec(T0, 7))
             else:
@@ -143,11 +137,11 @@ def test_dv_processing_network_reader_gets_the_frames_and_a_reconnecting_client_
     try:
         port = parse_tcp_endpoint(out.bound_endpoint)[1]
         first = _reader(port, 3)
-        _wait(lambda: out.client_count() == 1, 30)
+        wait_until(lambda: out.client_count() == 1, 30)
         times = [T0 + 1000, T0 + 2000, T0 + 1500, T0 + 3000]  # the third goes back in time: skipped
         for k, t in enumerate(times):
             out.submit(_rec(t, k + 1))
-            _wait(lambda: out.stats()["dv_frames_sent"] + out.stats()["dv_frames_late"] == k + 1)
+            wait_until(lambda: out.stats()["dv_frames_sent"] + out.stats()["dv_frames_late"] == k + 1)
         lines = _lines(first)
         assert lines[0] == {"camera": "DAVIS346_00000391", "frames": True, "events": False,
                             "resolution": [346, 260]}
@@ -156,10 +150,10 @@ def test_dv_processing_network_reader_gets_the_frames_and_a_reconnecting_client_
         assert all(f["shape"] == [260, 346] and f["source"] == "RECONSTRUCTION" and f["exposure_us"] == 0
                    for f in frames)
         assert [f["pixel_sum"] for f in frames] == [int(_rec(0, v).image.sum()) for v in (1, 2, 4)]
-        _wait(lambda: out.client_count() == 0)  # the reader exited: the server noticed and carries on
+        wait_until(lambda: out.client_count() == 0)  # the reader exited: the server noticed and carries on
         out.submit(_rec(T0 + 4000, 5))  # nobody listening: nothing blocks, nothing breaks
         second = _reader(port, 2)
-        _wait(lambda: out.client_count() == 1, 30)
+        wait_until(lambda: out.client_count() == 1, 30)
         out.submit(_rec(T0 + 5000, 6))
         out.submit(_rec(T0 + 6000, 7))
         lines = _lines(second)
@@ -192,7 +186,7 @@ def test_a_deblurred_keyframe_that_comes_after_newer_latent_frames_reaches_dv_cl
     out.start()
     try:
         reader = _reader(parse_tcp_endpoint(out.bound_endpoint)[1], 7)
-        _wait(lambda: out.client_count() == 1, 30)
+        wait_until(lambda: out.client_count() == 1, 30)
         f0, f1 = T0, T0 + 20_000
         emitted = [_keyframe(f0, 1), _latent(f0 + 5_000, f0, 2), _latent(f1 + 2_000, f0, 3),
                    _latent(f1 + 4_000, f0, 4),  # newer than f1, from f0: the copy streams while f1 is deblurred
@@ -213,9 +207,9 @@ def test_a_held_frame_goes_out_once_its_hold_ends_and_an_older_one_after_that_is
     out.start()
     try:
         reader = _reader(parse_tcp_endpoint(out.bound_endpoint)[1], 2)
-        _wait(lambda: out.client_count() == 1, 30)
+        wait_until(lambda: out.client_count() == 1, 30)
         out.submit(_latent(T0 + 1_000, T0, 1))  # the newest frame: nothing releases it but the end of its hold
-        _wait(lambda: out.stats()["dv_frames_sent"] == 1, 30)
+        wait_until(lambda: out.stats()["dv_frames_sent"] == 1, 30)
         out.submit(_keyframe(T0 + 500, 2))  # older than a frame already sent: skipped, counted
         out.submit(_latent(T0 + 2_000, T0, 3))
         frames = _lines(reader)[1:]
@@ -230,7 +224,7 @@ def test_dv_processing_network_reader_gets_the_passed_through_events(rng):
     out.start()
     try:
         proc = _reader(parse_tcp_endpoint(out.bound_endpoint)[1], 3)
-        _wait(lambda: out.client_count() == 1, 30)
+        wait_until(lambda: out.client_count() == 1, 30)
         sent = []
         for k in range(3):
             ev = np.zeros(100, EVENT_DTYPE)
@@ -252,22 +246,22 @@ def test_a_client_that_never_reads_costs_drops_not_stalls():
         host, port = parse_tcp_endpoint(out.bound_endpoint)
         dead = socket.create_connection((host, port))
         dead.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-        _wait(lambda: out.client_count() == 1)
+        wait_until(lambda: out.client_count() == 1)
         start = time.monotonic()
         for k in range(400):  # 36 MB of frames into a client that reads nothing
             out.submit(_rec(T0 + k, k % 200))
         assert time.monotonic() - start < 2.0, "submit() must never wait for a client"
-        _wait(lambda: out.pending() == 0)
+        wait_until(lambda: out.pending() == 0)
         assert out.stats()["dv_frames_dropped"] > 200
         live = socket.create_connection((host, port))  # a healthy client meanwhile gets the newest frames
-        _wait(lambda: out.client_count() == 2)
+        wait_until(lambda: out.client_count() == 2)
         out.submit(_rec(T0 + 10_000, 9))
         header, packets = _recv_stream(live, 1)
         reader = Aedat4Reader.from_stream_header(header, "live client")
         assert reader.decode_payload(reader.streams[0], 0, packets[0][1]).exposure_start_us == T0 + 10_000
         dead.close()
         live.close()
-        _wait(lambda: out.client_count() == 0)
+        wait_until(lambda: out.client_count() == 0)
     finally:
         out.close()
 
@@ -355,7 +349,7 @@ def test_colour_reconstructions_reach_dv_processing_as_colour_frames():
     out.start()
     try:
         reader = _reader(parse_tcp_endpoint(out.bound_endpoint)[1], 1)
-        _wait(lambda: out.client_count() == 1, 30)
+        wait_until(lambda: out.client_count() == 1, 30)
         bgr = np.zeros((260, 346, 3), np.uint8)
         bgr[..., 0], bgr[..., 1], bgr[..., 2] = 1, 2, 3  # B, G, R
         out.submit(Reconstruction(bgr, T0, "latent", T0, T0, T0, 0.2, 0.2, 10))
@@ -375,7 +369,7 @@ def test_a_flood_of_connections_is_logged_a_few_lines_then_counted(caplog):
             host, port = parse_tcp_endpoint(out.bound_endpoint)
             for _ in range(60):
                 socket.create_connection((host, port)).close()
-            _wait(lambda: out.connections == 60 and out.client_count() == 0)
+            wait_until(lambda: out.connections == 60 and out.client_count() == 0)
         finally:
             out.close()
     lines = [r.getMessage() for r in caplog.records if "DV client" in r.getMessage()]
@@ -402,7 +396,7 @@ def test_an_error_that_accept_passes_on_from_a_client_costs_that_client_only(mon
     try:
         host, port = parse_tcp_endpoint(out.bound_endpoint)
         with socket.create_connection((host, port)) as client:
-            _wait(lambda: out.client_count() == 1 or out.error is not None)
+            wait_until(lambda: out.client_count() == 1 or out.error is not None)
             assert out.error is None and failed
             out.submit(_rec(T0, 5))
             _, packets = _recv_stream(client, 1)
@@ -417,9 +411,9 @@ def test_a_client_that_sends_data_is_dropped_and_the_others_keep_their_frames():
     try:
         host, port = parse_tcp_endpoint(out.bound_endpoint)
         with socket.create_connection((host, port)) as good, socket.create_connection((host, port)) as bad:
-            _wait(lambda: out.client_count() == 2)
+            wait_until(lambda: out.client_count() == 2)
             bad.sendall(b"GET / HTTP/1.1\r\n\r\n" + bytes(range(256)) * 64)
-            _wait(lambda: out.client_count() == 1)
+            wait_until(lambda: out.client_count() == 1)
             for k in range(3):
                 out.submit(_rec(T0 + k, k))
             _, packets = _recv_stream(good, 3)

@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import socket
 import struct
-import time
 
 import numpy as np
 import pytest
 
 from edi_live.datatypes import Reconstruction
 from edi_live.dv_output import DvOutput, parse_tcp_endpoint
+from tests.helpers.polling import wait_until
 
 T0 = 1_700_000_000_000_000
 
@@ -19,13 +19,6 @@ T0 = 1_700_000_000_000_000
 def _rec(t_us: int, value: int) -> Reconstruction:
     img = np.full((260, 346), value, np.uint8)
     return Reconstruction(img, t_us, "latent", t_us, t_us, t_us, 0.2, 0.2, 10)
-
-
-def _wait(cond, timeout_s: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        assert time.monotonic() < deadline, "condition not reached in time"
-        time.sleep(0.005)
 
 
 def _idle_client(host: str, port: int) -> socket.socket:
@@ -48,7 +41,7 @@ def _fill_every_queue(out: DvOutput) -> None:
         k += 1
         return False
 
-    _wait(full)
+    wait_until(full)
 
 
 def _first_packet(sock: socket.socket, timeout_s: float = 5.0) -> bytes:
@@ -73,11 +66,11 @@ def test_a_new_client_takes_the_slot_of_a_client_that_stalled_and_the_stalled_on
     try:
         host, port = parse_tcp_endpoint(out.bound_endpoint)
         idle = [_idle_client(host, port) for _ in range(out.max_clients)]
-        _wait(lambda: out.client_count() == out.max_clients)
+        wait_until(lambda: out.client_count() == out.max_clients)
         _fill_every_queue(out)
         with caplog.at_level("INFO", logger="edi_live.dv_output"):
             viewer = socket.create_connection((host, port))
-            _wait(lambda: out.connections == out.max_clients + 1)
+            wait_until(lambda: out.connections == out.max_clients + 1)
             with viewer:
                 out.submit(_rec(T0 + 1_000_000, 9))
                 got = _first_packet(viewer)
@@ -103,7 +96,7 @@ def test_a_new_client_is_refused_when_no_client_has_stalled(caplog, frames):
     try:
         host, port = parse_tcp_endpoint(out.bound_endpoint)
         idle = [_idle_client(host, port) for _ in range(out.max_clients)]
-        _wait(lambda: out.client_count() == out.max_clients)
+        wait_until(lambda: out.client_count() == out.max_clients)
         if frames:
             _fill_every_queue(out)
         with caplog.at_level("INFO", logger="edi_live.dv_output"):
@@ -129,7 +122,7 @@ def test_clients_that_connect_and_close_at_once_leave_every_slot_free():
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
             sock.close()
         good = [socket.create_connection((host, port)) for _ in range(out.max_clients)]
-        _wait(lambda: out.connections == 100 + out.max_clients and out.client_count() == out.max_clients)
+        wait_until(lambda: out.connections == 100 + out.max_clients and out.client_count() == out.max_clients)
         out.submit(_rec(T0, 5))
         for sock in good:
             got = _first_packet(sock)

@@ -20,6 +20,7 @@ from edi_live.datatypes import EVENT_DTYPE, Frame, Packet, Reconstruction
 from edi_live.reconstruction import Reconstructor
 from edi_live.ring import EventRing
 from edi_live.worker import EdiWorker
+from tests.helpers.polling import wait_until
 from tests.helpers.recordings import packets_by_frame
 
 
@@ -299,14 +300,6 @@ class Collect:
             assert self._cond.wait_for(lambda: len(self.frames) >= n, timeout_s), f"fewer than {n} frames came"
 
 
-def poll_until(predicate, timeout_s: float = 10.0) -> None:
-    stop = threading.Event()
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not reached within the timeout"
-        stop.wait(0.005)
-
-
 def test_max_fps_caps_latent_frames_and_counts_the_rest(clock):
     ev = events_at(np.arange(0, 100_000, 2))  # 50,000 events; the APS frame [0, 10] takes the first 6
     ring = EventRing(capacity_events=1 << 17, capacity_frames=8, policy="wait")
@@ -316,7 +309,7 @@ def test_max_fps_caps_latent_frames_and_counts_the_rest(clock):
     worker.start()
     # the deblurred frame goes out, then 5000 events: 50 latent frames due, all within 2 s of it -> all skipped
     ring.push(Packet(events=ev[:5006], frames=[aps(0, 10)]))
-    poll_until(lambda: worker.skipped_max_fps == 50)
+    wait_until(lambda: worker.skipped_max_fps == 50)
     clock.advance(2.5)  # past the 2 s cap: the next due frame goes out, the 448 after it are skipped again
     ring.push(Packet(events=ev[5006:]))
     ring.close()

@@ -22,6 +22,7 @@ from edi_live.datatypes import Reconstruction
 from edi_live.errors import ClientError
 from edi_live.publisher import Publisher
 from tools import viewer
+from tests.helpers.polling import wait_until
 
 REPO = Path(__file__).resolve().parents[2]
 W, H = 240, 180
@@ -92,13 +93,6 @@ def stop_viewer(v: viewer.Viewer, thread: threading.Thread) -> None:
     thread.join(10)
     assert not thread.is_alive(), "viewer loop did not stop"
     v.close()
-
-
-def wait_for(predicate, timeout_s: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not reached within the timeout"
-        time.sleep(0.02)
 
 
 def test_help_teaches():
@@ -184,7 +178,7 @@ def test_http_endpoints_serve_the_frame_and_stats(feeder):
     v, thread = start_viewer(["--endpoint", feeder.endpoint, "--http", "127.0.0.1:0", "--quiet"])
     try:
         assert v.url.startswith("http://127.0.0.1:")
-        wait_for(lambda: v.rates.frames > 3 and v.hub.status.get("node"))
+        wait_until(lambda: v.rates.frames > 3 and v.hub.status.get("node"))
         with urllib.request.urlopen(v.url + "frame.jpg", timeout=10) as resp:
             assert resp.headers["Content-Type"] == "image/jpeg"
             jpeg = cv2.imdecode(np.frombuffer(resp.read(), np.uint8), cv2.IMREAD_GRAYSCALE)
@@ -223,7 +217,7 @@ def _screenshot(url: str, tmp_path) -> Path:
 def test_mjpeg_page_shows_the_frame_in_headless_chromium(feeder, tmp_path):
     v, thread = start_viewer(["--endpoint", feeder.endpoint, "--http", "127.0.0.1:0", "--quiet"])
     try:
-        wait_for(lambda: v.rates.frames > 3)
+        wait_until(lambda: v.rates.frames > 3)
         shot = _screenshot(v.url, tmp_path)
     finally:
         stop_viewer(v, thread)
@@ -249,7 +243,7 @@ def test_the_browser_shows_a_colour_stream_in_colour(tmp_path):
     feeder = Feeder(colour=True)
     v, thread = start_viewer(["--endpoint", feeder.endpoint, "--http", "127.0.0.1:0", "--quiet"])
     try:
-        wait_for(lambda: v.rates.frames > 3)
+        wait_until(lambda: v.rates.frames > 3)
         shot = _screenshot(v.url, tmp_path)
     finally:
         stop_viewer(v, thread)
@@ -273,7 +267,7 @@ def test_cli_stop_signals_stop_cleanly_and_finalize_the_mp4(feeder, tmp_path, si
     mp4 = tmp_path / "live.mp4"
     proc = run_cli(["--endpoint", feeder.endpoint, "--no-http", "--mp4", str(mp4), "--all"])
     try:
-        wait_for(lambda: mp4.is_file() and mp4.stat().st_size > 0, 30)
+        wait_until(lambda: mp4.is_file() and mp4.stat().st_size > 0, 30)
         time.sleep(0.3)
         proc.send_signal(sig)
         _, err = proc.communicate(timeout=20)
@@ -386,7 +380,7 @@ def test_status_json_answers_a_stats_map_with_binary_values():
     feeder = threading.Thread(target=feed, daemon=True)
     feeder.start()
     try:
-        wait_for(lambda: v.hub.status.get("node"))
+        wait_until(lambda: v.hub.status.get("node"))
         with urllib.request.urlopen(v.url + "status.json", timeout=10) as resp:
             assert resp.status == 200
             body = resp.read().decode()
@@ -410,7 +404,7 @@ def test_colour_stream_in_png_mp4_and_http(tmp_path):
     try:
         v, thread = start_viewer(["--endpoint", feeder.endpoint, "--all", "--http", "127.0.0.1:0", "--quiet",
                                   "--png", str(png_dir), "--mp4", str(mp4), "--max-frames", "10"])
-        wait_for(lambda: v.rates.frames > 2)
+        wait_until(lambda: v.rates.frames > 2)
         with urllib.request.urlopen(v.url + "frame.jpg", timeout=10) as resp:  # what the browser page shows
             jpeg = cv2.imdecode(np.frombuffer(resp.read(), np.uint8), cv2.IMREAD_COLOR)
         thread.join(30)

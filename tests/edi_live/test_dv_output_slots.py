@@ -3,6 +3,7 @@ real viewer out, and clients that connect and close at once must not hold slots.
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import struct
 
@@ -59,15 +60,28 @@ def _first_packet(sock: socket.socket, timeout_s: float = 5.0) -> bytes:
         buf += chunk
 
 
-def test_a_new_client_takes_the_slot_of_a_client_that_stalled_and_the_stalled_one_is_named(caplog):
-    out = DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, client_queue=4, hold_s=0, stall_s=0)
+@contextlib.contextmanager
+def _full_server(stall_s: float, fill: bool):
+    """A DV output server each of whose slots a client that never reads holds (their queues full with `fill`):
+    yields (the server, its host, its port, the idle clients' sockets)."""
+    out = DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, client_queue=4, hold_s=0, stall_s=stall_s)
     out.start()
     idle: list[socket.socket] = []
     try:
         host, port = parse_tcp_endpoint(out.bound_endpoint)
         idle = [_idle_client(host, port) for _ in range(out.max_clients)]
         wait_until(lambda: out.client_count() == out.max_clients)
-        _fill_every_queue(out)
+        if fill:
+            _fill_every_queue(out)
+        yield out, host, port, idle
+    finally:
+        for sock in idle:
+            sock.close()
+        out.close()
+
+
+def test_a_new_client_takes_the_slot_of_a_client_that_stalled_and_the_stalled_one_is_named(caplog):
+    with _full_server(stall_s=0, fill=True) as (out, host, port, idle):
         with caplog.at_level("INFO", logger="edi_live.dv_output"):
             viewer = socket.create_connection((host, port))
             wait_until(lambda: out.connections == out.max_clients + 1)
@@ -81,33 +95,17 @@ def test_a_new_client_takes_the_slot_of_a_client_that_stalled_and_the_stalled_on
         assert len(lines) == 1 and "\n" not in lines[0], lines
         assert sum(name in lines[0] for name in names) == 1, lines[0]
         assert not [r for r in caplog.records if "refused" in r.getMessage()]
-    finally:
-        for sock in idle:
-            sock.close()
-        out.close()
 
 
 @pytest.mark.parametrize("frames", [False, True], ids=["idle-without-frames", "queues-full-but-not-for-long"])
 def test_a_new_client_is_refused_when_no_client_has_stalled(caplog, frames):
     stall_s = 600 if frames else 0  # full queues, but for less than stall_s: not stalled
-    out = DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, client_queue=4, hold_s=0, stall_s=stall_s)
-    out.start()
-    idle: list[socket.socket] = []
-    try:
-        host, port = parse_tcp_endpoint(out.bound_endpoint)
-        idle = [_idle_client(host, port) for _ in range(out.max_clients)]
-        wait_until(lambda: out.client_count() == out.max_clients)
-        if frames:
-            _fill_every_queue(out)
+    with _full_server(stall_s=stall_s, fill=frames) as (out, host, port, _):
         with caplog.at_level("INFO", logger="edi_live.dv_output"):
             with socket.create_connection((host, port)) as late:
                 assert _first_packet(late) == b""  # closed without a header: refused
         assert out.connections == out.max_clients and out.client_count() == out.max_clients
         assert any("refused DV client" in r.getMessage() for r in caplog.records)
-    finally:
-        for sock in idle:
-            sock.close()
-        out.close()
 
 
 def test_clients_that_connect_and_close_at_once_leave_every_slot_free():

@@ -227,7 +227,8 @@ class EdiWorker:
     def _stream(self, chunk: EventChunk, lo: int, hi: int) -> None:
         """Events [lo, hi) of an active scene: a latent frame every `every` events."""
         events, n, every = chunk.events[lo:hi], hi - lo, self.config.every
-        self._still.streamed(n)
+        if self._cadence.every_us:  # (by count only, the still-scene decisions stay those of the count rule)
+            self._still.streamed(n)
         if self.config.max_fps is None and self.config.mode == "causal":  # batches: no frame is held back
             # up to _BATCH_FRAMES frames per call (the loop's frames); a 64k-event chunk at --every 1: 64k images
             cuts, tail = self._cadence.cuts(events["t"], self._since)

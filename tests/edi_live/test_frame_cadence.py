@@ -135,3 +135,64 @@ def test_on_a_slow_real_scene_the_time_rule_adds_latent_frames_and_keeps_every_d
     assert timed["frames_latent"] > 5 * counted["frames_latent"]
     assert timed["frames_deblurred"] == counted["frames_deblurred"] == counted["aps_frames_in"]
     assert timed["skipped_static"] == 0
+
+
+def burst_between_aps_frames() -> list:
+    """A still camera (weak noise, APS frames 200 ms apart) that moves for 20 ms between two APS frames; the next
+    APS frame comes 220 ms after the motion, well after the still-scene test's hold, so its exposure holds noise
+    only (fewer events than mark a moving scene) and no event since the latest latent frame is active."""
+    from edi_live.simulation import SceneConfig, simulate
+
+    base = dict(width=240, height=180, noise_rate_hz=0.05, frame_interval_us=200_000, exposure_us=10_000,
+                ground_truth=False, texture="blocks")
+    parts, t0 = [], 1_000_000
+    for seconds, speed in ((0.3, 0.0), (0.02, 300.0), (0.3, 0.0)):
+        parts.append(simulate(SceneConfig(duration_s=seconds, velocity_px_s=(speed, 0.0), t0_us=t0, **base)))
+        t0 += int(seconds * 1e6)
+    moved_from, moved_to = 1_300_000, 1_320_000
+    frames = [f for p in parts for f in p.frames if not moved_from <= f.exposure_end_us <= moved_to + 100_000]
+    return scene_packets(np.concatenate([p.events for p in parts]), frames)
+
+
+@pytest.mark.parametrize("mode", ["causal", "nearest"])
+def test_every_ms_0_keeps_the_still_scene_decisions_of_the_count_rule(monkeypatch, mode):
+    """--every-ms 0 must give the frames of the count rule bit for bit, including which APS frames are deblurred and
+    sent: those decisions must not count events that only the time rule's bookkeeping sees (StillFrames.streamed,
+    switched off here to get the count rule's decisions)."""
+    import edi_live.still_frames
+
+    packets = burst_between_aps_frames()
+    config = EdiConfig(every=1000, every_ms=0, quality_every=0, heartbeat_s=1.0, mode=mode)
+    now = frames_read_in_chunks(packets, 1 << 16, config, monkeypatch)
+    monkeypatch.setattr(edi_live.still_frames.StillFrames, "streamed", lambda self, n: None)
+    counted = frames_read_in_chunks(packets, 1 << 16, config, monkeypatch)
+    assert any(r.kind == "latent" for r in counted), "the burst made latent frames"
+    assert [(r.kind, r.t_us, r.n_events) for r in now] == [(r.kind, r.t_us, r.n_events) for r in counted]
+    for a, b in zip(now, counted):
+        assert np.array_equal(a.image, b.image), (a.kind, a.t_us)
+
+
+def test_the_time_rule_makes_no_frames_from_the_noise_after_the_motion_stops(monkeypatch):
+    """A 20 ms burst of motion on a noisy still camera (0.5 events/s per pixel): once the motion's last event is
+    in, what follows is sensor noise, which by either rule makes no frame (a heartbeat aside, 1 s away here). The
+    still-scene test keeps the events of the next hold_us (50 ms) "active" (so that slow motion is not cut off); the
+    time rule must not turn that noise into a frame every every_ms."""
+    from edi_live.simulation import SceneConfig, simulate
+
+    base = dict(width=240, height=180, noise_rate_hz=0.5, frame_interval_us=50_000, exposure_us=10_000,
+                ground_truth=False, texture="blocks")
+    parts, t0 = [], 1_000_000
+    for seconds, speed in ((0.3, 0.0), (0.02, 300.0), (0.3, 0.0)):
+        parts.append(simulate(SceneConfig(duration_s=seconds, velocity_px_s=(speed, 0.0), t0_us=t0, **base)))
+        t0 += int(seconds * 1e6)
+    moved = parts[1]
+    last_motion_us = int(moved.events["t"][~moved.is_noise].max())
+    packets = scene_packets(np.concatenate([p.events for p in parts]), [f for p in parts for f in p.frames])
+    after = {}
+    for every_ms in (0, 2.0):
+        config = EdiConfig(every=1000, every_ms=every_ms, quality_every=0, heartbeat_s=1.0)
+        sent = frames_read_in_chunks(packets, 1 << 16, config, monkeypatch)
+        assert any(r.kind == "latent" and r.t_us <= last_motion_us for r in sent), "the motion made frames"
+        after[every_ms] = [r.t_us for r in sent if r.kind == "latent" and r.t_us > last_motion_us + 2_000]
+    assert after[0] == []
+    assert after[2.0] == [], f"{len(after[2.0])} latent frames from noise after the motion stopped"

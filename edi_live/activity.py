@@ -77,8 +77,11 @@ class StaticScene:
     deblurred APS frame, and per event whether it is only noise, an onset, or part of activity that went on
     within `hold_us` (sensor time). Both are functions of the event stream, not of the reads."""
 
-    def __init__(self, hold_us: int = 50_000) -> None:
+    def __init__(self, hold_us: int = 50_000, fresh_us: int = 1_000) -> None:
         self.hold_us = hold_us
+        # within the hold, events more than fresh_us after the latest active span's end are "held": active for the
+        # event count, but what follows motion is mostly noise, which the worker's time rule must not show
+        self.fresh_us = fresh_us
         self.activity: SceneActivity | None = None  # sized by the first APS frame
         self.active = True  # the state of the latest event (until the first verdict: active, not an onset)
         self.ref_end_us: int | None = None  # exposure end of the latest deblurred APS frame, in the event clock
@@ -105,13 +108,14 @@ class StaticScene:
             self.activity = SceneActivity(frame.image.shape[1], frame.image.shape[0])
 
     def segments(self, events: np.ndarray) -> list[tuple[int, int, str]]:
-        """The events cut where their state changes: (start, stop, "noise" | "onset" | "active"). "noise": no
-        frame is due for them; "onset": the first events of activity after noise."""
+        """The events cut where their state changes: (start, stop, "noise" | "onset" | "active" | "held").
+        "noise": no frame is due for them; "onset": the first events of activity after noise; "held": within the
+        hold but more than fresh_us after the latest active span (frames by event count only)."""
         n = len(events)
         if self.activity is None:
             return [(0, n, "active")] if n else []
         t = events["t"]
-        states: list[tuple[int, int, bool]] = []
+        states: list[tuple[int, int, str]] = []
         pos = 0
         at, active, end = self.activity.verdicts(events)
         if self._judged and not active.any() and (self._last_active_us is None
@@ -119,8 +123,8 @@ class StaticScene:
             self.noise_only_events += n  # the still scene's reads: noise, and noise before them
             self.active = False
             return [(0, n, "noise")]
-        if n and self._judged and self._last_active_us is not None and self._within_hold(t, at[active],
-                                                                                         end[active]):
+        if n and self._judged and self._last_active_us is not None and self._within(t, at[active], end[active],
+                                                                                    self.fresh_us):
             if active.any():
                 self._last_active_us = int(end[active][-1])
             out = [(0, n, "active" if self.active else "onset")]  # a busy scene's reads: one active segment
@@ -133,37 +137,40 @@ class StaticScene:
             if pos < at_i:
                 last = self._last_active_us
                 if not self._judged:
-                    cut = at_i
+                    cut = fresh = at_i
                 elif last is None:
-                    cut = pos
+                    cut = fresh = pos
                 else:  # active while the latest active span ended less than hold_us before the event
                     cut = pos + int(np.searchsorted(t[pos:at_i], last + self.hold_us, "right"))
-                states += [(pos, cut, True), (cut, at_i, False)]
+                    fresh = pos + int(np.searchsorted(t[pos:cut], last + self.fresh_us, "right"))
+                states += [(pos, fresh, "active"), (fresh, cut, "held"), (cut, at_i, "noise")]
             if verdict is not None:
                 self._judged = True
                 if verdict:
                     self._last_active_us = end_i
             pos = at_i
         out: list[tuple[int, int, str]] = []
-        for lo, hi, active in states:
+        for lo, hi, kind in states:
             if lo >= hi:
                 continue
+            active = kind != "noise"
             if not active:
                 self.noise_only_events += hi - lo
-            if out and (out[-1][2] != "noise") == active:
+            elif not self.active:
+                kind = "onset"
+            if out and (out[-1][2] == kind or out[-1][2] == "onset" and kind == "active"):
                 out[-1] = (out[-1][0], hi, out[-1][2])
                 continue
-            out.append((lo, hi, "noise" if not active else "active" if self.active else "onset"))
+            out.append((lo, hi, kind))
             self.active = active
         return out
 
-    def _within_hold(self, t: np.ndarray, at: np.ndarray, end: np.ndarray) -> bool:
-        """Whether every event is within hold_us of the active verdict in force at it (`at`/`end`: this read's
-        active verdicts; before the first, the latest before the read): then the loop of segments() would make
-        one active segment of them all. Events before a verdict lie in spans before its end, so consecutive
-        verdict ends at most hold_us apart are enough between verdicts (False when they are not: the loop
-        decides)."""
-        hold = self.hold_us
+    def _within(self, t: np.ndarray, at: np.ndarray, end: np.ndarray, hold: int) -> bool:
+        """Whether every event is within `hold` µs of the active verdict in force at it (`at`/`end`: this read's
+        active verdicts; before the first, the latest before the read): with fresh_us, the loop of segments()
+        would make one active segment of them all. Events before a verdict lie in spans before its end, so
+        consecutive verdict ends at most `hold` apart are enough between verdicts (False when they are not: the
+        loop decides)."""
         last = self._last_active_us
         if at.size == 0:
             return int(t[-1]) <= last + hold

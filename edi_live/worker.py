@@ -205,33 +205,34 @@ class EdiWorker:
         for lo, hi, state in self._scene.segments(chunk.events):  # cut where the stream's state changes
             if state == "onset":
                 self._since = max(self._since, self.config.every - 1)  # a frame at its first event
-            self._in_event_clock(chunk, lo, hi, state == "noise")
+            self._in_event_clock(chunk, lo, hi, state)
         self.busy_s += time.perf_counter() - t0
 
-    def _in_event_clock(self, chunk: EventChunk, lo: int, hi: int, noise: bool) -> None:
+    def _in_event_clock(self, chunk: EventChunk, lo: int, hi: int, state: str) -> None:
         """Events [lo, hi) of the chunk, and a heartbeat frame at the first event heartbeat_s of sensor time
-        after the latest frame sent. Noise moves the latent image but makes no frame."""
+        after the latest frame sent. Noise moves the latent image but makes no frame; events the activity test
+        only holds active make frames by count alone (edi_live.activity)."""
         t = chunk.events["t"]
         while lo < hi:
             k = self._still.heartbeat_at(t, lo, hi)
             end = min(hi, k + 1)
-            if noise:
+            if state == "noise":
                 self.rec.on_events(chunk.events[lo:end], chunk.arrival_ns_at(end))
                 self._since = 0
             else:
-                self._stream(chunk, lo, end)
+                self._stream(chunk, lo, end, timed=state != "held")
             if k < hi and self._still.heartbeat_due(int(t[k])):
                 self._heartbeat_at(int(t[k]))
             lo = end
 
-    def _stream(self, chunk: EventChunk, lo: int, hi: int) -> None:
+    def _stream(self, chunk: EventChunk, lo: int, hi: int, timed: bool = True) -> None:
         """Events [lo, hi) of an active scene: a latent frame every `every` events."""
         events, n, every = chunk.events[lo:hi], hi - lo, self.config.every
         if self._cadence.every_us:  # (by count only, the still-scene decisions stay those of the count rule)
             self._still.streamed(n)
         if self.config.max_fps is None and self.config.mode == "causal":  # batches: no frame is held back
             # up to _BATCH_FRAMES frames per call (the loop's frames); a 64k-event chunk at --every 1: 64k images
-            cuts, tail = self._cadence.cuts(events["t"], self._since)
+            cuts, tail = self._cadence.cuts(events["t"], self._since, timed)
             if self.demand.skip(len(cuts), self.quality):
                 cuts = cuts[:0]  # the events below still move the latent image
             pos = 0
@@ -251,13 +252,13 @@ class EdiWorker:
             return
         pos, t = 0, events["t"]
         while pos < n and not self._abort.is_set():
-            take = self._cadence.take(t[pos:], self._since)
+            take = self._cadence.take(t[pos:], self._since, timed)
             part = events[pos:pos + take]
             pos += take
             self._since += take
             arrival = chunk.arrival_ns_at(lo + pos)
             self.rec.on_events(part, arrival)
-            if self._since >= every or self._cadence.due(int(t[pos - 1])):
+            if self._since >= every or timed and self._cadence.due(int(t[pos - 1])):
                 self._latent_due(int(t[pos - 1]), arrival)
 
     def _latent_due(self, t_us: int, arrival_ns: int) -> None:

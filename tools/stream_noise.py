@@ -103,7 +103,9 @@ def bench_noise(seconds: float, repeat: int) -> None:
     for _ in range(repeat):
         for name in results:
             with (CountOnlyPolicy() if name.startswith("count") else _Nothing()):
-                cfg = NodeConfig.from_options({"replay": str(path), "publish": ["tcp://127.0.0.1:*"]})
+                # the policy before the noise test cut frames by event count only
+                before = {"every_ms": 0} if name.startswith("count") else {}
+                cfg = NodeConfig.from_options({"replay": str(path), "publish": ["tcp://127.0.0.1:*"], **before})
                 node = Node(cfg, replay_source(path, 1.0))
                 thread = threading.Thread(target=node.run, daemon=True)
                 thread.start()

@@ -172,11 +172,13 @@ def test_every_ms_0_keeps_the_still_scene_decisions_of_the_count_rule(monkeypatc
         assert np.array_equal(a.image, b.image), (a.kind, a.t_us)
 
 
-def test_the_time_rule_makes_no_frames_from_the_noise_after_the_motion_stops(monkeypatch):
+@pytest.mark.parametrize("mode", ["causal", "nearest"])  # whole reads; frame by frame
+def test_the_time_rule_makes_no_frames_from_the_noise_after_the_motion_stops(monkeypatch, mode):
     """A 20 ms burst of motion on a noisy still camera (0.5 events/s per pixel): once the motion's last event is
     in, what follows is sensor noise, which by either rule makes no frame (a heartbeat aside, 1 s away here). The
     still-scene test keeps the events of the next hold_us (50 ms) "active" (so that slow motion is not cut off); the
-    time rule must not turn that noise into a frame every every_ms."""
+    time rule must not turn that noise into a frame every every_ms. (One frame just after the end may show the
+    motion's last events: those after the latest frame.)"""
     from edi_live.simulation import SceneConfig, simulate
 
     base = dict(width=240, height=180, noise_rate_hz=0.5, frame_interval_us=50_000, exposure_us=10_000,
@@ -188,11 +190,11 @@ def test_the_time_rule_makes_no_frames_from_the_noise_after_the_motion_stops(mon
     moved = parts[1]
     last_motion_us = int(moved.events["t"][~moved.is_noise].max())
     packets = scene_packets(np.concatenate([p.events for p in parts]), [f for p in parts for f in p.frames])
-    after = {}
     for every_ms in (0, 2.0):
-        config = EdiConfig(every=1000, every_ms=every_ms, quality_every=0, heartbeat_s=1.0)
+        config = EdiConfig(every=1000, every_ms=every_ms, quality_every=0, heartbeat_s=1.0, mode=mode)
         sent = frames_read_in_chunks(packets, 1 << 16, config, monkeypatch)
-        assert any(r.kind == "latent" and r.t_us <= last_motion_us for r in sent), "the motion made frames"
-        after[every_ms] = [r.t_us for r in sent if r.kind == "latent" and r.t_us > last_motion_us + 2_000]
-    assert after[0] == []
-    assert after[2.0] == [], f"{len(after[2.0])} latent frames from noise after the motion stopped"
+        latent = sorted(r.t_us for r in sent if r.kind == "latent")
+        assert any(t <= last_motion_us for t in latent), "the motion made frames"
+        # a frame after the motion's end may show its last events (the time rule's one flush), never noise alone
+        noise_only = [t for prev, t in zip(latent, latent[1:]) if prev > last_motion_us]
+        assert noise_only == [], f"{len(noise_only)} latent frames from noise after the motion stopped ({every_ms})"

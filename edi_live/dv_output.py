@@ -177,6 +177,14 @@ class DvOutput:
         return {f"dv_{s}_sent": self.sent, f"dv_{s}_dropped": self.dropped, f"dv_{s}_clients": len(self._clients),
                 f"dv_{s}_connections": self.connections, **({f"dv_{s}_late": self.late} if s == "frames" else {})}
 
+    def __enter__(self) -> "DvOutput":
+        """start(); the block's end closes the server."""
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
     def close(self, timeout_s: float = 2.0) -> None:
         self._stop.set()
         self._wake()

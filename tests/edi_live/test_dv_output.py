@@ -90,9 +90,7 @@ def _reference_stream(kind: str) -> tuple[bytes, list[tuple[int, bytes]]]:
 @pytest.mark.parametrize("kind", ["frames", "events"])
 def test_the_stream_is_laid_out_like_dv_processings_network_writer(kind):
     ref_header, ref_packets = _reference_stream(kind)
-    out = DvOutput("tcp://127.0.0.1:0", kind, 346, 260, camera_name="DAVIS346_00000391")
-    out.start()
-    try:
+    with DvOutput("tcp://127.0.0.1:0", kind, 346, 260, camera_name="DAVIS346_00000391") as out:
         host, port = parse_tcp_endpoint(out.bound_endpoint)
         with socket.create_connection((host, port)) as sock:
             wait_until(lambda: out.client_count() == 1)
@@ -103,8 +101,6 @@ def test_the_stream_is_laid_out_like_dv_processings_network_writer(kind):
                 ev["t"], ev["x"], ev["y"], ev["p"] = T0 + np.arange(5), 10 + np.arange(5), 20, True
                 out.submit(Packet(events=ev))
             header, packets = _recv_stream(sock, 1)
-    finally:
-        out.close()
     ref = Aedat4Reader.from_stream_header(ref_header, "reference")
     ours = Aedat4Reader.from_stream_header(header, "ours")
     assert (ours.compression, ours.data_table_position) == (ref.compression, ref.data_table_position) == ("none", -1)
@@ -132,9 +128,7 @@ def _lines(proc: subprocess.Popen) -> list[dict]:
 
 def test_dv_processing_network_reader_gets_the_frames_and_a_reconnecting_client_resumes():
     # hold_s=0: every frame goes out as it comes (the ordering stage is tested below)
-    out = DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, camera_name="DAVIS346_00000391", hold_s=0)
-    out.start()
-    try:
+    with DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, camera_name="DAVIS346_00000391", hold_s=0) as out:
         port = parse_tcp_endpoint(out.bound_endpoint)[1]
         first = _reader(port, 3)
         wait_until(lambda: out.client_count() == 1, 30)
@@ -160,8 +154,6 @@ def test_dv_processing_network_reader_gets_the_frames_and_a_reconnecting_client_
         assert lines[0]["camera"] == "DAVIS346_00000391"
         assert [f["t"] for f in lines[1:]] == [T0 + 5000, T0 + 6000]
         assert out.stats()["dv_frames_late"] == 1 and out.stats()["dv_frames_connections"] == 2
-    finally:
-        out.close()
 
 
 def _keyframe(f_us: int, value: int) -> Reconstruction:
@@ -182,9 +174,7 @@ def test_a_deblurred_keyframe_that_comes_after_newer_latent_frames_reaches_dv_cl
     deblurred frames of a looped real recording never reached a DV client. dv-processing's NetworkReader is the
     client; a long hold makes the order stage release frames only when no older frame can still come (here: once
     f1 is out, frames a quarter period short of the next expected keyframe)."""
-    out = DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, hold_s=600)
-    out.start()
-    try:
+    with DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, hold_s=600) as out:
         reader = _reader(parse_tcp_endpoint(out.bound_endpoint)[1], 7)
         wait_until(lambda: out.client_count() == 1, 30)
         f0, f1 = T0, T0 + 20_000
@@ -198,14 +188,10 @@ def test_a_deblurred_keyframe_that_comes_after_newer_latent_frames_reaches_dv_cl
         assert [f["t"] for f in frames] == [r.t_us for r in expected]
         assert [f["pixel_sum"] for f in frames] == [int(r.image.sum()) for r in expected]
         assert out.stats()["dv_frames_late"] == 0 and out.stats()["dv_frames_sent"] == 7
-    finally:
-        out.close()
 
 
 def test_a_held_frame_goes_out_once_its_hold_ends_and_an_older_one_after_that_is_late():
-    out = DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, hold_s=0.05)
-    out.start()
-    try:
+    with DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, hold_s=0.05) as out:
         reader = _reader(parse_tcp_endpoint(out.bound_endpoint)[1], 2)
         wait_until(lambda: out.client_count() == 1, 30)
         out.submit(_latent(T0 + 1_000, T0, 1))  # the newest frame: nothing releases it but the end of its hold
@@ -215,14 +201,10 @@ def test_a_held_frame_goes_out_once_its_hold_ends_and_an_older_one_after_that_is
         frames = _lines(reader)[1:]
         assert [f["t"] for f in frames] == [T0 + 1_000, T0 + 2_000]
         assert out.stats()["dv_frames_late"] == 1
-    finally:
-        out.close()
 
 
 def test_dv_processing_network_reader_gets_the_passed_through_events(rng):
-    out = DvOutput("tcp://127.0.0.1:0", "events", 346, 260, camera_name="DAVIS346_00000391")
-    out.start()
-    try:
+    with DvOutput("tcp://127.0.0.1:0", "events", 346, 260, camera_name="DAVIS346_00000391") as out:
         proc = _reader(parse_tcp_endpoint(out.bound_endpoint)[1], 3)
         wait_until(lambda: out.client_count() == 1, 30)
         sent = []
@@ -235,14 +217,10 @@ def test_dv_processing_network_reader_gets_the_passed_through_events(rng):
         lines = _lines(proc)
         assert lines[0]["events"] is True and lines[0]["resolution"] == [346, 260]
         assert lines[1:] == sent
-    finally:
-        out.close()
 
 
 def test_a_client_that_never_reads_costs_drops_not_stalls():
-    out = DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, client_queue=4, hold_s=0)
-    out.start()
-    try:
+    with DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, client_queue=4, hold_s=0) as out:
         host, port = parse_tcp_endpoint(out.bound_endpoint)
         dead = socket.create_connection((host, port))
         dead.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
@@ -262,8 +240,6 @@ def test_a_client_that_never_reads_costs_drops_not_stalls():
         dead.close()
         live.close()
         wait_until(lambda: out.client_count() == 0)
-    finally:
-        out.close()
 
 
 def test_frames_the_server_had_no_time_to_take_are_counted_and_the_newest_kept(caplog):
@@ -345,9 +321,7 @@ def test_the_cli_takes_dv_input_and_serves_dv_output_and_out_is_finalised(real_r
 
 
 def test_colour_reconstructions_reach_dv_processing_as_colour_frames():
-    out = DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, camera_name="DAVIS346_00000391")
-    out.start()
-    try:
+    with DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, camera_name="DAVIS346_00000391") as out:
         reader = _reader(parse_tcp_endpoint(out.bound_endpoint)[1], 1)
         wait_until(lambda: out.client_count() == 1, 30)
         bgr = np.zeros((260, 346, 3), np.uint8)
@@ -355,8 +329,6 @@ def test_colour_reconstructions_reach_dv_processing_as_colour_frames():
         out.submit(Reconstruction(bgr, T0, "latent", T0, T0, T0, 0.2, 0.2, 10))
         (frame,) = _lines(reader)[1:]
         assert frame["shape"] == [260, 346, 3] and frame["pixel_sum"] == 6 * 260 * 346
-    finally:
-        out.close()
 
 
 def test_a_flood_of_connections_is_logged_a_few_lines_then_counted(caplog):
@@ -391,9 +363,7 @@ def test_an_error_that_accept_passes_on_from_a_client_costs_that_client_only(mon
         return real_accept(self)
 
     monkeypatch.setattr(socket.socket, "accept", accept_failing_once)
-    out = DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, hold_s=0)
-    out.start()
-    try:
+    with DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, hold_s=0) as out:
         host, port = parse_tcp_endpoint(out.bound_endpoint)
         with socket.create_connection((host, port)) as client:
             wait_until(lambda: out.client_count() == 1 or out.error is not None)
@@ -401,14 +371,10 @@ def test_an_error_that_accept_passes_on_from_a_client_costs_that_client_only(mon
             out.submit(_rec(T0, 5))
             _, packets = _recv_stream(client, 1)
         assert len(packets) == 1
-    finally:
-        out.close()
 
 
 def test_a_client_that_sends_data_is_dropped_and_the_others_keep_their_frames():
-    out = DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, hold_s=0)
-    out.start()
-    try:
+    with DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, hold_s=0) as out:
         host, port = parse_tcp_endpoint(out.bound_endpoint)
         with socket.create_connection((host, port)) as good, socket.create_connection((host, port)) as bad:
             wait_until(lambda: out.client_count() == 2)
@@ -418,5 +384,3 @@ def test_a_client_that_sends_data_is_dropped_and_the_others_keep_their_frames():
                 out.submit(_rec(T0 + k, k))
             _, packets = _recv_stream(good, 3)
         assert len(packets) == 3 and out.error is None
-    finally:
-        out.close()

@@ -64,20 +64,14 @@ def _first_packet(sock: socket.socket, timeout_s: float = 5.0) -> bytes:
 def _full_server(stall_s: float, fill: bool):
     """A DV output server each of whose slots a client that never reads holds (their queues full with `fill`):
     yields (the server, its host, its port, the idle clients' sockets)."""
-    out = DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, client_queue=4, hold_s=0, stall_s=stall_s)
-    out.start()
-    idle: list[socket.socket] = []
-    try:
+    with DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, client_queue=4, hold_s=0, stall_s=stall_s) as out:
         host, port = parse_tcp_endpoint(out.bound_endpoint)
-        idle = [_idle_client(host, port) for _ in range(out.max_clients)]
-        wait_until(lambda: out.client_count() == out.max_clients)
-        if fill:
-            _fill_every_queue(out)
-        yield out, host, port, idle
-    finally:
-        for sock in idle:
-            sock.close()
-        out.close()
+        with contextlib.ExitStack() as idle_socks:
+            idle = [idle_socks.enter_context(_idle_client(host, port)) for _ in range(out.max_clients)]
+            wait_until(lambda: out.client_count() == out.max_clients)
+            if fill:
+                _fill_every_queue(out)
+            yield out, host, port, idle
 
 
 def test_a_new_client_takes_the_slot_of_a_client_that_stalled_and_the_stalled_one_is_named(caplog):
@@ -109,24 +103,17 @@ def test_a_new_client_is_refused_when_no_client_has_stalled(caplog, frames):
 
 
 def test_clients_that_connect_and_close_at_once_leave_every_slot_free():
-    out = DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, hold_s=0)
-    out.start()
-    good: list[socket.socket] = []
-    try:
+    with DvOutput("tcp://127.0.0.1:0", "frames", 346, 260, hold_s=0) as out, contextlib.ExitStack() as good_socks:
         host, port = parse_tcp_endpoint(out.bound_endpoint)
         for k in range(100):
             sock = socket.create_connection((host, port))
             if k % 2:  # half of them reset the connection instead of closing it
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
             sock.close()
-        good = [socket.create_connection((host, port)) for _ in range(out.max_clients)]
+        good = [good_socks.enter_context(socket.create_connection((host, port))) for _ in range(out.max_clients)]
         wait_until(lambda: out.connections == 100 + out.max_clients and out.client_count() == out.max_clients)
         out.submit(_rec(T0, 5))
         for sock in good:
             got = _first_packet(sock)
             assert len(got) > 4 + int.from_bytes(got[:4], "little"), "a client got no frame"
         assert out.error is None
-    finally:
-        for sock in good:
-            sock.close()
-        out.close()

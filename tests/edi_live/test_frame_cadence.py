@@ -137,18 +137,25 @@ def test_on_a_slow_real_scene_the_time_rule_adds_latent_frames_and_keeps_every_d
     assert timed["skipped_static"] == 0
 
 
-def burst_between_aps_frames() -> list:
-    """A still camera (weak noise, APS frames 200 ms apart) that moves for 20 ms between two APS frames; the next
-    APS frame comes 220 ms after the motion, well after the still-scene test's hold, so its exposure holds noise
-    only (fewer events than mark a moving scene) and no event since the latest latent frame is active."""
+def still_burst_still(noise_hz: float, frame_interval_us: int):
+    """A still camera (blocks, 240x180) that moves for 20 ms at 300 px/s from 1.3 s and is still again: its three
+    simulated parts (each with `is_noise` per event)."""
     from edi_live.simulation import SceneConfig, simulate
 
-    base = dict(width=240, height=180, noise_rate_hz=0.05, frame_interval_us=200_000, exposure_us=10_000,
-                ground_truth=False, texture="blocks")
+    base = dict(width=240, height=180, noise_rate_hz=noise_hz, frame_interval_us=frame_interval_us,
+                exposure_us=10_000, ground_truth=False, texture="blocks")
     parts, t0 = [], 1_000_000
     for seconds, speed in ((0.3, 0.0), (0.02, 300.0), (0.3, 0.0)):
         parts.append(simulate(SceneConfig(duration_s=seconds, velocity_px_s=(speed, 0.0), t0_us=t0, **base)))
         t0 += int(seconds * 1e6)
+    return parts
+
+
+def burst_between_aps_frames() -> list:
+    """Weak noise, APS frames 200 ms apart, the 20 ms burst between two of them; the next APS frame comes 220 ms
+    after the motion, well after the still-scene test's hold, so its exposure holds noise only (fewer events than
+    mark a moving scene) and no event since the latest latent frame is active."""
+    parts = still_burst_still(0.05, 200_000)
     moved_from, moved_to = 1_300_000, 1_320_000
     frames = [f for p in parts for f in p.frames if not moved_from <= f.exposure_end_us <= moved_to + 100_000]
     return scene_packets(np.concatenate([p.events for p in parts]), frames)
@@ -179,14 +186,7 @@ def test_the_time_rule_makes_no_frames_from_the_noise_after_the_motion_stops(mon
     still-scene test keeps the events of the next hold_us (50 ms) "active" (so that slow motion is not cut off); the
     time rule must not turn that noise into a frame every every_ms. (One frame just after the end may show the
     motion's last events: those after the latest frame.)"""
-    from edi_live.simulation import SceneConfig, simulate
-
-    base = dict(width=240, height=180, noise_rate_hz=0.5, frame_interval_us=50_000, exposure_us=10_000,
-                ground_truth=False, texture="blocks")
-    parts, t0 = [], 1_000_000
-    for seconds, speed in ((0.3, 0.0), (0.02, 300.0), (0.3, 0.0)):
-        parts.append(simulate(SceneConfig(duration_s=seconds, velocity_px_s=(speed, 0.0), t0_us=t0, **base)))
-        t0 += int(seconds * 1e6)
+    parts = still_burst_still(0.5, 50_000)
     moved = parts[1]
     last_motion_us = int(moved.events["t"][~moved.is_noise].max())
     packets = scene_packets(np.concatenate([p.events for p in parts]), [f for p in parts for f in p.frames])

@@ -81,6 +81,12 @@ def _exercise(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
                 edi.fused_frames(rec.reference_log(), previous, (image > 0, image > 0), [previous[1] + 5_000], both,
                                  (0.2, 0.2), None, residual=residual)
             t_us += 20_000
+        # the worker's time rule for latent frames: its compiled pass over a ring slice's times (strided), and over
+        # one event's (contiguous)
+        from edi_live.frame_cadence import FrameCadence
+
+        for times in (events["t"], events["t"][-1:]):
+            FrameCadence(1, 1).cuts(times, 0)
         # the running double integral (deblur ahead): fed ring slices (strided fields) and single events
         npix = width * height
         t_lo, t_hi = int(events["t"][0]), int(events["t"][-1])
@@ -152,11 +158,11 @@ def _exercise(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
 
 def compiled_signatures() -> dict[str, set[str]]:
     """Each numba kernel's compiled argument-type signatures so far, across the packages (edi_live.edi's own
-    kernels, the compiled parts of the calibration and the prediction figure, and the colour demosaic): what a
-    warm-up must cover."""
-    from edi_live import _kernels_demosaic, edi, hold_average
+    kernels, the compiled parts of the calibration and the prediction figure, the colour demosaic and the worker's
+    frame cadence): what a warm-up must cover."""
+    from edi_live import _kernels_demosaic, edi, frame_cadence, hold_average
     from edi_live.contrast import _kernels_black_level, _kernels_clock_offset
 
     return edi.compiled_signatures(also=(_kernels_black_level, _kernels_clock_offset, hold_average,
-                                         _kernels_demosaic))
+                                         _kernels_demosaic, frame_cadence))
 

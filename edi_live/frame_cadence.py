@@ -24,6 +24,11 @@ _VECTOR_CUTS = 256  # up to this many count cuts in a read, numpy checks that no
 # small --every), the compiled pass over the events is cheaper than those checks (~1 ns an event)
 
 
+def frame_cadence_us(every_ms: float) -> int:
+    """--every-ms in whole µs (the event clock's unit): 0 stays 0 (off), anything above it is at least 1 µs."""
+    return max(1, round(every_ms * 1000)) if every_ms > 0 else 0
+
+
 class FrameCadence:
     """The time rule's clock: the sensor time of the latest latent frame (`made`; a deblurred frame shows its
     mid-exposure, so it does not restart the clock). `every_us` 0: events only."""

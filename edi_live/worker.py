@@ -29,7 +29,7 @@ from edi_live.config import EdiConfig
 from edi_live.datatypes import Frame, Reconstruction
 from edi_live.deblur_handover import DeblurThread, PendingDeblur
 from edi_live import held_frames
-from edi_live.frame_cadence import FrameCadence
+from edi_live.frame_cadence import FrameCadence, frame_cadence_us
 from edi_live.frame_demand import FrameDemand
 from edi_live.frame_gate import FrameGate, in_event_clock
 from edi_live.fused_mode import FusedHoldBack
@@ -74,7 +74,7 @@ class EdiWorker:
         self.error: BaseException | None = None
         # everything below is touched only by the worker thread (stats readers see plain ints)
         self._since = 0  # events since the last sent frame
-        self._cadence = FrameCadence(config.every, round(config.every_ms * 1000))  # ... and its sensor time
+        self._cadence = FrameCadence(config.every, frame_cadence_us(config.every_ms))  # ... and its sensor time
         self._await_reference = False  # after a gap: no latent frames until the next APS frame
         self._last_emit_s = 0.0
         self._last_arrival_ns = 0

@@ -198,3 +198,10 @@ def test_the_time_rule_makes_no_frames_from_the_noise_after_the_motion_stops(mon
         # a frame after the motion's end may show its last events (the time rule's one flush), never noise alone
         noise_only = [t for prev, t in zip(latent, latent[1:]) if prev > last_motion_us]
         assert noise_only == [], f"{len(noise_only)} latent frames from noise after the motion stopped ({every_ms})"
+
+
+def test_a_time_rule_below_a_microsecond_is_one_microsecond_not_off():
+    from edi_live.frame_cadence import frame_cadence_us
+
+    assert frame_cadence_us(0) == 0 and frame_cadence_us(0.0001) == 1 and frame_cadence_us(2) == 2000
+    assert frame_cadence_us(3_600_000) == 3_600_000_000  # the largest the option takes: far from int64's range

@@ -52,21 +52,24 @@ class FrameCadence:
         the last cut."""
         n, every = int(t.size), self.every
         counted = range(max(1, every - since), n + 1, every)
-        due = self._due_t(timed)  # later frames fall due later still: a read that ends before it has count cuts only
-        started = self.last_t != -_NEVER
-        out: Sequence[int]
-        if n == 0 or not (timed and self.every_us) or (not started and not len(counted)) \
-                or started and (int(t[-1]) < due or len(counted) <= _VECTOR_CUTS
-                                and _count_rule_wins(t, counted, due, self.every_us)):
-            out = counted
-        else:  # some gap reaches every_us (or the first frame starts the rule): one compiled pass
+        out: Sequence[int] = counted
+        if n and self._time_may_cut(t, counted, timed):  # one compiled pass
             ends = np.empty(n, np.int64)
-            k = _walk(t, since, every, self.every_us, started, self.last_t, ends)
-            out = ends[:k]
+            out = ends[:_walk(t, since, every, self.every_us, self.last_t != -_NEVER, self.last_t, ends)]
         if len(out):
             self.made(int(t[out[-1] - 1]))
             return out, n - int(out[-1])
         return out, since + n
+
+    def _time_may_cut(self, t: np.ndarray, counted: range, timed: bool) -> bool:
+        """Whether the time rule may cut somewhere in `t` (non-empty), where `counted` are the count rule's cuts."""
+        if not (timed and self.every_us):
+            return False
+        if self.last_t == -_NEVER:  # the first count cut starts the rule
+            return len(counted) > 0
+        due = self.last_t + self.every_us  # later frames fall due later still: a read ending before it has none
+        return not (int(t[-1]) < due or len(counted) <= _VECTOR_CUTS and _count_rule_wins(t, counted, due,
+                                                                                              self.every_us))
 
     def take(self, t: np.ndarray, since: int, timed: bool = True) -> int:
         """How many of `t` (time order) to take before the next frame is due by either rule (all when none is);
@@ -85,14 +88,11 @@ class FrameCadence:
 def _count_rule_wins(t: np.ndarray, counted: range, due: int, every_us: int) -> bool:
     """Whether no event reaches the time rule before the count rule cuts (the common case on a busy scene): each
     counted frame's last event comes before its time rule's due time, and the events after the last cut too."""
-    ends = np.arange(counted.start, counted.stop, counted.step, dtype=np.int64)
-    last = t[ends - 1] if ends.size else t[:0]
-    # the frame cut at ends[k] is due at due (k = 0) or last[k-1] + every_us; its events end at last[k]
-    starts = np.concatenate(([due], last[:-1] + every_us)) if ends.size else np.zeros(0, np.int64)
-    if ends.size and not np.all(last < starts):
-        return False
-    tail_due = int(last[-1]) + every_us if ends.size else due
-    return int(t[-1]) < tail_due
+    if not len(counted):
+        return int(t[-1]) < due
+    last = t[np.arange(counted.start, counted.stop, counted.step, dtype=np.int64) - 1]  # each cut's last event
+    dues = np.concatenate(([due], last[:-1] + every_us))  # the time rule's due time for each of those frames
+    return bool(np.all(last < dues)) and int(t[-1]) < int(last[-1]) + every_us
 
 
 @njit(cache=True, nogil=True)
@@ -106,5 +106,5 @@ def _walk(t, since, every, every_us, has_last, last_t, ends):  # noqa: ANN001
             k += 1
             since = 0
             last_t = t[i]
-            has_last = every_us > 0
+            has_last = True  # (called with every_us > 0 only)
     return k

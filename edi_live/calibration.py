@@ -39,7 +39,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from edi_live.config import EdiConfig
+from edi_live.config import APS_GAMMA_RANGE, BLACK_LEVEL_END, C_RANGE, CLOCK_OFFSET_MAX_US, EdiConfig
 from edi_live.checks import finite_number
 from edi_live.config_file import read_limited
 from edi_live.datatypes import SourceInfo
@@ -115,11 +115,15 @@ _FIELD_RULES: tuple[tuple[str, str, Callable[[Any], bool]], ...] = (
     ("camera", "text", lambda v: isinstance(v, str)),
     ("width", "a positive integer", lambda v: _integer(v) and v > 0),
     ("height", "a positive integer", lambda v: _integer(v) and v > 0),
-    ("c_on", "a contrast threshold in [0.01, 2]", lambda v: finite_number(v) and 0.01 <= v <= 2.0),
-    ("c_off", "a contrast threshold in [0.01, 2]", lambda v: finite_number(v) and 0.01 <= v <= 2.0),
-    ("black_level", "DN in [0, 128)", lambda v: finite_number(v) and 0 <= v < 128),
-    ("clock_offset_us", "an integer of µs within ±100000", lambda v: _integer(v) and abs(v) <= 100_000),
-    ("aps_gamma", "an exponent in [0.2, 5]", lambda v: finite_number(v) and 0.2 <= v <= 5),
+    ("c_on", f"a contrast threshold in [{C_RANGE[0]:g}, {C_RANGE[1]:g}]",
+     lambda v: finite_number(v) and C_RANGE[0] <= v <= C_RANGE[1]),
+    ("c_off", f"a contrast threshold in [{C_RANGE[0]:g}, {C_RANGE[1]:g}]",
+     lambda v: finite_number(v) and C_RANGE[0] <= v <= C_RANGE[1]),
+    ("black_level", f"DN in [0, {BLACK_LEVEL_END})", lambda v: finite_number(v) and 0 <= v < BLACK_LEVEL_END),
+    ("clock_offset_us", f"an integer of µs within ±{CLOCK_OFFSET_MAX_US}",
+     lambda v: _integer(v) and abs(v) <= CLOCK_OFFSET_MAX_US),
+    ("aps_gamma", f"an exponent in [{APS_GAMMA_RANGE[0]:g}, {APS_GAMMA_RANGE[1]:g}]",
+     lambda v: finite_number(v) and APS_GAMMA_RANGE[0] <= v <= APS_GAMMA_RANGE[1]),
     ("black_level_measured", "true or false", lambda v: isinstance(v, bool)),
 )
 

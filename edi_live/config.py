@@ -40,6 +40,11 @@ DEVICE_MODELS = ("davis240", "davis346", "auto")
 LOG_LEVELS = ("debug", "info", "warning", "error")
 
 
+# the bounds of the camera values, as options and in a saved calibration (edi_live.calibration checks it against them)
+C_RANGE = (0.01, 2.0)  # a contrast threshold
+APS_GAMMA_RANGE = (0.2, 5.0)
+BLACK_LEVEL_END = 128  # a black level is in [0, BLACK_LEVEL_END) DN
+CLOCK_OFFSET_MAX_US = 100_000  # events lag the APS clock by at most this many µs, either way
 EVENT_BYTES = 16  # one ring slot (EVENT_DTYPE)
 
 
@@ -153,8 +158,9 @@ class EdiConfig:
                f"(got {self.every_ms!r})")
         for name in ("c", "c_on", "c_off"):
             value = getattr(self, name)
-            _check(value is None or (isinstance(value, (int, float)) and 0.01 <= value <= 2.0),
-                   f"{name.replace('_', '-')} must be a contrast threshold in [0.01, 2] (got {value!r})")
+            _check(value is None or (isinstance(value, (int, float)) and C_RANGE[0] <= value <= C_RANGE[1]),
+                   f"{name.replace('_', '-')} must be a contrast threshold in [{C_RANGE[0]:g}, {C_RANGE[1]:g}] "
+                   f"(got {value!r})")
         _check((self.c_on is None) == (self.c_off is None),
                f"c-on and c-off go together (got c-on={self.c_on!r}, c-off={self.c_off!r})")
         _check(self.c is None or self.c_on is None,
@@ -166,14 +172,18 @@ class EdiConfig:
         _int_in("quality-every", self.quality_every, 0, 10**6, "score one APS frame in N; 0 = off")
         _check(self.aps_gamma is None or (isinstance(self.aps_gamma, (int, float))
                                           and not isinstance(self.aps_gamma, bool)
-                                          and math.isfinite(self.aps_gamma) and 0.2 <= self.aps_gamma <= 5),
-               f"aps-gamma must be a number in [0.2, 5] (got {self.aps_gamma!r})")
+                                          and math.isfinite(self.aps_gamma)
+                                          and APS_GAMMA_RANGE[0] <= self.aps_gamma <= APS_GAMMA_RANGE[1]),
+               f"aps-gamma must be a number in [{APS_GAMMA_RANGE[0]:g}, {APS_GAMMA_RANGE[1]:g}] "
+               f"(got {self.aps_gamma!r})")
         if self.clock_offset_us is not None:
-            _int_in("clock-offset-us", self.clock_offset_us, -100_000, 100_000, "µs the events lag the APS clock")
+            _int_in("clock-offset-us", self.clock_offset_us, -CLOCK_OFFSET_MAX_US, CLOCK_OFFSET_MAX_US,
+                    "µs the events lag the APS clock")
         _check(self.black_level is None or (isinstance(self.black_level, (int, float))
                                             and not isinstance(self.black_level, bool)
-                                            and math.isfinite(self.black_level) and 0 <= self.black_level < 128),
-               f"black-level must be a number of DN in [0, 128) (got {self.black_level!r})")
+                                            and math.isfinite(self.black_level)
+                                            and 0 <= self.black_level < BLACK_LEVEL_END),
+               f"black-level must be a number of DN in [0, {BLACK_LEVEL_END}) (got {self.black_level!r})")
         _check(self.color_filter is None or self.color_filter in COLOR_FILTERS,
                f"bayer-pattern must be one of {', '.join(COLOR_FILTERS)} (got {self.color_filter!r})")
         _check(isinstance(self.deblur_ahead, bool), f"deblur-ahead must be true or false (got {self.deblur_ahead!r})")

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drivers.pacing import MAX_GAP_US, MAX_LATE_S
 from tools.stream_harness import recording_stats, run_with_subscriber
 
 
@@ -46,13 +47,18 @@ def bench_latency(path: Path, every: int, rate_ev_s: float, seconds: float, pack
 
 def outside_latency_us(arrivals: np.ndarray, speed: float) -> np.ndarray:
     """Latency seen at the subscriber (µs): receive time minus the paced wall time of the frame's last event (for
-    a deblurred frame its exposure end), relative to the fastest frame of each pass over the recording (the
-    subscriber does not know when the replay clock started; a pass begins where sensor time jumps back)."""
+    a deblurred frame its exposure end), relative to the fastest frame of each stretch the replay paced on one
+    schedule (the subscriber does not know when the replay clock started). A new schedule begins where sensor time
+    jumps back (a loop restarts), where it jumps ahead by more than the pacer replays as a pause (drivers.pacing:
+    the jump is skipped), and where a frame comes more than the pacer's MAX_LATE_S later than the one before
+    on the previous schedule (the pacer, that far behind, restarts its schedule instead of catching up: measured
+    against the old one, one stall would count in every later frame)."""
     recv_ns, t_us = arrivals[:, 0].astype(np.float64), arrivals[:, 1].astype(np.float64)
     offset = recv_ns / 1e3 - t_us / speed  # paced: wall µs = start + (t - t0) / speed
+    dt = np.diff(t_us)
+    restarts = (dt < -2e5) | (dt > MAX_GAP_US) | (np.diff(offset) > MAX_LATE_S * 1e6)
     out = np.empty_like(offset)
-    passes = np.flatnonzero(np.diff(t_us) < -2e5) + 1  # a loop restart: sensor time back by more than 0.2 s
-    for seg in np.split(np.arange(offset.size), passes):
+    for seg in np.split(np.arange(offset.size), np.flatnonzero(restarts) + 1):
         if seg.size:
             out[seg] = offset[seg] - offset[seg].min()
     return out

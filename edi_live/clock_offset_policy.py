@@ -97,6 +97,7 @@ class ClockOffsetPolicy:
         self._found_in_use: list[float] = []  # ... and with the kept share of the step lag
         self._end_round()
         self._frames_to_round = 0  # the first round starts with the stream
+        self._paused = False  # a still scene: nothing collected until a frame moves (`still`)
         sample = np.zeros(width * height, bool)
         keep = np.random.default_rng(20190617).choice(sample.size, min(sample.size, settings.sample_pixels),
                                                      replace=False)
@@ -124,8 +125,9 @@ class ClockOffsetPolicy:
         return len(self._due)
 
     def collect(self, events: np.ndarray) -> None:
-        """Keep the sample's new events (the fits run in update, off the stream of latent frames)."""
-        if self.collecting:
+        """Keep the sample's new events (the fits run in update, off the stream of latent frames); not while the
+        scene is still (`still`): the next frame that moves brings its exposure's events itself."""
+        if self.collecting and not self._paused:
             self._keep(events)
 
     def update(self, frame: Frame, events: np.ndarray, image: np.ndarray, black_level: float,
@@ -137,6 +139,7 @@ class ClockOffsetPolicy:
         if not self.collecting:
             self._frames_to_round -= 1
             return
+        self._paused = False
         if self._last is not None and frame.exposure_start_us <= self._last.exposure_start_us:
             self._drop_data()  # time went backwards (a recording looped): what was kept belongs to another stream
         self._keep(events)
@@ -147,6 +150,18 @@ class ClockOffsetPolicy:
         self._last = window
         while self._due and self._due[0].runnable(self._t_max):  # the pairs the events kept so far complete
             self._fit(self._due.pop(0))
+
+    def still(self) -> None:
+        """An APS frame whose pair with the previous one is still (the c policy ignores its events): it says nothing
+        about the offset, so no pair is formed across it. The kept events are dropped, and none are kept until a
+        frame that moves comes to `update`; the round stays open: its fits come with the frames that move."""
+        if self.given is not None:
+            return
+        if not self.collecting:
+            self._frames_to_round -= 1
+            return
+        self._drop_data()
+        self._paused = True
 
     # ---- internals ----
 

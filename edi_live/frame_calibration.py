@@ -5,7 +5,9 @@ Before the deblur: this frame's data and its pair with the previous frame (contr
 the unreliable-pixel test of this deblur, unless the clock offset moved since the previous frame). After it, on
 `settle()`, in the order the reconstructor ran them before settle() existed: the c policy's decision on the new
 pair (fit test, re-estimation), the black level policy, the clock offset policy's registration of the frame (with
-the c and black level just decided, as before) and the pixel-noise statistics. What settle decides takes effect at
+the c and black level just decided, as before) and the pixel-noise statistics. A pair the c policy finds still
+(its events explain no brightness change) goes to neither the black level nor the clock offset: it holds nothing
+either could learn from, and on a still scene their start-up fits (~10 ms a frame) would run on every heartbeat. What settle decides takes effect at
 the next frame: c and the black level never change between two frames, and a frame is deblurred with the values
 in force before it. At start-up (no c estimated yet, also after a black-level restart) the c decision stays before
 the deblur that needs it. (A new clock offset is in use from the next frame on; its pairs start there.)
@@ -108,10 +110,14 @@ class FrameCalibration:
             else:
                 self.policy.skip()
                 self.tests_skipped += 1
-        new_black = self.black.update(due.pair, due.black_taken_off)
         frame, events, img, mask = due.clock
-        black = due.black_taken_off if new_black is None else new_black
-        self.clock.update(frame, events, img, black, self.policy.c, mask)
+        new_black = None
+        if self.policy.events_ignored:  # the pair's events carry no signal: nothing to learn the black level or
+            self.clock.still()          # the clock offset from (a still scene would spend its start-up fits here)
+        else:
+            new_black = self.black.update(due.pair, due.black_taken_off)
+            black = due.black_taken_off if new_black is None else new_black
+            self.clock.update(frame, events, img, black, self.policy.c, mask)
         if new_black is not None:  # pairs so far used the old value; c is estimated afresh
             self._black_next = new_black
             self.tracker.restart()

@@ -133,7 +133,7 @@ def _exercise(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
         # the prediction figure (its frame average; the pixels with events, on ring slices and one event), the
         # black-level profile (its first fit comes frames later) and the unreliable-pixel mask's dilation (only
         # once a pixel is flagged, which the scene above never does)
-        from edi_live.contrast import _kernels_black_level
+        from edi_live.contrast import _kernels_black_level, _kernels_clock_offset
         from edi_live.hold_average import hold_average
 
         hold_average([image, image], [1, 1], 2)
@@ -142,6 +142,10 @@ def _exercise(make_reconstructor: Callable[..., Any], edi_config: Any) -> None:
         edi.mark_event_pixels(events[10:11], width, height, marks)
         b = np.linspace(5.0, 200.0, 64)
         _kernels_black_level.profile_point(b, b + 1.0, np.ones(64), 2.0, 0.5, 5, 50.0, math.inf)
+        # the clock-offset fit's lookup: the scene above is still (random events), and still pairs are not fitted
+        one = np.zeros(1, np.int64)
+        _kernels_clock_offset.integrals_at(np.array([0, 5], np.int64), np.array([0, 2], np.int64), one,
+                                           np.array([1, 3], np.int64), np.zeros(2), np.ones(2), 0)
         edi.dilate(np.zeros((height, width), bool), [(0, 0), (0, 1)])
         # a colour source's output demosaic: of the latent display, and of a decoded (read-only) APS frame
         from edi_live.colour import demosaic

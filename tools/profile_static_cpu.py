@@ -88,6 +88,7 @@ def _step_counters() -> list[_Counted]:
 
 def run(seconds: float, use_cprofile: bool, top: int, noise_hz: float, step_calls: bool = False) -> dict[str, Any]:
     from edi_live.config import NodeConfig
+    from edi_live.deblur_handover import DeblurThread
     from edi_live.node import Node
     from edi_live.ring import EventRing
     from edi_live.worker import EdiWorker
@@ -96,10 +97,11 @@ def run(seconds: float, use_cprofile: bool, top: int, noise_hz: float, step_call
     from tools.thread_cpu import ThreadCpu
 
     path = noise_recording(seconds + 4, noise_hz)
-    saved = (EdiWorker._run, Node._pump_loop)
+    saved = (EdiWorker._run, Node._pump_loop, DeblurThread._loop)
     if use_cprofile:
         EdiWorker._run = _profiled("edi-worker", EdiWorker._run)  # type: ignore[method-assign]
         Node._pump_loop = _profiled("pump", Node._pump_loop)  # type: ignore[method-assign]
+        DeblurThread._loop = _profiled("edi-deblur", DeblurThread._loop)  # type: ignore[method-assign]
     counters = [_Counted(EventRing, "push"), _Counted(EventRing, "read_events"), _Counted(EdiWorker, "_step"),
                 _Counted(EventRing, "wait")]
     steps = _step_counters() if step_calls else []
@@ -127,7 +129,7 @@ def run(seconds: float, use_cprofile: bool, top: int, noise_hz: float, step_call
     finally:
         for c in reversed(counters + steps):
             c.__exit__()
-        EdiWorker._run, Node._pump_loop = saved  # type: ignore[method-assign]
+        EdiWorker._run, Node._pump_loop, DeblurThread._loop = saved  # type: ignore[method-assign]
     d = {k: s1[k] - s0[k] for k in ("frames_out", "heartbeats", "aps_frames_in", "skipped_static_deblur",
                                      "events_processed")}
     by_thread = {k: 100 * v / wall for k, v in threads.cpu_s.items() if v > 0}

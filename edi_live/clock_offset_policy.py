@@ -151,17 +151,24 @@ class ClockOffsetPolicy:
         while self._due and self._due[0].runnable(self._t_max):  # the pairs the events kept so far complete
             self._fit(self._due.pop(0))
 
-    def still(self) -> None:
-        """An APS frame whose pair with the previous one is still (the c policy ignores its events): it says nothing
-        about the offset, so no pair is formed across it. The kept events are dropped, and none are kept until a
-        frame that moves comes to `update`; the round stays open: its fits come with the frames that move."""
+    def still(self, events: np.ndarray) -> None:
+        """An APS frame whose pair with the previous one is still (the c policy ignores its events), with its batch
+        of events: it says nothing about the offset, so no pair is formed across it. The moving pair before it, if
+        waiting for its fit, is fitted now when the events cover it (the verdict is on the newest pair only); then
+        the kept events are dropped, and none are kept until a frame that moves comes to `update`. The round stays
+        open: its fits come with the frames that move."""
         if self.given is not None:
             return
         if not self.collecting:
             self._frames_to_round -= 1
             return
-        self._drop_data()
-        self._paused = True
+        if self._due:
+            self._keep(events)
+            while self._due and self._due[0].runnable(self._t_max):
+                self._fit(self._due.pop(0))
+        if self.collecting:  # (unless that fit ended the round)
+            self._drop_data()
+            self._paused = True
 
     # ---- internals ----
 

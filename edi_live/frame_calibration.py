@@ -113,7 +113,7 @@ class FrameCalibration:
         frame, events, img, mask = due.clock
         new_black = None
         if self.policy.events_ignored:  # the pair's events carry no signal: nothing to learn the black level or
-            self.clock.still()          # the clock offset from (a still scene would spend its start-up fits here)
+            self.clock.still(events)    # the clock offset from (a still scene would spend its start-up fits here)
         else:
             new_black = self.black.update(due.pair, due.black_taken_off)
             black = due.black_taken_off if new_black is None else new_black

@@ -432,3 +432,38 @@ def test_still_frames_before_the_motion_leave_the_offset_to_be_found_once_it_mov
     rec = _stream(joined, EdiReconstructor(cfg.width, cfg.height, clock_offset_us=None))
     assert abs(rec.stats()["clock_offset_physical_us"] - cfg.event_offset_us) <= 300, rec._clock.last_estimates
     assert fits_still <= 1, fits_still
+
+
+def _policy_stream(sim, kinds: str):
+    """A ClockOffsetPolicy fed as settle() feeds it: per frame `update` ('m', the pair it closes moves) or `still`
+    ('s'), and the events up to the next exposure's end collected in between."""
+    from edi_live.clock_offset_policy import ClockOffsetPolicy
+
+    h, w = sim.frames[0].image.shape
+    policy, ev = ClockOffsetPolicy(None, w, h), sim.events
+    t = ev["t"]
+
+    def between(t0, t1):
+        return ev[np.searchsorted(t, t0, "left"):np.searchsorted(t, t1, "right")]
+    for k, kind in enumerate(kinds):
+        f = sim.frames[k]
+        if kind == "m":
+            policy.update(f, between(f.exposure_start_us, f.exposure_end_us), f.image, 0.0, (0.2, 0.2), None)
+        else:
+            policy.still(between(f.exposure_start_us, f.exposure_end_us))
+        if k + 1 < len(sim.frames):
+            policy.collect(between(f.exposure_end_us + 1, sim.frames[k + 1].exposure_end_us))
+    return policy
+
+
+def test_a_moving_pair_waiting_for_its_fit_is_fitted_when_the_scene_turns_still(scene):
+    """The still verdict is on the newest pair only: the moving pair before it, whose events are all kept by then,
+    is fitted as the next moving frame would have fitted it (a motion of three frames between still ones gave
+    one fit, not two)."""
+    sim = simulate(with_effects(scene, "clock_offset"))
+    moving, turning = _policy_stream(sim, "mmmm"), _policy_stream(sim, "mmms")
+    assert moving.fits_run == 2  # (the pair of frames 1 and 2 is fitted at frame 3)
+    assert turning.fits_run == moving.fits_run and turning.estimates == moving.estimates
+    assert turning._found == moving._found
+    # the still frame closes no pair, and nothing is kept until a frame moves
+    assert turning.due == 0 and not turning._chunks

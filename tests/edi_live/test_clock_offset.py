@@ -107,6 +107,7 @@ def test_a_still_scene_with_only_noise_events_gives_no_offset():
     assert rec.clock_offset_us == 0 and rec._clock.estimates == 0, rec._clock.last_estimates
     assert rec.events_ignored  # the c policy's still verdict ...
     assert rec._clock.fits_run <= 1, rec._clock.fits_run  # ... spares the pairs after it their fits
+    assert len(rec._black._pool) <= 1, len(rec._black._pool)  # ... and the black level's pool (12 pairs otherwise)
 
 
 def test_a_starting_offset_is_used_at_once_and_moved_by_the_stream(scene):

@@ -60,7 +60,7 @@ class ThreadCpu:
 
     def split(self) -> str:
         keep = {k: v for k, v in self.cpu_s.items()
-                if k in ("pump", "edi-worker", "publisher", "MainThread") or k.startswith("ZMQbg/IO")}
+                if k in ("pump", "edi-worker", "edi-deblur", "publisher", "MainThread") or k.startswith("ZMQbg/IO")}
         total = sum(keep.values()) or 1.0
         return ", ".join(f"{k} {v:.2f} s ({100 * v / total:.0f}%)" for k, v in sorted(keep.items(),
                                                                                       key=lambda kv: -kv[1]))

@@ -70,7 +70,7 @@ def _print_outside_latency(arrivals: np.ndarray | None, speed: float) -> None:
     lat = outside_latency_us(arrivals, speed) / 1000
     deblurred = arrivals[:, 2].astype(bool)
     print("seen from the subscriber (receive time - paced wall time of the frame's last event / exposure end, "
-          "relative to the fastest frame of each pass):")
+          "relative to the fastest frame of each schedule the pacer kept: a pass, or from a restart after a stall):")
     for kind, sel in (("latent", ~deblurred), ("deblurred", deblurred)):
         if sel.any():
             q = np.percentile(lat[sel], [50, 90, 99, 100])

@@ -74,7 +74,7 @@ class _Due:
 
 class ClockOffsetPolicy:
     """`collect(events)` with every event batch (keeps them); `update(frame, ...)` per APS frame registers it and
-    runs the due fits; `value` is the offset (µs) in use."""
+    runs the due fits, or `still(events)` for a frame whose pair is still; `value` is the offset (µs) in use."""
 
     def __init__(self, given: int | None, width: int, height: int,
                  settings: ClockOffsetSettings = ClockOffsetSettings(), *, start: int | None = None) -> None:

@@ -126,8 +126,8 @@ def bench_noise(seconds: float, repeat: int) -> None:
             d = {k: s1[k] - s0[k] for k in ("frames_out", "heartbeats", "aps_frames_in", "skipped_static_deblur")}
             results[name].append((100 * node_cpu / wall, 100 * cpu / wall, (d["frames_out"] - d["heartbeats"]) / wall,
                                   d["heartbeats"] / wall, (d["aps_frames_in"] - d["skipped_static_deblur"]) / wall))
-    print("| policy | worker + deblur helper + publisher, % of one core, median (min-max) | whole process (with the replay's pump) | "
-          "non-heartbeat frames/s | heartbeats/s | deblurs/s |\n|---|---|---|---|---|---|")
+    print("| policy | worker + deblur helper + publisher, % of one core, median (min-max) | whole process (with the "
+          "replay's pump) | non-heartbeat frames/s | heartbeats/s | deblurs/s |\n|---|---|---|---|---|---|")
     for name, rows in results.items():
         a = np.array(rows)
         print(f"| {name} | {np.median(a[:, 0]):.1f} ({a[:, 0].min():.1f}-{a[:, 0].max():.1f}) | "
@@ -201,8 +201,8 @@ def bench_noise_ab(seconds: float, repeat: int, other: Path) -> None:
             if out.returncode != 0:
                 raise SystemExit(f"{which} run failed:\n{out.stderr[-2000:]}")
             runs[which].append(json.loads(out.stdout.strip().splitlines()[-1]))
-    print("| checkout | worker + deblur helper + publisher, % of one core | process without the pump | pump | whole process | "
-          "non-heartbeat frames/s | heartbeats/s | deblurs/s |\n|---|---|---|---|---|---|---|---|")
+    print("| checkout | worker + deblur helper + publisher, % of one core | process without the pump | pump | "
+          "whole process | non-heartbeat frames/s | heartbeats/s | deblurs/s |\n|---|---|---|---|---|---|---|---|")
     for which, rows in runs.items():
         def cell(key: str, digits: int = 1) -> str:
             v = np.array([r[key] for r in rows])

@@ -363,6 +363,19 @@ def test_static_aps_frames_are_not_sent_again():
     assert worker.skipped_static == 1
 
 
+@pytest.mark.parametrize("mode", ["causal", "nearest", "fused"])
+def test_a_source_without_events_passes_every_aps_frame_through(mode):
+    """A frames-only recording (or a camera whose DVS is off) has no event to tell a still scene from a moving
+    one: each APS frame is what is known, and is sent (before, all but the first were taken for a still scene)."""
+    frames = [Frame(np.full((2, 2), 10 * k, np.uint8), exposure_start_us=k * 50_000,
+                    exposure_end_us=k * 50_000 + 5_000) for k in range(6)]
+    packets = [Packet(events=np.zeros(0, EVENT_DTYPE), frames=[f]) for f in frames]
+    worker, rec, out, errors = run_worker(packets, EdiConfig(every=1000, mode=mode))
+    assert not errors
+    assert [r.kind for r in out] == ["deblurred"] * 6
+    assert [r.t_us for r in out] == [f.mid_exposure_us for f in frames]
+
+
 def test_gap_suspends_latent_frames_until_the_next_aps_frame():
     ev = events_at(np.arange(0, 30_000, 3))
     packets = [Packet(events=ev[:100], frames=[aps(0, 250)]),

@@ -87,8 +87,12 @@ def _is_int(value: object) -> bool:
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)  # True is an int, not a size
 
 
-def _check_port(endpoint: str) -> None:
-    """libzmq takes a tcp port over 65535 modulo 65536 without a word (99999 connects to 34463)."""
+def _check_endpoint(endpoint: str) -> None:
+    """libzmq takes a tcp port over 65535 modulo 65536 without a word (99999 connects to 34463), and connects to
+    an inproc:// name that only a socket of this Subscriber's own context could bind: a wait for ever."""
+    if endpoint.startswith("inproc://"):
+        raise ClientError(f"cannot connect to {endpoint}: inproc:// reaches only the same process's ZeroMQ context, "
+                          "and edi-live does not publish there; use its tcp://HOST:PORT or ipc:///PATH")
     parts = tcp_parts(endpoint)
     if parts is not None and not (parts[1].isdigit() and 1 <= int(parts[1]) <= 65535):
         raise ClientError(f"cannot connect to {endpoint}: the port must be 1-65535 (tcp://HOST:PORT)")
@@ -118,7 +122,7 @@ class Subscriber:
             raise ClientError(f"rcvhwm must be an integer, or None for the default (got {rcvhwm!r})")
         if not isinstance(endpoint, str):
             raise ClientError(f"the endpoint must be a string such as {DEFAULT_ENDPOINT} (got {endpoint!r})")
-        _check_port(endpoint)
+        _check_endpoint(endpoint)
         self.endpoint = endpoint
         self.newest_only = newest_only
         self.max_bytes = max_bytes = int(max_bytes)

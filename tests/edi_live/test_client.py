@@ -391,6 +391,13 @@ def test_a_tcp_port_out_of_range_is_a_client_error(endpoint):
         Subscriber(endpoint)
 
 
+def test_an_inproc_endpoint_is_a_client_error_not_a_silent_wait():
+    # the Subscriber has a ZeroMQ context of its own, and inproc:// reaches only sockets of the same context: it
+    # connected, and every receive waited for frames that could never come (the publisher refuses inproc too)
+    with pytest.raises(ClientError, match="inproc"):
+        Subscriber("inproc://frames")
+
+
 def test_a_nan_timeout_is_a_client_error_not_a_wait_for_ever():
     outcome: list = []
 

@@ -135,6 +135,8 @@ def as_path(v: Any) -> Path | None:
         raise TypeError("expected a file path")
     if v is not None and not os.fspath(v):  # Path("") is ".": an unset shell variable would name the folder
         raise ValueError("expected a file path, not an empty one")
+    if v is not None and "\0" in os.fsdecode(v):  # TOML's "\u0000": open() would fail with "embedded null byte"
+        raise ValueError("a file path cannot hold a NUL character")
     return None if v is None else Path(v)
 
 

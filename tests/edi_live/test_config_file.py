@@ -153,3 +153,29 @@ def test_an_empty_file_path_is_a_usage_error_naming_its_option(tmp_path: Path, k
     with pytest.raises(ConfigError) as info:
         NodeConfig.from_toml(path)
     assert str(info.value).startswith(f"{flag}: ") and "(got '')" in str(info.value)
+
+
+@pytest.mark.parametrize("key", _PATH_OPTIONS)
+def test_a_path_with_a_nul_character_is_a_usage_error_naming_its_option(tmp_path: Path, key):
+    """TOML can hold "\\u0000", which no file name can: `out = "a\\u0000b"` ended in "internal error: ValueError:
+    embedded null byte" (exit 1, "report it"), and `calibration` named a file without the NUL."""
+    from edi_live.config import NodeConfig
+
+    flag = key.replace("_", "-")
+    options = {**_with_empty(key), key: "a\x00b"}
+    path = tmp_path / "edi.toml"
+    path.write_text("".join(f'{k.replace("_", "-")} = "{v}"\n' for k, v in options.items()).replace("\x00", "\\u0000"))
+    with pytest.raises(ConfigError) as info:
+        NodeConfig.from_toml(path)
+    assert str(info.value).startswith(f"{flag}: ") and "NUL" in str(info.value) and info.value.exit_code == 2
+
+
+def test_an_ipc_endpoint_with_a_nul_character_is_a_usage_error(tmp_path: Path):
+    """`publish = ["ipc:///tmp/x\\u0000y"]` ended in "the main thread failed: ValueError: embedded null byte"."""
+    from edi_live.config import NodeConfig
+
+    path = tmp_path / "edi.toml"
+    path.write_text('replay = "rec.aedat4"\npublish = ["ipc:///tmp/x\\u0000y"]\n')
+    with pytest.raises(ConfigError) as info:
+        NodeConfig.from_toml(path)
+    assert "publish endpoint" in str(info.value) and "NUL" in str(info.value) and info.value.exit_code == 2

@@ -318,10 +318,16 @@ def subscribe(endpoint: str = DEFAULT_ENDPOINT, *, newest_only: bool = True, tim
     with Subscriber(endpoint, newest_only=newest_only, max_bytes=max_bytes,
                     curve_server_key=curve_server_key, stats=False) as sub:
         while True:
+            reconnects = sub.reconnects
             item = sub.recv(timeout_s)
             if item is None:
-                raise ClientTimeout(f"no frame from {endpoint} within {timeout_s} s: is edi-live running "
-                                    "and publishing there?")
+                dropped = sub.reconnects - reconnects
+                # libzmq drops the connection at a part over max_bytes, so such frames look like no publisher
+                raise ClientTimeout(
+                    f"no frame from {endpoint} within {timeout_s} s, and the connection was dropped {dropped} "
+                    f"time(s) meanwhile: libzmq drops it at a frame over max_bytes={max_bytes} (raise max_bytes), "
+                    "or the publisher restarted" if dropped else
+                    f"no frame from {endpoint} within {timeout_s} s: is edi-live running and publishing there?")
             yield item
 
 

@@ -398,6 +398,15 @@ def test_an_inproc_endpoint_is_a_client_error_not_a_silent_wait():
         Subscriber("inproc://frames")
 
 
+def test_frames_over_max_bytes_are_named_in_the_timeout_not_a_publisher_that_is_not_running(pub):
+    # libzmq drops the connection at a part over max_bytes and the client reconnects, so frames larger than the
+    # limit never arrived and subscribe() said only "no frame ...: is edi-live running and publishing there?"
+    gen = subscribe(pub.bound_endpoints[0], timeout_s=2.0, max_bytes=1000)  # a 64x48 frame has 3072 pixel bytes
+    with _feeding(lambda i: pub.submit(make_rec(i))), contextlib.closing(gen), pytest.raises(ClientTimeout) as info:
+        next(gen)
+    assert "max_bytes" in str(info.value) and "1000" in str(info.value)
+
+
 def test_a_nan_timeout_is_a_client_error_not_a_wait_for_ever():
     outcome: list = []
 

@@ -50,6 +50,8 @@ DEFAULT_MAX_QUEUED_BYTES = 1 << 30
 _SLICE_S = 0.1  # longest single wait, so Ctrl-C is noticed even with timeout_s=None
 _MAX_DRAIN = 10_000  # bound on messages drained per receive, so a flood cannot spin forever
 _MAX_PARTS = 4  # parts of a message kept (one more than a frame has, so that 4 is still a wrong count)
+_MAX_INT64 = 2 ** 63 - 1  # MAXMSGSIZE is an int64 in libzmq
+_MAX_RCVHWM = 2 ** 31 - 1  # RCVHWM is a C int
 
 
 class ClientTimeout(ClientError, TimeoutError):
@@ -115,8 +117,9 @@ class Subscriber:
         """rcvhwm: messages queued in libzmq (default 16, or 1000 without newest_only; 0 = as many as
         max_queued_bytes allows), always capped at max_queued_bytes // max_bytes: a subscriber that wants
         every frame of small images lowers max_bytes to get a deeper queue (max_bytes=1 << 20: 1024)."""
-        if not (_is_int(max_bytes) and max_bytes > 0 and _is_int(max_queued_bytes) and max_queued_bytes > 0):
-            raise ClientError(f"max_bytes and max_queued_bytes must be positive integers "
+        if not (_is_int(max_bytes) and 0 < max_bytes <= _MAX_INT64 and _is_int(max_queued_bytes)
+                and max_queued_bytes > 0):
+            raise ClientError(f"max_bytes and max_queued_bytes must be positive integers, max_bytes at most 2**63 - 1 "
                               f"(got {max_bytes!r}, {max_queued_bytes!r})")
         if rcvhwm is not None and not _is_int(rcvhwm):
             raise ClientError(f"rcvhwm must be an integer, or None for the default (got {rcvhwm!r})")
@@ -135,7 +138,7 @@ class Subscriber:
         self._server_key = _server_public_key(curve_server_key) if curve_server_key is not None else None
         wanted = int(rcvhwm) if rcvhwm is not None else (16 if newest_only else 1000)
         cap = max(1, int(max_queued_bytes) // max_bytes)
-        self.rcvhwm = cap if wanted <= 0 else min(wanted, cap)
+        self.rcvhwm = min(cap if wanted <= 0 else min(wanted, cap), _MAX_RCVHWM)
         self._ctx = zmq.Context(io_threads=1)
         self._monitors: dict[zmq.Socket, zmq.Socket] = {}
         try:

@@ -338,6 +338,15 @@ def test_a_timeout_that_is_no_number_is_a_client_error(timeout_s):
         sub.recv(timeout_s)  # a TypeError from the comparison before ("1", [1]); True waited 1 s
 
 
+def test_sizes_past_libzmqs_integers_are_client_errors_or_capped():
+    # setsockopt raised OverflowError (not a ClientError) for a max_bytes over int64 (MAXMSGSIZE), and for a queue
+    # of more than 2**31 - 1 messages (RCVHWM is a C int) that max_queued_bytes // max_bytes allowed
+    with pytest.raises(ClientError, match="max_bytes"):
+        Subscriber("tcp://127.0.0.1:9", max_bytes=2 ** 63)
+    with Subscriber("tcp://127.0.0.1:9", rcvhwm=0, max_bytes=1, max_queued_bytes=2 ** 40) as sub:
+        assert sub.rcvhwm == sub._frames.getsockopt(zmq.RCVHWM) == 2 ** 31 - 1
+
+
 def test_numpy_integers_are_sizes_like_ints():
     with Subscriber("tcp://127.0.0.1:9", rcvhwm=np.int64(5), max_bytes=np.int64(1 << 20)) as sub:
         assert (sub.rcvhwm, sub.max_bytes) == (5, 1 << 20)

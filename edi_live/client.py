@@ -52,6 +52,7 @@ _MAX_DRAIN = 10_000  # bound on messages drained per receive, so a flood cannot 
 _MAX_PARTS = 4  # parts of a message kept (one more than a frame has, so that 4 is still a wrong count)
 _MAX_INT64 = 2 ** 63 - 1  # MAXMSGSIZE is an int64 in libzmq
 _MAX_RCVHWM = 2 ** 31 - 1  # RCVHWM is a C int
+_FOREVER_S = 1e15  # a timeout past this (31 million years) is a wait without a deadline
 
 
 class ClientTimeout(ClientError, TimeoutError):
@@ -100,10 +101,13 @@ def _check_endpoint(endpoint: str) -> None:
         raise ClientError(f"cannot connect to {endpoint}: the port must be 1-65535 (tcp://HOST:PORT)")
 
 
-def _check_timeout(timeout_s: float | None) -> None:
+def _check_timeout(timeout_s: float | None) -> float | None:
+    """The timeout as a float, or None (wait) for one beyond any deadline: an int such as 10 ** 400 is past the
+    float range, and the deadline's arithmetic raised OverflowError."""
     if timeout_s is not None and not (isinstance(timeout_s, numbers.Real) and not isinstance(timeout_s, bool)
                                       and timeout_s >= 0):  # NaN never ends a wait
         raise ClientError(f"timeout_s must be a number of seconds >= 0, or None to wait (got {timeout_s!r})")
+    return None if timeout_s is None or timeout_s > _FOREVER_S else float(timeout_s)
 
 
 class Subscriber:
@@ -216,7 +220,7 @@ class Subscriber:
                 "--dv-output)")
 
     def _wait(self, sock: zmq.Socket, timeout_s: float | None) -> bool:
-        _check_timeout(timeout_s)
+        timeout_s = _check_timeout(timeout_s)
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while True:
             slice_s = _SLICE_S if deadline is None else min(_SLICE_S, deadline - time.monotonic())

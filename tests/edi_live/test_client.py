@@ -416,6 +416,14 @@ def test_frames_over_max_bytes_are_named_in_the_timeout_not_a_publisher_that_is_
     assert "max_bytes" in str(info.value) and "1000" in str(info.value)
 
 
+def test_a_timeout_too_large_for_a_float_is_a_wait_not_an_overflow_error(pub):
+    # an int timeout past the float range (a "forever" computed as 10 ** 400) raised OverflowError from the
+    # deadline's arithmetic, outside ClientError
+    with Subscriber(pub.bound_endpoints[0]) as sub, _feeding(lambda i: pub.submit(make_rec(i))):
+        assert sub.recv(10 ** 400) is not None
+        assert sub.recv_stats(10 ** 400) is not None
+
+
 def test_a_nan_timeout_is_a_client_error_not_a_wait_for_ever():
     outcome: list = []
 

@@ -62,6 +62,8 @@ def load_usb_backend(spec: str, **kwargs: Any) -> Any:
     works; ours (drivers.emulator:backend) also takes `model`, `recording`, `speed` and `loop`.
     """
     module_name, _, attr = spec.partition(":")
+    if not module_name or not attr:
+        raise ConfigError(f"--usb-backend {spec}: expected MODULE:CALLABLE, e.g. drivers.emulator:backend")
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:

@@ -81,7 +81,7 @@ def read_toml(path: str | Path, known: Iterable[str]) -> dict[str, Any]:
     the file on any problem."""
     path = Path(path)
     try:
-        data = tomllib.loads(read_limited(path, MAX_CONFIG_BYTES).decode("utf-8"))
+        data = tomllib.loads(read_limited(path, MAX_CONFIG_BYTES).decode("utf-8-sig"))  # -sig: a BOM (Notepad)
     except FileNotFoundError:
         raise ConfigError(f"config file {path} not found") from None
     except OSError as exc:

@@ -27,6 +27,14 @@ def test_bad_toml_files_are_config_errors_naming_the_file(tmp_path: Path, text, 
     assert fragment in str(info.value) and str(path) in str(info.value)
 
 
+def test_a_config_file_that_starts_with_a_byte_order_mark_is_read(tmp_path: Path):
+    # editors on Windows (Notepad) save UTF-8 with a BOM: "not valid TOML: Invalid statement (at line 1, column 1)"
+    # pointed at a line that looks right, since the mark is invisible
+    path = tmp_path / "edi.toml"
+    path.write_bytes("every = 500\n".encode("utf-8-sig"))
+    assert read_toml(path) == {"every": 500}
+
+
 def test_a_binary_config_file_is_a_usage_error(tmp_path: Path):
     """Issue 15.7: a binary --config gave "internal error ... report it" (exit 1)."""
     path = tmp_path / "photo.toml"

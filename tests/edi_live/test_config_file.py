@@ -35,6 +35,24 @@ def test_a_config_file_that_starts_with_a_byte_order_mark_is_read(tmp_path: Path
     assert read_toml(path) == {"every": 500}
 
 
+@pytest.mark.parametrize("key", ["calibrate-dark", "list-devices", "version"])
+def test_a_one_shot_action_in_a_config_file_is_named_as_a_flag_only(tmp_path: Path, key):
+    # "unknown key(s) calibrate_dark": a key the user did not write (the underscore) and a flag that exists, which
+    # only cannot be in a file
+    path = tmp_path / "edi.toml"
+    path.write_text(f"{key} = 3\n")
+    with pytest.raises(ConfigError) as info:
+        read_toml(path)
+    assert f"{key} " in str(info.value) and f"--{key}" in str(info.value) and "unknown" not in str(info.value)
+
+
+def test_an_unknown_key_is_named_as_written(tmp_path: Path):
+    path = tmp_path / "edi.toml"
+    path.write_text("stats-intervall-s = 3\n")
+    with pytest.raises(ConfigError, match="unknown key.s. stats-intervall-s$"):
+        read_toml(path)
+
+
 def test_a_binary_config_file_is_a_usage_error(tmp_path: Path):
     """Issue 15.7: a binary --config gave "internal error ... report it" (exit 1)."""
     path = tmp_path / "photo.toml"

@@ -97,6 +97,9 @@ def test_help_teaches_groups_units_defaults_and_examples():
     (("--config", "no-such.toml"), 2, "config file no-such.toml not found"),
     # `--config "$CFG"` with CFG unset: the file the user meant was silently not read, the run went on without it
     (("--config", "", "--replay", "x.aedat4"), 2, "config: expected a file path, not an empty one (got '')"),
+    # a file or input flag given twice kept the last one in silence: a recording not replayed, an --out not written
+    (("--replay", "a.aedat4", "--replay", "b.aedat4"), 2, "--replay given twice ('a.aedat4' and 'b.aedat4')"),
+    (("--replay", "x.aedat4", "--out", "a.aedat4", "--out", "b.aedat4"), 2, "--out given twice"),
 ])
 def test_errors_are_one_line_with_the_right_exit_code(args, code, fragment):
     proc = run_cli(*args)

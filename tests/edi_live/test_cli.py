@@ -163,6 +163,17 @@ def test_list_devices_through_an_emulated_backend():
     assert "davis240" in proc.stdout
 
 
+def test_list_devices_says_which_other_flags_it_ignored():
+    # `--list-devices --calibrate-dark 3` listed the cameras and exited 0: the calibration asked for was not done,
+    # without a word
+    proc = run_cli("--list-devices", "--usb-backend", "drivers.emulator:backend", "--calibrate-dark", "3",
+                   "--replay", "x.aedat4")
+    assert proc.returncode == 0 and "davis240" in proc.stdout, proc.stderr
+    said = [line for line in proc.stderr.splitlines() if "ignored with --list-devices" in line]
+    assert len(said) == 1 and "--calibrate-dark" in said[0] and "--replay" in said[0], proc.stderr
+    assert "--usb-backend" not in said[0]
+
+
 def test_replay_speed_0_ends_by_itself_with_a_summary_and_a_dv_readable_out(real_recordings, tmp_path,
                                                                            needs_reconstructor):
     import dv_processing as dv  # the test extra's oracle: required, never skipped

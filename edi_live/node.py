@@ -232,7 +232,8 @@ class Node:
     def _build_and_start(self) -> None:
         cfg = self.config
         info = self.source.info
-        self.ring = EventRing(cfg.ring.capacity_events, cfg.ring.capacity_frames, cfg.ring_policy)
+        self.ring = EventRing(cfg.ring.capacity_events, cfg.ring.capacity_frames, cfg.ring_policy,
+                              stop=self._stop.is_set)
         edi_cfg, self._calibration_to = calibration.prepare(cfg.edi, info, cfg.calibration, cfg.save_calibration)
         if cfg.save_calibration is not None:
             calibration.check_can_save(cfg.save_calibration)  # before the run, not after it has measured everything

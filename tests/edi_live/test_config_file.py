@@ -197,11 +197,11 @@ def test_a_path_with_a_nul_character_is_a_usage_error_naming_its_option(tmp_path
 
 
 def test_an_ipc_endpoint_with_a_nul_character_is_a_usage_error(tmp_path: Path):
-    """`publish = ["ipc:///tmp/x\\u0000y"]` ended in "the main thread failed: ValueError: embedded null byte"."""
+    """`publish = ["ipc://edi.sock\\u0000y"]` ended in "the main thread failed: ValueError: embedded null byte"."""
     from edi_live.config import NodeConfig
 
     path = tmp_path / "edi.toml"
-    path.write_text('replay = "rec.aedat4"\npublish = ["ipc:///tmp/x\\u0000y"]\n')
+    path.write_text('replay = "rec.aedat4"\npublish = ["ipc://edi.sock\\u0000y"]\n')
     with pytest.raises(ConfigError) as info:
         NodeConfig.from_toml(path)
     assert "publish endpoint" in str(info.value) and "NUL" in str(info.value) and info.value.exit_code == 2

@@ -171,7 +171,7 @@ def _stop_signals_held() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, before)
 
 
-def _child(conn: Any, path: str, max_packet_us: int, loop: bool) -> None:
+def _child(conn: Any, path: str, max_packet_us: int, loop: bool, size: tuple[int, int] | None = None) -> None:
     """Child process: every pass's packets into the socket `conn`, in order, until the parent goes away."""
     conn = _Sender(conn)
     for sig in _STOP_SIGNALS:  # Ctrl-C / kill / hang-up of the whole group: the node stops us itself
@@ -188,7 +188,8 @@ def _child(conn: Any, path: str, max_packet_us: int, loop: bool) -> None:
         while True:
             span: dict = {}
             produced = False
-            for packet in merged_packets(path, time_offset_us=offset, max_packet_us=max_packet_us, span=span):
+            for packet in merged_packets(path, time_offset_us=offset, max_packet_us=max_packet_us, span=span,
+                                         size=size):
                 produced = True
                 conn.send(("packet", packet))
             if "t_first" not in span:
@@ -245,15 +246,16 @@ class DecodeProcess:
 
     `next_packet(timeout_s)` returns a Packet, None when nothing came within timeout_s, and raises StopIteration
     at the end. `passes` holds (t_first, t_last) of each finished pass. `close()` stops the child (idempotent).
+    `size` (width, height): the sensor every pass must have (merged_packets).
     """
 
-    def __init__(self, path: str, max_packet_us: int, loop: bool) -> None:
+    def __init__(self, path: str, max_packet_us: int, loop: bool, size: tuple[int, int] | None = None) -> None:
         _check_free_descriptors()
         ctx = _context()
         self._sock, child_sock = socket.socketpair()
         for sk, opt in ((self._sock, socket.SO_RCVBUF), (child_sock, socket.SO_SNDBUF)):
             sk.setsockopt(socket.SOL_SOCKET, opt, _SOCK_BUF)
-        self._proc = ctx.Process(target=_child, args=(child_sock, path, max_packet_us, loop),
+        self._proc = ctx.Process(target=_child, args=(child_sock, path, max_packet_us, loop, size),
                                  name="edi-live-decode", daemon=True)
         try:
             with _stop_signals_held():

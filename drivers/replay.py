@@ -113,7 +113,7 @@ class ReplaySource:
             span: dict = {}
             produced = False
             for packet in merged_packets(self.path, time_offset_us=offset, max_packet_us=self.max_packet_us,
-                                         span=span):
+                                         span=span, size=(self.info.width, self.info.height)):
                 produced = True
                 yield packet
                 if self._stop.is_set():
@@ -126,7 +126,8 @@ class ReplaySource:
     def _decoded(self) -> Iterator[Packet | None]:
         """Every pass's packets, decoded by a child process (drivers.decoding_child); None while none is ready."""
         try:
-            child = decoding_child.DecodeProcess(self.path, self.max_packet_us, self.loop)
+            child = decoding_child.DecodeProcess(self.path, self.max_packet_us, self.loop,
+                                                 size=(self.info.width, self.info.height))
         except (OSError, EOFError) as exc:  # no process can start here (limits, no /dev/shm): decode on this thread
             # (a forkserver that cannot fork shows up as EOFError)
             warnings.warn(f"{self.path}: cannot start the decoding process ({exc}); decoding in this process",

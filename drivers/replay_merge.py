@@ -209,15 +209,22 @@ def _split(events: np.ndarray, frames: list[Frame], imu: np.ndarray, trig: np.nd
 
 def merged_packets(path: str | os.PathLike, *, time_offset_us: int = 0, max_packet_us: int = 10_000,
                    horizon_us: int = 1_000_000, max_pending_events: int = 4_000_000,
-                   span: dict | None = None) -> Iterator[Packet]:
+                   span: dict | None = None, size: tuple[int, int] | None = None) -> Iterator[Packet]:
     """Time-ordered `Packet`s of an AEDAT4 file (all streams merged), with bounded memory.
 
     Events are sorted by t across packets; each frame comes in the packet that ends with the last event <= its
     exposure end; `watermark_us` says no later packet holds an event with t < watermark_us. `time_offset_us` is
     added to every timestamp (used by `--loop`). Packets span at most `max_packet_us` of event time. On a defect the
     packets before it are yielded, then `RecordingError` is raised. `span`, if given, receives 't_first'/'t_last'.
+    `size` (width, height): the sensor the replay was set up for; a file of another one is a `RecordingError` (a
+    --loop pass opens the file by its name again, and it may have been replaced meanwhile).
     """
     with Aedat4Reader(path, validate=True) as reader:  # each event packet: sorted and on the sensor
+        info = reader.source_info
+        if size is not None and (info.width, info.height) != tuple(size):
+            raise RecordingError(f"the recording is now of a {info.width}x{info.height} sensor, not the "
+                                 f"{size[0]}x{size[1]} one the replay started with: it was replaced while it was "
+                                 "replayed", reader.path, 0)
         primary: dict[int, str] = {}
         for s in reader.streams:
             if s.supported and s.type not in primary.values():

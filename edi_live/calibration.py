@@ -133,7 +133,7 @@ MAX_FILE_BYTES = 64 << 20  # a DAVIS346's file is ~0.5 MB, most of it the noise 
 def load(path: Path | str) -> Calibration:
     """Read and check a calibration file; any defect is one ConfigError naming the file."""
     try:
-        data = json.loads(read_limited(path, MAX_FILE_BYTES).decode("utf-8"))
+        data = json.loads(read_limited(path, MAX_FILE_BYTES).decode("utf-8-sig"))  # -sig: a BOM (hand edits)
     except OSError as exc:
         raise ConfigError(f"cannot read calibration {path} ({exc.strerror or exc})") from None
     except (ValueError, UnicodeDecodeError) as exc:

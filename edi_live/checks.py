@@ -76,6 +76,7 @@ def check_endpoint(endpoint: Any) -> None:
     libzmq itself wraps an out-of-range port silently (99999 binds 34463)."""
     check(isinstance(endpoint, str) and "://" in endpoint and endpoint.split("://", 1)[1] != "",
           f"publish endpoint must look like tcp://HOST:PORT or ipc://PATH (got {endpoint!r})")
+    check("\0" not in endpoint, f"publish endpoint {endpoint!r} holds a NUL character, which no endpoint can")
     scheme, _, address = endpoint.partition("://")
     check(scheme != "inproc", f"publish endpoint {endpoint!r} is reachable only from inside the edi-live process; "
                               "use tcp://HOST:PORT or ipc://PATH")

@@ -62,6 +62,8 @@ def load_usb_backend(spec: str, **kwargs: Any) -> Any:
     works; ours (drivers.emulator:backend) also takes `model`, `recording`, `speed` and `loop`.
     """
     module_name, _, attr = spec.partition(":")
+    if not module_name or not attr:
+        raise ConfigError(f"--usb-backend {spec}: expected MODULE:CALLABLE, e.g. drivers.emulator:backend")
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:
@@ -157,6 +159,9 @@ def colour_line(info: SourceInfo, pattern: str | None = None, seen: str | None =
 def list_devices_command(flags: dict[str, Any]) -> int:
     import drivers
 
+    ignored = sorted(f"--{name.replace('_', '-')}" for name in set(flags) - {"usb_backend", "log_level"})
+    if ignored:  # e.g. --calibrate-dark: not done, so say so
+        log.warning("ignored with --list-devices: %s (it only lists the cameras and exits)", ", ".join(ignored))
     backend = load_usb_backend(flags["usb_backend"]) if flags.get("usb_backend") else None
     devices = drivers.list_devices(backend)
     print_lines([str(d) for d in devices] or

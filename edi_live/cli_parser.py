@@ -4,6 +4,7 @@ frames. Parsing errors are one-line ConfigErrors (exit 2), not argparse's usage 
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 from edi_live import __version__
 from edi_live.config import DEFAULT_ENDPOINT, LOG_LEVELS
@@ -42,15 +43,28 @@ class _Parser(argparse.ArgumentParser):
         raise ConfigError(f"{message} (see {PROG} --help)")
 
 
+class _Once(argparse.Action):
+    """A flag naming an input or a file: given twice with two values, argparse keeps the last in silence (a recording
+    not replayed, an --out not written)."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
+                 option_string: str | None = None) -> None:
+        before = getattr(namespace, self.dest, None)
+        if before is not None and before != values:
+            parser.error(f"{option_string} given twice ({before!r} and {values!r}): give it once")
+        setattr(namespace, self.dest, values)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog=PROG, argument_default=argparse.SUPPRESS, formatter_class=argparse.RawDescriptionHelpFormatter,
                 description="Real-time EDI deblurring for DAVIS event cameras: one blurry APS frame plus its events "
                             "become sharp video, streamed over ZeroMQ.",
                 epilog=EXAMPLES)
     src = p.add_argument_group("input (one of)")
-    src.add_argument("--device", choices=("davis240", "davis346", "auto"),
+    src.add_argument("--device", action=_Once, choices=("davis240", "davis346", "auto"),
                      help="a live DAVIS camera over USB ('auto': the first one found)")
-    src.add_argument("--replay", metavar="FILE.aedat4", help="replay an AEDAT4 recording as if a camera were attached")
+    src.add_argument("--replay", action=_Once, metavar="FILE.aedat4",
+                     help="replay an AEDAT4 recording as if a camera were attached")
     src.add_argument("--dv-input", action="append", metavar="[TYPE=]tcp://HOST:PORT",
                      help="a DV / dv-processing network output, repeatable: one endpoint per stream (events, frames, "
                           "imu, triggers; the type is read from the stream, a TYPE= prefix asserts it)")
@@ -64,7 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                                "wait for the camera and resume")
     dev.add_argument("--usb-backend", metavar="MODULE:CALLABLE",
                      help="pyusb backend factory; CALLABLE() returns a usb.backend.IBackend (default: libusb)")
-    dev.add_argument("--emulate-from", metavar="FILE.aedat4",
+    dev.add_argument("--emulate-from", action=_Once, metavar="FILE.aedat4",
                      help="with --usb-backend drivers.emulator:backend: the recording the emulated camera streams")
     pace = p.add_argument_group("pacing")
     pace.add_argument("--speed", type=float, metavar="X",
@@ -130,11 +144,11 @@ def build_parser() -> argparse.ArgumentParser:
                           "shown in the stats and saved with the calibration (default: on while c is estimated)")
     edi.add_argument("--noise-rate-hz", type=float, metavar="HZ",
                      help="give every pixel this noise rate (ON + OFF events per second) instead of estimating it")
-    edi.add_argument("--calibration", metavar="FILE",
+    edi.add_argument("--calibration", action=_Once, metavar="FILE",
                      help="start from a saved calibration of this camera (c, black level, clock offset, per-pixel "
                           "noise rates); a live camera "
                           "loads its own from ~/.config/edi-live/calibration/ without this flag")
-    edi.add_argument("--save-calibration", metavar="FILE",
+    edi.add_argument("--save-calibration", action=_Once, metavar="FILE",
                      help="save the calibration in use at the end of the run (a live camera also saves its own)")
     edi.add_argument("--calibrate-dark", type=int, metavar="N",
                      help="measure the APS black level on N dark frames (cover the lens) and write it into the "
@@ -153,19 +167,20 @@ def build_parser() -> argparse.ArgumentParser:
     out.add_argument("--publish", action="append", metavar="ENDPOINT",
                      help=f"ZeroMQ PUB endpoint, repeatable (default: {DEFAULT_ENDPOINT}; loopback only)")
     out.add_argument("--no-publish", action="store_true", help="do not publish (e.g. only write --out)")
-    out.add_argument("--curve-secret-key", metavar="FILE",
+    out.add_argument("--curve-secret-key", action=_Once, metavar="FILE",
                      help="encrypt with CURVE using this server secret key file "
                           "(make one: python -m edi_live.publisher --gen-curve-keys DIR)")
     out.add_argument("--stats-interval-s", type=float, metavar="S",
                      help="period of the [b\"stats\", map] message on the socket, seconds (default: 1.0)")
-    out.add_argument("--dv-output", metavar="tcp://HOST:PORT",
+    out.add_argument("--dv-output", action=_Once, metavar="tcp://HOST:PORT",
                      help="also serve the sharp frames as a DV network stream (AEDAT4 over TCP, as DV's network TCP "
                           "server output and dv-processing's NetworkWriter; loopback unless you choose otherwise)")
-    out.add_argument("--dv-output-events", metavar="tcp://HOST:PORT",
+    out.add_argument("--dv-output-events", action=_Once, metavar="tcp://HOST:PORT",
                      help="also serve the input events, passed through, as a second DV network stream")
-    out.add_argument("--out", metavar="FILE.aedat4",
+    out.add_argument("--out", action=_Once, metavar="FILE.aedat4",
                      help="also write every emitted frame (8-bit gray, or BGR from a colour camera; lossless)")
-    out.add_argument("--record", metavar="FILE.aedat4", help="record the raw input as received, for --replay")
+    out.add_argument("--record", action=_Once, metavar="FILE.aedat4",
+                     help="record the raw input as received, for --replay")
     adv = p.add_argument_group("advanced")
     adv.add_argument("--ring-events", type=int, metavar="N",
                      help="ring capacity in events, half kept as exposure history (default: 4194304 = 64 MiB)")
@@ -174,7 +189,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="overflow policy (default: wait for replay/emulation, drop_oldest for a live camera or "
                           "--dv-input)")
     other = p.add_argument_group("other")
-    other.add_argument("--config", metavar="FILE.toml", help="read options from a TOML file; flags override it")
+    other.add_argument("--config", action=_Once, metavar="FILE.toml",
+                       help="read options from a TOML file; flags override it")
     other.add_argument("--log-level", choices=LOG_LEVELS, help="log verbosity on stderr (default: info; debug "
                                                                "also prints tracebacks)")
     other.add_argument("--status-interval-s", type=float, metavar="S",

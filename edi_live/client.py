@@ -50,6 +50,9 @@ DEFAULT_MAX_QUEUED_BYTES = 1 << 30
 _SLICE_S = 0.1  # longest single wait, so Ctrl-C is noticed even with timeout_s=None
 _MAX_DRAIN = 10_000  # bound on messages drained per receive, so a flood cannot spin forever
 _MAX_PARTS = 4  # parts of a message kept (one more than a frame has, so that 4 is still a wrong count)
+_MAX_INT64 = 2 ** 63 - 1  # MAXMSGSIZE is an int64 in libzmq
+_MAX_RCVHWM = 2 ** 31 - 1  # RCVHWM is a C int
+_FOREVER_S = 1e15  # a timeout past this (31 million years) is a wait without a deadline
 
 
 class ClientTimeout(ClientError, TimeoutError):
@@ -87,17 +90,24 @@ def _is_int(value: object) -> bool:
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)  # True is an int, not a size
 
 
-def _check_port(endpoint: str) -> None:
-    """libzmq takes a tcp port over 65535 modulo 65536 without a word (99999 connects to 34463)."""
+def _check_endpoint(endpoint: str) -> None:
+    """libzmq takes a tcp port over 65535 modulo 65536 without a word (99999 connects to 34463), and connects to
+    an inproc:// name that only a socket of this Subscriber's own context could bind: a wait for ever."""
+    if endpoint.startswith("inproc://"):
+        raise ClientError(f"cannot connect to {endpoint}: inproc:// reaches only the same process's ZeroMQ context, "
+                          "and edi-live does not publish there; use its tcp://HOST:PORT or ipc:///PATH")
     parts = tcp_parts(endpoint)
     if parts is not None and not (parts[1].isdigit() and 1 <= int(parts[1]) <= 65535):
         raise ClientError(f"cannot connect to {endpoint}: the port must be 1-65535 (tcp://HOST:PORT)")
 
 
-def _check_timeout(timeout_s: float | None) -> None:
+def _check_timeout(timeout_s: float | None) -> float | None:
+    """The timeout as a float, or None (wait) for one beyond any deadline: an int such as 10 ** 400 is past the
+    float range, and the deadline's arithmetic raised OverflowError."""
     if timeout_s is not None and not (isinstance(timeout_s, numbers.Real) and not isinstance(timeout_s, bool)
                                       and timeout_s >= 0):  # NaN never ends a wait
         raise ClientError(f"timeout_s must be a number of seconds >= 0, or None to wait (got {timeout_s!r})")
+    return None if timeout_s is None or timeout_s > _FOREVER_S else float(timeout_s)
 
 
 class Subscriber:
@@ -111,14 +121,15 @@ class Subscriber:
         """rcvhwm: messages queued in libzmq (default 16, or 1000 without newest_only; 0 = as many as
         max_queued_bytes allows), always capped at max_queued_bytes // max_bytes: a subscriber that wants
         every frame of small images lowers max_bytes to get a deeper queue (max_bytes=1 << 20: 1024)."""
-        if not (_is_int(max_bytes) and max_bytes > 0 and _is_int(max_queued_bytes) and max_queued_bytes > 0):
-            raise ClientError(f"max_bytes and max_queued_bytes must be positive integers "
+        if not (_is_int(max_bytes) and 0 < max_bytes <= _MAX_INT64 and _is_int(max_queued_bytes)
+                and max_queued_bytes > 0):
+            raise ClientError(f"max_bytes and max_queued_bytes must be positive integers, max_bytes at most 2**63 - 1 "
                               f"(got {max_bytes!r}, {max_queued_bytes!r})")
         if rcvhwm is not None and not _is_int(rcvhwm):
             raise ClientError(f"rcvhwm must be an integer, or None for the default (got {rcvhwm!r})")
         if not isinstance(endpoint, str):
             raise ClientError(f"the endpoint must be a string such as {DEFAULT_ENDPOINT} (got {endpoint!r})")
-        _check_port(endpoint)
+        _check_endpoint(endpoint)
         self.endpoint = endpoint
         self.newest_only = newest_only
         self.max_bytes = max_bytes = int(max_bytes)
@@ -131,7 +142,7 @@ class Subscriber:
         self._server_key = _server_public_key(curve_server_key) if curve_server_key is not None else None
         wanted = int(rcvhwm) if rcvhwm is not None else (16 if newest_only else 1000)
         cap = max(1, int(max_queued_bytes) // max_bytes)
-        self.rcvhwm = cap if wanted <= 0 else min(wanted, cap)
+        self.rcvhwm = min(cap if wanted <= 0 else min(wanted, cap), _MAX_RCVHWM)
         self._ctx = zmq.Context(io_threads=1)
         self._monitors: dict[zmq.Socket, zmq.Socket] = {}
         try:
@@ -209,7 +220,7 @@ class Subscriber:
                 "--dv-output)")
 
     def _wait(self, sock: zmq.Socket, timeout_s: float | None) -> bool:
-        _check_timeout(timeout_s)
+        timeout_s = _check_timeout(timeout_s)
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while True:
             slice_s = _SLICE_S if deadline is None else min(_SLICE_S, deadline - time.monotonic())
@@ -314,10 +325,16 @@ def subscribe(endpoint: str = DEFAULT_ENDPOINT, *, newest_only: bool = True, tim
     with Subscriber(endpoint, newest_only=newest_only, max_bytes=max_bytes,
                     curve_server_key=curve_server_key, stats=False) as sub:
         while True:
+            reconnects = sub.reconnects
             item = sub.recv(timeout_s)
             if item is None:
-                raise ClientTimeout(f"no frame from {endpoint} within {timeout_s} s: is edi-live running "
-                                    "and publishing there?")
+                dropped = sub.reconnects - reconnects
+                # libzmq drops the connection at a part over max_bytes, so such frames look like no publisher
+                raise ClientTimeout(
+                    f"no frame from {endpoint} within {timeout_s} s, and the connection was dropped {dropped} "
+                    f"time(s) meanwhile: libzmq drops it at a frame over max_bytes={max_bytes} (raise max_bytes), "
+                    "or the publisher restarted" if dropped else
+                    f"no frame from {endpoint} within {timeout_s} s: is edi-live running and publishing there?")
             yield item
 
 

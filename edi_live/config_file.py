@@ -28,6 +28,8 @@ def norm_key(key: str) -> str:
 
 
 MAX_CONFIG_BYTES = 1 << 20
+ONE_SHOT_ACTIONS = ("list_devices", "calibrate_dark", "version")
+"""Flags that do something once and exit instead of configuring a run: never in a config file."""
 
 
 PIPE_WAIT_S = 5.0
@@ -81,7 +83,7 @@ def read_toml(path: str | Path, known: Iterable[str]) -> dict[str, Any]:
     the file on any problem."""
     path = Path(path)
     try:
-        data = tomllib.loads(read_limited(path, MAX_CONFIG_BYTES).decode("utf-8"))
+        data = tomllib.loads(read_limited(path, MAX_CONFIG_BYTES).decode("utf-8-sig"))  # -sig: a BOM (Notepad)
     except FileNotFoundError:
         raise ConfigError(f"config file {path} not found") from None
     except OSError as exc:
@@ -101,7 +103,11 @@ def read_toml(path: str | Path, known: Iterable[str]) -> dict[str, Any]:
     twice = "; ".join(" and ".join(repr(k) for k in keys) for keys in spellings.values() if len(keys) > 1)
     _check(not twice, f"config file {path}: one option given twice ({twice}); keep one of them")
     normalized = {norm_key(k): v for k, v in data.items()}
-    unknown = sorted(set(normalized) - set(known))
+    known = set(known)
+    for key in data:
+        _check(norm_key(key) not in ONE_SHOT_ACTIONS, f"config file {path}: {key} is a one-shot action, not a "
+               f"setting: give it as a flag (--{norm_key(key).replace('_', '-')})")
+    unknown = sorted(k for k in data if norm_key(k) not in known)  # as written: `c-onn`, not `c_onn`
     _check(not unknown, f"config file {path}: unknown key(s) {', '.join(unknown)}")
     base = path.parent
     for key in ("replay", "out", "record", "emulate_from", "curve_secret_key", "calibration", "save_calibration"):
@@ -135,6 +141,8 @@ def as_path(v: Any) -> Path | None:
         raise TypeError("expected a file path")
     if v is not None and not os.fspath(v):  # Path("") is ".": an unset shell variable would name the folder
         raise ValueError("expected a file path, not an empty one")
+    if v is not None and "\0" in os.fsdecode(v):  # TOML's "\u0000": open() would fail with "embedded null byte"
+        raise ValueError("a file path cannot hold a NUL character")
     return None if v is None else Path(v)
 
 

@@ -232,7 +232,8 @@ class Node:
     def _build_and_start(self) -> None:
         cfg = self.config
         info = self.source.info
-        self.ring = EventRing(cfg.ring.capacity_events, cfg.ring.capacity_frames, cfg.ring_policy)
+        self.ring = EventRing(cfg.ring.capacity_events, cfg.ring.capacity_frames, cfg.ring_policy,
+                              stop=self._stop.is_set)
         edi_cfg, self._calibration_to = calibration.prepare(cfg.edi, info, cfg.calibration, cfg.save_calibration)
         if cfg.save_calibration is not None:
             calibration.check_can_save(cfg.save_calibration)  # before the run, not after it has measured everything
@@ -288,9 +289,11 @@ class Node:
     def _save_calibration(self) -> None:
         """--save-calibration (a failure is the run's error), or a live camera's own file (a failure is a warning)."""
         target = self._calibration_to
-        if target is None:
+        # no worker: the start-up failed after the target was chosen (--out not creatable, a port in use), so
+        # nothing was measured and that failure is the run's one line, not also "nothing to save"
+        if target is None or self.worker is None:
             return
-        noise = self.worker.noise_rates() if self.worker is not None else None
+        noise = self.worker.noise_rates()
         try:
             cal = calibration.measured(self.source.info, self.final_stats, noise, self._calibration_start,
                                        self.config.edi.black_level is not None, target)

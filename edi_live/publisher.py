@@ -58,6 +58,8 @@ _send = zmq.backend.Socket.send  # the sugar layer's send adds ~0.2 µs a part o
 def generate_curve_keys(directory: str | os.PathLike) -> tuple[Path, Path]:
     """Write `server.key` (public, for subscribers) and `server.key_secret` (for the publisher) into directory;
     PublishError if it already holds either, or cannot be written."""
+    if not os.fspath(directory):  # Path("") is ".": an unset shell variable would put the secret key here
+        raise PublishError("--gen-curve-keys needs a folder, not an empty path")
     directory = Path(directory)
     taken = [p.name for p in (directory / "server.key", directory / "server.key_secret") if p.exists()]
     if taken:  # its subscribers hold the public key: a new pair would lock them out, and the old secret be lost

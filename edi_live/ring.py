@@ -28,6 +28,7 @@ import logging
 import threading
 import time
 from collections import deque
+from typing import Callable
 
 import numpy as np
 
@@ -43,7 +44,8 @@ log = logging.getLogger(__name__)
 class EventRing:
     """Bounded single-producer / single-consumer ring of events plus a bounded APS frame queue."""
 
-    def __init__(self, capacity_events: int = 1 << 22, capacity_frames: int = 16, policy: str = "wait") -> None:
+    def __init__(self, capacity_events: int = 1 << 22, capacity_frames: int = 16, policy: str = "wait",
+                 stop: Callable[[], bool] | None = None) -> None:
         if policy not in POLICIES:
             raise ValueError(f"policy must be one of {POLICIES} (got {policy!r})")
         if capacity_events < 16 or capacity_frames < 1:
@@ -52,7 +54,7 @@ class EventRing:
         self.capacity_frames = int(capacity_frames)
         self.policy = policy
         self.max_unread = self.capacity_events // 2
-        self._store = EventBuffer(self.capacity_events)
+        self._store = EventBuffer(self.capacity_events, stop)  # stop(): a stop signal ends its memory touching
         # The producer thread (push) and the consumer thread (read_events/pop_frame/window/wait) meet here.
         self._cond = threading.Condition()
         self._head = 0

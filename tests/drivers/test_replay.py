@@ -597,3 +597,31 @@ def test_a_frame_back_in_time_is_an_error_after_the_frames_before_it(tmp_path, m
         for packet in merged_packets(str(path)):
             got.extend(f.exposure_start_us for f in packet.frames)
     assert got == starts[:2] and "at byte" in str(info.value)
+
+
+def _small_recording(path, w, h, n_packets=3):
+    rng = np.random.default_rng(7)
+    with Aedat4Writer(path, w, h) as writer:
+        for k in range(n_packets):
+            ev = np.zeros(100, dtype=EVENT_DTYPE)
+            ev["t"] = T0 + k * 10_000 + np.arange(100) * 10
+            ev["x"], ev["y"] = rng.integers(0, w, 100), rng.integers(0, h, 100)
+            writer.write_events(ev)
+            writer.write_frame(Frame(np.zeros((h, w), np.uint8), T0 + k * 10_000, T0 + k * 10_000 + 500, seq=k))
+
+
+@pytest.mark.parametrize("decode_process", [False, True])
+def test_a_recording_replaced_by_one_of_another_sensor_size_is_named_not_fed_on(tmp_path, decode_process):
+    """Every --loop pass opens the file by its name: one replaced meanwhile (a script recording it again) by a
+    recording of another sensor went on into the node, whose reconstructor then stopped on "APS frame is 240x180
+    but the reconstructor was set up for 346x260; check the source resolution" (exit 2, a usage error)."""
+    path = tmp_path / "rec.aedat4"
+    _small_recording(path, 64, 48)
+    src = ReplaySource(path, speed=0, loop=True, decode_process=decode_process)
+    other = tmp_path / "other.aedat4"
+    _small_recording(other, 32, 24)
+    other.replace(path)  # before the first pass opens it: the same as between two passes, without a race
+    with src, pytest.raises(RecordingError) as info:
+        _run_in_thread(lambda: [p for p in src if p is not None])
+    message = str(info.value)
+    assert "32x24" in message and "64x48" in message and str(path) in message

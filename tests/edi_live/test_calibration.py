@@ -29,6 +29,15 @@ def test_a_saved_calibration_reads_back_equal(tmp_path):
     back.check_for(CAM, "cam.json")  # its own camera: accepted
 
 
+def test_a_hand_edited_calibration_saved_with_a_byte_order_mark_is_read(tmp_path):
+    # the file is meant to be mended by hand; Notepad saves UTF-8 with a BOM, which json refused ("Unexpected UTF-8
+    # BOM"), so the mended file stopped the run
+    path = tmp_path / "cam.json"
+    calibration.save(calibration.Calibration(CAM.label, 346, 260, 0.31, 0.27, 4.5), path)
+    path.write_bytes(path.read_text(encoding="utf-8").encode("utf-8-sig"))
+    assert calibration.load(path).c_on == 0.31
+
+
 @pytest.mark.parametrize("other", [SourceInfo(346, 260, "DAVIS346", "00000104"), SourceInfo(240, 180, "DAVIS346",
                                                                                             "00000391")])
 def test_another_cameras_calibration_is_refused_in_one_line(tmp_path, other):

@@ -97,6 +97,9 @@ def test_help_teaches_groups_units_defaults_and_examples():
     (("--config", "no-such.toml"), 2, "config file no-such.toml not found"),
     # `--config "$CFG"` with CFG unset: the file the user meant was silently not read, the run went on without it
     (("--config", "", "--replay", "x.aedat4"), 2, "config: expected a file path, not an empty one (got '')"),
+    # a file or input flag given twice kept the last one in silence: a recording not replayed, an --out not written
+    (("--replay", "a.aedat4", "--replay", "b.aedat4"), 2, "--replay given twice ('a.aedat4' and 'b.aedat4')"),
+    (("--replay", "x.aedat4", "--out", "a.aedat4", "--out", "b.aedat4"), 2, "--out given twice"),
 ])
 def test_errors_are_one_line_with_the_right_exit_code(args, code, fragment):
     proc = run_cli(*args)
@@ -158,6 +161,17 @@ def test_list_devices_through_an_emulated_backend():
     proc = run_cli("--list-devices", "--usb-backend", "drivers.emulator:backend")
     assert proc.returncode == 0, proc.stderr
     assert "davis240" in proc.stdout
+
+
+def test_list_devices_says_which_other_flags_it_ignored():
+    # `--list-devices --calibrate-dark 3` listed the cameras and exited 0: the calibration asked for was not done,
+    # without a word
+    proc = run_cli("--list-devices", "--usb-backend", "drivers.emulator:backend", "--calibrate-dark", "3",
+                   "--replay", "x.aedat4")
+    assert proc.returncode == 0 and "davis240" in proc.stdout, proc.stderr
+    said = [line for line in proc.stderr.splitlines() if "ignored with --list-devices" in line]
+    assert len(said) == 1 and "--calibrate-dark" in said[0] and "--replay" in said[0], proc.stderr
+    assert "--usb-backend" not in said[0]
 
 
 def test_replay_speed_0_ends_by_itself_with_a_summary_and_a_dv_readable_out(real_recordings, tmp_path,

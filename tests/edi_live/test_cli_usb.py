@@ -145,3 +145,14 @@ def test_a_stop_signal_ends_calibrate_dark_waiting_for_a_camera_gone_while_start
     lines = _error_lines(err)
     assert len(lines) == 1 and "stopped after 0 of 5 APS frames; nothing written" in lines[0]
     assert not target.exists()
+
+
+@pytest.mark.parametrize("spec", ["drivers.emulator", ":", "drivers.emulator:", ":backend"])
+def test_a_backend_without_module_or_callable_says_the_form(spec):
+    # "drivers.emulator" (the colon forgotten) was "module 'drivers.emulator' has no callable ''", and ":" was
+    # "importing module '' failed (ValueError: Empty module name)": neither says what to write
+    from edi_live.cli import load_usb_backend
+    from edi_live.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="MODULE:CALLABLE"):
+        load_usb_backend(spec)

@@ -338,6 +338,15 @@ def test_a_timeout_that_is_no_number_is_a_client_error(timeout_s):
         sub.recv(timeout_s)  # a TypeError from the comparison before ("1", [1]); True waited 1 s
 
 
+def test_sizes_past_libzmqs_integers_are_client_errors_or_capped():
+    # setsockopt raised OverflowError (not a ClientError) for a max_bytes over int64 (MAXMSGSIZE), and for a queue
+    # of more than 2**31 - 1 messages (RCVHWM is a C int) that max_queued_bytes // max_bytes allowed
+    with pytest.raises(ClientError, match="max_bytes"):
+        Subscriber("tcp://127.0.0.1:9", max_bytes=2 ** 63)
+    with Subscriber("tcp://127.0.0.1:9", rcvhwm=0, max_bytes=1, max_queued_bytes=2 ** 40) as sub:
+        assert sub.rcvhwm == sub._frames.getsockopt(zmq.RCVHWM) == 2 ** 31 - 1
+
+
 def test_numpy_integers_are_sizes_like_ints():
     with Subscriber("tcp://127.0.0.1:9", rcvhwm=np.int64(5), max_bytes=np.int64(1 << 20)) as sub:
         assert (sub.rcvhwm, sub.max_bytes) == (5, 1 << 20)
@@ -389,6 +398,30 @@ def test_a_tcp_port_out_of_range_is_a_client_error(endpoint):
     # user was told only that no frame came ("is edi-live running?")
     with pytest.raises(ClientError, match="port"):
         Subscriber(endpoint)
+
+
+def test_an_inproc_endpoint_is_a_client_error_not_a_silent_wait():
+    # the Subscriber has a ZeroMQ context of its own, and inproc:// reaches only sockets of the same context: it
+    # connected, and every receive waited for frames that could never come (the publisher refuses inproc too)
+    with pytest.raises(ClientError, match="inproc"):
+        Subscriber("inproc://frames")
+
+
+def test_frames_over_max_bytes_are_named_in_the_timeout_not_a_publisher_that_is_not_running(pub):
+    # libzmq drops the connection at a part over max_bytes and the client reconnects, so frames larger than the
+    # limit never arrived and subscribe() said only "no frame ...: is edi-live running and publishing there?"
+    gen = subscribe(pub.bound_endpoints[0], timeout_s=2.0, max_bytes=1000)  # a 64x48 frame has 3072 pixel bytes
+    with _feeding(lambda i: pub.submit(make_rec(i))), contextlib.closing(gen), pytest.raises(ClientTimeout) as info:
+        next(gen)
+    assert "max_bytes" in str(info.value) and "1000" in str(info.value)
+
+
+def test_a_timeout_too_large_for_a_float_is_a_wait_not_an_overflow_error(pub):
+    # an int timeout past the float range (a "forever" computed as 10 ** 400) raised OverflowError from the
+    # deadline's arithmetic, outside ClientError
+    with Subscriber(pub.bound_endpoints[0]) as sub, _feeding(lambda i: pub.submit(make_rec(i))):
+        assert sub.recv(10 ** 400) is not None
+        assert sub.recv_stats(10 ** 400) is not None
 
 
 def test_a_nan_timeout_is_a_client_error_not_a_wait_for_ever():

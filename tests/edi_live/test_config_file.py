@@ -27,6 +27,32 @@ def test_bad_toml_files_are_config_errors_naming_the_file(tmp_path: Path, text, 
     assert fragment in str(info.value) and str(path) in str(info.value)
 
 
+def test_a_config_file_that_starts_with_a_byte_order_mark_is_read(tmp_path: Path):
+    # editors on Windows (Notepad) save UTF-8 with a BOM: "not valid TOML: Invalid statement (at line 1, column 1)"
+    # pointed at a line that looks right, since the mark is invisible
+    path = tmp_path / "edi.toml"
+    path.write_bytes("every = 500\n".encode("utf-8-sig"))
+    assert read_toml(path) == {"every": 500}
+
+
+@pytest.mark.parametrize("key", ["calibrate-dark", "list-devices", "version"])
+def test_a_one_shot_action_in_a_config_file_is_named_as_a_flag_only(tmp_path: Path, key):
+    # "unknown key(s) calibrate_dark": a key the user did not write (the underscore) and a flag that exists, which
+    # only cannot be in a file
+    path = tmp_path / "edi.toml"
+    path.write_text(f"{key} = 3\n")
+    with pytest.raises(ConfigError) as info:
+        read_toml(path)
+    assert f"{key} " in str(info.value) and f"--{key}" in str(info.value) and "unknown" not in str(info.value)
+
+
+def test_an_unknown_key_is_named_as_written(tmp_path: Path):
+    path = tmp_path / "edi.toml"
+    path.write_text("stats-intervall-s = 3\n")
+    with pytest.raises(ConfigError, match="unknown key.s. stats-intervall-s$"):
+        read_toml(path)
+
+
 def test_a_binary_config_file_is_a_usage_error(tmp_path: Path):
     """Issue 15.7: a binary --config gave "internal error ... report it" (exit 1)."""
     path = tmp_path / "photo.toml"
@@ -153,3 +179,29 @@ def test_an_empty_file_path_is_a_usage_error_naming_its_option(tmp_path: Path, k
     with pytest.raises(ConfigError) as info:
         NodeConfig.from_toml(path)
     assert str(info.value).startswith(f"{flag}: ") and "(got '')" in str(info.value)
+
+
+@pytest.mark.parametrize("key", _PATH_OPTIONS)
+def test_a_path_with_a_nul_character_is_a_usage_error_naming_its_option(tmp_path: Path, key):
+    """TOML can hold "\\u0000", which no file name can: `out = "a\\u0000b"` ended in "internal error: ValueError:
+    embedded null byte" (exit 1, "report it"), and `calibration` named a file without the NUL."""
+    from edi_live.config import NodeConfig
+
+    flag = key.replace("_", "-")
+    options = {**_with_empty(key), key: "a\x00b"}
+    path = tmp_path / "edi.toml"
+    path.write_text("".join(f'{k.replace("_", "-")} = "{v}"\n' for k, v in options.items()).replace("\x00", "\\u0000"))
+    with pytest.raises(ConfigError) as info:
+        NodeConfig.from_toml(path)
+    assert str(info.value).startswith(f"{flag}: ") and "NUL" in str(info.value) and info.value.exit_code == 2
+
+
+def test_an_ipc_endpoint_with_a_nul_character_is_a_usage_error(tmp_path: Path):
+    """`publish = ["ipc://edi.sock\\u0000y"]` ended in "the main thread failed: ValueError: embedded null byte"."""
+    from edi_live.config import NodeConfig
+
+    path = tmp_path / "edi.toml"
+    path.write_text('replay = "rec.aedat4"\npublish = ["ipc://edi.sock\\u0000y"]\n')
+    with pytest.raises(ConfigError) as info:
+        NodeConfig.from_toml(path)
+    assert "publish endpoint" in str(info.value) and "NUL" in str(info.value) and info.value.exit_code == 2

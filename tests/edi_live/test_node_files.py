@@ -51,3 +51,20 @@ def test_out_and_record_both_lost_with_their_folder_are_both_named(real_recordin
     said = [str(info.value)] + [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
     for lost in (out, record):
         assert any(str(lost) in line and "no longer there" in line for line in said), (lost, said)
+
+
+def test_a_start_up_failure_with_save_calibration_is_one_line_not_also_nothing_to_save(real_recordings, tmp_path,
+                                                                                         caplog):
+    """--out that cannot be created (a missing folder) ended the start-up, and --save-calibration then also logged
+    "nothing to save ...: 0 APS frame(s) deblurred" before the error line: a second, misleading line for a run that
+    never started."""
+    path = real_recordings["evlib_sample_davis346.aedat4"]
+    out, saved = tmp_path / "missing" / "sharp.aedat4", tmp_path / "cal.json"
+    cfg = NodeConfig.from_options({"replay": str(path), "speed": 0, "no_publish": True, "out": str(out),
+                                   "save_calibration": str(saved)})
+    node = Node(cfg, replay(path, speed=0), reconstructor_factory=lambda w, h, e: StandIn())
+    with caplog.at_level(logging.WARNING, logger="edi_live"), pytest.raises(RecordingError) as info:
+        node.run()
+    assert str(out) in str(info.value)
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING] == []
+    assert not saved.exists()

@@ -401,6 +401,16 @@ def test_gen_curve_keys_into_an_unwritable_place_is_one_line(tmp_path, capsys):
     assert len(err) == 1 and "cannot write" in err[0] and str(blocker / "keys") in err[0], err
 
 
+def test_gen_curve_keys_into_an_empty_path_is_one_line_and_writes_nothing(tmp_path, monkeypatch, capsys):
+    # `--gen-curve-keys "$KEYS"` with KEYS unset wrote the secret key into the current folder (Path("") is "."),
+    # where a checkout or a shared folder could publish it; the node's file options refuse an empty path already
+    monkeypatch.chdir(tmp_path)
+    assert main(["--gen-curve-keys", ""]) == 1
+    assert list(tmp_path.iterdir()) == []
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and "empty" in err[0], err
+
+
 def test_a_peer_sending_an_oversized_message_is_disconnected_and_the_others_keep_their_frames(publisher):
     # a subscriber only ever sends subscriptions (a topic prefix each), but the XPUB took messages of any size: a
     # peer could stream one long message into the node for as long as its heartbeats allowed (3 s, at loopback

@@ -434,3 +434,28 @@ def test_a_read_through_a_late_window_reaches_a_frame_queued_after_it_in_one_rea
         ring.read_events(1 << 16, None, entry.frame.exposure_end_us + 10)
         reads += 1
     assert reads == 1, f"{reads} reads to reach the frame"
+
+
+def test_a_stop_ends_the_rings_page_touching_between_chunks_and_the_ring_still_works(monkeypatch, rng):
+    """The ring writes its memory at start-up (page faults before data flows); a large --ring-events (16 GiB) took
+    13 s in that one numpy call, through which Ctrl-C or SIGTERM waited. The stop is now asked between chunks,
+    and whatever was not written yet still reads as zeros."""
+    from edi_live import ring_buffer
+
+    monkeypatch.setattr(ring_buffer, "_PREFAULT_ROWS", 64)
+    asked: list[int] = []
+
+    def stop_after_two() -> bool:
+        asked.append(1)
+        return len(asked) > 2
+
+    ring = EventRing(64 * 10, 4, stop=stop_after_two)
+    assert len(asked) == 3  # two chunks written, the third ask stopped it (not one ask per chunk, ten)
+    every = []
+    ring_full = EventRing(64 * 10, 4, stop=lambda: every.append(1) or False)
+    assert len(every) == 10
+    for r in (ring, ring_full):
+        ev = events_at_random_pixels(np.arange(100, dtype=np.int64), rng)
+        assert r.push(Packet(events=ev, frames=[], watermark_us=100))
+        assert np.array_equal(r.read_events(1000).events, ev)
+        assert not r._store._buf[100:].any()  # the rest: zeros, written or not

@@ -187,9 +187,9 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         lines.append(f"  warning: no APS frame arrived, so none of the {events} events became a frame: EDI needs the "
                      f"camera's APS frames (an events-only recording, or a camera without them, has none)")
     if not events and s.get("aps_frames_in"):
-        lines.append(f"  warning: no event arrived, so the scene was taken as still: of the {s['aps_frames_in']} APS "
-                     f"frames, {s.get('skipped_static_deblur', 0)} were neither deblurred nor sent (EDI needs the "
-                     f"camera's events between them; a frames-only recording has none)")
+        lines.append(f"  warning: no event arrived, so the {s['aps_frames_in']} APS frames went out as they came, "
+                     f"not sharpened: EDI needs the camera's events (a frames-only recording, or a camera whose DVS "
+                     f"is off, has none)")
     if not events and not s.get("aps_frames_in"):
         lines.append("  warning: nothing arrived from the input (not one event or APS frame): an empty recording, or a "
                      "camera or stream that sent nothing before the stop")

@@ -39,6 +39,10 @@ MODES = ("causal", "nearest", "fused")
 DEVICE_MODELS = ("davis240", "davis346", "auto")
 LOG_LEVELS = ("debug", "info", "warning", "error")
 
+MIN_HEARTBEAT_S = 0.001
+"""Shortest keyframe interval: below it a still scene's heartbeat came on almost every event (1e-300 s gave
+416k frames for a 0.3 s recording)."""
+
 
 # the bounds of the camera values, as options and in a saved calibration (edi_live.calibration checks it against them)
 C_RANGE = (0.01, 2.0)  # a contrast threshold
@@ -168,6 +172,9 @@ class EdiConfig:
         _check(self.mode in MODES, f"mode must be one of {', '.join(MODES)} (got {self.mode!r})")
         _positive_or_none("max-fps", self.max_fps)
         _positive_or_none("heartbeat-s", self.heartbeat_s, wait=True)
+        _check(self.heartbeat_s >= MIN_HEARTBEAT_S,
+               f"heartbeat-s must be at least {MIN_HEARTBEAT_S:g} s (got {self.heartbeat_s!r}): it is the keyframe "
+               f"interval of a still scene; for frames at a steady rate use --every-ms")
         _int_in("reestimate-every", self.reestimate_every, 0, 10**9, "APS frames; 0 = only when c stops fitting")
         _int_in("quality-every", self.quality_every, 0, 10**6, "score one APS frame in N; 0 = off")
         _check(self.aps_gamma is None or (isinstance(self.aps_gamma, (int, float))

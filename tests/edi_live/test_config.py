@@ -72,6 +72,8 @@ def test_defaults_are_safe():
     # accepted, then the run failed: "the main thread failed: OverflowError: cannot convert float infinity to
     # integer" (the heartbeat in µs), "the publisher thread failed: OverflowError: timestamp out of range" (its wait)
     ({"replay": "x", "heartbeat_s": 1e308}, "heartbeat-s must be a positive number of at most 10^9 s (got 1e+308)"),
+    # accepted, and a still scene's heartbeat came on almost every event (416k frames for a 0.3 s recording)
+    ({"replay": "x", "heartbeat_s": 1e-300}, "heartbeat-s must be at least 0.001 s (got 1e-300)"),
     ({"replay": "x", "stats_interval_s": 1e13}, "stats-interval-s must be a positive number of at most 10^9 s"),
     ({"replay": "x", "frobnicate": 1}, "unknown option(s) frobnicate"),
     ({"replay": "x", "log_level": "loud"}, "log-level"),

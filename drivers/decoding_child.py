@@ -43,7 +43,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from drivers.replay_merge import merged_packets
+from drivers.replay_merge import merged_packets, next_pass_offset
 from edi_live.aedat4 import Aedat4Writer
 from edi_live.datatypes import EVENT_DTYPE, Packet, empty_imu, empty_triggers
 from edi_live.errors import RecordingError, SourceError
@@ -197,7 +197,7 @@ def _child(conn: Any, path: str, max_packet_us: int, loop: bool, size: tuple[int
             conn.send(("pass", span["t_first"], span["t_last"]))
             if not (loop and produced):
                 break
-            offset += span["t_last"] - span["t_first"] + 1
+            offset = next_pass_offset(offset, span)
         conn.send(("end",))
     except RecordingError as exc:
         _send_quietly(conn, ("error", _message(exc), exc.path, exc.offset))

@@ -16,7 +16,7 @@ from typing import Iterator
 
 from drivers import decoding_child
 from drivers.pacing import Pacer
-from drivers.replay_merge import merged_packets
+from drivers.replay_merge import merged_packets, next_pass_offset
 from edi_live.aedat4 import Aedat4Reader
 from edi_live.datatypes import Packet, SourceInfo, SourceStatus
 from edi_live.errors import ConfigError, RecordingError
@@ -120,7 +120,7 @@ class ReplaySource:
                     return
             if not (self.loop and produced) or "t_first" not in span:
                 return
-            offset += span["t_last"] - span["t_first"] + 1
+            offset = next_pass_offset(offset, span)
             self.loops += 1
 
     def _decoded(self) -> Iterator[Packet | None]:

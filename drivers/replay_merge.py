@@ -207,6 +207,17 @@ def _split(events: np.ndarray, frames: list[Frame], imu: np.ndarray, trig: np.nd
         e0, i0, g0 = e1, i1, g1
 
 
+MIN_PASS_US = 1_000
+"""Shortest pass of a looped replay (sensor µs): a recording of one instant (one event, one frame) would otherwise
+repeat every 1 µs, a pass per µs of the replay clock, and keep a core busy at any --speed."""
+
+
+def next_pass_offset(offset_us: int, span: dict) -> int:
+    """The time offset of a looped replay's next pass: after the pass that `merged_packets` described in `span`
+    (its first and last timestamps), one µs later, and at least MIN_PASS_US after the pass's start."""
+    return offset_us + max(span["t_last"] - span["t_first"] + 1, MIN_PASS_US)
+
+
 def merged_packets(path: str | os.PathLike, *, time_offset_us: int = 0, max_packet_us: int = 10_000,
                    horizon_us: int = 1_000_000, max_pending_events: int = 4_000_000,
                    span: dict | None = None, size: tuple[int, int] | None = None) -> Iterator[Packet]:

@@ -210,6 +210,34 @@ def test_loop_keeps_time_monotonic(real_recordings, decode_process):
 
 
 @pytest.mark.parametrize("decode_process", [False, True])
+def test_a_looped_recording_of_one_instant_repeats_once_a_millisecond_not_every_microsecond(tmp_path,
+                                                                                           decode_process):
+    """A recording of a single event looped: each pass one µs after the last made a pass per µs of the replay
+    clock, a core kept busy by a paced replay (found by the hardening probe)."""
+    from drivers.replay_merge import MIN_PASS_US
+
+    path = tmp_path / "one.aedat4"
+    with Aedat4Writer(path, 8, 6) as writer:
+        ev = np.zeros(1, dtype=EVENT_DTYPE)
+        ev["t"] = T0
+        writer.write_events(ev)
+    src = ReplaySource(path, speed=0, loop=True, decode_process=decode_process)
+
+    def consume():
+        times = []
+        with src:
+            for p in src:
+                if p is not None:
+                    times += p.events["t"].tolist()
+                    if len(times) >= 4:
+                        src.stop()
+        return times
+
+    times = _run_in_thread(consume)
+    assert np.diff(times[:4]).tolist() == [MIN_PASS_US] * 3
+
+
+@pytest.mark.parametrize("decode_process", [False, True])
 def test_truncated_file_replays_up_to_the_fault_then_raises(tmp_path, real_recordings, decode_process):
     data = real_recordings["aestream_davis346.aedat4"].read_bytes()
     path = tmp_path / "cut.aedat4"

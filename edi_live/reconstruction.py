@@ -100,7 +100,10 @@ class Reconstructor(Protocol):
         another thread; its events are replayed into this one afterwards."""
         ...
 
-    def stats(self) -> dict[str, Any]: ...
+    def stats(self, current: bool = False) -> dict[str, Any]:
+        """Counters and camera values; `current`: the run has ended, so figures that are otherwise refreshed only
+        every few seconds (the noise summary) are brought up to date."""
+        ...
 
     def noise_rates(self) -> "NoiseRates | None":
         """The per-pixel noise rates to save with a calibration; None when they are not estimated."""

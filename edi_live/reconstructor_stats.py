@@ -13,12 +13,12 @@ PASSED_ON = ("clock_offset_estimated", "clock_offset_physical_us", "black_level_
              "bayer_pattern")  # colour only; the node's summary reads it, the wire's stats map leaves it out
 
 
-def reconstructor_stats(rec: Any) -> dict[str, Any]:
+def reconstructor_stats(rec: Any, current: bool = False) -> dict[str, Any]:
     c_on, c_off = float(rec.c_on), float(rec.c_off)
     return {
         "c": round((c_on + c_off) / 2, 4), "c_on": round(c_on, 4), "c_off": round(c_off, 4),
         "reestimations": int(rec.reestimations), "hot_pixels": int(rec.hot_pixels),
         "unreliable_pixels": int(rec.unreliable_pixels), "black_level_dn": round(float(rec.black_level), 2),
         "clock_offset_us": int(rec.clock_offset_us), "aps_gamma": float(rec.aps_gamma),
-        **{k: v for k, v in rec.stats().items() if k in PASSED_ON},
+        **{k: v for k, v in rec.stats(current).items() if k in PASSED_ON},
     }

@@ -130,7 +130,7 @@ class ReconstructorView:
             return self._latent.shown_image()
         return self._colour.output(self._latent.display)
 
-    def stats(self) -> dict:
+    def stats(self, current: bool = False) -> dict:
         return {
             "c_on": self.c_on, "c_off": self.c_off, "c_fixed": self._fixed, "black_level": self.black_level,
             "black_level_estimated": self._black.estimated, "clock_offset_estimated": self._clock.estimated,
@@ -140,7 +140,7 @@ class ReconstructorView:
             "estimator": self.estimator.name, "reestimations": self.reestimations,
             "ill_conditioned": self.ill_conditioned, "hot_pixels": self.hot_pixels,
             "unreliable_pixels": self.unreliable_pixels,
-            "flicker_pixels": self.flicker_pixels, "frames": self.frames, **self._pixel_noise.summary(),
+            "flicker_pixels": self.flicker_pixels, "frames": self.frames, **self._pixel_noise.summary(current),
             "events_ignored": self.events_ignored, "deblurs_ahead": self._ahead.used,
             "events_applied": self.events_applied, "has_reference": self.has_reference,
             "last_deblur_ms": round(self.last_deblur_ms, 3), "last_estimate_ms": round(self.last_estimate_ms, 3),

@@ -33,6 +33,7 @@ def worker_stats(worker: Any) -> dict[str, Any]:
         "deblur_ms_max": round(float(np.max(deblur)), 3) if deblur else None,
         "nearest_added_latency_ms_p50": worker._nearest.waited_ms_p50() if worker.config.mode == "nearest" else None,
         "fused_added_latency_ms_p50": worker._nearest.waited_ms_p50() if worker.config.mode == "fused" else None,
-        **reconstructor_stats(rec),  # c, camera values, ignored pixels, noise statistics
+        # c, camera values, ignored pixels, noise statistics (up to date once the worker has finished)
+        **reconstructor_stats(rec, current=worker.done.is_set()),
         **(worker.quality.stats() if worker.quality is not None else {}),
     }

@@ -102,7 +102,7 @@ class StandIn:
     def streaming_copy(self):
         return copy.copy(self)
 
-    def stats(self):
+    def stats(self, current=False):
         return {}
 
 

@@ -187,9 +187,10 @@ def format_summary(s: dict[str, Any], elapsed_s: float) -> str:
         lines.append(f"  warning: no APS frame arrived, so none of the {events} events became a frame: EDI needs the "
                      f"camera's APS frames (an events-only recording, or a camera without them, has none)")
     if not events and s.get("aps_frames_in"):
-        lines.append(f"  warning: no event arrived, so the {s['aps_frames_in']} APS frames went out as they came, "
-                     f"not sharpened: EDI needs the camera's events (a frames-only recording, or a camera whose DVS "
-                     f"is off, has none)")
+        lines.append(f"  warning: no event arrived, so APS frames went out as they came, not sharpened: "
+                     f"{s.get('frames_out', 0)} of {s['aps_frames_in']} (those that changed, and one per heartbeat "
+                     f"while none did); EDI needs the camera's events (a frames-only recording, or a camera whose "
+                     f"DVS is off, has none)")
     if not events and not s.get("aps_frames_in"):
         lines.append("  warning: nothing arrived from the input (not one event or APS frame): an empty recording, or a "
                      "camera or stream that sent nothing before the stop")

@@ -13,6 +13,8 @@ import numpy as np
 from edi_live.activity import StaticScene
 from edi_live.datatypes import Frame
 
+APS_CHANGE_DN = 8  # without events: a pixel changed when its APS value moved by more than this (read noise: 1-3 DN)
+APS_CHANGED_FRACTION = 0.001  # ... and the frame changed when more than this share of its pixels did
 STATIC_EVENTS = 16  # fewer events than this in an exposure (and since the last frame) = a static scene
 MOVING_EVENTS_CAP = 100  # the threshold at the default --every 1000; larger --every values do not raise it
 _T_MIN = -np.iinfo(np.int64).max
@@ -28,6 +30,7 @@ class StillFrames:
         # frame, which the --every-ms rule makes a few ms old at most: too short a view of whether the scene moved)
         self._streamed = 0
         self._streamed_before = 0  # ... up to the latest deblurred APS frame, for its send decision
+        self._last_image: np.ndarray | None = None  # the latest deblurred APS frame's image
 
     def moving(self, n_exposure_events: int, since: int, scene: StaticScene) -> bool:
         """Whether a deblurred frame is worth sending: the scene was active, and a tenth of a latent frame's events
@@ -46,12 +49,25 @@ class StillFrames:
             return False
         return self.last_deblur_us is not None and frame.exposure_end_us - self.last_deblur_us < self.heartbeat_us
 
+    def skip_unchanged(self, frame: Frame) -> bool:
+        """For a source without any event (frames only, or a DVS switched off), where events cannot say whether the
+        scene moved: skip the deblur when the APS frame shows what the latest deblurred one showed (more than
+        APS_CHANGED_FRACTION of its pixels moved by more than APS_CHANGE_DN: changed), but for the heartbeat."""
+        last = self._last_image
+        if last is None or last.shape != frame.image.shape or self.last_deblur_us is None:
+            return False
+        if frame.exposure_end_us - self.last_deblur_us >= self.heartbeat_us:
+            return False
+        moved = np.abs(frame.image.astype(np.int32) - last.astype(np.int32)) > APS_CHANGE_DN
+        return np.count_nonzero(moved) <= APS_CHANGED_FRACTION * moved.size
+
     def streamed(self, n: int) -> None:
         """n events of an active scene went to the latent image (not noise)."""
         self._streamed += n
 
     def deblurred(self, frame: Frame) -> None:
         self.last_deblur_us = frame.exposure_end_us
+        self._last_image = frame.image
         self._streamed_before, self._streamed = self._streamed, 0
 
     def emitted(self, t_us: int) -> None:

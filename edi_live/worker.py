@@ -291,8 +291,9 @@ class EdiWorker:
         t0 = time.perf_counter()
         # exposure start (in the event clock: clock_offset_us later) .. read cursor
         events = self.ring.window(frame.exposure_start_us + self.rec.clock_offset_us, _T_MAX)
-        if self.rec.has_reference and not self._await_reference and self.events_in and self._still.skip_deblur(
-                frame, len(events), self._since, self._scene):  # (no event at all yet: a source without them)
+        if self.rec.has_reference and not self._await_reference and (
+                self._still.skip_deblur(frame, len(events), self._since, self._scene) if self.events_in
+                else self._still.skip_unchanged(frame)):  # (no event at all yet: a source without them)
             self.skipped_static_deblur += 1
             return
         self._scene.new_reference(in_event_clock_frame, anchor=self._await_reference)

@@ -364,9 +364,10 @@ def test_static_aps_frames_are_not_sent_again():
 
 
 @pytest.mark.parametrize("mode", ["causal", "nearest", "fused"])
-def test_a_source_without_events_passes_every_aps_frame_through(mode):
+def test_a_source_without_events_passes_every_aps_frame_that_changed_through(mode):
     """A frames-only recording (or a camera whose DVS is off) has no event to tell a still scene from a moving
-    one: each APS frame is what is known, and is sent (before, all but the first were taken for a still scene)."""
+    one: an APS frame that changed is what is known, and is sent (before, all but the first were taken for a
+    still scene)."""
     frames = [Frame(np.full((2, 2), 10 * k, np.uint8), exposure_start_us=k * 50_000,
                     exposure_end_us=k * 50_000 + 5_000) for k in range(6)]
     packets = [Packet(events=np.zeros(0, EVENT_DTYPE), frames=[f]) for f in frames]
@@ -374,6 +375,24 @@ def test_a_source_without_events_passes_every_aps_frame_through(mode):
     assert not errors
     assert [r.kind for r in out] == ["deblurred"] * 6
     assert [r.t_us for r in out] == [f.mid_exposure_us for f in frames]
+
+
+def test_a_source_without_events_sends_an_unchanged_aps_frame_only_as_the_heartbeat():
+    """A perfect sensor's still scene (no events, the same APS frame 20 times a second) stays at the heartbeat,
+    as a still scene with events does; read noise does not count as a change, a changed frame does."""
+    rng = np.random.default_rng(3)
+    still = np.full((20, 30), 100, np.uint8)
+    images = [np.clip(still + rng.integers(-3, 4, still.shape), 0, 255).astype(np.uint8) for _ in range(40)]
+    images[30] = images[30].copy()
+    images[30][:10] = 200  # something changed in the APS frame, and stays
+    images[31:] = [images[30].copy() for _ in range(9)]
+    frames = [Frame(img, exposure_start_us=k * 50_000, exposure_end_us=k * 50_000 + 5_000)
+              for k, img in enumerate(images)]
+    packets = [Packet(events=np.zeros(0, EVENT_DTYPE), frames=[f]) for f in frames]
+    worker, rec, out, errors = run_worker(packets, EdiConfig(every=1000, heartbeat_s=1.0))
+    assert not errors
+    sent = [round((r.t_us - 2_500) / 50_000) for r in out]  # the APS frame each came from
+    assert sent == [0, 20, 30], sent  # the first, the heartbeat a second later, the change
 
 
 def test_gap_suspends_latent_frames_until_the_next_aps_frame():

@@ -134,10 +134,7 @@ class ClockOffsetPolicy:
                c: tuple[float, float], mask: np.ndarray | None) -> None:
         """One APS frame with its batch of events (exposure start to now, may overlap what was collected): it
         closes a pair, and the due pairs the kept events now cover are fitted here (the reconstructor's settle)."""
-        if self.given is not None:
-            return
-        if not self.collecting:
-            self._frames_to_round -= 1
+        if not self._in_round():
             return
         self._paused = False
         if self._last is not None and frame.exposure_start_us <= self._last.exposure_start_us:
@@ -148,8 +145,7 @@ class ClockOffsetPolicy:
         if self._last is not None:
             self._due = self._due[-1:] + [_Due(self._last, window, float(black_level), tuple(c), mask)]
         self._last = window
-        while self._due and self._due[0].runnable(self._t_max):  # the pairs the events kept so far complete
-            self._fit(self._due.pop(0))
+        self._fit_runnable()
 
     def still(self, events: np.ndarray) -> None:
         """An APS frame whose pair with the previous one is still (the c policy ignores its events), with its batch
@@ -157,20 +153,31 @@ class ClockOffsetPolicy:
         waiting for its fit, is fitted now when the events cover it (the verdict is on the newest pair only); then
         the kept events are dropped, and none are kept until a frame that moves comes to `update`. The round stays
         open: its fits come with the frames that move."""
-        if self.given is not None:
-            return
-        if not self.collecting:
-            self._frames_to_round -= 1
+        if not self._in_round():
             return
         if self._due:
             self._keep(events)
-            while self._due and self._due[0].runnable(self._t_max):
-                self._fit(self._due.pop(0))
+            self._fit_runnable()
         if self.collecting:  # (unless that fit ended the round)
             self._drop_data()
             self._paused = True
 
     # ---- internals ----
+
+    def _in_round(self) -> bool:
+        """Whether an APS frame counts for a round (estimated, and collecting); between rounds it counts down to
+        the next one."""
+        if self.given is not None:
+            return False
+        if not self.collecting:
+            self._frames_to_round -= 1
+            return False
+        return True
+
+    def _fit_runnable(self) -> None:
+        """Fit the due pairs the events kept so far complete."""
+        while self._due and self._due[0].runnable(self._t_max):
+            self._fit(self._due.pop(0))
 
     def _keep(self, events: np.ndarray) -> None:
         if not self.collecting or events.size == 0:

@@ -9,8 +9,9 @@ the c and black level just decided, as before) and the pixel-noise statistics. A
 (its events explain no brightness change) goes to neither the black level nor the clock offset: it holds nothing
 either could learn from, and on a still scene their start-up fits (~10 ms a frame) would run on every heartbeat.
 What settle decides takes effect at the next frame: c and the black level never change between two frames, and a
-frame is deblurred with the values in force before it. At start-up (no c estimated yet, also after a black-level restart) the c decision stays before
-the deblur that needs it. (A new clock offset is in use from the next frame on; its pairs start there.)
+frame is deblurred with the values in force before it. At start-up (no c estimated yet, also after a black-level
+restart) the c decision stays before the deblur that needs it. (A new clock offset is in use from the next frame
+on; its pairs start there.)
 Once the calibration has settled, the c fit test and the level tables it reads run on fewer frames
 (calibration_schedule: which frames, and why the other parts are not thinned).
 

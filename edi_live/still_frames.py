@@ -32,31 +32,36 @@ class StillFrames:
         self._streamed_before = 0  # ... up to the latest deblurred APS frame, for its send decision
         self._last_image: np.ndarray | None = None  # the latest deblurred APS frame's image
 
-    def moving(self, n_exposure_events: int, since: int, scene: StaticScene) -> bool:
+    def moving(self, n_exposure_events: int, since: int, scene: StaticScene, events_seen: bool = True) -> bool:
         """Whether a deblurred frame is worth sending: the scene was active, and a tenth of a latent frame's events
-        (capped: a huge --every cannot hide moving frames) came during its exposure or since the last frame."""
+        (capped: a huge --every cannot hide moving frames) came during its exposure or since the last frame. Without
+        any event seen (`events_seen` False), every deblurred frame is: skip_deblur already kept out the unchanged
+        ones."""
+        if not events_seen:
+            return True
         threshold = max(STATIC_EVENTS, min(self.every // 10, MOVING_EVENTS_CAP))
         since = max(since, self._streamed_before)
         return (n_exposure_events >= threshold or since >= threshold) and scene.changed
 
-    def skip_deblur(self, frame: Frame, n_events: int, since: int, scene: StaticScene) -> bool:
+    def skip_deblur(self, frame: Frame, n_events: int, since: int, scene: StaticScene,
+                    events_seen: bool = True) -> bool:
         """A static scene: (almost) no events, or only noise, since the previous deblur, so L(f) would be the
         current reference up to sensor noise. The events keep the latent image right; a real deblur is still
         forced every heartbeat_s of sensor time to bound drift. This is what keeps a still camera near zero CPU.
-        Ask only with a reference in use."""
+        A source that sent no event at all (`events_seen` False: frames only, or a DVS switched off) cannot say
+        whether the scene moved: its APS frames do (_aps_unchanged). Ask only with a reference in use."""
+        if self.last_deblur_us is None or frame.exposure_end_us - self.last_deblur_us >= self.heartbeat_us:
+            return False  # the heartbeat's deblur
+        if not events_seen:
+            return self._aps_unchanged(frame)
         since = max(since, self._streamed)
-        if (n_events >= STATIC_EVENTS or since >= STATIC_EVENTS) and scene.active_since_reference():
-            return False
-        return self.last_deblur_us is not None and frame.exposure_end_us - self.last_deblur_us < self.heartbeat_us
+        return not ((n_events >= STATIC_EVENTS or since >= STATIC_EVENTS) and scene.active_since_reference())
 
-    def skip_unchanged(self, frame: Frame) -> bool:
-        """For a source without any event (frames only, or a DVS switched off), where events cannot say whether the
-        scene moved: skip the deblur when the APS frame shows what the latest deblurred one showed (more than
-        APS_CHANGED_FRACTION of its pixels moved by more than APS_CHANGE_DN: changed), but for the heartbeat."""
+    def _aps_unchanged(self, frame: Frame) -> bool:
+        """The APS frame shows what the latest deblurred one showed: at most APS_CHANGED_FRACTION of its pixels
+        moved by more than APS_CHANGE_DN."""
         last = self._last_image
-        if last is None or last.shape != frame.image.shape or self.last_deblur_us is None:
-            return False
-        if frame.exposure_end_us - self.last_deblur_us >= self.heartbeat_us:
+        if last is None or last.shape != frame.image.shape:
             return False
         moved = np.abs(frame.image.astype(np.int32) - last.astype(np.int32)) > APS_CHANGE_DN
         return np.count_nonzero(moved) <= APS_CHANGED_FRACTION * moved.size

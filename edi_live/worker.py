@@ -291,9 +291,8 @@ class EdiWorker:
         t0 = time.perf_counter()
         # exposure start (in the event clock: clock_offset_us later) .. read cursor
         events = self.ring.window(frame.exposure_start_us + self.rec.clock_offset_us, _T_MAX)
-        if self.rec.has_reference and not self._await_reference and (
-                self._still.skip_deblur(frame, len(events), self._since, self._scene) if self.events_in
-                else self._still.skip_unchanged(frame)):  # (no event at all yet: a source without them)
+        if self.rec.has_reference and not self._await_reference and self._still.skip_deblur(
+                frame, len(events), self._since, self._scene, events_seen=self.events_in > 0):
             self.skipped_static_deblur += 1
             return
         self._scene.new_reference(in_event_clock_frame, anchor=self._await_reference)
@@ -301,7 +300,7 @@ class EdiWorker:
         f_us = frame.mid_exposure_us + self.rec.clock_offset_us
         arrival = max(entry.arrival_ns, self._last_arrival_ns)
         if self._use_deblur_thread():
-            send = not self.events_in or self._still.moving(len(events), self._since, self._scene)
+            send = self._still.moving(len(events), self._since, self._scene, self.events_in > 0)
             self._since = 0 if send else self._since  # latent frames count from here, as when sent inline
             self._pending = PendingDeblur(self.rec, entry, events, arrival, send, self._helper)
             self.rec = self._pending.streamer  # streams from the previous reference; its calls are replayed later
@@ -317,7 +316,7 @@ class EdiWorker:
         self._await_reference = False
         out += held_frames.after_new_reference(self.rec, self.ring, self._nearest, f_us, frame,
                                                self.config.mode == "fused")
-        if first or out or not self.events_in or self._still.moving(len(events), self._since, self._scene):
+        if first or out or self._still.moving(len(events), self._since, self._scene, self.events_in > 0):
             out.append(deblurred)
         else:
             self.skipped_static += 1
